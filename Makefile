@@ -1,0 +1,58 @@
+# esa: the two user-facing commands are `make demo` and `make test`; both set
+# everything up from a fresh clone (Rust release build + Python venv).
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+CARGO ?= cargo
+SERVER_BIN := $(CURDIR)/target/release/esa-server
+# The Python client and tests use exactly the binary this Makefile built.
+export ESA_SERVER_BIN := $(SERVER_BIN)
+
+PY_PACKAGES := client-py experiments tests
+PY_EXTRAS := -e "client-py[sb3,zenoh,dev]" -e "experiments[dev]"
+
+.PHONY: help setup build venv demo test test-rust test-python lint fmt bench clean
+
+help: ## list the targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
+
+setup: build venv ## build the server and create the Python venv
+
+build: ## cargo build --release (esa-server and friends)
+	$(CARGO) build --release --workspace --bins
+
+venv: $(VENV)/.installed ## create .venv with esa_client, esa_experiments and their deps
+
+$(VENV)/.installed: client-py/pyproject.toml experiments/pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet $(PY_EXTRAS)
+	touch $@
+
+demo: setup ## train PPO vs ESAPPO on InvertedPendulum-v5, plot and tabulate
+	$(PY) client-py/examples/demo.py
+
+test: setup test-rust test-python ## set up, then run every Rust and Python test
+
+test-rust:
+	$(CARGO) test --release --workspace
+
+test-python:
+	$(PY) -m pytest $(PY_PACKAGES)
+
+lint: venv ## rustfmt, clippy -D warnings, ruff
+	$(CARGO) fmt --all -- --check
+	$(CARGO) clippy --release --workspace --all-targets -- -D warnings
+	$(VENV)/bin/ruff check $(PY_PACKAGES)
+	$(VENV)/bin/ruff format --check $(PY_PACKAGES)
+
+fmt: venv ## apply rustfmt and ruff format
+	$(CARGO) fmt --all
+	$(VENV)/bin/ruff format $(PY_PACKAGES)
+
+clean: ## remove build outputs and the venv
+	$(CARGO) clean
+	rm -rf $(VENV)
