@@ -1,0 +1,75 @@
+"""Regenerate the committed Python stubs from ``proto/esa/v1/esa.proto``.
+
+Usage::
+
+    python scripts/gen_proto.py          # rewrite src/esa_client/_proto/esa/v1/
+    python scripts/gen_proto.py --check  # exit 1 if the committed stubs are stale
+
+The proto is compiled with ``-I proto`` so the descriptor keeps its canonical
+name ``esa/v1/esa.proto`` (the name reflection and other languages use). protoc
+then writes ``from esa.v1 import esa_pb2`` into the gRPC module, which would
+need a top-level ``esa`` package; that single import is rewritten to a
+relative one so the stubs live privately inside ``esa_client._proto``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+from grpc_tools import protoc
+
+CLIENT_ROOT = Path(__file__).resolve().parent.parent
+PROTO_ROOT = CLIENT_ROOT.parent / "proto"
+PROTO_FILE = PROTO_ROOT / "esa" / "v1" / "esa.proto"
+STUB_DIR = CLIENT_ROOT / "src" / "esa_client" / "_proto" / "esa" / "v1"
+GENERATED = ("esa_pb2.py", "esa_pb2.pyi", "esa_pb2_grpc.py")
+ABSOLUTE_IMPORT = "from esa.v1 import esa_pb2 as"
+RELATIVE_IMPORT = "from . import esa_pb2 as"
+
+
+def generate() -> dict[str, str]:
+    """Compile the proto and return the generated files by name, imports fixed."""
+    with tempfile.TemporaryDirectory() as out:
+        args = [
+            "grpc_tools.protoc",
+            f"-I{PROTO_ROOT}",
+            f"--python_out={out}",
+            f"--pyi_out={out}",
+            f"--grpc_python_out={out}",
+            str(PROTO_FILE),
+        ]
+        if protoc.main(args) != 0:
+            raise SystemExit(f"protoc failed on {PROTO_FILE}")
+        files = {name: (Path(out) / "esa" / "v1" / name).read_text() for name in GENERATED}
+    grpc_module = files["esa_pb2_grpc.py"]
+    if ABSOLUTE_IMPORT not in grpc_module:
+        raise SystemExit(f"expected {ABSOLUTE_IMPORT!r} in the generated gRPC module, got none")
+    files["esa_pb2_grpc.py"] = grpc_module.replace(ABSOLUTE_IMPORT, RELATIVE_IMPORT)
+    return files
+
+
+def main() -> int:
+    """Write or check the stubs; returns the process exit code."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true", help="only compare, write nothing")
+    check = parser.parse_args().check
+    stale = []
+    for name, text in generate().items():
+        path = STUB_DIR / name
+        if check:
+            if not path.exists() or path.read_text() != text:
+                stale.append(name)
+        else:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+    if stale:
+        print(f"stale stubs in {STUB_DIR}: {', '.join(stale)}; run scripts/gen_proto.py")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

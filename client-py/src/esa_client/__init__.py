@@ -1,0 +1,49 @@
+"""esa_client: Python client for the esa Extremum-Seeking Action selection service.
+
+Quick start::
+
+    from esa_client import EsaClient, SessionConfig
+
+    with EsaClient.spawn() as client:  # starts a private esa-server
+        batch = client.create_batch(SessionConfig(action_dim=1, dt=0.05, amplitude=0.2,
+                                                  frequency=10.0, learning_rate=0.1), n=4)
+        probes = batch.probe(actions, episode_starts)       # (4, 1)
+        improved = batch.report(critic(observations, probes))  # (4, 1)
+
+Stable-baselines3 drop-ins live in :mod:`esa_client.sb3`, a gymnasium wrapper in
+:mod:`esa_client.wrappers`, and an in-process implementation of the update law in
+:mod:`esa_client.reference`.
+"""
+
+from .client import EsaClient
+from .config import EsaConfig, SessionConfig
+from .errors import (
+    DeadlineExceeded,
+    EsaError,
+    InvalidArgument,
+    ResourceExhausted,
+    ServerUnavailable,
+    SessionAlreadyExists,
+    SessionNotFound,
+    StepMismatch,
+)
+from .session import Session, SessionBatch, SessionState
+
+__all__ = [
+    "DeadlineExceeded",
+    "EsaClient",
+    "EsaConfig",
+    "EsaError",
+    "InvalidArgument",
+    "ResourceExhausted",
+    "ServerUnavailable",
+    "Session",
+    "SessionAlreadyExists",
+    "SessionBatch",
+    "SessionConfig",
+    "SessionNotFound",
+    "SessionState",
+    "StepMismatch",
+]
+
+__version__ = "0.1.0"

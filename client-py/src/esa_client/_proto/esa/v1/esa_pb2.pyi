@@ -1,0 +1,189 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class SessionConfig(_message.Message):
+    __slots__ = ("action_dim", "dt", "amplitude", "frequency", "learning_rate", "highpass_cutoff", "disable_highpass", "action_low", "action_high", "shift_limit", "lr_decay", "max_episodes")
+    ACTION_DIM_FIELD_NUMBER: _ClassVar[int]
+    DT_FIELD_NUMBER: _ClassVar[int]
+    AMPLITUDE_FIELD_NUMBER: _ClassVar[int]
+    FREQUENCY_FIELD_NUMBER: _ClassVar[int]
+    LEARNING_RATE_FIELD_NUMBER: _ClassVar[int]
+    HIGHPASS_CUTOFF_FIELD_NUMBER: _ClassVar[int]
+    DISABLE_HIGHPASS_FIELD_NUMBER: _ClassVar[int]
+    ACTION_LOW_FIELD_NUMBER: _ClassVar[int]
+    ACTION_HIGH_FIELD_NUMBER: _ClassVar[int]
+    SHIFT_LIMIT_FIELD_NUMBER: _ClassVar[int]
+    LR_DECAY_FIELD_NUMBER: _ClassVar[int]
+    MAX_EPISODES_FIELD_NUMBER: _ClassVar[int]
+    action_dim: int
+    dt: float
+    amplitude: _containers.RepeatedScalarFieldContainer[float]
+    frequency: _containers.RepeatedScalarFieldContainer[float]
+    learning_rate: _containers.RepeatedScalarFieldContainer[float]
+    highpass_cutoff: float
+    disable_highpass: bool
+    action_low: _containers.RepeatedScalarFieldContainer[float]
+    action_high: _containers.RepeatedScalarFieldContainer[float]
+    shift_limit: float
+    lr_decay: float
+    max_episodes: int
+    def __init__(self, action_dim: _Optional[int] = ..., dt: _Optional[float] = ..., amplitude: _Optional[_Iterable[float]] = ..., frequency: _Optional[_Iterable[float]] = ..., learning_rate: _Optional[_Iterable[float]] = ..., highpass_cutoff: _Optional[float] = ..., disable_highpass: _Optional[bool] = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., shift_limit: _Optional[float] = ..., lr_decay: _Optional[float] = ..., max_episodes: _Optional[int] = ...) -> None: ...
+
+class CreateSessionRequest(_message.Message):
+    __slots__ = ("session_id", "config")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    CONFIG_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    config: SessionConfig
+    def __init__(self, session_id: _Optional[str] = ..., config: _Optional[_Union[SessionConfig, _Mapping]] = ...) -> None: ...
+
+class CreateSessionResponse(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class ProbeRequest(_message.Message):
+    __slots__ = ("session_id", "step", "action", "episode_start")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_START_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    step: int
+    action: _containers.RepeatedScalarFieldContainer[float]
+    episode_start: bool
+    def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., action: _Optional[_Iterable[float]] = ..., episode_start: _Optional[bool] = ...) -> None: ...
+
+class ProbeResponse(_message.Message):
+    __slots__ = ("probe", "step")
+    PROBE_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    probe: _containers.RepeatedScalarFieldContainer[float]
+    step: int
+    def __init__(self, probe: _Optional[_Iterable[float]] = ..., step: _Optional[int] = ...) -> None: ...
+
+class ReportRequest(_message.Message):
+    __slots__ = ("session_id", "step", "q_value")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    Q_VALUE_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    step: int
+    q_value: float
+    def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., q_value: _Optional[float] = ...) -> None: ...
+
+class ReportResponse(_message.Message):
+    __slots__ = ("action", "step")
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    action: _containers.RepeatedScalarFieldContainer[float]
+    step: int
+    def __init__(self, action: _Optional[_Iterable[float]] = ..., step: _Optional[int] = ...) -> None: ...
+
+class EndEpisodeRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class EndEpisodeResponse(_message.Message):
+    __slots__ = ("episodes_completed",)
+    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
+    episodes_completed: int
+    def __init__(self, episodes_completed: _Optional[int] = ...) -> None: ...
+
+class CloseSessionRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class CloseSessionResponse(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class GetSessionRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class GetSessionResponse(_message.Message):
+    __slots__ = ("config", "step", "episodes_completed", "shift", "probe_pending")
+    CONFIG_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
+    SHIFT_FIELD_NUMBER: _ClassVar[int]
+    PROBE_PENDING_FIELD_NUMBER: _ClassVar[int]
+    config: SessionConfig
+    step: int
+    episodes_completed: int
+    shift: _containers.RepeatedScalarFieldContainer[float]
+    probe_pending: bool
+    def __init__(self, config: _Optional[_Union[SessionConfig, _Mapping]] = ..., step: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., shift: _Optional[_Iterable[float]] = ..., probe_pending: _Optional[bool] = ...) -> None: ...
+
+class ProbeBatchRequest(_message.Message):
+    __slots__ = ("session_ids", "steps", "actions", "episode_starts")
+    SESSION_IDS_FIELD_NUMBER: _ClassVar[int]
+    STEPS_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_STARTS_FIELD_NUMBER: _ClassVar[int]
+    session_ids: _containers.RepeatedScalarFieldContainer[str]
+    steps: _containers.RepeatedScalarFieldContainer[int]
+    actions: _containers.RepeatedScalarFieldContainer[float]
+    episode_starts: _containers.RepeatedScalarFieldContainer[bool]
+    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., actions: _Optional[_Iterable[float]] = ..., episode_starts: _Optional[_Iterable[bool]] = ...) -> None: ...
+
+class ProbeBatchResponse(_message.Message):
+    __slots__ = ("probes",)
+    PROBES_FIELD_NUMBER: _ClassVar[int]
+    probes: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, probes: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class ReportBatchRequest(_message.Message):
+    __slots__ = ("session_ids", "steps", "q_values")
+    SESSION_IDS_FIELD_NUMBER: _ClassVar[int]
+    STEPS_FIELD_NUMBER: _ClassVar[int]
+    Q_VALUES_FIELD_NUMBER: _ClassVar[int]
+    session_ids: _containers.RepeatedScalarFieldContainer[str]
+    steps: _containers.RepeatedScalarFieldContainer[int]
+    q_values: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., q_values: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class ReportBatchResponse(_message.Message):
+    __slots__ = ("actions",)
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    actions: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, actions: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class StepStreamRequest(_message.Message):
+    __slots__ = ("probe_batch", "report_batch")
+    PROBE_BATCH_FIELD_NUMBER: _ClassVar[int]
+    REPORT_BATCH_FIELD_NUMBER: _ClassVar[int]
+    probe_batch: ProbeBatchRequest
+    report_batch: ReportBatchRequest
+    def __init__(self, probe_batch: _Optional[_Union[ProbeBatchRequest, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchRequest, _Mapping]] = ...) -> None: ...
+
+class StepStreamResponse(_message.Message):
+    __slots__ = ("probe_batch", "report_batch", "error")
+    PROBE_BATCH_FIELD_NUMBER: _ClassVar[int]
+    REPORT_BATCH_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    probe_batch: ProbeBatchResponse
+    report_batch: ReportBatchResponse
+    error: StreamError
+    def __init__(self, probe_batch: _Optional[_Union[ProbeBatchResponse, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchResponse, _Mapping]] = ..., error: _Optional[_Union[StreamError, _Mapping]] = ...) -> None: ...
+
+class StreamError(_message.Message):
+    __slots__ = ("code", "message")
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    code: int
+    message: str
+    def __init__(self, code: _Optional[int] = ..., message: _Optional[str] = ...) -> None: ...

@@ -1,0 +1,261 @@
+"""``EsaClient``: a connection to an esa server, optionally one it starts itself."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+import uuid
+from collections.abc import Sequence
+
+import grpc
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from ._proto.esa.v1 import esa_pb2, esa_pb2_grpc
+from .config import SessionConfig
+from .errors import EsaError, ServerUnavailable
+from .session import Session, SessionBatch, SessionState, as_batch_configs
+from .sidecar import ServerProcess
+from .transport import call
+
+_CHANNEL_OPTIONS = [
+    # The server is local: never route through an HTTP proxy from the environment.
+    ("grpc.enable_http_proxy", 0),
+    # Reconnect quickly after a restart instead of gRPC's default 1 s backoff start.
+    ("grpc.initial_reconnect_backoff_ms", 100),
+    ("grpc.min_reconnect_backoff_ms", 100),
+    ("grpc.max_reconnect_backoff_ms", 2000),
+    ("grpc.max_receive_message_length", 256 * 1024 * 1024),
+    ("grpc.max_send_message_length", 256 * 1024 * 1024),
+]
+
+
+def _check_address(address: str) -> str:
+    if address.startswith("unix:"):
+        if len(address) <= len("unix:"):
+            raise ValueError(f"expected 'unix:/path/to/socket', got {address!r}")
+        return address
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ValueError(f"expected 'host:port' or 'unix:/path', got {address!r}")
+    return address
+
+
+class EsaClient:
+    """A connection to an esa server.
+
+    Every call has a deadline of ``timeout`` seconds; a lost connection raises
+    :class:`~esa_client.errors.ServerUnavailable` at once instead of waiting.
+
+    Example::
+
+        with EsaClient.spawn() as client:
+            session = client.create_session(SessionConfig(1, 0.05, 0.2, 10.0, 0.1))
+            probe = session.probe([0.3], episode_start=True)
+            action = session.report(q_value=critic(obs, probe))
+
+    Args:
+        address: ``host:port`` or ``unix:/path/to/socket``.
+        timeout: Deadline in seconds for every call.
+
+    Attributes:
+        address: The gRPC target.
+        timeout: The per-call deadline in seconds.
+        stub: The generated ``EsaServiceStub`` (for raw access to the wire API).
+        server: The :class:`~esa_client.sidecar.ServerProcess` when started by
+            :meth:`spawn`, else None.
+    """
+
+    def __init__(self, address: str = "127.0.0.1:50051", *, timeout: float = 5.0) -> None:
+        """Opens a channel to ``address`` (connecting lazily)."""
+        if not timeout > 0:
+            raise ValueError(f"expected timeout > 0 seconds, got {timeout}")
+        self.address = _check_address(address)
+        self.timeout = float(timeout)
+        self._channel = grpc.insecure_channel(self.address, options=_CHANNEL_OPTIONS)
+        self.stub = esa_pb2_grpc.EsaServiceStub(self._channel)
+        self._health = health_pb2_grpc.HealthStub(self._channel)
+        self.server: ServerProcess | None = None
+        self._closed = False
+
+    @classmethod
+    def spawn(
+        cls,
+        binary: str | os.PathLike[str] | None = None,
+        *,
+        session_ttl: float | None = None,
+        max_sessions: int | None = None,
+        extra_args: Sequence[str] = (),
+        timeout: float = 5.0,
+        startup_timeout: float = 30.0,
+    ) -> EsaClient:
+        """Starts a private esa-server on a Unix socket and returns a client connected to it.
+
+        The server is found via ``binary``, ``ESA_SERVER_BIN``, ``PATH`` or a cargo
+        build of this repository (see :func:`esa_client.sidecar.find_server_binary`),
+        and stopped by :meth:`close` (or at interpreter exit at the latest).
+
+        Args:
+            binary: Path of the esa-server executable; None searches for it.
+            session_ttl: Idle-session expiry in seconds; None = the server's default.
+            max_sessions: Live-session limit; None = the server's default.
+            extra_args: Further server arguments.
+            timeout: Per-call deadline of the returned client.
+            startup_timeout: Seconds to wait for the server to report healthy.
+
+        Raises:
+            EsaError: If the binary cannot be found or built.
+            ServerUnavailable: If the server exits or is not healthy in time (with its output).
+        """
+        server = ServerProcess(
+            binary, session_ttl=session_ttl, max_sessions=max_sessions, extra_args=extra_args
+        )
+        try:
+            client = cls(server.address, timeout=timeout)
+            client.server = server
+            client._wait_healthy(startup_timeout, server)
+        except BaseException:
+            server.stop()
+            raise
+        return client
+
+    def _wait_healthy(self, timeout: float, server: ServerProcess | None) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            if server is not None:
+                server.check_running()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                tail = f"; server output:\n{server.output_tail()}" if server else ""
+                raise ServerUnavailable(
+                    f"esa server at {self.address} not healthy within {timeout} s{tail}",
+                    grpc.StatusCode.UNAVAILABLE,
+                )
+            # Short waits so that a crashed server process is noticed promptly.
+            if self.healthy(timeout=min(0.25, remaining), wait_for_ready=True):
+                return
+
+    def healthy(self, *, timeout: float | None = None, wait_for_ready: bool = False) -> bool:
+        """Asks the server's ``grpc.health.v1.Health`` service whether it is serving.
+
+        Args:
+            timeout: Deadline in seconds (default: the client's timeout).
+            wait_for_ready: Wait (up to the deadline) for the connection instead of
+                failing at once when the server is not reachable yet.
+
+        Returns:
+            True if the server reports SERVING; False if it is unreachable or not serving.
+        """
+        try:
+            response = self._health.Check(
+                health_pb2.HealthCheckRequest(service=""),
+                timeout=self.timeout if timeout is None else timeout,
+                wait_for_ready=wait_for_ready,
+            )
+        except grpc.RpcError:
+            return False
+        return response.status == health_pb2.HealthCheckResponse.SERVING
+
+    def wait_ready(self, timeout: float = 10.0) -> None:
+        """Blocks until the server is healthy.
+
+        Raises:
+            ServerUnavailable: If it is not healthy within ``timeout`` seconds.
+        """
+        self._wait_healthy(timeout, self.server)
+
+    def create_session(
+        self, config: SessionConfig | esa_pb2.SessionConfig, session_id: str | None = None
+    ) -> Session:
+        """Creates a session (or returns the existing one with this id and an identical config).
+
+        Args:
+            config: The config; a raw ``esa_pb2.SessionConfig`` is sent unchecked.
+            session_id: 1 to 128 bytes; None lets the server generate a UUID.
+
+        Raises:
+            InvalidArgument: The server rejected the config or id.
+            SessionAlreadyExists: The id exists with a different config.
+            ResourceExhausted: The server's session limit is reached.
+        """
+        message = config.to_proto() if isinstance(config, SessionConfig) else config
+        request = esa_pb2.CreateSessionRequest(session_id=session_id or "", config=message)
+        response = call(self.stub.CreateSession, request, self.timeout)
+        if not isinstance(config, SessionConfig):
+            config = SessionConfig.from_proto(message)
+        return Session(self, response.session_id, config)
+
+    def session_state(self, session_id: str) -> SessionState:
+        """Returns a snapshot of a session (``GetSession``)."""
+        request = esa_pb2.GetSessionRequest(session_id=session_id)
+        return SessionState.from_proto(call(self.stub.GetSession, request, self.timeout))
+
+    def get_session(self, session_id: str) -> Session:
+        """Returns a :class:`Session` bound to an existing server session, at its current step.
+
+        Raises:
+            SessionNotFound: If the id is unknown, closed or expired.
+        """
+        state = self.session_state(session_id)
+        return Session(self, session_id, state.config, step=state.step)
+
+    def create_batch(
+        self,
+        configs: SessionConfig | Sequence[SessionConfig],
+        n: int | None = None,
+        *,
+        ids: Sequence[str] | None = None,
+        use_stream: bool = False,
+    ) -> SessionBatch:
+        """Creates N sessions stepped together, e.g. one per env of a VecEnv.
+
+        Args:
+            configs: One config for all N sessions, or a sequence of N configs
+                (all with the same ``action_dim``).
+            n: Number of sessions (required with a single config).
+            ids: Session ids; None = ``"<uuid>-<i>"``.
+            use_stream: Carry probes and reports over one persistent ``StepStream``
+                instead of ``ProbeBatch`` / ``ReportBatch`` calls.
+
+        Returns:
+            The batch. If creating one of the sessions fails, those already created
+            are closed before the error is raised.
+        """
+        per_session = as_batch_configs(configs, n)
+        if ids is None:
+            prefix = uuid.uuid4()
+            ids = [f"{prefix}-{i}" for i in range(len(per_session))]
+        if len(ids) != len(per_session):
+            raise ValueError(f"expected {len(per_session)} ids, got {len(ids)}")
+        created: list[Session] = []
+        try:
+            for session_id, config in zip(ids, per_session, strict=True):
+                created.append(self.create_session(config, session_id))
+        except BaseException:
+            for session in created:
+                with contextlib.suppress(EsaError):
+                    session.close()
+            raise
+        return SessionBatch(self, [s.id for s in created], per_session, use_stream=use_stream)
+
+    def close(self) -> None:
+        """Closes the channel and stops the server if :meth:`spawn` started it. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._channel.close()
+        if self.server is not None:
+            self.server.stop()
+
+    def __enter__(self) -> EsaClient:
+        """Returns self."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Closes the client."""
+        self.close()
+
+    def __repr__(self) -> str:
+        """Shows the address and whether this client owns its server."""
+        owned = f", server pid {self.server.pid}" if self.server is not None else ""
+        return f"EsaClient({self.address!r}{owned})"

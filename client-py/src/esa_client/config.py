@@ -1,0 +1,275 @@
+"""Session configs: the wire-level :class:`SessionConfig` and the user-facing :class:`EsaConfig`.
+
+:class:`SessionConfig` mirrors ``esa.v1.SessionConfig`` field for field and checks
+the same rules as the server (CONTRACT.md section 1), so a bad value fails early
+with a ``ValueError`` naming the field. :class:`EsaConfig` holds the ESA
+hyperparameters a trainer exposes and turns them into a :class:`SessionConfig`
+once the environment's action space and time step are known.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from ._proto.esa.v1 import esa_pb2
+
+Vector = float | Sequence[float] | np.ndarray
+"""A per-dimension value: a scalar (broadcast to every dimension) or one value per dimension."""
+
+MAX_ACTION_DIM = 4096
+
+
+def _as_tuple(name: str, value: Vector | None, action_dim: int) -> tuple[float, ...]:
+    """Returns ``value`` as a tuple of floats of length 0, 1 or ``action_dim``."""
+    if value is None:
+        return ()
+    array = np.asarray(value, dtype=np.float64)
+    if array.ndim > 1:
+        raise ValueError(f"expected {name} to be a scalar or 1-D sequence, got shape {array.shape}")
+    flat = tuple(float(x) for x in array.reshape(-1))
+    if len(flat) not in (1, action_dim):
+        raise ValueError(
+            f"expected {name} to have length 1 or action_dim={action_dim}, got length {len(flat)}"
+        )
+    return flat
+
+
+def _check(ok: bool, expected: str, got: object) -> None:
+    if not ok:
+        raise ValueError(f"expected {expected}, got {got!r}")
+
+
+def _all_finite(values: tuple[float, ...]) -> bool:
+    return all(math.isfinite(x) for x in values)
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """The configuration of one ESA session, mirroring ``esa.v1.SessionConfig``.
+
+    Vector fields accept a scalar (broadcast to all ``action_dim`` dimensions) or
+    one value per dimension; they are stored as tuples of floats, as given.
+
+    Attributes:
+        action_dim: Action dimension D, 1 <= D <= 4096.
+        dt: Seconds per environment step (finite, > 0); the perturbation phase at step t
+            is ``frequency * t * dt``.
+        amplitude: Perturbation amplitude K (finite, >= 0).
+        frequency: Perturbation frequency w in rad/s (finite, > 0, ``w * dt < pi``).
+        learning_rate: Learning rate alpha (finite, >= 0); the server maximizes Q.
+        highpass_cutoff: Washout cutoff w_h in rad/s (finite, > 0); None = ``min(w) / 10``.
+        disable_highpass: True makes the high-pass filter the identity.
+        action_low: Lower action bounds; None = unbounded.
+        action_high: Upper action bounds; None = unbounded.
+        shift_limit: Bound L on every element of the shift v; None = no clamp.
+        lr_decay: Per-episode learning-rate decay in (0, 1]; None = 1.
+        max_episodes: Episodes after which the session passes actions through; 0 = never.
+    """
+
+    action_dim: int
+    dt: float
+    amplitude: Vector
+    frequency: Vector
+    learning_rate: Vector
+    highpass_cutoff: float | None = None
+    disable_highpass: bool = False
+    action_low: Vector | None = None
+    action_high: Vector | None = None
+    shift_limit: float | None = None
+    lr_decay: float | None = None
+    max_episodes: int = 0
+
+    def __post_init__(self) -> None:
+        """Validates every field and normalizes vectors to tuples."""
+        d = self.action_dim
+        _check(
+            isinstance(d, (int, np.integer)) and 1 <= d <= MAX_ACTION_DIM,
+            f"action_dim in [1, {MAX_ACTION_DIM}]",
+            d,
+        )
+        object.__setattr__(self, "action_dim", int(d))
+        _check(math.isfinite(self.dt) and self.dt > 0, "dt finite and > 0", self.dt)
+        for name in ("amplitude", "frequency", "learning_rate", "action_low", "action_high"):
+            object.__setattr__(self, name, _as_tuple(name, getattr(self, name), d))
+        for name in ("amplitude", "frequency", "learning_rate"):
+            _check(len(getattr(self, name)) > 0, f"{name} to be set", getattr(self, name))
+            _check(_all_finite(getattr(self, name)), f"{name} finite", getattr(self, name))
+        _check(min(self.amplitude) >= 0, "amplitude >= 0", self.amplitude)
+        _check(min(self.frequency) > 0, "frequency > 0", self.frequency)
+        _check(min(self.learning_rate) >= 0, "learning_rate >= 0", self.learning_rate)
+        _check(
+            max(self.frequency) * self.dt < math.pi,
+            f"frequency * dt < pi (Nyquist), i.e. frequency < {math.pi / self.dt:.6g} rad/s "
+            f"for dt={self.dt}",
+            self.frequency,
+        )
+        if self.highpass_cutoff is not None:
+            _check(
+                math.isfinite(self.highpass_cutoff) and self.highpass_cutoff > 0,
+                "highpass_cutoff finite and > 0",
+                self.highpass_cutoff,
+            )
+        # An infinite bound on its own side means "unbounded there" (as in gymnasium's Box).
+        _check(
+            all(x < math.inf for x in self.action_low),
+            "action_low finite or -inf",
+            self.action_low,
+        )
+        _check(
+            all(x > -math.inf for x in self.action_high),
+            "action_high finite or +inf",
+            self.action_high,
+        )
+        if self.action_low and self.action_high:
+            low = np.broadcast_to(self.action_low, d)
+            high = np.broadcast_to(self.action_high, d)
+            _check(
+                bool(np.all(low < high)),
+                "action_low < action_high in every dimension",
+                (self.action_low, self.action_high),
+            )
+        if self.shift_limit is not None:
+            _check(
+                math.isfinite(self.shift_limit) and self.shift_limit > 0,
+                "shift_limit finite and > 0",
+                self.shift_limit,
+            )
+        if self.lr_decay is not None:
+            _check(0 < self.lr_decay <= 1, "lr_decay in (0, 1]", self.lr_decay)
+        _check(
+            isinstance(self.max_episodes, (int, np.integer)) and self.max_episodes >= 0,
+            "max_episodes an integer >= 0",
+            self.max_episodes,
+        )
+        object.__setattr__(self, "max_episodes", int(self.max_episodes))
+
+    def vector(self, name: str) -> np.ndarray:
+        """Returns a vector field broadcast to shape ``(action_dim,)`` (empty bounds give +-inf)."""
+        values = getattr(self, name)
+        if not values:
+            fill = -np.inf if name == "action_low" else np.inf
+            return np.full(self.action_dim, fill)
+        return np.broadcast_to(np.asarray(values, dtype=np.float64), (self.action_dim,)).copy()
+
+    def to_proto(self) -> esa_pb2.SessionConfig:
+        """Returns the ``esa.v1.SessionConfig`` message for this config."""
+        message = esa_pb2.SessionConfig(
+            action_dim=self.action_dim,
+            dt=self.dt,
+            amplitude=self.amplitude,
+            frequency=self.frequency,
+            learning_rate=self.learning_rate,
+            disable_highpass=self.disable_highpass,
+            action_low=self.action_low,
+            action_high=self.action_high,
+            max_episodes=self.max_episodes,
+        )
+        for name in ("highpass_cutoff", "shift_limit", "lr_decay"):
+            if getattr(self, name) is not None:
+                setattr(message, name, getattr(self, name))
+        return message
+
+    @classmethod
+    def from_proto(cls, message: esa_pb2.SessionConfig) -> SessionConfig:
+        """Builds (and validates) a config from an ``esa.v1.SessionConfig`` message."""
+        values = {}
+        for field in fields(cls):
+            if field.name in ("highpass_cutoff", "shift_limit", "lr_decay"):
+                values[field.name] = (
+                    getattr(message, field.name) if message.HasField(field.name) else None
+                )
+            elif field.name in ("amplitude", "frequency", "learning_rate"):
+                values[field.name] = tuple(getattr(message, field.name))
+            elif field.name in ("action_low", "action_high"):
+                values[field.name] = tuple(getattr(message, field.name)) or None
+            else:
+                values[field.name] = getattr(message, field.name)
+        return cls(**values)
+
+
+@dataclass
+class EsaConfig:
+    """ESA hyperparameters for a trainer (:mod:`esa_client.sb3`, :mod:`esa_client.wrappers`).
+
+    Defaults follow the paper's inverted-pendulum ablation: amplitude K = 0.2 was the
+    best trade-off and frequencies between 5 pi and 10 pi rad/s worked, with gains
+    dropping above 10 pi.
+
+    Attributes:
+        amplitude: Perturbation amplitude K, in the units of the action space ESA works in
+            (SAC: the squashed [-1, 1] space; PPO: the policy's action space).
+        frequency: Perturbation frequency w in rad/s. A scalar is spread over
+            ``[w / 2, w]`` across action dimensions so every dimension has its own
+            frequency (otherwise demodulation cannot tell the dimensions apart);
+            a sequence gives the per-dimension frequencies exactly.
+        learning_rate: ESA learning rate alpha on the (high-pass filtered) Q-value.
+        highpass_cutoff: Washout cutoff in rad/s; None = ``min(frequency) / 10``.
+        disable_highpass: Feed the raw Q-value to the update (ablation).
+        lr_decay: Per-episode decay of the learning rate in (0, 1]; None = no decay.
+        max_episodes: Episodes per environment after which ESA stops intervening; 0 = never.
+        shift_limit: Bound on every element of the shift v; None = no clamp.
+        dt: Seconds per environment step. None reads it from the environment
+            (``env.unwrapped.dt``, else ``1 / metadata["render_fps"]``); set it when the
+            environment has neither, or to override it.
+    """
+
+    amplitude: float | Sequence[float] = 0.2
+    frequency: float | Sequence[float] = 10 * math.pi
+    learning_rate: float | Sequence[float] = 0.05
+    highpass_cutoff: float | None = None
+    disable_highpass: bool = False
+    lr_decay: float | None = None
+    max_episodes: int = 0
+    shift_limit: float | None = None
+    dt: float | None = None
+
+    def frequencies(self, action_dim: int) -> tuple[float, ...]:
+        """Returns the per-dimension frequencies for ``action_dim`` dimensions."""
+        if np.ndim(self.frequency) == 0:
+            w = float(self.frequency)  # type: ignore[arg-type]
+            return (
+                tuple(float(x) for x in np.linspace(w, w / 2, action_dim))
+                if action_dim > 1
+                else (w,)
+            )
+        return tuple(float(x) for x in np.asarray(self.frequency, dtype=np.float64))
+
+    def session_config(
+        self,
+        action_dim: int,
+        dt: float,
+        action_low: Vector | None = None,
+        action_high: Vector | None = None,
+    ) -> SessionConfig:
+        """Builds the validated :class:`SessionConfig` for one environment.
+
+        Args:
+            action_dim: The action dimension.
+            dt: Seconds per environment step (ignored when ``self.dt`` is set).
+            action_low: Lower bounds of the action space ESA works in, or None.
+            action_high: Upper bounds, or None.
+
+        Returns:
+            The session config.
+
+        Raises:
+            ValueError: If a hyperparameter is invalid for this action space and time step.
+        """
+        return SessionConfig(
+            action_dim=action_dim,
+            dt=self.dt if self.dt is not None else dt,
+            amplitude=self.amplitude,
+            frequency=self.frequencies(action_dim),
+            learning_rate=self.learning_rate,
+            highpass_cutoff=self.highpass_cutoff,
+            disable_highpass=self.disable_highpass,
+            action_low=action_low,
+            action_high=action_high,
+            shift_limit=self.shift_limit,
+            lr_decay=self.lr_decay,
+            max_episodes=self.max_episodes,
+        )

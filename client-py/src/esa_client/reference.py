@@ -1,0 +1,354 @@
+"""In-process numpy implementation of the ESA update law (CONTRACT.md section 1).
+
+This is the executable specification the server is cross-checked against, and the
+no-network baseline for benchmarks. :class:`ReferenceBatch` and
+:class:`ReferenceSession` have the same API as :class:`esa_client.SessionBatch` and
+:class:`esa_client.Session` and raise the same typed errors, so either can be
+swapped in; :class:`ReferenceClient` mirrors :class:`esa_client.EsaClient`.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Sequence
+
+import grpc
+import numpy as np
+
+from .config import SessionConfig
+from .errors import InvalidArgument, SessionNotFound, StepMismatch
+from .session import SessionState, as_batch_configs, check_indices
+
+
+class ReferenceBatch:
+    """N independent ESA sessions with the same action dimension, updated in lockstep.
+
+    Args:
+        configs: One config per session (all with the same ``action_dim``).
+        ids: Session ids; None = random UUIDs.
+    """
+
+    def __init__(self, configs: Sequence[SessionConfig], ids: Sequence[str] | None = None) -> None:
+        """Creates the sessions at rest."""
+        self.configs = tuple(configs)
+        self.ids = tuple(ids) if ids is not None else tuple(str(uuid.uuid4()) for _ in configs)
+        n, d = len(self.configs), self.configs[0].action_dim
+        self.n, self.action_dim = n, d
+
+        def stack(name: str) -> np.ndarray:
+            return np.stack([c.vector(name) for c in self.configs])
+
+        self._k = stack("amplitude")
+        self._w = stack("frequency")
+        self._alpha = stack("learning_rate")
+        # Unbounded sides saturate at the largest double, as on the server, so that an
+        # overflowing a + v still clips to a finite action.
+        big = np.finfo(np.float64).max
+        self._low = np.clip(stack("action_low"), -big, big)
+        self._high = np.clip(stack("action_high"), -big, big)
+        dt = np.array([c.dt for c in self.configs])
+        cutoff = np.array(
+            [
+                c.highpass_cutoff if c.highpass_cutoff is not None else min(c.frequency) / 10
+                for c in self.configs
+            ]
+        )
+        self._dt = dt[:, None]
+        self._beta = 1.0 / (1.0 + cutoff * dt)
+        self._filtered = np.array([not c.disable_highpass for c in self.configs])
+        self._limit = np.array(
+            [c.shift_limit if c.shift_limit is not None else np.inf for c in self.configs]
+        )[:, None]
+        self._decay = np.array(
+            [c.lr_decay if c.lr_decay is not None else 1.0 for c in self.configs]
+        )
+        self._max_episodes = np.array([c.max_episodes for c in self.configs], dtype=np.int64)
+
+        self._t = np.zeros(n, dtype=np.int64)
+        self._episodes = np.zeros(n, dtype=np.int64)
+        self._v = np.zeros((n, d))
+        self._x_prev = np.zeros(n)
+        self._y_prev = np.zeros(n)
+        self._filter_at_rest = np.ones(n, dtype=bool)
+        self._pending = np.zeros(n, dtype=bool)
+        self._action = np.zeros((n, d))
+        self._retryable = np.zeros(n, dtype=bool)
+        self._last_action = np.zeros((n, d))
+        self._next_starts = np.zeros(n, dtype=bool)
+        self._closed = False
+
+    @property
+    def steps(self) -> np.ndarray:
+        """The current step t of every session, shape ``(N,)``."""
+        return self._t.copy()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise SessionNotFound("sessions of this batch were closed", grpc.StatusCode.NOT_FOUND)
+
+    def _steps_arg(
+        self, steps: np.ndarray | Sequence[int] | None, default: np.ndarray
+    ) -> np.ndarray:
+        if steps is None:
+            return default
+        out = np.asarray(steps)
+        if out.shape != (self.n,) or not np.issubdtype(out.dtype, np.integer) or np.any(out < 0):
+            raise InvalidArgument(
+                f"expected steps of shape ({self.n},) with integers >= 0, got {out!r}",
+                grpc.StatusCode.INVALID_ARGUMENT,
+            )
+        return out.astype(np.int64)
+
+    def _end(self, mask: np.ndarray) -> None:
+        self._episodes += mask
+        self._t[mask] = 0
+        self._v[mask] = 0.0
+        self._filter_at_rest |= mask
+        self._pending &= ~mask
+        self._retryable &= ~mask
+
+    def _passthrough(self) -> np.ndarray:
+        return (self._max_episodes > 0) & (self._episodes >= self._max_episodes)
+
+    def _phase(self) -> np.ndarray:
+        return np.sin(self._w * (self._t[:, None] * self._dt))
+
+    def probe(
+        self,
+        actions: np.ndarray,
+        episode_starts: np.ndarray | Sequence[bool] | None = None,
+        *,
+        steps: np.ndarray | Sequence[int] | None = None,
+    ) -> np.ndarray:
+        """Returns the probes ``clip(a + v + K sin(w t dt))``, shape ``(N, D)``.
+
+        Args:
+            actions: The sampled actions, shape ``(N, D)``.
+            episode_starts: Per-session episode-start flags, shape ``(N,)``; also set by
+                :meth:`reset`. A flagged session with ``t > 0`` or a pending probe first
+                ends its episode.
+            steps: Explicit step per session (advanced; default: the tracked step).
+
+        Raises:
+            InvalidArgument: Wrong shape or non-finite action (nothing changes).
+            StepMismatch: An explicit step is not the session's step (nothing changes).
+        """
+        self._check_open()
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.n, self.action_dim) or not np.all(np.isfinite(a)):
+            raise InvalidArgument(
+                f"expected finite actions of shape ({self.n}, {self.action_dim}), got {a!r}",
+                grpc.StatusCode.INVALID_ARGUMENT,
+            )
+        starts = self._next_starts.copy()
+        if episode_starts is not None:
+            flags = np.asarray(episode_starts)
+            if flags.shape != (self.n,):
+                raise InvalidArgument(
+                    f"expected episode_starts of shape ({self.n},), got {flags.shape}",
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                )
+            starts |= flags.astype(bool)
+        ends = starts & ((self._t > 0) | self._pending)
+        expected = np.where(ends, 0, self._t)
+        given = self._steps_arg(steps, expected)
+        wrong = np.flatnonzero(given != expected)
+        if wrong.size:
+            i = int(wrong[0])
+            raise StepMismatch(
+                f"item {i}: expected step {expected[i]}, got {given[i]}",
+                grpc.StatusCode.FAILED_PRECONDITION,
+            )
+        self._end(ends)
+        self._next_starts[:] = False
+        passthrough = self._passthrough()[:, None]
+        perturbed = np.where(passthrough, a, a + (self._v + self._k * self._phase()))
+        self._action = a
+        self._pending[:] = True
+        self._retryable[:] = False
+        return np.clip(perturbed, self._low, self._high)
+
+    def report(
+        self,
+        q_values: np.ndarray | Sequence[float],
+        *,
+        steps: np.ndarray | Sequence[int] | None = None,
+    ) -> np.ndarray:
+        """Takes ``Q(s_t, probe)`` per session and returns the improved actions, shape ``(N, D)``.
+
+        A report carrying step ``t - 1`` right after that step was reported returns the
+        same improved action again without updating anything (a safe retry).
+
+        Raises:
+            InvalidArgument: Wrong shape or non-finite value (nothing changes).
+            StepMismatch: No pending probe, or an explicit step that does not match.
+        """
+        self._check_open()
+        q = np.asarray(q_values, dtype=np.float64)
+        if q.shape != (self.n,) or not np.all(np.isfinite(q)):
+            raise InvalidArgument(
+                f"expected {self.n} finite q_values, got {q!r}", grpc.StatusCode.INVALID_ARGUMENT
+            )
+        given = self._steps_arg(steps, self._t)
+        fresh = self._pending & (given == self._t)
+        retry = ~self._pending & self._retryable & (given == self._t - 1)
+        wrong = np.flatnonzero(~(fresh | retry))
+        if wrong.size:
+            i = int(wrong[0])
+            reason = "no pending probe" if not self._pending[i] else f"expected step {self._t[i]}"
+            raise StepMismatch(
+                f"item {i}: {reason}, got step {given[i]}", grpc.StatusCode.FAILED_PRECONDITION
+            )
+        # Filter at rest on the first report of an episode: x_{-1} = x_0, y_{-1} = 0.
+        x_prev = np.where(self._filter_at_rest, q, self._x_prev)
+        y_prev = np.where(self._filter_at_rest, 0.0, self._y_prev)
+        alpha = self._alpha * (self._decay**self._episodes)[:, None]
+        with np.errstate(invalid="ignore", over="ignore"):
+            h = np.where(self._filtered, self._beta * (y_prev + q - x_prev), q)
+            v_new = np.clip(self._v + alpha * self._phase() * h[:, None], -self._limit, self._limit)
+        update = (
+            fresh[:, None]
+            & ~self._passthrough()[:, None]
+            & np.all(np.isfinite(v_new), axis=1, keepdims=True)
+        )
+        self._v = np.where(update, v_new, self._v)
+        self._x_prev = np.where(fresh, q, self._x_prev)
+        # An overflowed output restarts the filter from this sample instead of poisoning
+        # the rest of the episode with inf/NaN (same as the server).
+        self._y_prev = np.where(fresh, np.where(np.isfinite(h), h, 0.0), self._y_prev)
+        self._filter_at_rest &= ~fresh
+        improved = np.clip(self._action + self._v, self._low, self._high)
+        self._last_action = np.where(fresh[:, None], improved, self._last_action)
+        self._t += fresh
+        self._pending &= ~fresh
+        self._retryable |= fresh
+        return self._last_action.copy()
+
+    def end_episode(self, indices: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
+        """Ends the episodes of the given sessions (default: all); returns their episode counts."""
+        self._check_open()
+        idx = check_indices(indices, self.n)
+        mask = np.zeros(self.n, dtype=bool)
+        mask[idx] = True
+        self._end(mask)
+        self._next_starts &= ~mask
+        return self._episodes[idx].copy()
+
+    def reset(self, indices: Sequence[int] | np.ndarray | None = None) -> None:
+        """Marks the given sessions (default: all) so their next probe starts a new episode."""
+        self._check_open()
+        self._next_starts[check_indices(indices, self.n)] = True
+
+    def states(self) -> list[SessionState]:
+        """Returns a snapshot of every session."""
+        self._check_open()
+        return [
+            SessionState(
+                config=self.configs[i],
+                step=int(self._t[i]),
+                episodes_completed=int(self._episodes[i]),
+                shift=self._v[i].copy(),
+                probe_pending=bool(self._pending[i]),
+            )
+            for i in range(self.n)
+        ]
+
+    def close(self) -> None:
+        """Frees the sessions; later calls raise :class:`SessionNotFound`."""
+        self._closed = True
+
+    def __enter__(self) -> ReferenceBatch:
+        """Returns self."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Closes the sessions."""
+        self.close()
+
+
+class ReferenceSession:
+    """One in-process ESA session with the API of :class:`esa_client.Session`.
+
+    Args:
+        config: The session config.
+        session_id: The id; None = a random UUID.
+    """
+
+    def __init__(self, config: SessionConfig, session_id: str | None = None) -> None:
+        """Creates the session at rest."""
+        self._batch = ReferenceBatch([config], None if session_id is None else [session_id])
+        self.id = self._batch.ids[0]
+        self.config = config
+
+    @property
+    def step(self) -> int:
+        """The current step t inside the episode."""
+        return int(self._batch.steps[0])
+
+    def probe(
+        self,
+        action: np.ndarray | Sequence[float],
+        *,
+        episode_start: bool = False,
+        step: int | None = None,
+    ) -> np.ndarray:
+        """Returns the probe for the sampled ``action`` (see :meth:`ReferenceBatch.probe`)."""
+        steps = None if step is None else [step]
+        return self._batch.probe(
+            np.asarray(action, dtype=np.float64)[None, :], [episode_start], steps=steps
+        )[0]
+
+    def report(self, q_value: float, *, step: int | None = None) -> np.ndarray:
+        """Takes Q at the probe; returns the improved action (see :meth:`ReferenceBatch.report`)."""
+        return self._batch.report([q_value], steps=None if step is None else [step])[0]
+
+    def end_episode(self) -> int:
+        """Ends the episode; returns the number of completed episodes."""
+        return int(self._batch.end_episode()[0])
+
+    def state(self) -> SessionState:
+        """Returns a snapshot of the session."""
+        return self._batch.states()[0]
+
+    def close(self) -> None:
+        """Frees the session."""
+        self._batch.close()
+
+    def __enter__(self) -> ReferenceSession:
+        """Returns self."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Closes the session."""
+        self.close()
+
+
+class ReferenceClient:
+    """In-process stand-in for :class:`esa_client.EsaClient` (no server, no network)."""
+
+    def create_session(
+        self, config: SessionConfig, session_id: str | None = None
+    ) -> ReferenceSession:
+        """Creates one session."""
+        return ReferenceSession(config, session_id)
+
+    def create_batch(
+        self,
+        configs: SessionConfig | Sequence[SessionConfig],
+        n: int | None = None,
+        *,
+        ids: Sequence[str] | None = None,
+    ) -> ReferenceBatch:
+        """Creates N sessions (one config for all, or one per session)."""
+        return ReferenceBatch(as_batch_configs(configs, n), ids)
+
+    def close(self) -> None:
+        """Nothing to release; present for API symmetry."""
+
+    def __enter__(self) -> ReferenceClient:
+        """Returns self."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Closes the client."""
+        self.close()

@@ -1,0 +1,318 @@
+"""Sessions on an esa server: one :class:`Session`, or a :class:`SessionBatch` for N envs.
+
+Both track their sessions' step counters, so callers only pass actions and
+Q-values. A failed call changes no counter, so repeating it is safe (the server
+treats a repeated probe or report of the same step as a retry).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ._proto.esa.v1 import esa_pb2
+from .config import SessionConfig
+from .transport import StreamTransport, UnaryTransport, call
+
+if TYPE_CHECKING:
+    from .client import EsaClient
+
+
+@dataclass(frozen=True)
+class SessionState:
+    """A snapshot of one session (``GetSession``).
+
+    Attributes:
+        config: The config as given at creation.
+        step: Current step t inside the episode.
+        episodes_completed: Number of completed episodes e.
+        shift: Current shift v, shape ``(action_dim,)``.
+        probe_pending: True between a probe and its report.
+    """
+
+    config: SessionConfig
+    step: int
+    episodes_completed: int
+    shift: np.ndarray
+    probe_pending: bool
+
+    @classmethod
+    def from_proto(cls, message: esa_pb2.GetSessionResponse) -> SessionState:
+        """Builds the snapshot from a ``GetSessionResponse``."""
+        return cls(
+            config=SessionConfig.from_proto(message.config),
+            step=message.step,
+            episodes_completed=message.episodes_completed,
+            shift=np.array(message.shift, dtype=np.float64),
+            probe_pending=message.probe_pending,
+        )
+
+
+def as_batch_configs(
+    configs: SessionConfig | Sequence[SessionConfig], n: int | None
+) -> tuple[SessionConfig, ...]:
+    """Returns one config per session, checking they share one action dimension.
+
+    Args:
+        configs: One config for all sessions, or one per session.
+        n: Number of sessions; required with a single config, else must match.
+    """
+    if isinstance(configs, SessionConfig):
+        if n is None or n < 1:
+            raise ValueError(f"expected n >= 1 sessions for a single config, got {n}")
+        return (configs,) * n
+    out = tuple(configs)
+    if not out or (n is not None and n != len(out)):
+        raise ValueError(f"expected {n if n is not None else '>= 1'} configs, got {len(out)}")
+    dims = {c.action_dim for c in out}
+    if len(dims) != 1:
+        raise ValueError(f"expected one action_dim across the batch, got {sorted(dims)}")
+    return out
+
+
+def check_indices(indices: Sequence[int] | np.ndarray | None, n: int) -> np.ndarray:
+    """Returns ``indices`` (default: all N) as an int array, checking the range."""
+    if indices is None:
+        return np.arange(n)
+    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    if idx.size and (idx.min() < 0 or idx.max() >= n):
+        raise ValueError(f"expected indices in [0, {n}), got {idx.tolist()}")
+    return idx
+
+
+class Session:
+    """One ESA session on the server; created by :meth:`EsaClient.create_session`.
+
+    Attributes:
+        id: The session id.
+        config: The session config.
+    """
+
+    def __init__(self, client: EsaClient, session_id: str, config: SessionConfig, step: int = 0):
+        """Binds to an existing server session (use the client's factory methods)."""
+        self._client = client
+        self.id = session_id
+        self.config = config
+        self._step = step
+
+    @property
+    def step(self) -> int:
+        """The step t the next probe (or pending report) carries."""
+        return self._step
+
+    def probe(
+        self,
+        action: np.ndarray | Sequence[float],
+        *,
+        episode_start: bool = False,
+        step: int | None = None,
+    ) -> np.ndarray:
+        """Sends the sampled action and returns the probe at which to evaluate Q.
+
+        Args:
+            action: The sampled action a_t, shape ``(action_dim,)``.
+            episode_start: True on an episode's first step: ends the running episode first.
+            step: Explicit step (advanced; default: the tracked step, 0 on episode start).
+
+        Returns:
+            The probe ``clip(a_t + v + K sin(w t dt))``, shape ``(action_dim,)``.
+        """
+        if step is None:
+            step = 0 if episode_start else self._step
+        request = esa_pb2.ProbeRequest(
+            session_id=self.id,
+            step=step,
+            action=np.asarray(action, dtype=np.float64).reshape(-1).tolist(),
+            episode_start=episode_start,
+        )
+        response = call(self._client.stub.Probe, request, self._client.timeout)
+        self._step = step
+        return np.array(response.probe, dtype=np.float64)
+
+    def report(self, q_value: float, *, step: int | None = None) -> np.ndarray:
+        """Sends ``Q(s_t, probe)`` and returns the improved action to apply to the env.
+
+        Args:
+            q_value: The critic's value at the probe.
+            step: Explicit step (advanced; default: the pending probe's step).
+
+        Returns:
+            The improved action ``clip(a_t + v(t + 1))``, shape ``(action_dim,)``.
+        """
+        step = self._step if step is None else step
+        request = esa_pb2.ReportRequest(session_id=self.id, step=step, q_value=float(q_value))
+        response = call(self._client.stub.Report, request, self._client.timeout)
+        self._step = step + 1
+        return np.array(response.action, dtype=np.float64)
+
+    def end_episode(self) -> int:
+        """Ends the current episode; returns the number of completed episodes."""
+        request = esa_pb2.EndEpisodeRequest(session_id=self.id)
+        response = call(self._client.stub.EndEpisode, request, self._client.timeout)
+        self._step = 0
+        return response.episodes_completed
+
+    def state(self) -> SessionState:
+        """Returns a snapshot of the session (``GetSession``)."""
+        return self._client.session_state(self.id)
+
+    def close(self) -> None:
+        """Closes the session on the server; later calls raise ``SessionNotFound``."""
+        request = esa_pb2.CloseSessionRequest(session_id=self.id)
+        call(self._client.stub.CloseSession, request, self._client.timeout)
+
+    def __enter__(self) -> Session:
+        """Returns self."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Closes the session."""
+        self.close()
+
+
+class SessionBatch:
+    """N sessions (one per environment) stepped together: one round trip per probe/report.
+
+    Created by :meth:`EsaClient.create_batch`. Arrays in and out are numpy with the
+    batch as the first axis.
+
+    Attributes:
+        ids: The N session ids, in batch order.
+        configs: The N session configs.
+        n: Number of sessions.
+        action_dim: Shared action dimension D.
+    """
+
+    def __init__(
+        self,
+        client: EsaClient,
+        ids: Sequence[str],
+        configs: Sequence[SessionConfig],
+        *,
+        use_stream: bool = False,
+    ) -> None:
+        """Binds to existing server sessions (use :meth:`EsaClient.create_batch`)."""
+        self._client = client
+        self.ids = tuple(ids)
+        self.configs = tuple(configs)
+        self.n, self.action_dim = len(self.ids), self.configs[0].action_dim
+        transport = StreamTransport if use_stream else UnaryTransport
+        self._transport = transport(client.stub, client.timeout)
+        self._steps = np.zeros(self.n, dtype=np.int64)
+        self._next_starts = np.zeros(self.n, dtype=bool)
+
+    @property
+    def steps(self) -> np.ndarray:
+        """The step each session's next probe (or pending report) carries, shape ``(N,)``."""
+        return self._steps.copy()
+
+    def probe(
+        self,
+        actions: np.ndarray,
+        episode_starts: np.ndarray | Sequence[bool] | None = None,
+        *,
+        steps: np.ndarray | Sequence[int] | None = None,
+    ) -> np.ndarray:
+        """Sends the N sampled actions and returns the N probes.
+
+        Args:
+            actions: Sampled actions, shape ``(N, D)``.
+            episode_starts: Episode-start flags, shape ``(N,)`` (e.g. a VecEnv's ``dones``
+                from the previous step); sessions flagged by :meth:`reset` count too.
+            steps: Explicit steps (advanced; default: the tracked ones, 0 on episode start).
+
+        Returns:
+            The probes, shape ``(N, D)``.
+        """
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.n, self.action_dim):
+            raise ValueError(
+                f"expected actions of shape {(self.n, self.action_dim)}, got {a.shape}"
+            )
+        starts = self._next_starts.copy()
+        if episode_starts is not None:
+            flags = np.asarray(episode_starts, dtype=bool)
+            if flags.shape != (self.n,):
+                raise ValueError(f"expected episode_starts of shape ({self.n},), got {flags.shape}")
+            starts |= flags
+        step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
+        request = esa_pb2.ProbeBatchRequest(
+            session_ids=self.ids,
+            steps=step.tolist(),
+            actions=a.ravel().tolist(),
+            episode_starts=starts.tolist(),
+        )
+        response = self._transport.probe_batch(request)
+        self._steps = step
+        self._next_starts[:] = False
+        return np.array(response.probes, dtype=np.float64).reshape(self.n, self.action_dim)
+
+    def report(
+        self,
+        q_values: np.ndarray | Sequence[float],
+        *,
+        steps: np.ndarray | Sequence[int] | None = None,
+    ) -> np.ndarray:
+        """Sends ``Q(s_t, probe)`` for the N sessions and returns the N improved actions.
+
+        Args:
+            q_values: One value per session, shape ``(N,)``.
+            steps: Explicit steps (advanced; default: the pending probes' steps).
+
+        Returns:
+            The improved actions, shape ``(N, D)``.
+        """
+        q = np.asarray(q_values, dtype=np.float64)
+        if q.shape != (self.n,):
+            raise ValueError(f"expected q_values of shape ({self.n},), got {q.shape}")
+        step = self._steps if steps is None else np.asarray(steps, np.int64)
+        request = esa_pb2.ReportBatchRequest(
+            session_ids=self.ids, steps=step.tolist(), q_values=q.tolist()
+        )
+        response = self._transport.report_batch(request)
+        self._steps = step + 1
+        return np.array(response.actions, dtype=np.float64).reshape(self.n, self.action_dim)
+
+    def end_episode(self, indices: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
+        """Ends the episodes of the given sessions now (one call each; default: all).
+
+        Returns:
+            The completed-episode counts of those sessions.
+        """
+        idx = check_indices(indices, self.n)
+        counts = []
+        for i in idx.tolist():
+            request = esa_pb2.EndEpisodeRequest(session_id=self.ids[i])
+            counts.append(call(self._client.stub.EndEpisode, request, self._client.timeout))
+            self._steps[i] = 0
+            self._next_starts[i] = False
+        return np.array([c.episodes_completed for c in counts], dtype=np.int64)
+
+    def reset(self, indices: Sequence[int] | np.ndarray | None = None) -> None:
+        """Marks the given sessions (default: all) so their next probe starts a new episode.
+
+        This costs no round trip: the flag rides on the next :meth:`probe`.
+        """
+        self._next_starts[check_indices(indices, self.n)] = True
+
+    def states(self) -> list[SessionState]:
+        """Returns a snapshot of every session."""
+        return [self._client.session_state(i) for i in self.ids]
+
+    def close(self) -> None:
+        """Closes the stream (if any) and every session on the server."""
+        self._transport.close()
+        for session_id in self.ids:
+            request = esa_pb2.CloseSessionRequest(session_id=session_id)
+            call(self._client.stub.CloseSession, request, self._client.timeout)
+
+    def __enter__(self) -> SessionBatch:
+        """Returns self."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Closes the batch."""
+        self.close()

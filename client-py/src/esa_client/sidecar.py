@@ -1,0 +1,174 @@
+"""Finding, starting and stopping a private ``esa-server`` process (used by ``EsaClient.spawn``).
+
+The server listens on a Unix socket in a fresh temporary directory, so nothing
+else can reach it and nothing is left behind: :meth:`ServerProcess.stop` sends
+SIGTERM (then SIGKILL after a grace period) and removes the directory, and a
+``weakref.finalize`` hook does the same at interpreter exit or garbage collection.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import tempfile
+import weakref
+from collections.abc import Sequence
+from pathlib import Path
+
+import grpc
+
+from .errors import EsaError, ServerUnavailable
+
+logger = logging.getLogger(__name__)
+
+BINARY_ENV = "ESA_SERVER_BIN"
+BINARY_NAME = "esa-server"
+# src/esa_client/sidecar.py -> repository root (only in a source checkout).
+_REPO_ROOT = Path(__file__).resolve().parents[3]
+_STDERR_TAIL = 2000
+
+
+def _tail(path: Path) -> str:
+    try:
+        text = path.read_text(errors="replace")
+    except OSError:
+        return "(no server output)"
+    return text[-_STDERR_TAIL:].strip() or "(no server output)"
+
+
+def _cargo_build(repo: Path) -> Path:
+    """Builds ``esa-server`` in release mode and returns the path cargo reports."""
+    logger.info("building %s with cargo in %s (first use may take minutes)", BINARY_NAME, repo)
+    command = ["cargo", "build", "--release", "-p", BINARY_NAME, "--message-format=json"]
+    result = subprocess.run(command, cwd=repo, capture_output=True, text=True, check=False)
+    if result.returncode != 0:
+        raise EsaError(f"`{' '.join(command)}` failed in {repo}:\n{result.stderr[-_STDERR_TAIL:]}")
+    for line in result.stdout.splitlines():
+        message = json.loads(line) if line.startswith("{") else {}
+        if message.get("target", {}).get("name") == BINARY_NAME and message.get("executable"):
+            return Path(message["executable"])
+    raise EsaError(f"cargo built no {BINARY_NAME} executable in {repo}")
+
+
+def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
+    """Locates the ``esa-server`` executable.
+
+    Search order: ``binary`` if given, the ``ESA_SERVER_BIN`` environment variable,
+    ``esa-server`` on ``PATH``, and finally a ``cargo build --release -p esa-server``
+    in the repository this package was installed from (editable installs).
+
+    Raises:
+        EsaError: If none of these yields an executable, saying how to fix it.
+    """
+    explicit = binary if binary is not None else os.environ.get(BINARY_ENV)
+    if explicit:
+        path = Path(explicit)
+        if not (path.is_file() and os.access(path, os.X_OK)):
+            raise EsaError(f"expected an executable esa-server at {path}, got none")
+        return path
+    on_path = shutil.which(BINARY_NAME)
+    if on_path:
+        return Path(on_path)
+    if (_REPO_ROOT / "server" / "Cargo.toml").is_file():
+        if shutil.which("cargo"):
+            return _cargo_build(_REPO_ROOT)
+        built = _REPO_ROOT / "target" / "release" / BINARY_NAME
+        if built.is_file():
+            return built
+    raise EsaError(
+        f"cannot find {BINARY_NAME}: set {BINARY_ENV}, put it on PATH, or install this package "
+        "from a checkout of the esa repository with cargo available"
+    )
+
+
+def _terminate(process: subprocess.Popen[bytes], workdir: Path, grace: float) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=grace)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    shutil.rmtree(workdir, ignore_errors=True)
+
+
+class ServerProcess:
+    """A running ``esa-server`` child process listening on a private Unix socket.
+
+    Attributes:
+        binary: The executable that was started.
+        address: The gRPC target, ``unix:/tmp/esa-.../esa.sock``.
+        socket_path: The Unix socket path.
+    """
+
+    def __init__(
+        self,
+        binary: str | os.PathLike[str] | None = None,
+        *,
+        session_ttl: float | None = None,
+        max_sessions: int | None = None,
+        extra_args: Sequence[str] = (),
+        stop_grace: float = 5.0,
+    ) -> None:
+        """Starts the server (see :func:`find_server_binary` for ``binary``).
+
+        Args:
+            binary: Path of the executable; None searches for it.
+            session_ttl: ``--session-ttl`` in seconds; None = the server's default.
+            max_sessions: ``--max-sessions``; None = the server's default.
+            extra_args: More command-line arguments, appended as given.
+            stop_grace: Seconds to wait after SIGTERM before SIGKILL.
+        """
+        self.binary = find_server_binary(binary)
+        self._workdir = Path(tempfile.mkdtemp(prefix="esa-server-"))
+        self.socket_path = self._workdir / "esa.sock"
+        self.address = f"unix:{self.socket_path}"
+        self._log_path = self._workdir / "server.log"
+        args = [str(self.binary), "--uds", str(self.socket_path)]
+        if session_ttl is not None:
+            args += ["--session-ttl", str(session_ttl)]
+        if max_sessions is not None:
+            args += ["--max-sessions", str(max_sessions)]
+        args += list(extra_args)
+        with open(self._log_path, "wb") as log:
+            try:
+                self._process = subprocess.Popen(
+                    args, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
+                )
+            except OSError as err:
+                shutil.rmtree(self._workdir, ignore_errors=True)
+                raise EsaError(f"cannot start {self.binary}: {err}") from err
+        self._finalizer = weakref.finalize(
+            self, _terminate, self._process, self._workdir, stop_grace
+        )
+        logger.debug("started %s (pid %d) on %s", self.binary, self._process.pid, self.address)
+
+    @property
+    def pid(self) -> int:
+        """The server's process id."""
+        return self._process.pid
+
+    def running(self) -> bool:
+        """True while the process has not exited."""
+        return self._process.poll() is None
+
+    def output_tail(self) -> str:
+        """The last lines the server wrote to stdout/stderr."""
+        return _tail(self._log_path)
+
+    def check_running(self) -> None:
+        """Raises ``ServerUnavailable`` with the server's output if it has exited."""
+        code = self._process.poll()
+        if code is not None:
+            raise ServerUnavailable(
+                f"{self.binary} exited with code {code}; its output:\n{self.output_tail()}",
+                grpc.StatusCode.UNAVAILABLE,
+            )
+
+    def stop(self) -> None:
+        """Stops the server (SIGTERM, then SIGKILL) and removes its socket directory."""
+        self._finalizer()

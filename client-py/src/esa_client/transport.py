@@ -1,0 +1,137 @@
+"""How requests reach the server: unary calls with deadlines, and a persistent StepStream.
+
+Both transports expose ``probe_batch`` / ``report_batch`` so :class:`esa_client.SessionBatch`
+does not care which one carries its round trips. Every wait is bounded by the
+client's timeout and every failure becomes an :class:`esa_client.errors.EsaError`.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import grpc
+
+from ._proto.esa.v1 import esa_pb2, esa_pb2_grpc
+from .errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
+
+Response = TypeVar("Response")
+
+
+def call(rpc: Callable[..., Response], request: Any, timeout: float) -> Response:
+    """Performs one unary call with a deadline, raising typed errors.
+
+    Args:
+        rpc: A unary-unary method of a generated stub.
+        request: The request message.
+        timeout: Deadline in seconds.
+
+    Returns:
+        The response message.
+
+    Raises:
+        EsaError: The matching subclass for any failure (see :func:`esa_error`).
+    """
+    try:
+        return rpc(request, timeout=timeout)
+    except grpc.RpcError as err:
+        raise esa_error(err) from None
+
+
+class UnaryTransport:
+    """Batch round trips over the ``ProbeBatch`` / ``ReportBatch`` unary RPCs."""
+
+    def __init__(self, stub: esa_pb2_grpc.EsaServiceStub, timeout: float) -> None:
+        """Wraps ``stub``; every call gets ``timeout`` seconds."""
+        self._stub = stub
+        self._timeout = timeout
+
+    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
+        """Sends one ProbeBatch."""
+        return call(self._stub.ProbeBatch, request, self._timeout)
+
+    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
+        """Sends one ReportBatch."""
+        return call(self._stub.ReportBatch, request, self._timeout)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+_END = object()
+
+
+class StreamTransport:
+    """Batch round trips over one long-lived ``StepStream``.
+
+    gRPC's blocking stream iterator has no per-message deadline, so a reader thread
+    moves responses into a queue that the caller waits on with the timeout. After a
+    timeout or a transport failure the stream is out of step with its requests, so
+    it is dropped and the next call opens a new one; that is safe because the
+    server accepts a repeated probe or report for the same step (CONTRACT.md).
+    """
+
+    def __init__(self, stub: esa_pb2_grpc.EsaServiceStub, timeout: float) -> None:
+        """Prepares the transport; the stream opens on first use."""
+        self._stub = stub
+        self._timeout = timeout
+        self._requests: queue.SimpleQueue[object] | None = None
+        self._responses: queue.SimpleQueue[object] = queue.SimpleQueue()
+        self._call: Any = None
+
+    def _open(self) -> None:
+        requests: queue.SimpleQueue[object] = queue.SimpleQueue()
+        responses: queue.SimpleQueue[object] = queue.SimpleQueue()
+        stream = self._stub.StepStream(iter(requests.get, _END))
+
+        def read() -> None:
+            try:
+                for response in stream:
+                    responses.put(response)
+                responses.put(ServerUnavailable("the server closed the StepStream"))
+            except grpc.RpcError as err:
+                responses.put(esa_error(err))
+
+        threading.Thread(target=read, name="esa-step-stream", daemon=True).start()
+        self._requests, self._responses, self._call = requests, responses, stream
+
+    def _drop(self) -> None:
+        if self._call is not None:
+            self._call.cancel()
+            # Unblocks gRPC's request-consuming thread, which waits on this queue.
+            self._requests.put(_END)  # type: ignore[union-attr]
+        self._requests, self._call = None, None
+
+    def _round_trip(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
+        if self._call is None:
+            self._open()
+        self._requests.put(request)  # type: ignore[union-attr]
+        try:
+            item = self._responses.get(timeout=self._timeout)
+        except queue.Empty:
+            self._drop()
+            raise DeadlineExceeded(
+                f"no StepStream response within {self._timeout} s",
+                grpc.StatusCode.DEADLINE_EXCEEDED,
+            ) from None
+        if isinstance(item, EsaError):
+            self._drop()
+            raise item
+        response: esa_pb2.StepStreamResponse = item  # type: ignore[assignment]
+        if response.HasField("error"):
+            raise esa_error(response.error)
+        return response
+
+    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
+        """Sends one ProbeBatch on the stream."""
+        return self._round_trip(esa_pb2.StepStreamRequest(probe_batch=request)).probe_batch
+
+    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
+        """Sends one ReportBatch on the stream."""
+        return self._round_trip(esa_pb2.StepStreamRequest(report_batch=request)).report_batch
+
+    def close(self) -> None:
+        """Ends the stream."""
+        self._drop()
