@@ -1,0 +1,96 @@
+"""The ESA side of an SB3 learner: one session per env, the probe/report round trip, stats."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+
+import numpy as np
+
+from ..client import EsaClient
+from ..config import EsaConfig
+from ..env_dt import env_dt
+from ..errors import EsaError
+
+QFunction = Callable[[np.ndarray], np.ndarray]
+"""Maps ``(k N, D)`` actions to ``(k N,)`` values at the N current observations tiled k times."""
+
+
+class EsaRuntime:
+    """Connection, sessions and statistics of one learner; never pickled with the model.
+
+    Args:
+        esa: The ESA hyperparameters.
+        address: Server address, or None to spawn a private server for this learner.
+        vec_env: The learner's VecEnv (gives the env count and ``dt``).
+        low: Lower action bounds of the space ESA works in (shape ``(D,)``).
+        high: Upper action bounds.
+        use_stream: Use the StepStream transport instead of the batch RPCs.
+    """
+
+    def __init__(
+        self,
+        esa: EsaConfig,
+        address: str | None,
+        vec_env: object,
+        low: np.ndarray,
+        high: np.ndarray,
+        *,
+        use_stream: bool = False,
+    ) -> None:
+        """Connects (or spawns the server) and creates one session per env."""
+        n_envs = vec_env.num_envs  # type: ignore[attr-defined]
+        config = esa.session_config(low.size, env_dt(vec_env, esa.dt), low, high)
+        self.client = EsaClient.spawn() if address is None else EsaClient(address)
+        try:
+            self.batch = self.client.create_batch(config, n_envs, use_stream=use_stream)
+        except BaseException:
+            self.client.close()
+            raise
+        self._sums = np.zeros(3)
+        self._count = 0
+
+    def improve(
+        self, actions: np.ndarray, episode_starts: np.ndarray, q_fn: QFunction
+    ) -> np.ndarray:
+        """Runs one probe/report round for all envs and returns the improved actions.
+
+        Args:
+            actions: Sampled actions, shape ``(N, D)`` (any float dtype).
+            episode_starts: True where an env starts a new episode, shape ``(N,)``.
+            q_fn: The critic at the current observations.
+
+        Returns:
+            The improved actions, float64, shape ``(N, D)``.
+        """
+        sampled = np.asarray(actions, dtype=np.float64)
+        probes = self.batch.probe(sampled, episode_starts)
+        q_probe = np.asarray(q_fn(probes), dtype=np.float64)
+        improved = self.batch.report(q_probe)
+        both = np.asarray(q_fn(np.concatenate([sampled, improved])), dtype=np.float64)
+        n = len(sampled)
+        self._sums += (
+            np.abs(improved - sampled).mean(),
+            q_probe.mean(),
+            (both[n:] - both[:n]).mean(),
+        )
+        self._count += 1
+        return improved
+
+    def record(self, logger: object) -> None:
+        """Writes the mean stats since the last call to an SB3 logger and resets them."""
+        if self._count == 0:
+            return
+        shift, probe_q, improvement = self._sums / self._count
+        logger.record("esa/mean_abs_shift", shift)  # type: ignore[attr-defined]
+        logger.record("esa/mean_probe_q", probe_q)  # type: ignore[attr-defined]
+        logger.record("esa/improvement", improvement)  # type: ignore[attr-defined]
+        self._sums[:] = 0.0
+        self._count = 0
+
+    def close(self) -> None:
+        """Closes the sessions and the client (stopping a spawned server)."""
+        # The sessions expire on their own if the server is already gone.
+        with contextlib.suppress(EsaError):
+            self.batch.close()
+        self.client.close()

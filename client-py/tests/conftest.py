@@ -1,0 +1,61 @@
+"""Fixtures: the real esa-server binary, a shared spawned server, and config generators."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from esa_client import EsaClient, SessionConfig
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="session")
+def server_bin() -> str:
+    """The esa-server executable: $ESA_SERVER_BIN, else target/release/esa-server of this repo."""
+    path = Path(os.environ.get("ESA_SERVER_BIN") or REPO_ROOT / "target" / "release" / "esa-server")
+    if not (path.is_file() and os.access(path, os.X_OK)):
+        pytest.fail(
+            f"esa-server not found at {path}: run `cargo build --release -p esa-server` "
+            "or set ESA_SERVER_BIN"
+        )
+    return str(path)
+
+
+@pytest.fixture(scope="session")
+def client(server_bin):
+    """One private server for the whole session; tests use unique session ids."""
+    with EsaClient.spawn(server_bin) as c:
+        yield c
+
+
+def random_config(rng: np.random.Generator, action_dim: int | None = None) -> SessionConfig:
+    """A random valid config exercising every optional field."""
+    d = int(action_dim if action_dim is not None else rng.integers(1, 5))
+    dt = float(rng.choice([0.002, 0.01, 0.04, 0.05]))
+
+    def vec(low, high):
+        return rng.uniform(low, high) if rng.random() < 0.5 else rng.uniform(low, high, size=d)
+
+    bounded = rng.random() < 0.6
+    return SessionConfig(
+        action_dim=d,
+        dt=dt,
+        amplitude=vec(0.0, 0.5),
+        frequency=np.minimum(vec(1.0, 40.0), 0.99 * np.pi / dt),
+        learning_rate=vec(0.0, 2.0),
+        highpass_cutoff=float(rng.uniform(0.1, 5.0)) if rng.random() < 0.5 else None,
+        disable_highpass=bool(rng.random() < 0.3),
+        action_low=-rng.uniform(0.5, 2.0, size=d) if bounded else None,
+        action_high=rng.uniform(0.5, 2.0, size=d) if bounded else None,
+        shift_limit=float(rng.uniform(0.05, 1.0)) if rng.random() < 0.5 else None,
+        lr_decay=float(rng.uniform(0.5, 1.0)) if rng.random() < 0.5 else None,
+        max_episodes=int(rng.integers(0, 4)),
+    )
+
+
+@pytest.fixture
+def make_config():
+    """Factory for random valid configs (seeded by the caller)."""
+    return random_config

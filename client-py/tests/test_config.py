@@ -1,0 +1,74 @@
+"""Client-side validation of SessionConfig and EsaConfig, and the proto round trip."""
+
+import math
+
+import numpy as np
+import pytest
+
+from esa_client import EsaConfig, SessionConfig
+
+BASE = dict(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        dict(action_dim=0),
+        dict(action_dim=4097),
+        dict(dt=0.0),
+        dict(dt=math.nan),
+        dict(amplitude=-0.1),
+        dict(amplitude=[]),
+        dict(amplitude=[0.1, 0.2, 0.3]),
+        dict(frequency=0.0),
+        dict(frequency=math.pi / 0.05),
+        dict(learning_rate=math.inf),
+        dict(highpass_cutoff=0.0),
+        dict(action_low=1.0, action_high=1.0),
+        dict(action_low=math.inf),
+        dict(action_high=[math.nan, 1.0]),
+        dict(shift_limit=-1.0),
+        dict(lr_decay=0.0),
+        dict(lr_decay=1.5),
+        dict(max_episodes=-1),
+        dict(amplitude=[[0.1, 0.2]]),
+    ],
+)
+def test_invalid_fields_raise_value_error_naming_the_field(change):
+    with pytest.raises(ValueError, match="expected"):
+        SessionConfig(**{**BASE, **change})
+
+
+def test_proto_round_trip_keeps_vectors_as_given():
+    config = SessionConfig(
+        **{**BASE, "amplitude": [0.1, 0.3]},
+        highpass_cutoff=0.7,
+        action_low=-1.0,
+        action_high=[1.0, 2.0],
+        shift_limit=0.5,
+        lr_decay=0.9,
+        max_episodes=3,
+    )
+    message = config.to_proto()
+    assert list(message.amplitude) == [0.1, 0.3]
+    assert list(message.frequency) == [10.0]
+    assert message.HasField("lr_decay") and not SessionConfig(**BASE).to_proto().HasField(
+        "lr_decay"
+    )
+    assert SessionConfig.from_proto(message) == config
+    np.testing.assert_array_equal(config.vector("action_high"), [1.0, 2.0])
+    np.testing.assert_array_equal(SessionConfig(**BASE).vector("action_low"), [-np.inf, -np.inf])
+
+
+def test_esa_config_spreads_a_scalar_frequency_over_dimensions():
+    esa = EsaConfig(frequency=10 * math.pi)
+    config = esa.session_config(3, dt=0.04, action_low=-3.0, action_high=3.0)
+    assert config.frequency == pytest.approx((10 * math.pi, 7.5 * math.pi, 5 * math.pi))
+    assert esa.session_config(1, dt=0.04).frequency == (10 * math.pi,)
+    assert EsaConfig(frequency=[1.0, 2.0]).session_config(2, 0.04).frequency == (1.0, 2.0)
+
+
+def test_esa_config_dt_overrides_and_nyquist_is_explained():
+    assert EsaConfig(dt=0.01).session_config(1, dt=0.5).dt == 0.01
+    with pytest.raises(ValueError, match="Nyquist"):
+        EsaConfig().session_config(1, dt=0.2)

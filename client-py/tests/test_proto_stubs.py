@@ -1,0 +1,37 @@
+"""The committed stubs are exactly what scripts/gen_proto.py produces from the proto."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+from esa_client._proto.esa.v1 import esa_pb2, esa_pb2_grpc
+
+CLIENT_ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_regenerating_gives_identical_files():
+    result = subprocess.run(
+        [sys.executable, str(CLIENT_ROOT / "scripts" / "gen_proto.py"), "--check"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_stubs_keep_the_canonical_proto_name_and_import_from_the_package():
+    assert esa_pb2.DESCRIPTOR.name == "esa/v1/esa.proto"
+    assert esa_pb2.DESCRIPTOR.package == "esa.v1"
+    assert esa_pb2_grpc.esa_dot_v1_dot_esa__pb2 is esa_pb2
+    service = esa_pb2.DESCRIPTOR.services_by_name["EsaService"]
+    assert {m.name for m in service.methods} == {
+        "CreateSession",
+        "Probe",
+        "Report",
+        "EndEpisode",
+        "CloseSession",
+        "GetSession",
+        "ProbeBatch",
+        "ReportBatch",
+        "StepStream",
+    }
