@@ -1,0 +1,144 @@
+"""PPO vs ESAPPO on InvertedPendulum-v5: learning curves, a PNG and a small table.
+
+This is what ``make demo`` runs. Both agents get identical PPO hyperparameters and
+seeds; ESAPPO differs only by ``esa=EsaConfig(...)`` (and a private esa-server it
+starts and stops by itself). Every ``eval_every`` steps the deterministic policy is
+evaluated on separate envs.
+
+Usage::
+
+    python client-py/examples/demo.py [--total-timesteps 60000] [--out-dir demo-results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from stable_baselines3 import PPO  # noqa: E402
+from stable_baselines3.common.callbacks import EvalCallback  # noqa: E402
+from stable_baselines3.common.env_util import make_vec_env  # noqa: E402
+
+from esa_client.sb3 import ESAPPO, EsaConfig  # noqa: E402
+
+
+@dataclass
+class Args:
+    """Demo settings (all overridable on the command line)."""
+
+    env_id: str = "InvertedPendulum-v5"
+    total_timesteps: int = 60_000
+    n_envs: int = 4
+    n_steps: int = 512
+    eval_every: int = 5_000
+    eval_episodes: int = 5
+    threshold: float = 950.0
+    seed: int = 0
+    esa_amplitude: float = 0.2
+    esa_learning_rate: float = 0.05
+    out_dir: str = "demo-results"
+
+
+def parse_args() -> Args:
+    """Reads ``Args`` from the command line (``--total-timesteps 30000`` etc.)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for field in dataclasses.fields(Args):
+        flag = "--" + field.name.replace("_", "-")
+        parser.add_argument(flag, type=type(field.default), default=field.default)
+    return Args(**vars(parser.parse_args()))
+
+
+def train(name: str, args: Args) -> dict:
+    """Trains one agent with periodic evaluation; returns its curve and timings."""
+    env = make_vec_env(args.env_id, n_envs=args.n_envs, seed=args.seed)
+    eval_env = make_vec_env(args.env_id, n_envs=1, seed=args.seed + 1000)
+    evaluation = EvalCallback(
+        eval_env,
+        eval_freq=max(args.eval_every // args.n_envs, 1),
+        n_eval_episodes=args.eval_episodes,
+        deterministic=True,
+        verbose=0,
+    )
+    common = dict(n_steps=args.n_steps, batch_size=64, seed=args.seed, device="cpu", verbose=0)
+    if name == "ESAPPO":
+        esa = EsaConfig(amplitude=args.esa_amplitude, learning_rate=args.esa_learning_rate)
+        model = ESAPPO("MlpPolicy", env, esa=esa, **common)
+    else:
+        model = PPO("MlpPolicy", env, **common)
+    print(f"training {name} for {args.total_timesteps} steps on {args.env_id}")
+    start = time.perf_counter()
+    model.learn(args.total_timesteps, callback=evaluation, progress_bar=True)
+    seconds = time.perf_counter() - start
+    if isinstance(model, ESAPPO):
+        model.esa_close()
+    returns = np.asarray(evaluation.evaluations_results, dtype=float).mean(axis=1)
+    steps = np.asarray(evaluation.evaluations_timesteps, dtype=int)
+    reached = np.flatnonzero(returns >= args.threshold)
+    return {
+        "name": name,
+        "timesteps": steps.tolist(),
+        "mean_return": returns.tolist(),
+        "final_return": float(returns[-1]) if returns.size else float("nan"),
+        "steps_to_threshold": int(steps[reached[0]]) if reached.size else None,
+        "wall_clock_s": seconds,
+    }
+
+
+def plot(results: list[dict], args: Args, path: Path) -> None:
+    """Writes the learning curves of all agents to ``path``."""
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for result in results:
+        ax.plot(result["timesteps"], result["mean_return"], marker="o", label=result["name"])
+    ax.axhline(args.threshold, color="gray", linestyle="--", linewidth=1, label="threshold")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel(f"mean eval return ({args.eval_episodes} episodes)")
+    ax.set_title(f"{args.env_id}: PPO vs ESAPPO (seed {args.seed})")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def print_table(results: list[dict], args: Args) -> None:
+    """Prints final return, steps to threshold and wall-clock time per agent."""
+    header = (
+        f"{'agent':<8} {'final return':>13} {f'steps to {args.threshold:g}':>16} {'wall clock':>11}"
+    )
+    print(header)
+    print("-" * len(header))
+    for r in results:
+        reached = (
+            str(r["steps_to_threshold"]) if r["steps_to_threshold"] is not None else "not reached"
+        )
+        print(
+            f"{r['name']:<8} {r['final_return']:>13.1f} {reached:>16} {r['wall_clock_s']:>10.1f}s"
+        )
+
+
+def main() -> None:
+    """Trains both agents, then writes the plot and the JSON results and prints the table."""
+    args = parse_args()
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    results = [train(name, args) for name in ("PPO", "ESAPPO")]
+    plot(results, args, out / "learning_curve.png")
+    (out / "results.json").write_text(
+        json.dumps({"args": dataclasses.asdict(args), "results": results}, indent=2)
+    )
+    print()
+    print_table(results, args)
+    print(f"\nlearning curve: {out / 'learning_curve.png'}; raw numbers: {out / 'results.json'}")
+
+
+if __name__ == "__main__":
+    main()

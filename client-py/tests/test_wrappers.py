@@ -1,0 +1,53 @@
+"""EsaActionWrapper on real gymnasium envs against the real server."""
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.utils.env_checker import check_env
+
+from esa_client import EsaConfig
+from esa_client.reference import ReferenceSession
+from esa_client.wrappers import EsaActionWrapper
+
+
+def q_fn(obs, action):
+    """A made-up critic preferring actions near a function of the observation."""
+    return -float(np.sum((np.asarray(action) - 0.5 * np.tanh(obs[: action.size])) ** 2))
+
+
+def test_wrapper_passes_check_env(client):
+    env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn, EsaConfig(learning_rate=0.5), client)
+    check_env(env, skip_render_check=True)
+    env.close()
+
+
+def test_wrapper_applies_the_improved_action(client):
+    esa = EsaConfig(amplitude=0.3, learning_rate=2.0)
+    env = EsaActionWrapper(gym.make("InvertedPendulum-v5"), q_fn, esa, client)
+    applied = []
+    inner_step = env.env.step
+    env.env.step = lambda action: (applied.append(np.array(action)), inner_step(action))[1]
+    reference = ReferenceSession(esa.session_config(1, 0.04, -3.0, 3.0))
+    rng = np.random.default_rng(0)
+    for episode in range(2):
+        obs, _ = env.reset(seed=episode)
+        for t in range(30):
+            action = rng.uniform(-1, 1, size=1).astype(np.float32)
+            probe = reference.probe(action, episode_start=t == 0)
+            want = reference.report(q_fn(obs, probe.astype(np.float32)))
+            obs, _, terminated, truncated, info = env.step(action)
+            np.testing.assert_allclose(info["esa_action"], want, rtol=1e-6)
+            np.testing.assert_array_equal(applied[-1], info["esa_action"])
+            if terminated or truncated:
+                break
+    assert np.any(np.abs(np.array(applied).ravel()) > 0)
+    env.close()
+
+
+def test_wrapper_spawns_and_stops_its_own_server(server_bin, monkeypatch):
+    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+    env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn)
+    server = env._client.server
+    env.reset(seed=0)
+    env.step(env.action_space.sample())
+    env.close()
+    assert not server.running()
