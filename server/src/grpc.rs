@@ -1,0 +1,104 @@
+//! The gRPC service: a thin adapter from tonic to [`EsaHandler`].
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::error::Error;
+use crate::handler::EsaHandler;
+use crate::pb;
+use crate::pb::esa_service_server::EsaService;
+
+/// `esa.v1.EsaService` over gRPC.
+pub struct GrpcService {
+    handler: Arc<EsaHandler>,
+}
+
+impl GrpcService {
+    pub fn new(handler: Arc<EsaHandler>) -> Self {
+        Self { handler }
+    }
+}
+
+fn respond<T>(result: Result<T, Error>) -> Result<Response<T>, Status> {
+    result.map(Response::new).map_err(Status::from)
+}
+
+type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::StepStreamResponse, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl EsaService for GrpcService {
+    async fn create_session(
+        &self,
+        request: Request<pb::CreateSessionRequest>,
+    ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        respond(self.handler.create_session(request.into_inner()))
+    }
+
+    async fn probe(
+        &self,
+        request: Request<pb::ProbeRequest>,
+    ) -> Result<Response<pb::ProbeResponse>, Status> {
+        respond(self.handler.probe(request.into_inner()))
+    }
+
+    async fn report(
+        &self,
+        request: Request<pb::ReportRequest>,
+    ) -> Result<Response<pb::ReportResponse>, Status> {
+        respond(self.handler.report(request.into_inner()))
+    }
+
+    async fn end_episode(
+        &self,
+        request: Request<pb::EndEpisodeRequest>,
+    ) -> Result<Response<pb::EndEpisodeResponse>, Status> {
+        respond(self.handler.end_episode(request.into_inner()))
+    }
+
+    async fn close_session(
+        &self,
+        request: Request<pb::CloseSessionRequest>,
+    ) -> Result<Response<pb::CloseSessionResponse>, Status> {
+        respond(self.handler.close_session(request.into_inner()))
+    }
+
+    async fn get_session(
+        &self,
+        request: Request<pb::GetSessionRequest>,
+    ) -> Result<Response<pb::GetSessionResponse>, Status> {
+        respond(self.handler.get_session(request.into_inner()))
+    }
+
+    async fn probe_batch(
+        &self,
+        request: Request<pb::ProbeBatchRequest>,
+    ) -> Result<Response<pb::ProbeBatchResponse>, Status> {
+        respond(self.handler.probe_batch(request.into_inner()))
+    }
+
+    async fn report_batch(
+        &self,
+        request: Request<pb::ReportBatchRequest>,
+    ) -> Result<Response<pb::ReportBatchResponse>, Status> {
+        respond(self.handler.report_batch(request.into_inner()))
+    }
+
+    type StepStreamStream = ResponseStream;
+
+    /// Answers each message as it arrives, in order, without a relay task or
+    /// channel: the response stream is the request stream mapped through the
+    /// handler. A transport error from the client ends the stream.
+    async fn step_stream(
+        &self,
+        request: Request<Streaming<pb::StepStreamRequest>>,
+    ) -> Result<Response<ResponseStream>, Status> {
+        let handler = Arc::clone(&self.handler);
+        let responses = request
+            .into_inner()
+            .map(move |message| message.map(|req| handler.step(req)));
+        Ok(Response::new(Box::pin(responses)))
+    }
+}

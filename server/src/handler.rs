@@ -1,0 +1,312 @@
+//! Transport-independent request handling: one method per RPC, taking the
+//! prost request and returning the prost response or an [`Error`]. The gRPC
+//! service is a thin adapter over it, and so is any other transport (such as
+//! Zenoh), so every transport behaves identically. Share it as
+//! `Arc<EsaHandler>`; all methods take `&self`.
+
+use std::time::Instant;
+
+use esa_core::Session;
+use prost::Message;
+
+use crate::convert::{config_from_proto, config_to_proto};
+use crate::error::Error;
+use crate::metrics::Metrics;
+use crate::pb;
+use crate::pb::step_stream_request::Kind as StreamRequest;
+use crate::pb::step_stream_response::Kind as StreamResponse;
+use crate::rpc::Rpc;
+use crate::store::SessionStore;
+
+/// Most items a batch may carry.
+pub const MAX_BATCH_ITEMS: usize = 65_536;
+
+/// Handles the RPCs of `esa.v1.EsaService` against one session store.
+pub struct EsaHandler {
+    store: SessionStore,
+    metrics: Metrics,
+}
+
+impl EsaHandler {
+    /// A handler serving the sessions of `store`.
+    pub fn new(store: SessionStore) -> Self {
+        Self {
+            store,
+            metrics: Metrics::default(),
+        }
+    }
+
+    /// The session store (for the sweeper and for inspection).
+    pub fn store(&self) -> &SessionStore {
+        &self.store
+    }
+
+    /// The Prometheus text exposition of this handler's metrics.
+    pub fn render_metrics(&self) -> String {
+        self.metrics
+            .render(self.store.live(), self.store.expired_total())
+    }
+
+    pub fn create_session(
+        &self,
+        req: pb::CreateSessionRequest,
+    ) -> Result<pb::CreateSessionResponse, Error> {
+        self.observe(Rpc::CreateSession, || {
+            let session = Session::new(config_from_proto(req.config)?)?;
+            let session_id = self.store.create(req.session_id, session)?;
+            Ok(pb::CreateSessionResponse { session_id })
+        })
+    }
+
+    pub fn probe(&self, req: pb::ProbeRequest) -> Result<pb::ProbeResponse, Error> {
+        self.observe(Rpc::Probe, || {
+            self.store.with_session(&req.session_id, |session| {
+                let mut probe = Vec::with_capacity(session.action_dim());
+                session.probe(req.step, &req.action, req.episode_start, &mut probe)?;
+                Ok(pb::ProbeResponse {
+                    probe,
+                    step: req.step,
+                })
+            })
+        })
+    }
+
+    pub fn report(&self, req: pb::ReportRequest) -> Result<pb::ReportResponse, Error> {
+        self.observe(Rpc::Report, || {
+            self.store.with_session(&req.session_id, |session| {
+                let mut action = Vec::with_capacity(session.action_dim());
+                let outcome = session.report(req.step, req.q_value, &mut action)?;
+                self.note_nonfinite(outcome.nonfinite_skipped, &req.session_id);
+                Ok(pb::ReportResponse {
+                    action,
+                    step: req.step,
+                })
+            })
+        })
+    }
+
+    pub fn end_episode(&self, req: pb::EndEpisodeRequest) -> Result<pb::EndEpisodeResponse, Error> {
+        self.observe(Rpc::EndEpisode, || {
+            self.store.with_session(&req.session_id, |session| {
+                Ok(pb::EndEpisodeResponse {
+                    episodes_completed: session.end_episode(),
+                })
+            })
+        })
+    }
+
+    pub fn close_session(
+        &self,
+        req: pb::CloseSessionRequest,
+    ) -> Result<pb::CloseSessionResponse, Error> {
+        self.observe(Rpc::CloseSession, || {
+            self.store.close(&req.session_id)?;
+            Ok(pb::CloseSessionResponse {})
+        })
+    }
+
+    pub fn get_session(&self, req: pb::GetSessionRequest) -> Result<pb::GetSessionResponse, Error> {
+        self.observe(Rpc::GetSession, || {
+            self.store.with_session(&req.session_id, |session| {
+                Ok(pb::GetSessionResponse {
+                    config: Some(config_to_proto(session.config())),
+                    step: session.step(),
+                    episodes_completed: session.episodes_completed(),
+                    shift: session.shift().to_vec(),
+                    probe_pending: session.probe_pending(),
+                })
+            })
+        })
+    }
+
+    pub fn probe_batch(&self, req: pb::ProbeBatchRequest) -> Result<pb::ProbeBatchResponse, Error> {
+        self.observe(Rpc::ProbeBatch, || self.run_probe_batch(req))
+    }
+
+    pub fn report_batch(
+        &self,
+        req: pb::ReportBatchRequest,
+    ) -> Result<pb::ReportBatchResponse, Error> {
+        self.observe(Rpc::ReportBatch, || self.run_report_batch(req))
+    }
+
+    /// Answers one StepStream message; a failure becomes an in-band
+    /// `StreamError` so the stream can go on.
+    pub fn step(&self, req: pb::StepStreamRequest) -> pb::StepStreamResponse {
+        let result = self.observe(Rpc::StepStream, || match req.kind {
+            Some(StreamRequest::ProbeBatch(batch)) => {
+                self.run_probe_batch(batch).map(StreamResponse::ProbeBatch)
+            }
+            Some(StreamRequest::ReportBatch(batch)) => {
+                self.run_report_batch(batch).map(StreamResponse::ReportBatch)
+            }
+            None => Err(Error::InvalidArgument(
+                "kind: expected probe_batch or report_batch, got neither".into(),
+            )),
+        });
+        pb::StepStreamResponse {
+            kind: Some(result.unwrap_or_else(|err| StreamResponse::Error(err.into()))),
+        }
+    }
+
+    /// Decodes `payload` as the request of `rpc`, handles it and returns the
+    /// encoded response: the entry point for message-based transports. For
+    /// [`Rpc::StepStream`] the payload is one `StepStreamRequest` and errors
+    /// come back in-band, as on the gRPC stream.
+    pub fn handle_encoded(&self, rpc: Rpc, payload: &[u8]) -> Result<Vec<u8>, Error> {
+        match rpc {
+            Rpc::CreateSession => encoded(payload, |r| self.create_session(r)),
+            Rpc::Probe => encoded(payload, |r| self.probe(r)),
+            Rpc::Report => encoded(payload, |r| self.report(r)),
+            Rpc::EndEpisode => encoded(payload, |r| self.end_episode(r)),
+            Rpc::CloseSession => encoded(payload, |r| self.close_session(r)),
+            Rpc::GetSession => encoded(payload, |r| self.get_session(r)),
+            Rpc::ProbeBatch => encoded(payload, |r| self.probe_batch(r)),
+            Rpc::ReportBatch => encoded(payload, |r| self.report_batch(r)),
+            Rpc::StepStream => encoded(payload, |r| Ok(self.step(r))),
+        }
+    }
+
+    fn run_probe_batch(&self, req: pb::ProbeBatchRequest) -> Result<pb::ProbeBatchResponse, Error> {
+        let n = check_batch_len(req.session_ids.len())?;
+        check_field_len("steps", req.steps.len(), n)?;
+        if !req.episode_starts.is_empty() {
+            check_field_len("episode_starts", req.episode_starts.len(), n)?;
+        }
+        let starts = || {
+            req.episode_starts
+                .iter()
+                .copied()
+                .chain(std::iter::repeat(false))
+        };
+        self.store.with_batch(&req.session_ids, |sessions| {
+            let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
+            if req.actions.len() != total {
+                return Err(Error::InvalidArgument(format!(
+                    "actions: expected {total} values (the action_dim of the {n} sessions \
+                     added up), got {}",
+                    req.actions.len()
+                )));
+            }
+            // Every item is checked before any session changes: all-or-nothing.
+            let mut rest = req.actions.as_slice();
+            for (index, ((session, &step), start)) in
+                sessions.iter().zip(&req.steps).zip(starts()).enumerate()
+            {
+                let action = take(&mut rest, session.action_dim(), index)?;
+                session
+                    .check_probe(step, action, start)
+                    .map_err(|err| Error::item(index, err))?;
+            }
+            let mut probes = Vec::with_capacity(total);
+            let mut rest = req.actions.as_slice();
+            for (index, ((session, &step), start)) in
+                sessions.iter_mut().zip(&req.steps).zip(starts()).enumerate()
+            {
+                let action = take(&mut rest, session.action_dim(), index)?;
+                session
+                    .probe(step, action, start, &mut probes)
+                    .map_err(|err| Error::item(index, err))?;
+            }
+            Ok(pb::ProbeBatchResponse { probes })
+        })
+    }
+
+    fn run_report_batch(
+        &self,
+        req: pb::ReportBatchRequest,
+    ) -> Result<pb::ReportBatchResponse, Error> {
+        let n = check_batch_len(req.session_ids.len())?;
+        check_field_len("steps", req.steps.len(), n)?;
+        check_field_len("q_values", req.q_values.len(), n)?;
+        self.store.with_batch(&req.session_ids, |sessions| {
+            for (index, ((session, &step), &q)) in
+                sessions.iter().zip(&req.steps).zip(&req.q_values).enumerate()
+            {
+                session
+                    .check_report(step, q)
+                    .map_err(|err| Error::item(index, err))?;
+            }
+            let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
+            let mut actions = Vec::with_capacity(total);
+            for (index, (((session, &step), &q), id)) in sessions
+                .iter_mut()
+                .zip(&req.steps)
+                .zip(&req.q_values)
+                .zip(&req.session_ids)
+                .enumerate()
+            {
+                let outcome = session
+                    .report(step, q, &mut actions)
+                    .map_err(|err| Error::item(index, err))?;
+                self.note_nonfinite(outcome.nonfinite_skipped, id);
+            }
+            Ok(pb::ReportBatchResponse { actions })
+        })
+    }
+
+    /// Runs `f` as one request of `rpc`, recording its code and latency.
+    fn observe<T>(&self, rpc: Rpc, f: impl FnOnce() -> Result<T, Error>) -> Result<T, Error> {
+        let start = Instant::now();
+        let result = f();
+        let code = match &result {
+            Ok(_) => tonic::Code::Ok,
+            Err(err) => {
+                tracing::debug!(rpc = rpc.name(), code = ?err.code(), %err, "request failed");
+                err.code()
+            }
+        };
+        self.metrics.observe(rpc, code, start.elapsed());
+        result
+    }
+
+    fn note_nonfinite(&self, skipped: bool, session_id: &str) {
+        if skipped {
+            self.metrics.add_nonfinite_skipped(1);
+            tracing::warn!(
+                session_id,
+                "shift update would be non-finite; kept the previous shift"
+            );
+        }
+    }
+}
+
+fn encoded<Req: Message + Default, Resp: Message>(
+    payload: &[u8],
+    handle: impl FnOnce(Req) -> Result<Resp, Error>,
+) -> Result<Vec<u8>, Error> {
+    let req = Req::decode(payload).map_err(|err| {
+        Error::InvalidArgument(format!("payload: expected an encoded request message: {err}"))
+    })?;
+    handle(req).map(|resp| resp.encode_to_vec())
+}
+
+fn check_batch_len(n: usize) -> Result<usize, Error> {
+    if n == 0 || n > MAX_BATCH_ITEMS {
+        return Err(Error::InvalidArgument(format!(
+            "session_ids: expected 1 to {MAX_BATCH_ITEMS} items per batch, got {n}"
+        )));
+    }
+    Ok(n)
+}
+
+fn check_field_len(field: &str, len: usize, n: usize) -> Result<(), Error> {
+    if len != n {
+        return Err(Error::InvalidArgument(format!(
+            "{field}: expected {n} values (one per session_ids item), got {len}"
+        )));
+    }
+    Ok(())
+}
+
+/// Splits the next `d` values off `rest` (item `index`'s action).
+fn take<'a>(rest: &mut &'a [f64], d: usize, index: usize) -> Result<&'a [f64], Error> {
+    let (head, tail) = rest.split_at_checked(d).ok_or_else(|| {
+        Error::item(
+            index,
+            Error::InvalidArgument("actions: too few values for this item".into()),
+        )
+    })?;
+    *rest = tail;
+    Ok(head)
+}

@@ -1,0 +1,224 @@
+//! Request metrics kept in lock-free counters and served on an opt-in HTTP
+//! endpoint (`GET /metrics`) in the Prometheus text exposition format.
+
+use std::fmt::Write as _;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::extract::State;
+use axum::http::header;
+use axum::response::IntoResponse;
+use axum::routing::get;
+use axum::Router;
+use tonic::Code;
+
+use crate::handler::EsaHandler;
+use crate::rpc::Rpc;
+
+/// Upper bounds of the latency histogram buckets, in seconds. Handler time of
+/// one step is microseconds; large batches reach milliseconds.
+const BUCKETS: [f64; 12] = [
+    1e-6, 5e-6, 1e-5, 2.5e-5, 5e-5, 1e-4, 2.5e-4, 1e-3, 5e-3, 2.5e-2, 0.1, 1.0,
+];
+
+/// gRPC status code names, indexed by code number.
+const CODE_NAMES: [&str; 17] = [
+    "OK",
+    "CANCELLED",
+    "UNKNOWN",
+    "INVALID_ARGUMENT",
+    "DEADLINE_EXCEEDED",
+    "NOT_FOUND",
+    "ALREADY_EXISTS",
+    "PERMISSION_DENIED",
+    "RESOURCE_EXHAUSTED",
+    "FAILED_PRECONDITION",
+    "ABORTED",
+    "OUT_OF_RANGE",
+    "UNIMPLEMENTED",
+    "INTERNAL",
+    "UNAVAILABLE",
+    "DATA_LOSS",
+    "UNAUTHENTICATED",
+];
+
+/// Counters of one server.
+pub struct Metrics {
+    requests: [[AtomicU64; CODE_NAMES.len()]; Rpc::ALL.len()],
+    latency: [Histogram; Rpc::ALL.len()],
+    nonfinite_skipped: AtomicU64,
+}
+
+#[derive(Default)]
+struct Histogram {
+    buckets: [AtomicU64; BUCKETS.len()],
+    sum_nanos: AtomicU64,
+    count: AtomicU64,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self {
+            requests: std::array::from_fn(|_| std::array::from_fn(|_| AtomicU64::new(0))),
+            latency: std::array::from_fn(|_| Histogram::default()),
+            nonfinite_skipped: AtomicU64::new(0),
+        }
+    }
+}
+
+impl Metrics {
+    /// Records one handled request.
+    pub fn observe(&self, rpc: Rpc, code: Code, elapsed: Duration) {
+        if let Some(counter) = self
+            .requests
+            .get(rpc as usize)
+            .and_then(|by_code| by_code.get(code as usize))
+        {
+            counter.fetch_add(1, Ordering::Relaxed);
+        }
+        if let Some(histogram) = self.latency.get(rpc as usize) {
+            histogram.observe(elapsed);
+        }
+    }
+
+    /// Records reports whose shift update was skipped as non-finite.
+    pub fn add_nonfinite_skipped(&self, n: u64) {
+        self.nonfinite_skipped.fetch_add(n, Ordering::Relaxed);
+    }
+
+    /// The Prometheus text exposition of all metrics.
+    pub fn render(&self, sessions_live: usize, sessions_expired: u64) -> String {
+        let mut out = String::with_capacity(4096);
+        // Writing to a String cannot fail.
+        let _ = self.write_to(&mut out, sessions_live, sessions_expired);
+        out
+    }
+
+    fn write_to(
+        &self,
+        out: &mut String,
+        sessions_live: usize,
+        sessions_expired: u64,
+    ) -> std::fmt::Result {
+        writeln!(out, "# HELP esa_sessions_live Sessions currently held by the server.")?;
+        writeln!(out, "# TYPE esa_sessions_live gauge")?;
+        writeln!(out, "esa_sessions_live {sessions_live}")?;
+        writeln!(
+            out,
+            "# HELP esa_sessions_expired_total Sessions removed after being idle longer than the TTL."
+        )?;
+        writeln!(out, "# TYPE esa_sessions_expired_total counter")?;
+        writeln!(out, "esa_sessions_expired_total {sessions_expired}")?;
+        writeln!(
+            out,
+            "# HELP esa_nonfinite_updates_skipped_total Reports whose shift update would have been non-finite and was skipped."
+        )?;
+        writeln!(out, "# TYPE esa_nonfinite_updates_skipped_total counter")?;
+        writeln!(
+            out,
+            "esa_nonfinite_updates_skipped_total {}",
+            self.nonfinite_skipped.load(Ordering::Relaxed)
+        )?;
+
+        writeln!(out, "# HELP esa_requests_total Requests handled, by RPC and gRPC status code (StepStream counts each stream message).")?;
+        writeln!(out, "# TYPE esa_requests_total counter")?;
+        for (rpc, by_code) in Rpc::ALL.iter().zip(&self.requests) {
+            for (code, counter) in CODE_NAMES.iter().zip(by_code) {
+                let n = counter.load(Ordering::Relaxed);
+                if n > 0 {
+                    writeln!(
+                        out,
+                        "esa_requests_total{{rpc=\"{}\",code=\"{code}\"}} {n}",
+                        rpc.name()
+                    )?;
+                }
+            }
+        }
+
+        writeln!(out, "# HELP esa_request_duration_seconds Time spent handling a request inside the server, excluding the transport.")?;
+        writeln!(out, "# TYPE esa_request_duration_seconds histogram")?;
+        for (rpc, histogram) in Rpc::ALL.iter().zip(&self.latency) {
+            let count = histogram.count.load(Ordering::Relaxed);
+            if count == 0 {
+                continue;
+            }
+            let rpc = rpc.name();
+            let mut cumulative = 0;
+            for (bound, bucket) in BUCKETS.iter().zip(&histogram.buckets) {
+                cumulative += bucket.load(Ordering::Relaxed);
+                writeln!(
+                    out,
+                    "esa_request_duration_seconds_bucket{{rpc=\"{rpc}\",le=\"{bound:e}\"}} {cumulative}"
+                )?;
+            }
+            writeln!(
+                out,
+                "esa_request_duration_seconds_bucket{{rpc=\"{rpc}\",le=\"+Inf\"}} {count}"
+            )?;
+            let sum = histogram.sum_nanos.load(Ordering::Relaxed) as f64 * 1e-9;
+            writeln!(out, "esa_request_duration_seconds_sum{{rpc=\"{rpc}\"}} {sum:e}")?;
+            writeln!(out, "esa_request_duration_seconds_count{{rpc=\"{rpc}\"}} {count}")?;
+        }
+        Ok(())
+    }
+}
+
+impl Histogram {
+    fn observe(&self, elapsed: Duration) {
+        let seconds = elapsed.as_secs_f64();
+        // Buckets hold non-cumulative counts; the exposition accumulates them.
+        if let Some(bucket) = BUCKETS
+            .iter()
+            .zip(&self.buckets)
+            .find_map(|(bound, bucket)| (seconds <= *bound).then_some(bucket))
+        {
+            bucket.fetch_add(1, Ordering::Relaxed);
+        }
+        let nanos = u64::try_from(elapsed.as_nanos()).unwrap_or(u64::MAX);
+        self.sum_nanos.fetch_add(nanos, Ordering::Relaxed);
+        self.count.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// Serves `GET /metrics` on `listener` until the task is dropped.
+pub async fn serve_metrics(
+    listener: tokio::net::TcpListener,
+    handler: Arc<EsaHandler>,
+) -> std::io::Result<()> {
+    let app = Router::new()
+        .route("/metrics", get(metrics_page))
+        .with_state(handler);
+    axum::serve(listener, app).await
+}
+
+async fn metrics_page(State(handler): State<Arc<EsaHandler>>) -> impl IntoResponse {
+    (
+        [(header::CONTENT_TYPE, "text/plain; version=0.0.4; charset=utf-8")],
+        handler.render_metrics(),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn exposition_has_counters_and_cumulative_buckets() {
+        let metrics = Metrics::default();
+        metrics.observe(Rpc::Probe, Code::Ok, Duration::from_micros(3));
+        metrics.observe(Rpc::Probe, Code::Ok, Duration::from_millis(2));
+        metrics.observe(Rpc::Probe, Code::NotFound, Duration::from_secs(5));
+        let text = metrics.render(4, 1);
+        assert!(text.contains("esa_sessions_live 4\n"));
+        assert!(text.contains("esa_sessions_expired_total 1\n"));
+        assert!(text.contains("esa_requests_total{rpc=\"Probe\",code=\"OK\"} 2\n"));
+        assert!(text.contains("esa_requests_total{rpc=\"Probe\",code=\"NOT_FOUND\"} 1\n"));
+        assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"5e-6\"} 1\n"));
+        assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"5e-3\"} 2\n"));
+        assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"1e0\"} 2\n"));
+        assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"+Inf\"} 3\n"));
+        assert!(text.contains("esa_request_duration_seconds_count{rpc=\"Probe\"} 3\n"));
+        assert!(!text.contains("rpc=\"Report\""));
+    }
+}

@@ -1,0 +1,269 @@
+//! Concurrent session store: sessions keyed by id in a sharded map, each
+//! behind its own mutex, so requests for different sessions never wait on
+//! each other and the step path takes no global lock.
+//!
+//! Idle sessions expire after the TTL. Expiry is checked on every lookup (so
+//! an expired session is NOT_FOUND exactly when its TTL has passed), and a
+//! periodic sweep frees the memory of sessions nobody asks for again.
+
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use dashmap::mapref::entry::Entry as MapEntry;
+use dashmap::DashMap;
+use esa_core::Session;
+use parking_lot::{Mutex, MutexGuard};
+
+use crate::error::Error;
+
+/// Longest accepted session id, in bytes.
+pub const MAX_ID_BYTES: usize = 128;
+
+/// One stored session. parking_lot's mutex does not poison, so a panic in one
+/// request could never make a session unusable for the next.
+struct Slot {
+    session: Mutex<Session>,
+    /// Nanoseconds since the store's epoch of the last request that used it.
+    last_used: AtomicU64,
+}
+
+/// All live sessions of one server, shared by every transport.
+pub struct SessionStore {
+    sessions: DashMap<String, Arc<Slot>>,
+    live: AtomicUsize,
+    expired_total: AtomicU64,
+    ttl_nanos: Option<u64>,
+    max_sessions: usize,
+    epoch: Instant,
+}
+
+impl SessionStore {
+    /// A store whose sessions expire after `ttl` without use (`None` = never)
+    /// and which refuses to hold more than `max_sessions` at once.
+    pub fn new(ttl: Option<Duration>, max_sessions: usize) -> Self {
+        Self {
+            sessions: DashMap::new(),
+            live: AtomicUsize::new(0),
+            expired_total: AtomicU64::new(0),
+            ttl_nanos: ttl.map(duration_nanos),
+            max_sessions,
+            epoch: Instant::now(),
+        }
+    }
+
+    /// Number of sessions currently held (expired ones count until they are
+    /// looked up or swept).
+    pub fn live(&self) -> usize {
+        self.live.load(Ordering::Relaxed)
+    }
+
+    /// Number of sessions removed because their TTL passed.
+    pub fn expired_total(&self) -> u64 {
+        self.expired_total.load(Ordering::Relaxed)
+    }
+
+    /// Stores `session` under `id` (a fresh UUID when `id` is empty) and
+    /// returns the id. An existing live session with the same id is kept and
+    /// its id returned when its config equals the new one; otherwise
+    /// ALREADY_EXISTS.
+    pub fn create(&self, id: String, session: Session) -> Result<String, Error> {
+        let id = if id.is_empty() {
+            uuid::Uuid::new_v4().to_string()
+        } else {
+            check_id(&id)?;
+            id
+        };
+        let now = self.now();
+        let existing = match self.sessions.entry(id.clone()) {
+            MapEntry::Vacant(vacant) => {
+                self.reserve()?;
+                vacant.insert(Slot::new(session, now));
+                return Ok(id);
+            }
+            MapEntry::Occupied(mut occupied) => {
+                if self.is_expired(occupied.get(), now) {
+                    // Same id as an expired session: a new session that takes its place.
+                    occupied.insert(Slot::new(session, now));
+                    self.expired_total.fetch_add(1, Ordering::Relaxed);
+                    return Ok(id);
+                }
+                Arc::clone(occupied.get())
+            }
+        };
+        // Compared after releasing the shard lock so that a long batch holding
+        // this session's mutex cannot stall other ids of the shard.
+        if existing.session.lock().config() == session.config() {
+            existing.touch(now);
+            Ok(id)
+        } else {
+            Err(Error::AlreadyExists(id))
+        }
+    }
+
+    /// Runs `f` on the session `id` while holding its lock.
+    pub fn with_session<R>(
+        &self,
+        id: &str,
+        f: impl FnOnce(&mut Session) -> Result<R, Error>,
+    ) -> Result<R, Error> {
+        let slot = self.lookup(id)?;
+        let mut session = slot.session.lock();
+        f(&mut session)
+    }
+
+    /// Runs `f` on the sessions of `ids` (in request order) while holding all
+    /// their locks, so `f` can validate every item before changing any.
+    /// Errors name the item index; an id may appear only once.
+    pub fn with_batch<R>(
+        &self,
+        ids: &[String],
+        f: impl FnOnce(&mut [&mut Session]) -> Result<R, Error>,
+    ) -> Result<R, Error> {
+        for (index, id) in ids.iter().enumerate() {
+            check_id(id).map_err(|err| Error::item(index, err))?;
+        }
+        // Locks are taken in id order, the same order for every batch, so two
+        // batches sharing sessions cannot deadlock. The stable sort keeps equal
+        // ids in request order, which also finds duplicates.
+        let mut order: Vec<usize> = (0..ids.len()).collect();
+        order.sort_by(|&a, &b| ids.get(a).cmp(&ids.get(b)));
+        for pair in order.windows(2) {
+            if let [first, second] = *pair {
+                if let (Some(a), Some(b)) = (ids.get(first), ids.get(second)) {
+                    if a == b {
+                        return Err(Error::item(
+                            second,
+                            Error::InvalidArgument(format!(
+                                "session id {b:?} also appears at item {first}; \
+                                 a session may appear at most once per batch"
+                            )),
+                        ));
+                    }
+                }
+            }
+        }
+        let slots = ids
+            .iter()
+            .enumerate()
+            .map(|(index, id)| self.lookup(id).map_err(|err| Error::item(index, err)))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut guards: Vec<Option<MutexGuard<'_, Session>>> = Vec::with_capacity(slots.len());
+        guards.resize_with(slots.len(), || None);
+        for &index in &order {
+            if let (Some(guard), Some(slot)) = (guards.get_mut(index), slots.get(index)) {
+                *guard = Some(slot.session.lock());
+            }
+        }
+        let mut sessions: Vec<&mut Session> = guards.iter_mut().flatten().map(|g| &mut **g).collect();
+        f(&mut sessions)
+    }
+
+    /// Removes the session `id`; NOT_FOUND when it does not exist or expired.
+    pub fn close(&self, id: &str) -> Result<(), Error> {
+        check_id(id)?;
+        let (_, slot) = self
+            .sessions
+            .remove(id)
+            .ok_or_else(|| Error::NotFound(id.to_owned()))?;
+        self.live.fetch_sub(1, Ordering::Relaxed);
+        if self.is_expired(&slot, self.now()) {
+            self.expired_total.fetch_add(1, Ordering::Relaxed);
+            return Err(Error::NotFound(id.to_owned()));
+        }
+        Ok(())
+    }
+
+    /// Removes every expired session and returns how many there were.
+    pub fn sweep(&self) -> usize {
+        let now = self.now();
+        let mut removed = 0;
+        self.sessions.retain(|_, slot| {
+            let keep = !self.is_expired(slot, now);
+            removed += usize::from(!keep);
+            keep
+        });
+        self.live.fetch_sub(removed, Ordering::Relaxed);
+        self.expired_total
+            .fetch_add(removed as u64, Ordering::Relaxed);
+        removed
+    }
+
+    /// The live session `id`, marked as used now.
+    fn lookup(&self, id: &str) -> Result<Arc<Slot>, Error> {
+        check_id(id)?;
+        let now = self.now();
+        match self.sessions.get(id) {
+            None => return Err(Error::NotFound(id.to_owned())),
+            Some(slot) if !self.is_expired(&slot, now) => {
+                // Touched under the shard's read lock: a sweep (which holds the
+                // write lock) cannot remove it between this check and the use.
+                slot.touch(now);
+                return Ok(Arc::clone(&slot));
+            }
+            Some(_) => {}
+        }
+        if self
+            .sessions
+            .remove_if(id, |_, slot| self.is_expired(slot, now))
+            .is_some()
+        {
+            self.live.fetch_sub(1, Ordering::Relaxed);
+            self.expired_total.fetch_add(1, Ordering::Relaxed);
+        }
+        Err(Error::NotFound(id.to_owned()))
+    }
+
+    fn reserve(&self) -> Result<(), Error> {
+        self.live
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < self.max_sessions).then_some(n + 1)
+            })
+            .map(drop)
+            .map_err(|n| {
+                Error::ResourceExhausted(format!(
+                    "session limit reached: the server holds {n} live sessions \
+                     (--max-sessions {}); close finished sessions or raise the limit",
+                    self.max_sessions
+                ))
+            })
+    }
+
+    fn is_expired(&self, slot: &Slot, now: u64) -> bool {
+        self.ttl_nanos.is_some_and(|ttl| {
+            now.saturating_sub(slot.last_used.load(Ordering::Relaxed)) > ttl
+        })
+    }
+
+    fn now(&self) -> u64 {
+        duration_nanos(self.epoch.elapsed())
+    }
+}
+
+impl Slot {
+    fn new(session: Session, now: u64) -> Arc<Self> {
+        Arc::new(Slot {
+            session: Mutex::new(session),
+            last_used: AtomicU64::new(now),
+        })
+    }
+
+    fn touch(&self, now: u64) {
+        self.last_used.fetch_max(now, Ordering::Relaxed);
+    }
+}
+
+/// Session ids are 1 to [`MAX_ID_BYTES`] bytes.
+fn check_id(id: &str) -> Result<(), Error> {
+    if id.is_empty() || id.len() > MAX_ID_BYTES {
+        return Err(Error::InvalidArgument(format!(
+            "session_id: expected 1 to {MAX_ID_BYTES} bytes, got {}",
+            id.len()
+        )));
+    }
+    Ok(())
+}
+
+fn duration_nanos(d: Duration) -> u64 {
+    u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)
+}
