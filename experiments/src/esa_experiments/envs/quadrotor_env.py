@@ -62,10 +62,12 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
     rotor forces and drag torques are then simulated by MuJoCo (5 ms steps). One env step
     (``dt = 0.02`` s) is two attitude-loop updates and four physics steps.
 
-    **Observation** (``Box(-inf, inf, (12,), float32)``): the 12-D state relative to the
-    target, with vectors rotated into the quadrotor's heading frame (world frame turned by the
-    quadrotor's yaw: x forward, y left, z up), so the same relative situation gives the same
-    observation anywhere on the path:
+    **Observation** (``Box((12,), float32)``): the 12-D state relative to the target, with
+    vectors rotated into the quadrotor's heading frame (world frame turned by the quadrotor's
+    yaw: x forward, y left, z up), so the same relative situation gives the same observation
+    anywhere on the path. Each component is clipped to the finite space bounds: the arena
+    diagonal for positions, ``OBS_MAX_SPEED`` (20 m/s), ``OBS_MAX_ANGULAR_SPEED`` (50 rad/s)
+    and the angles' natural ranges; only runaway states that are about to terminate reach them.
 
     ====  =============================================================================
     idx   component
@@ -123,6 +125,12 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
 
     CRASH_HEIGHT = 0.05
     """Body centre height below which the quadrotor counts as crashed [m]."""
+
+    OBS_MAX_SPEED = 20.0
+    """Observed velocity errors are clipped to +- this [m/s]."""
+
+    OBS_MAX_ANGULAR_SPEED = 50.0
+    """Observed angular velocities are clipped to +- this [rad/s]."""
 
     CAMERAS = ("overview", "chase")
 
@@ -221,7 +229,12 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
         self._step_count = 0
 
         self.action_space = spaces.Box(-1.0, 1.0, shape=(4,), dtype=np.float32)
-        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(12,), dtype=np.float32)
+        # The arena diagonal bounds every distance between the vehicle and a target inside it.
+        reach = math.sqrt(8.0 * arena_half_width**2 + arena_height**2)
+        v, w, pi = self.OBS_MAX_SPEED, self.OBS_MAX_ANGULAR_SPEED, math.pi
+        high = np.array((reach, reach, reach, v, v, v, pi, 0.5 * pi, pi, w, w, w), dtype=np.float32)
+        self.observation_space = spaces.Box(-high, high, dtype=np.float32)
+        self._obs_low, self._obs_high = self.observation_space.low, self.observation_space.high
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -327,6 +340,8 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
             ),
             dtype=np.float32,
         )
+        np.minimum(obs, self._obs_high, out=obs)
+        np.maximum(obs, self._obs_low, out=obs)
         distance = math.sqrt(ex * ex + ey * ey + ez * ez)
         reward = math.exp(-(self.position_weight * distance + self.yaw_weight * abs(eyaw)))
         # One allocation for both info arrays: state and target are views of it.
