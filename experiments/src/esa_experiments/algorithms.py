@@ -1,0 +1,126 @@
+"""Method name -> model constructor, with hyperparameters from ``configs/``.
+
+A method is an algorithm family (``ppo``, ``sac``, ``ddpg``) plus an
+exploration add-on: none, ESA (``esa_client.sb3``), adaptive parameter noise
+(:mod:`esa_experiments.param_noise`) or Ornstein-Uhlenbeck action noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3 import DDPG, PPO, SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+
+from esa_experiments.configs import algorithm_hyperparams, esa_hyperparams
+from esa_experiments.param_noise import PPOParamNoise, SACParamNoise
+
+
+@dataclass(frozen=True)
+class Method:
+    """A trainable method.
+
+    Attributes:
+        label: name in plots and tables.
+        family: algorithm family (table name in ``algorithms.toml``).
+        addon: ``none``, ``esa``, ``param_noise`` or ``ou``.
+    """
+
+    label: str
+    family: str
+    addon: str
+
+    @property
+    def off_policy(self) -> bool:
+        """True for replay-buffer methods (they get smaller step budgets)."""
+        return self.family in ("sac", "ddpg")
+
+
+METHODS: dict[str, Method] = {
+    "ppo": Method("PPO", "ppo", "none"),
+    "ppo_esa": Method("PPO+ESA", "ppo", "esa"),
+    "ppo_paramnoise": Method("PPO+ParamNoise", "ppo", "param_noise"),
+    "sac": Method("SAC", "sac", "none"),
+    "sac_esa": Method("SAC+ESA", "sac", "esa"),
+    "sac_paramnoise": Method("SAC+ParamNoise", "sac", "param_noise"),
+    "ddpg_ou": Method("DDPG+OU", "ddpg", "ou"),
+}
+
+BASELINE_OF = {"ppo_esa": "ppo", "sac_esa": "sac"}
+"""Which method an ESA method's wall-clock overhead is measured against."""
+
+
+def get_method(name: str) -> Method:
+    """Returns the method called ``name``.
+
+    Raises:
+        ValueError: for an unknown name (the message lists the known ones).
+    """
+    try:
+        return METHODS[name]
+    except KeyError:
+        raise ValueError(f"expected a method in {sorted(METHODS)}, got {name!r}") from None
+
+
+def resolve_hyperparams(
+    method: str, env: str, esa_overrides: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """All hyperparameters of ``method`` on ``env``, as stored in the run's sidecar.
+
+    Args:
+        method: method name.
+        env: task key (selects the per-env tables of the config files).
+        esa_overrides: ESA fields replacing those of ``esa.toml`` (ablations).
+    """
+    spec = get_method(method)
+    hp = algorithm_hyperparams(spec.family, env)
+    if spec.addon != "param_noise":
+        hp.pop("param_noise", None)
+    if spec.addon == "esa":
+        hp["esa"] = {**esa_hyperparams(env), **(esa_overrides or {})}
+    elif esa_overrides:
+        raise ValueError(f"expected ESA overrides only for ESA methods, got them for {method!r}")
+    return hp
+
+
+def build_model(method: str, env: gym.Env, seed: int, hyperparams: dict[str, Any]) -> BaseAlgorithm:
+    """Constructs the SB3 model of ``method`` on ``env`` (CPU, no logging output).
+
+    Args:
+        method: method name.
+        env: training env (a gymnasium env or an SB3 VecEnv).
+        seed: model seed.
+        hyperparams: output of :func:`resolve_hyperparams`.
+    """
+    spec = get_method(method)
+    hp = dict(hyperparams)
+    kwargs: dict[str, Any] = {
+        "policy_kwargs": {"net_arch": hp.pop("net_arch")},
+        "seed": seed,
+        "device": "cpu",
+        "verbose": 0,
+    }
+    if spec.addon == "esa":
+        from esa_client import EsaConfig
+        from esa_client.sb3 import ESAPPO, ESASAC
+
+        cls = {"ppo": ESAPPO, "sac": ESASAC}[spec.family]
+        kwargs["esa"] = EsaConfig(**hp.pop("esa"))
+    elif spec.addon == "param_noise":
+        cls = {"ppo": PPOParamNoise, "sac": SACParamNoise}[spec.family]
+        kwargs["param_noise"] = hp.pop("param_noise")
+    elif spec.addon == "ou":
+        dim = int(np.prod(env.action_space.shape))
+        kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
+            mean=np.zeros(dim),
+            sigma=hp.pop("ou_sigma") * np.ones(dim),
+            theta=hp.pop("ou_theta"),
+        )
+        cls = DDPG
+    else:
+        cls = {"ppo": PPO, "sac": SAC}[spec.family]
+    return cls("MlpPolicy", env, **kwargs, **hp)

@@ -1,0 +1,44 @@
+"""Hyperparameter files: ``experiments/configs/algorithms.toml`` and ``esa.toml``.
+
+Both are layered: a base table overridden by a per-env table. Resolved values
+are plain dicts so they can be stored in run sidecars and fingerprinted.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+from esa_experiments.runs import EXPERIMENTS_DIR
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+CONFIG_DIR = EXPERIMENTS_DIR / "configs"
+
+
+def _load(path: Path) -> dict[str, Any]:
+    with path.open("rb") as handle:
+        return tomllib.load(handle)
+
+
+def algorithm_hyperparams(family: str, env: str, path: Path | None = None) -> dict[str, Any]:
+    """Hyperparameters of an algorithm family (``ppo``, ``sac``, ``ddpg``) on ``env``.
+
+    Raises:
+        ValueError: if the family has no table in the file.
+    """
+    table = _load(path or CONFIG_DIR / "algorithms.toml")
+    if family not in table:
+        raise ValueError(f"expected a [{family}] table in algorithms.toml, got {sorted(table)}")
+    base = {k: v for k, v in table[family].items() if k != "env"}
+    return {**base, **table[family].get("env", {}).get(env, {})}
+
+
+def esa_hyperparams(env: str, path: Path | None = None) -> dict[str, Any]:
+    """ESA hyperparameters (fields of ``esa_client.EsaConfig``) for ``env``."""
+    table = _load(path or CONFIG_DIR / "esa.toml")
+    return {**table.get("default", {}), **table.get("env", {}).get(env, {})}

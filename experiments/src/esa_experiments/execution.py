@@ -1,0 +1,175 @@
+"""Runs a list of runs in worker processes with a ``rich`` progress display.
+
+Workers are ``spawn``-ed processes (fresh interpreters: no forked torch or
+gRPC state) limited to one torch/BLAS thread each, so ``--jobs N`` uses N
+cores. Each worker trains one run at a time and writes its results itself
+(atomically, see :mod:`esa_experiments.runs`), so an interrupted session
+loses only the runs in flight. Progress comes back through a queue, at most a
+few messages per second per job.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import time
+import traceback
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+from esa_experiments.evaluation import ProgressFn
+from esa_experiments.runs import RunSpec, RunStore
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+_REPORT_INTERVAL = 0.5  # seconds between two progress messages of one job
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """How one run ended.
+
+    Attributes:
+        spec: the run.
+        seconds: wall-clock of the whole run (training, evaluation, writing).
+        error: formatted traceback if the run failed, else None.
+    """
+
+    spec: RunSpec
+    seconds: float
+    error: str | None = None
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _throttled(messages: queue.Queue, job: int) -> ProgressFn:
+    last = 0.0
+
+    def report(done: int) -> None:
+        nonlocal last
+        now = time.monotonic()
+        if now - last >= _REPORT_INTERVAL:
+            last = now
+            messages.put((job, done))
+
+    return report
+
+
+def run_one(spec: RunSpec, base: Path | None, progress: ProgressFn | None = None) -> Outcome:
+    """Runs one run in this process and writes its results; never raises for run errors."""
+    from esa_experiments.studies import load_study
+
+    start = time.perf_counter()
+    try:
+        result = load_study(spec.study).run(spec, progress or (lambda _: None))
+        result.meta["seconds"] = time.perf_counter() - start
+        RunStore(spec.study, spec.budget, base).write(spec, result)
+    except Exception:  # one failed run must not stop the others
+        return Outcome(spec, time.perf_counter() - start, traceback.format_exc())
+    return Outcome(spec, time.perf_counter() - start)
+
+
+def _worker(spec: RunSpec, base: Path | None, messages: queue.Queue, job: int) -> Outcome:
+    return run_one(spec, base, _throttled(messages, job))
+
+
+def execute(
+    specs: list[RunSpec], jobs: int, base: Path | None = None, console: Console | None = None
+) -> list[Outcome]:
+    """Runs ``specs`` on ``jobs`` worker processes, showing one bar per running job.
+
+    Args:
+        specs: the runs to do (already filtered to the pending ones).
+        jobs: number of worker processes (>= 1).
+        base: folder holding the results folders (default: ``experiments/``).
+        console: where to draw the progress display.
+
+    Returns:
+        One outcome per spec, in completion order.
+    """
+    if jobs < 1:
+        raise ValueError(f"expected jobs >= 1, got {jobs}")
+    for var in _THREAD_VARS:
+        os.environ.setdefault(var, "1")
+    console = console or Console()
+    ctx = mp.get_context("spawn")
+    outcomes: list[Outcome] = []
+    columns = (
+        TextColumn("{task.description}", justify="left"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
+    with (
+        ctx.Manager() as manager,
+        Progress(*columns, console=console) as progress,
+        ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_init_worker) as pool,
+    ):
+        messages = manager.Queue()
+        overall = progress.add_task("[bold]all runs", total=len(specs))
+        bars: dict[int, TaskID] = {}
+        finished: set[int] = set()
+        futures: dict[Future, int] = {}
+        for job, spec in enumerate(specs):
+            futures[pool.submit(_worker, spec, base, messages, job)] = job
+        try:
+            while futures:
+                _drain(messages, progress, bars, finished, specs)
+                for future in [f for f in futures if f.done()]:
+                    job = futures.pop(future)
+                    finished.add(job)
+                    outcome = future.result()
+                    outcomes.append(outcome)
+                    if job in bars:
+                        progress.remove_task(bars.pop(job))
+                    progress.advance(overall)
+                    status = "[red]FAILED" if outcome.error else "[green]done"
+                    progress.console.print(
+                        f"{status}[/] {outcome.spec.label} ({outcome.seconds:.0f}s)"
+                    )
+        except KeyboardInterrupt:
+            for future in futures:
+                future.cancel()
+            raise
+    return outcomes
+
+
+def _drain(
+    messages: queue.Queue,
+    progress: Progress,
+    bars: dict[int, TaskID],
+    finished: set[int],
+    specs: list[RunSpec],
+) -> None:
+    """Applies the queued progress messages (waits briefly for the first)."""
+    latest: dict[int, int] = {}
+    try:
+        job, done = messages.get(timeout=0.2)
+        while True:
+            latest[job] = done
+            job, done = messages.get_nowait()
+    except queue.Empty:
+        pass
+    for job, done in latest.items():
+        if job in finished:  # a late message of a run that already ended
+            continue
+        if job not in bars:
+            bars[job] = progress.add_task(specs[job].label, total=specs[job].config["total_steps"])
+        progress.update(bars[job], completed=done)

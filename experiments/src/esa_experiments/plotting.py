@@ -1,0 +1,109 @@
+"""Figures: curves with mean +- standard error over seeds."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+
+from esa_experiments.tables import over_seeds
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One subplot: some methods' curves on one env.
+
+    Attributes:
+        title: subplot title.
+        env: env key (the ``env`` column of the runs).
+        methods: methods to draw, in legend order.
+    """
+
+    title: str
+    env: str
+    methods: Sequence[str]
+
+
+def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: object) -> None:
+    line = ax.plot(stats[x], stats["mean"], label=label, **style)[0]
+    ax.fill_between(
+        stats[x],
+        stats["mean"] - stats["sem"],
+        stats["mean"] + stats["sem"],
+        color=line.get_color(),
+        alpha=0.2,
+        linewidth=0,
+    )
+
+
+def learning_curves(
+    frame: pd.DataFrame,
+    panels: Sequence[Panel],
+    labels: dict[str, str],
+    path: Path,
+    *,
+    suptitle: str = "",
+    ncols: int = 2,
+) -> Path:
+    """Evaluation return vs environment steps, one subplot per panel.
+
+    Args:
+        frame: finished runs (``RunStore.load``) with ``step`` and ``return_mean``.
+        panels: the subplots.
+        labels: method -> legend label.
+        path: output PNG.
+        suptitle: figure title.
+        ncols: subplots per row.
+    """
+    ncols = min(ncols, len(panels))
+    nrows = math.ceil(len(panels) / ncols)
+    fig = Figure(figsize=(5.5 * ncols, 3.8 * nrows), layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    for ax, panel in zip(axes.flat, panels, strict=False):
+        for method in panel.methods:
+            runs = frame[(frame.env == panel.env) & (frame.method == method)]
+            if runs.empty:
+                continue
+            stats = over_seeds(runs, "step", "return_mean")
+            seeds = runs.seed.nunique()
+            _band(ax, stats, "step", f"{labels.get(method, method)} (n={seeds})")
+        ax.set_title(panel.title)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("eval return (deterministic)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(panels) :]:
+        ax.set_visible(False)
+    if suptitle:
+        fig.suptitle(suptitle)
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def example1_figure(frame: pd.DataFrame, labels: dict[str, str], path: Path) -> Path:
+    """The two panels of the paper's Figure 2: J vs time, static and time-varying."""
+    fig = Figure(figsize=(12, 4.2), layout="constrained")
+    axes = fig.subplots(1, 2)
+    titles = {"static": "(a) static J(u)", "timevarying": "(b) time-varying J(u, t)"}
+    for ax, env in zip(axes, titles, strict=True):
+        for method, label in labels.items():
+            runs = frame[(frame.env == env) & (frame.method == method)]
+            if runs.empty:
+                continue
+            _band(ax, over_seeds(runs, "t", "J"), "t", label)
+            if method == "esc":
+                probe = over_seeds(runs, "t", "J_probe")
+                ax.plot(probe.t, probe["mean"], ":", color="C0", alpha=0.6, label="ESC probe u(t)")
+        ax.set_yscale("log")
+        ax.set_title(titles[env])
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("J")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    fig.savefig(path, dpi=120)
+    return path

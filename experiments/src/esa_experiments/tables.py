@@ -1,0 +1,113 @@
+"""Seed statistics and the Markdown summary tables of the RL studies.
+
+Per (env, method), over seeds (mean +- standard error):
+
+* final return: the last evaluation's mean return;
+* AUC: area under the evaluation curve divided by the step span, i.e. the
+  average return over training (rewards fast learners);
+* steps to threshold: first evaluated step whose return reaches the env's
+  threshold (median over the seeds that reached it, and how many did);
+* train s: training wall-clock seconds, evaluation excluded;
+* ESA overhead: mean train time of an ESA method / that of its base method
+  on the same env (``ppo_esa`` / ``ppo``, ``sac_esa`` / ``sac``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+
+def over_seeds(runs: pd.DataFrame, x: str, y: str) -> pd.DataFrame:
+    """Mean and standard error of ``y`` over seeds at each ``x`` (SE = 0 with one seed)."""
+    grouped = runs.groupby(x)[y]
+    stats = pd.DataFrame({"mean": grouped.mean(), "sem": grouped.sem().fillna(0.0)})
+    return stats.reset_index()
+
+
+def _mean_sem(values: Sequence[float]) -> str:
+    array = np.asarray(values, dtype=float)
+    sem = array.std(ddof=1) / np.sqrt(len(array)) if len(array) > 1 else 0.0
+    return f"{array.mean():.1f} ± {sem:.1f}"
+
+
+def _trapezoid(y: np.ndarray, x: np.ndarray) -> float:
+    return float(np.sum((y[1:] + y[:-1]) / 2 * np.diff(x)))
+
+
+def _per_seed(runs: pd.DataFrame, threshold: float) -> pd.DataFrame:
+    rows = []
+    for seed, run in runs.groupby("seed"):
+        run = run.sort_values("step")
+        steps, returns = run.step.to_numpy(float), run.return_mean.to_numpy(float)
+        span = steps[-1] - steps[0]
+        reached = steps[returns >= threshold]
+        rows.append(
+            {
+                "seed": seed,
+                "final_step": steps[-1],
+                "final": returns[-1],
+                "auc": _trapezoid(returns, steps) / span if span > 0 else returns[-1],
+                "to_threshold": reached[0] if reached.size else np.nan,
+                "train_seconds": run.train_seconds.iloc[-1],
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def summary(
+    frame: pd.DataFrame,
+    envs: Sequence[str],
+    methods: Sequence[str],
+    labels: Mapping[str, str],
+    thresholds: Mapping[str, float],
+    baselines: Mapping[str, str],
+) -> pd.DataFrame:
+    """The summary table (one row per env and method that has finished runs)."""
+    rows = []
+    train_time: dict[tuple[str, str], float] = {}
+    per_method: dict[tuple[str, str], pd.DataFrame] = {}
+    for env in envs:
+        for method in methods:
+            runs = frame[(frame.env == env) & (frame.method == method)]
+            if not runs.empty:
+                seeds = _per_seed(runs, thresholds.get(env, np.nan))
+                per_method[env, method] = seeds
+                train_time[env, method] = float(seeds.train_seconds.mean())
+    for (env, method), seeds in per_method.items():
+        reached = seeds.to_threshold.dropna()
+        base = baselines.get(method)
+        overhead = (
+            f"{train_time[env, method] / train_time[env, base]:.2f}x"
+            if (env, base) in train_time
+            else ""
+        )
+        rows.append(
+            {
+                "env": env,
+                "method": labels.get(method, method),
+                "seeds": len(seeds),
+                "steps": int(seeds.final_step.max()),
+                "final return": _mean_sem(seeds.final),
+                "AUC (mean return)": _mean_sem(seeds.auc),
+                "threshold": f"{thresholds.get(env, np.nan):g}",
+                "steps to threshold": (
+                    f"{int(reached.median())} ({len(reached)}/{len(seeds)})"
+                    if len(reached)
+                    else f"not reached (0/{len(seeds)})"
+                ),
+                "train s": f"{seeds.train_seconds.mean():.0f}",
+                "ESA overhead": overhead,
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def to_markdown(table: pd.DataFrame) -> str:
+    """A GitHub-flavoured Markdown table (no extra dependency)."""
+    header = "| " + " | ".join(map(str, table.columns)) + " |"
+    rule = "|" + "---|" * len(table.columns)
+    body = ["| " + " | ".join(map(str, row)) + " |" for row in table.itertuples(index=False)]
+    return "\n".join([header, rule, *body])

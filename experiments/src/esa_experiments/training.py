@@ -1,0 +1,117 @@
+"""One reinforcement-learning run: build env and model, train with periodic evaluation.
+
+Shared by the ``mujoco``, ``ablation`` and ``quadrotor`` studies. A run's
+``RunSpec.config`` holds everything (``total_steps``, ``eval_every``,
+``eval_episodes``, ``hyperparams``), so the run is reproducible from its sidecar.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import pandas as pd
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.monitor import Monitor
+
+from esa_experiments.algorithms import build_model, get_method, resolve_hyperparams
+from esa_experiments.evaluation import EvalSettings, ProgressFn, train_and_evaluate
+from esa_experiments.runs import RunResult, RunSpec
+from esa_experiments.tasks import get_task
+
+
+@dataclass(frozen=True)
+class StepBudget:
+    """Environment steps of one run, by algorithm kind.
+
+    Attributes:
+        on_policy: steps of PPO-family runs.
+        off_policy: steps of SAC/DDPG runs (about 10x slower per step on CPU).
+        eval_every_on: evaluation interval of on-policy runs.
+        eval_every_off: evaluation interval of off-policy runs.
+        eval_episodes: deterministic episodes per evaluation.
+        overrides: per algorithm family (``ppo``, ``sac``, ``ddpg``), values
+            replacing ``algorithms.toml`` ones; the smoke budgets use it for
+            rollouts and warm-ups that fit their few steps.
+    """
+
+    on_policy: int
+    off_policy: int
+    eval_every_on: int
+    eval_every_off: int
+    eval_episodes: int
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def rl_spec(
+    study: str,
+    env: str,
+    method: str,
+    seed: int,
+    budget_name: str,
+    budget: StepBudget,
+    *,
+    variant: str | None = None,
+    esa_overrides: dict[str, Any] | None = None,
+) -> RunSpec:
+    """The spec of one RL run with its hyperparameters resolved from the config files.
+
+    Args:
+        study: study name.
+        env: task key.
+        method: method name (see :mod:`esa_experiments.algorithms`).
+        seed: seed.
+        budget_name: ``smoke`` or ``full``.
+        budget: the step budget.
+        variant: name under which the run is stored instead of ``method``
+            (ablation variants of one method).
+        esa_overrides: ESA fields replacing the config file's.
+    """
+    get_task(env)
+    kind = get_method(method)
+    off = kind.off_policy
+    hyperparams = {
+        **resolve_hyperparams(method, env, esa_overrides),
+        **budget.overrides.get(kind.family, {}),
+    }
+    config = {
+        "method": method,
+        "total_steps": budget.off_policy if off else budget.on_policy,
+        "eval_every": budget.eval_every_off if off else budget.eval_every_on,
+        "eval_episodes": budget.eval_episodes,
+        "hyperparams": hyperparams,
+    }
+    return RunSpec(study, env, variant or method, seed, budget_name, config)
+
+
+@contextlib.contextmanager
+def trained(spec: RunSpec, progress: ProgressFn) -> Iterator[tuple[pd.DataFrame, BaseAlgorithm]]:
+    """Trains the run's model and yields its evaluation table and the trained model.
+
+    Everything (envs, ESA server) is closed when the block exits.
+    """
+    config = spec.config
+    task = get_task(spec.env)
+    env = Monitor(task.make())
+    eval_env = task.make()
+    model: BaseAlgorithm | None = None
+    try:
+        model = build_model(config["method"], env, spec.seed, config["hyperparams"])
+        settings = EvalSettings(every=config["eval_every"], episodes=config["eval_episodes"])
+        frame = train_and_evaluate(
+            model, config["total_steps"], eval_env, settings, spec.seed, progress
+        )
+        yield frame, model
+    finally:
+        if model is not None and hasattr(model, "esa_close"):
+            model.esa_close()
+        env.close()
+        eval_env.close()
+
+
+def run_training(spec: RunSpec, progress: ProgressFn) -> RunResult:
+    """Trains and evaluates one run (the ``run`` of studies that need nothing more)."""
+    with trained(spec, progress) as (frame, _):
+        return RunResult(frame)
