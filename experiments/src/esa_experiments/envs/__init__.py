@@ -4,6 +4,7 @@ from esa_experiments.envs.quadrotor_env import QuadrotorEnv
 from esa_experiments.envs.quadrotor_paths import (
     PATH_NAMES,
     CirclePath,
+    ClosedPath,
     EightPath,
     HoverPath,
     TargetPath,
@@ -13,6 +14,7 @@ from esa_experiments.envs.quadrotor_paths import (
 __all__ = [
     "PATH_NAMES",
     "CirclePath",
+    "ClosedPath",
     "EightPath",
     "HoverPath",
     "QuadrotorEnv",

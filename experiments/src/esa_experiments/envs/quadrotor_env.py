@@ -11,26 +11,15 @@ import numpy as np
 from gymnasium import spaces
 
 from esa_experiments.envs import quadrotor_model as qm
-from esa_experiments.envs.quadrotor_paths import make_path
+from esa_experiments.envs.quadrotor_paths import ClosedPath, make_path
+from esa_experiments.envs.validation import (
+    is_real,
+    require,
+    require_non_negative,
+    require_positive,
+)
 
 _TWO_PI = 2.0 * math.pi
-
-
-def _require(condition: bool, expected: str, got: object) -> None:
-    if not condition:
-        raise ValueError(f"expected {expected}, got {got!r}")
-
-
-def _is_number(value: object) -> bool:
-    return isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool)
-
-
-def _require_positive(name: str, value: float) -> None:
-    _require(_is_number(value) and math.isfinite(value) and value > 0, f"{name} > 0", value)
-
-
-def _require_non_negative(name: str, value: float) -> None:
-    _require(_is_number(value) and math.isfinite(value) and value >= 0, f"{name} >= 0", value)
 
 
 class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -156,38 +145,38 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
         """Build the MuJoCo model and validate the arguments (see the class docstring)."""
         self.path = make_path(path, radius=radius, period=period, altitude=altitude)
         self.path_name = path
-        _require_positive("episode_duration", episode_duration)
-        _require_positive("arena_half_width", arena_half_width)
-        _require_positive("arena_height", arena_height)
-        _require_non_negative("position_weight", position_weight)
-        _require_non_negative("yaw_weight", yaw_weight)
-        _require_non_negative("start_position_noise", start_position_noise)
-        _require_non_negative("start_yaw_noise", start_yaw_noise)
-        _require(
-            _is_number(flip_limit) and 0 < flip_limit < 0.5 * math.pi,
+        require_positive("episode_duration", episode_duration)
+        require_positive("arena_half_width", arena_half_width)
+        require_positive("arena_height", arena_height)
+        require_non_negative("position_weight", position_weight)
+        require_non_negative("yaw_weight", yaw_weight)
+        require_non_negative("start_position_noise", start_position_noise)
+        require_non_negative("start_yaw_noise", start_yaw_noise)
+        require(
+            is_real(flip_limit) and 0 < flip_limit < 0.5 * math.pi,
             "flip_limit in (0, pi/2)",
             flip_limit,
         )
-        extent = radius if path != "hover" else 0.0
-        _require(
+        extent = self.path.radius if isinstance(self.path, ClosedPath) else 0.0
+        require(
             extent + start_position_noise < arena_half_width,
             f"radius + start_position_noise < arena_half_width = {arena_half_width}",
             extent + start_position_noise,
         )
-        _require(
+        require(
             self.CRASH_HEIGHT < altitude - start_position_noise
             and altitude + start_position_noise < arena_height,
             f"altitude +- start_position_noise inside ({self.CRASH_HEIGHT}, {arena_height})",
             altitude,
         )
-        _require(
+        require(
             render_mode is None or render_mode in self.metadata["render_modes"],
             f"render_mode None or one of {self.metadata['render_modes']}",
             render_mode,
         )
-        _require(camera_name in self.CAMERAS, f"camera_name one of {self.CAMERAS}", camera_name)
-        _require(isinstance(width, int) and width > 0, "width to be an int > 0", width)
-        _require(isinstance(height, int) and height > 0, "height to be an int > 0", height)
+        require(camera_name in self.CAMERAS, f"camera_name one of {self.CAMERAS}", camera_name)
+        require(isinstance(width, int) and width > 0, "width to be an int > 0", width)
+        require(isinstance(height, int) and height > 0, "height to be an int > 0", height)
 
         self.render_mode = render_mode
         self.camera_name = camera_name
@@ -382,9 +371,8 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
         centre = np.array([tx, ty, tz])
         heading = centre + 0.25 * np.array([math.cos(tyaw), math.sin(tyaw), 0.0])
         lines: list[tuple[np.ndarray, np.ndarray]] = [(centre, heading)]
-        period = getattr(self.path, "period", None)
-        if period is not None:
-            points = self.path.positions(np.linspace(0.0, period, segments + 1))
+        if isinstance(self.path, ClosedPath):
+            points = self.path.positions(np.linspace(0.0, self.path.period, segments + 1))
             lines += list(zip(points[:-1], points[1:], strict=True))
         rgba = np.array([0.85, 0.1, 0.1, 0.8], dtype=np.float32)
         shapes = [(mujoco.mjtGeom.mjGEOM_SPHERE, 0.04, centre, centre)]

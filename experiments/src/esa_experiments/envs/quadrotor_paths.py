@@ -8,24 +8,18 @@ first; the hovering target keeps a constant yaw of 0.
 from __future__ import annotations
 
 import math
-import numbers
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
+
+from esa_experiments.envs.validation import require_positive
 
 PATH_NAMES = ("circle", "eight", "hover")
 """Names accepted by :func:`make_path`."""
 
 TargetState = tuple[float, float, float, float, float, float, float]
 """``(x, y, z, vx, vy, vz, yaw)`` of the target in the world frame [m, m/s, rad]."""
-
-
-def _require_positive(name: str, value: float) -> float:
-    valid = isinstance(value, numbers.Real) and not isinstance(value, bool)
-    if not (valid and math.isfinite(value) and value > 0):
-        raise ValueError(f"expected {name} to be a finite number > 0, got {value!r}")
-    return float(value)
 
 
 class TargetPath(ABC):
@@ -54,7 +48,7 @@ class HoverPath(TargetPath):
 
     def __post_init__(self) -> None:
         """Validate the parameters."""
-        _require_positive("altitude", self.altitude)
+        require_positive("altitude", self.altitude)
 
     def state(self, t: float) -> TargetState:
         """Return the (constant) target state."""
@@ -62,16 +56,13 @@ class HoverPath(TargetPath):
 
 
 @dataclass(frozen=True)
-class CirclePath(TargetPath):
-    """A target circling counter-clockwise (seen from above) around ``(0, 0, altitude)``.
-
-    ``p(t) = (r cos(w t), r sin(w t), altitude)`` with ``w = 2 pi / period``; it starts at
-    ``(r, 0, altitude)`` heading along +y.
+class ClosedPath(TargetPath):
+    """A closed path of a given size, flown once per period.
 
     Attributes:
-        radius: Circle radius [m].
+        radius: Size of the path [m] (see the subclass).
         period: Time for one lap [s].
-        altitude: Height of the circle above the floor [m].
+        altitude: Height of the path above the floor [m].
     """
 
     radius: float = 1.5
@@ -80,9 +71,18 @@ class CirclePath(TargetPath):
 
     def __post_init__(self) -> None:
         """Validate the parameters."""
-        _require_positive("radius", self.radius)
-        _require_positive("period", self.period)
-        _require_positive("altitude", self.altitude)
+        require_positive("radius", self.radius)
+        require_positive("period", self.period)
+        require_positive("altitude", self.altitude)
+
+
+@dataclass(frozen=True)
+class CirclePath(ClosedPath):
+    """A target circling counter-clockwise (seen from above) around ``(0, 0, altitude)``.
+
+    ``p(t) = (r cos(w t), r sin(w t), altitude)`` with ``r = radius``, ``w = 2 pi / period``;
+    it starts at ``(r, 0, altitude)`` heading along +y.
+    """
 
     def state(self, t: float) -> TargetState:
         """Return the target state at time ``t``."""
@@ -93,28 +93,14 @@ class CirclePath(TargetPath):
 
 
 @dataclass(frozen=True)
-class EightPath(TargetPath):
+class EightPath(ClosedPath):
     """A target flying a figure eight (lemniscate of Gerono) centred on ``(0, 0, altitude)``.
 
-    ``p(t) = (r sin(w t), (r / 2) sin(2 w t), altitude)`` with ``w = 2 pi / period``: the eight
-    spans ``[-r, r]`` along x and ``[-r/2, r/2]`` along y and starts at its centre crossing.
-    Its speed never drops to zero, so the heading is defined everywhere.
-
-    Attributes:
-        radius: Half the length of the eight along x [m].
-        period: Time for one full eight [s].
-        altitude: Height of the eight above the floor [m].
+    ``p(t) = (r sin(w t), (r / 2) sin(2 w t), altitude)`` with ``r = radius``,
+    ``w = 2 pi / period``: the eight spans ``[-r, r]`` along x and ``[-r/2, r/2]`` along y and
+    starts at its centre crossing. Its speed never drops to zero, so the heading is defined
+    everywhere.
     """
-
-    radius: float = 1.5
-    period: float = 15.0
-    altitude: float = 1.5
-
-    def __post_init__(self) -> None:
-        """Validate the parameters."""
-        _require_positive("radius", self.radius)
-        _require_positive("period", self.period)
-        _require_positive("altitude", self.altitude)
 
     def state(self, t: float) -> TargetState:
         """Return the target state at time ``t``."""
@@ -153,7 +139,7 @@ def make_path(name: str, radius: float, period: float, altitude: float) -> Targe
     if name == "eight":
         return EightPath(radius=radius, period=period, altitude=altitude)
     if name == "hover":
-        _require_positive("radius", radius)
-        _require_positive("period", period)
+        require_positive("radius", radius)
+        require_positive("period", period)
         return HoverPath(altitude=altitude)
     raise ValueError(f"expected path to be one of {PATH_NAMES}, got {name!r}")
