@@ -208,8 +208,7 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
         rot = rot.reshape(3, 3)
         inertia = rot @ np.diag(self.model.body_inertia[body]) @ rot.T
         self._ixx, self._iyy, self._izz = np.diag(inertia).tolist()
-        weight = float(self.model.body_subtreemass[body]) * -float(self.model.opt.gravity[2])
-        self._hover_thrust = weight
+        self._hover_thrust = float(self.model.body_subtreemass[body] * -self.model.opt.gravity[2])
         self._mixer = tuple(tuple(row) for row in qm.mixer_matrix().tolist())
         self._kp = qm.ATTITUDE_NATURAL_FREQUENCY**2
         self._kd = 2.0 * qm.ATTITUDE_DAMPING_RATIO * qm.ATTITUDE_NATURAL_FREQUENCY
@@ -249,7 +248,9 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
                 f"expected a numeric action of shape (4,), got shape {a.shape} of {a.dtype}"
             )
         a0, a1, a2, a3 = a.tolist()
-        if not math.isfinite(a0 + a1 + a2 + a3):
+        if not (
+            math.isfinite(a0) and math.isfinite(a1) and math.isfinite(a2) and math.isfinite(a3)
+        ):
             raise ValueError(f"expected a finite action, got {a.tolist()}")
         thrust = self._hover_thrust * (1.0 + min(1.0, max(-1.0, a0)))
         roll_sp = qm.MAX_TILT * min(1.0, max(-1.0, a1))
