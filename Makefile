@@ -10,6 +10,8 @@ CARGO ?= cargo
 SERVER_BIN := $(CURDIR)/target/release/esa-server
 # The Python client and tests use exactly the binary this Makefile built.
 export ESA_SERVER_BIN := $(SERVER_BIN)
+# MuJoCo renders headless through EGL (no display on CI machines).
+export MUJOCO_GL ?= egl
 
 PY_PACKAGES := client-py experiments tests
 PY_EXTRAS := -e "client-py[sb3,zenoh,dev]" -e "experiments[dev]"
