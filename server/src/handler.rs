@@ -137,9 +137,9 @@ impl EsaHandler {
             Some(StreamRequest::ProbeBatch(batch)) => {
                 self.run_probe_batch(batch).map(StreamResponse::ProbeBatch)
             }
-            Some(StreamRequest::ReportBatch(batch)) => {
-                self.run_report_batch(batch).map(StreamResponse::ReportBatch)
-            }
+            Some(StreamRequest::ReportBatch(batch)) => self
+                .run_report_batch(batch)
+                .map(StreamResponse::ReportBatch),
             None => Err(Error::InvalidArgument(
                 "kind: expected probe_batch or report_batch, got neither".into(),
             )),
@@ -200,8 +200,11 @@ impl EsaHandler {
             }
             let mut probes = Vec::with_capacity(total);
             let mut rest = req.actions.as_slice();
-            for (index, ((session, &step), start)) in
-                sessions.iter_mut().zip(&req.steps).zip(starts()).enumerate()
+            for (index, ((session, &step), start)) in sessions
+                .iter_mut()
+                .zip(&req.steps)
+                .zip(starts())
+                .enumerate()
             {
                 let action = take(&mut rest, session.action_dim(), index)?;
                 session
@@ -220,8 +223,11 @@ impl EsaHandler {
         check_field_len("steps", req.steps.len(), n)?;
         check_field_len("q_values", req.q_values.len(), n)?;
         self.store.with_batch(&req.session_ids, |sessions| {
-            for (index, ((session, &step), &q)) in
-                sessions.iter().zip(&req.steps).zip(&req.q_values).enumerate()
+            for (index, ((session, &step), &q)) in sessions
+                .iter()
+                .zip(&req.steps)
+                .zip(&req.q_values)
+                .enumerate()
             {
                 session
                     .check_report(step, q)
@@ -276,7 +282,9 @@ fn encoded<Req: Message + Default, Resp: Message>(
     handle: impl FnOnce(Req) -> Result<Resp, Error>,
 ) -> Result<Vec<u8>, Error> {
     let req = Req::decode(payload).map_err(|err| {
-        Error::InvalidArgument(format!("payload: expected an encoded request message: {err}"))
+        Error::InvalidArgument(format!(
+            "payload: expected an encoded request message: {err}"
+        ))
     })?;
     handle(req).map(|resp| resp.encode_to_vec())
 }

@@ -43,10 +43,11 @@ async fn run(cli: Cli) -> Result<(), Error> {
             }
         });
     }
+    let shutdown = shutdown_signal()?;
     // The line launchers (tests, the Python client) wait for; it comes after
     // binding, so connecting as soon as it is read succeeds.
     announce(&format!("listening on {}", listener.address()?));
-    server.serve(listener, shutdown_signal()).await?;
+    server.serve(listener, shutdown).await?;
     tracing::info!("stopped");
     Ok(())
 }
@@ -70,19 +71,17 @@ fn init_tracing(format: LogFormat) {
     }
 }
 
-/// Completes on SIGINT or SIGTERM.
-async fn shutdown_signal() {
+/// Installs SIGINT and SIGTERM handlers now (so a signal that arrives right
+/// after the `listening on` line is not lost) and returns a future that
+/// completes on the first of them.
+fn shutdown_signal() -> Result<impl std::future::Future<Output = ()>, Error> {
     use tokio::signal::unix::{signal, SignalKind};
-    match signal(SignalKind::terminate()) {
-        Ok(mut terminate) => {
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                _ = terminate.recv() => {}
-            }
+    let mut interrupt = signal(SignalKind::interrupt())?;
+    let mut terminate = signal(SignalKind::terminate())?;
+    Ok(async move {
+        tokio::select! {
+            _ = interrupt.recv() => {}
+            _ = terminate.recv() => {}
         }
-        Err(err) => {
-            tracing::warn!(%err, "cannot watch SIGTERM; only SIGINT stops the server");
-            let _ = tokio::signal::ctrl_c().await;
-        }
-    }
+    })
 }

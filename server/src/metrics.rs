@@ -101,7 +101,10 @@ impl Metrics {
         sessions_live: usize,
         sessions_expired: u64,
     ) -> std::fmt::Result {
-        writeln!(out, "# HELP esa_sessions_live Sessions currently held by the server.")?;
+        writeln!(
+            out,
+            "# HELP esa_sessions_live Sessions currently held by the server."
+        )?;
         writeln!(out, "# TYPE esa_sessions_live gauge")?;
         writeln!(out, "esa_sessions_live {sessions_live}")?;
         writeln!(
@@ -157,8 +160,14 @@ impl Metrics {
                 "esa_request_duration_seconds_bucket{{rpc=\"{rpc}\",le=\"+Inf\"}} {count}"
             )?;
             let sum = histogram.sum_nanos.load(Ordering::Relaxed) as f64 * 1e-9;
-            writeln!(out, "esa_request_duration_seconds_sum{{rpc=\"{rpc}\"}} {sum:e}")?;
-            writeln!(out, "esa_request_duration_seconds_count{{rpc=\"{rpc}\"}} {count}")?;
+            writeln!(
+                out,
+                "esa_request_duration_seconds_sum{{rpc=\"{rpc}\"}} {sum:e}"
+            )?;
+            writeln!(
+                out,
+                "esa_request_duration_seconds_count{{rpc=\"{rpc}\"}} {count}"
+            )?;
         }
         Ok(())
     }
@@ -194,7 +203,10 @@ pub async fn serve_metrics(
 
 async fn metrics_page(State(handler): State<Arc<EsaHandler>>) -> impl IntoResponse {
     (
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4; charset=utf-8")],
+        [(
+            header::CONTENT_TYPE,
+            "text/plain; version=0.0.4; charset=utf-8",
+        )],
         handler.render_metrics(),
     )
 }

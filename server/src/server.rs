@@ -129,7 +129,10 @@ impl Listener {
             }
             std::fs::remove_file(path)?;
         }
-        Ok(Listener::Unix(UnixListener::bind(path)?, path.to_path_buf()))
+        Ok(Listener::Unix(
+            UnixListener::bind(path)?,
+            path.to_path_buf(),
+        ))
     }
 
     /// The bound address: `127.0.0.1:50051`, or `unix:/path` for a socket.
@@ -164,9 +167,7 @@ impl EsaServer {
             .map(|every| AbortOnDrop(spawn_sweeper(self.handler(), every)));
 
         let (health, health_service) = tonic_health::server::health_reporter();
-        health
-            .set_serving::<EsaServiceServer<GrpcService>>()
-            .await;
+        health.set_serving::<EsaServiceServer<GrpcService>>().await;
         let esa = EsaServiceServer::new(GrpcService::new(self.handler()))
             .max_decoding_message_size(self.max_message_bytes);
         let router = tonic::transport::Server::builder()

@@ -155,7 +155,8 @@ impl SessionStore {
                 *guard = Some(slot.session.lock());
             }
         }
-        let mut sessions: Vec<&mut Session> = guards.iter_mut().flatten().map(|g| &mut **g).collect();
+        let mut sessions: Vec<&mut Session> =
+            guards.iter_mut().flatten().map(|g| &mut **g).collect();
         f(&mut sessions)
     }
 
@@ -230,9 +231,8 @@ impl SessionStore {
     }
 
     fn is_expired(&self, slot: &Slot, now: u64) -> bool {
-        self.ttl_nanos.is_some_and(|ttl| {
-            now.saturating_sub(slot.last_used.load(Ordering::Relaxed)) > ttl
-        })
+        self.ttl_nanos
+            .is_some_and(|ttl| now.saturating_sub(slot.last_used.load(Ordering::Relaxed)) > ttl)
     }
 
     fn now(&self) -> u64 {

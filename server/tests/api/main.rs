@@ -1,0 +1,14 @@
+//! Integration tests: each starts a real server in-process on 127.0.0.1:0
+//! (or a Unix socket) and calls it through the generated gRPC client, except
+//! `binary`, which runs the `esa-server` executable itself.
+
+mod batch;
+mod binary;
+mod common;
+mod errors;
+mod lifecycle;
+mod limits;
+mod stream;
+mod transport;
+mod ttl;
+mod update_law;
