@@ -29,6 +29,20 @@ def gone(pid: int) -> bool:
     return False
 
 
+def freeze(pid: int) -> None:
+    """SIGSTOPs the process and waits until the kernel reports every thread stopped."""
+    os.kill(pid, signal.SIGSTOP)
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        states = [
+            (task / "stat").read_text().rsplit(")", 1)[1].split()[0]
+            for task in Path(f"/proc/{pid}/task").iterdir()
+        ]
+        if all(state == "T" for state in states):
+            return
+    raise AssertionError(f"process {pid} did not stop")
+
+
 def test_spawn_and_close_leave_nothing_behind(server_bin):
     with EsaClient.spawn(server_bin) as client:
         server = client.server
@@ -113,7 +127,7 @@ def test_frozen_server_hits_the_deadline_then_recovers(server_bin, use_stream):
     with EsaClient.spawn(server_bin, timeout=0.5) as client:
         batch = client.create_batch(CONFIG, 2, use_stream=use_stream)
         batch.probe(np.zeros((2, 1)), [True, True])
-        os.kill(client.server.pid, signal.SIGSTOP)
+        freeze(client.server.pid)
         try:
             start = time.monotonic()
             with pytest.raises(DeadlineExceeded):

@@ -72,7 +72,12 @@ class EsaClient:
             raise ValueError(f"expected timeout > 0 seconds, got {timeout}")
         self.address = _check_address(address)
         self.timeout = float(timeout)
-        self._channel = grpc.insecure_channel(self.address, options=_CHANNEL_OPTIONS)
+        options = list(_CHANNEL_OPTIONS)
+        if self.address.startswith("unix:"):
+            # gRPC core would send the socket path as :authority, which HTTP/2 servers
+            # such as hyper (tonic) reject as malformed; any valid host name works.
+            options.append(("grpc.default_authority", "localhost"))
+        self._channel = grpc.insecure_channel(self.address, options=options)
         self.stub = esa_pb2_grpc.EsaServiceStub(self._channel)
         self._health = health_pb2_grpc.HealthStub(self._channel)
         self.server: ServerProcess | None = None
@@ -254,6 +259,14 @@ class EsaClient:
     def __exit__(self, *exc: object) -> None:
         """Closes the client."""
         self.close()
+
+    def __copy__(self) -> EsaClient:
+        """Returns self: a client is a handle on one connection (and server), shared not copied."""
+        return self
+
+    def __deepcopy__(self, memo: dict[int, object]) -> EsaClient:
+        """Returns self (gymnasium deep-copies wrapper arguments to record them)."""
+        return self
 
     def __repr__(self) -> str:
         """Shows the address and whether this client owns its server."""

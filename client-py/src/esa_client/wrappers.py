@@ -18,7 +18,7 @@ QFunction = Callable[[Any, np.ndarray], SupportsFloat]
 """``q_fn(observation, action) -> float``: the learner's critic at one state-action pair."""
 
 
-class EsaActionWrapper(gym.ActionWrapper):
+class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     """Improves every action the agent takes with ESA before the env sees it.
 
     For each ``step(action)``: the action is probed around, ``q_fn(obs, probe)``
@@ -48,7 +48,11 @@ class EsaActionWrapper(gym.ActionWrapper):
         client: EsaClient | None = None,
     ) -> None:
         """Creates the ESA session for this env."""
-        super().__init__(env)
+        # Recorded so that gymnasium can re-create the wrapper from the env spec.
+        gym.utils.RecordConstructorArgs.__init__(
+            self, q_fn=q_fn, esa_config=esa_config, client=client
+        )
+        gym.ActionWrapper.__init__(self, env)
         space = env.action_space
         if not isinstance(space, gym.spaces.Box):
             raise ValueError(f"expected a Box action space, got {space}")
