@@ -1,0 +1,318 @@
+//! [`Session`]: the per-session state machine (probe, report, end of episode) of CONTRACT.md section 1.
+
+use crate::config::SessionConfig;
+use crate::highpass::Washout;
+use crate::lanes::Lanes;
+use crate::CoreError;
+
+/// What a successful [`Session::report`] did besides returning the improved action.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ReportOutcome {
+    /// True when this was a safe retry of step `t - 1`: the same action was returned, nothing updated.
+    pub replayed: bool,
+    /// True when the shift update was skipped because it would have made v non-finite.
+    pub nonfinite_skipped: bool,
+}
+
+/// ESA state of one session: the shift v, the washout memory and the probe/report protocol.
+///
+/// Every method validates first and changes nothing when it returns an error.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Session {
+    config: SessionConfig,
+    lanes: Lanes,
+    /// `None` when the config disables the high-pass (H is the identity).
+    washout: Option<Washout>,
+    /// L, or +inf when unset (clamping to +-inf is the identity and keeps NaN visible).
+    shift_limit: f64,
+    step: u64,
+    episodes: u64,
+    nonfinite_skips: u64,
+    probe_pending: bool,
+    /// True right after a report was applied (no probe or episode end since): step `t - 1` may be replayed.
+    report_replayable: bool,
+}
+
+impl Session {
+    /// Validates `config` and starts the first episode at step 0 with v = 0.
+    pub fn new(config: SessionConfig) -> Result<Session, CoreError> {
+        config.validate()?;
+        let washout = (!config.disable_highpass)
+            .then(|| Washout::new(config.effective_highpass_cutoff(), config.dt));
+        Ok(Session {
+            lanes: Lanes::new(&config),
+            washout,
+            shift_limit: config.shift_limit.unwrap_or(f64::INFINITY),
+            config,
+            step: 0,
+            episodes: 0,
+            nonfinite_skips: 0,
+            probe_pending: false,
+            report_replayable: false,
+        })
+    }
+
+    /// The config as it was given (vectors not broadcast).
+    pub fn config(&self) -> &SessionConfig {
+        &self.config
+    }
+
+    /// D.
+    pub fn action_dim(&self) -> usize {
+        self.lanes.dim()
+    }
+
+    /// t, the step inside the current episode.
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+
+    /// e, the number of episodes this session has completed.
+    pub fn episodes_completed(&self) -> u64 {
+        self.episodes
+    }
+
+    /// v, length D.
+    pub fn shift(&self) -> &[f64] {
+        self.lanes.shift()
+    }
+
+    /// Whether a probe for step t awaits its report.
+    pub fn probe_pending(&self) -> bool {
+        self.probe_pending
+    }
+
+    /// How many reports skipped their shift update because it would have made v non-finite.
+    pub fn nonfinite_skips(&self) -> u64 {
+        self.nonfinite_skips
+    }
+
+    /// True once `e >= E > 0`: probes and actions are the clipped sampled action, v no longer moves.
+    pub fn is_pass_through(&self) -> bool {
+        self.config.max_episodes > 0 && self.episodes >= self.config.max_episodes
+    }
+
+    /// Checks a probe without changing anything, so a batch can validate every item before applying any.
+    pub fn check_probe(
+        &self,
+        step: u64,
+        action: &[f64],
+        episode_start: bool,
+    ) -> Result<(), CoreError> {
+        self.check_action(action)?;
+        // An episode start resets t to 0 before the step is compared.
+        let expected = if episode_start { 0 } else { self.step };
+        if step != expected {
+            return Err(CoreError::StepMismatch {
+                expected,
+                got: step,
+            });
+        }
+        Ok(())
+    }
+
+    /// Probes step `t` with the sampled action `a_t`; appends the D probe values to `out`.
+    ///
+    /// `probe = clip(a_t + v + K sin(w tau), lo, hi)`. Probing the same step again replaces the pending
+    /// action. With `episode_start` and `t > 0` or a pending probe, the episode is ended first (like
+    /// [`end_episode`](Self::end_episode)) and `step` must be 0.
+    pub fn probe(
+        &mut self,
+        step: u64,
+        action: &[f64],
+        episode_start: bool,
+        out: &mut Vec<f64>,
+    ) -> Result<(), CoreError> {
+        self.check_probe(step, action, episode_start)?;
+        if episode_start && (self.step > 0 || self.probe_pending) {
+            self.end_episode();
+        }
+        let pass_through = self.is_pass_through();
+        // Exactly `w_i * (t * dt)` so every client reproduces s bit for bit.
+        let tau = self.step as f64 * self.config.dt;
+        let lanes = self.lanes.split_mut();
+        for (held, &a) in lanes.action.iter_mut().zip(action) {
+            *held = a;
+        }
+        let bounds = lanes.low.iter().zip(lanes.high);
+        if pass_through {
+            out.extend(
+                action
+                    .iter()
+                    .zip(bounds)
+                    .map(|(&a, (&lo, &hi))| clip(a, lo, hi)),
+            );
+        } else {
+            // A pass of its own keeps the sine calls out of the loop that the compiler vectorizes.
+            for (s, &w) in lanes.sine.iter_mut().zip(lanes.frequency) {
+                *s = (w * tau).sin();
+            }
+            let perturbation = (lanes
+                .shift
+                .iter()
+                .zip(lanes.amplitude)
+                .zip(lanes.sine.iter()))
+            .map(|((&v, &k), &s)| v + k * s);
+            out.extend(
+                (action.iter().zip(perturbation).zip(bounds))
+                    .map(|((&a, u), (&lo, &hi))| clip(a + u, lo, hi)),
+            );
+        }
+        self.probe_pending = true;
+        self.report_replayable = false;
+        Ok(())
+    }
+
+    /// Checks a report without changing anything.
+    pub fn check_report(&self, step: u64, q_value: f64) -> Result<(), CoreError> {
+        if !q_value.is_finite() {
+            return Err(CoreError::InvalidArgument(format!(
+                "q_value: expected a finite number, got {q_value}"
+            )));
+        }
+        if self.is_replay(step) {
+            return Ok(());
+        }
+        if step != self.step {
+            return Err(CoreError::StepMismatch {
+                expected: self.step,
+                got: step,
+            });
+        }
+        if !self.probe_pending {
+            return Err(CoreError::NoPendingProbe { step });
+        }
+        Ok(())
+    }
+
+    /// Reports `q = Q(s_t, probe)` for the pending probe; appends the D improved-action values to `out`.
+    ///
+    /// `v <- clamp(v + alpha_e s H[q], -L, L)` (skipped if any element would be non-finite), then
+    /// `action = clip(a_t + v, lo, hi)` and `t <- t + 1`. A report for step `t - 1` right after it was
+    /// applied returns the same action again and updates nothing.
+    pub fn report(
+        &mut self,
+        step: u64,
+        q_value: f64,
+        out: &mut Vec<f64>,
+    ) -> Result<ReportOutcome, CoreError> {
+        self.check_report(step, q_value)?;
+        if self.is_replay(step) {
+            self.push_action(out);
+            return Ok(ReportOutcome {
+                replayed: true,
+                nonfinite_skipped: false,
+            });
+        }
+        let mut nonfinite_skipped = false;
+        if !self.is_pass_through() {
+            let h = match &mut self.washout {
+                Some(washout) => washout.apply(q_value),
+                None => q_value,
+            };
+            nonfinite_skipped = !self.update_shift(h);
+            if nonfinite_skipped {
+                self.nonfinite_skips = self.nonfinite_skips.saturating_add(1);
+            }
+        }
+        self.push_action(out);
+        self.step = self.step.saturating_add(1);
+        self.probe_pending = false;
+        self.report_replayable = true;
+        Ok(ReportOutcome {
+            replayed: false,
+            nonfinite_skipped,
+        })
+    }
+
+    /// Ends the episode: `e += 1`, `t = 0`, `v = 0`, washout at rest, no pending probe. Returns the new e.
+    pub fn end_episode(&mut self) -> u64 {
+        self.episodes = self.episodes.saturating_add(1);
+        self.step = 0;
+        self.lanes.reset_shift();
+        if let Some(washout) = &mut self.washout {
+            washout.reset();
+        }
+        self.probe_pending = false;
+        self.report_replayable = false;
+        let decay = self
+            .config
+            .lr_decay
+            .unwrap_or(1.0)
+            .powf(self.episodes as f64);
+        self.lanes.set_rate(&self.config.learning_rate, decay);
+        self.episodes
+    }
+
+    fn check_action(&self, action: &[f64]) -> Result<(), CoreError> {
+        if action.len() != self.action_dim() {
+            return Err(CoreError::InvalidArgument(format!(
+                "action: expected length {} (action_dim), got {}",
+                self.action_dim(),
+                action.len()
+            )));
+        }
+        match action.iter().position(|x| !x.is_finite()) {
+            Some(i) => Err(CoreError::InvalidArgument(format!(
+                "action[{i}]: expected a finite number, got {}",
+                action[i]
+            ))),
+            None => Ok(()),
+        }
+    }
+
+    fn is_replay(&self, step: u64) -> bool {
+        self.report_replayable && self.step.checked_sub(1) == Some(step)
+    }
+
+    /// Applies `v <- clamp(v + alpha_e s h, -L, L)` unless an element would be non-finite; returns whether applied.
+    fn update_shift(&mut self, h: f64) -> bool {
+        let limit = self.shift_limit;
+        let next = |v: f64, rate: f64, s: f64| (v + rate * s * h).clamp(-limit, limit);
+        let lanes = self.lanes.split_mut();
+        let all_finite = (lanes.shift.iter().zip(lanes.rate).zip(lanes.sine.iter()))
+            .all(|((&v, &rate), &s)| next(v, rate, s).is_finite());
+        if !all_finite {
+            return false;
+        }
+        for ((v, &rate), &s) in lanes
+            .shift
+            .iter_mut()
+            .zip(lanes.rate)
+            .zip(lanes.sine.iter())
+        {
+            *v = next(*v, rate, s);
+        }
+        true
+    }
+
+    /// Appends `clip(a_t + v, lo, hi)` (or `clip(a_t)` in pass-through) for the last probed action.
+    fn push_action(&self, out: &mut Vec<f64>) {
+        let pass_through = self.is_pass_through();
+        let bounds = self.lanes.low().iter().zip(self.lanes.high());
+        let dims = self
+            .lanes
+            .action()
+            .iter()
+            .zip(self.lanes.shift())
+            .zip(bounds);
+        out.extend(
+            dims.map(|((&a, &v), (&lo, &hi))| clip(if pass_through { a } else { a + v }, lo, hi)),
+        );
+    }
+}
+
+/// `x` clipped to `[lo, hi]`; the bounds are finite (unbounded sides saturate at `f64::MAX`), so an
+/// overflowed `a + v` still yields a finite value.
+fn clip(x: f64, lo: f64, hi: f64) -> f64 {
+    // Plain comparisons compile to minsd/maxsd; f64::max/min would add NaN handling that x never needs.
+    let x = if x < lo { lo } else { x };
+    if x > hi {
+        hi
+    } else {
+        x
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,639 @@
+use approx::assert_relative_eq;
+
+use super::*;
+
+const DT: f64 = 0.01;
+const W: [f64; 2] = [60.0, 75.0];
+const K: f64 = 0.2;
+const ALPHA: f64 = 0.25;
+
+fn base() -> SessionConfig {
+    SessionConfig::new(2, DT, vec![K], W.to_vec(), vec![ALPHA])
+}
+
+fn session(config: SessionConfig) -> Session {
+    Session::new(config).expect("test config is valid")
+}
+
+fn probe(session: &mut Session, step: u64, action: &[f64], episode_start: bool) -> Vec<f64> {
+    let mut out = Vec::new();
+    session
+        .probe(step, action, episode_start, &mut out)
+        .expect("probe accepted");
+    out
+}
+
+fn report(session: &mut Session, step: u64, q: f64) -> (Vec<f64>, ReportOutcome) {
+    let mut out = Vec::new();
+    let outcome = session.report(step, q, &mut out).expect("report accepted");
+    (out, outcome)
+}
+
+/// One probe + report at the session's current step.
+fn pair(session: &mut Session, action: &[f64], q: f64) -> (Vec<f64>, Vec<f64>) {
+    let t = session.step();
+    let p = probe(session, t, action, false);
+    (p, report(session, t, q).0)
+}
+
+fn sine(w: f64, t: u64) -> f64 {
+    (w * (t as f64 * DT)).sin()
+}
+
+/// Runs `request`, asserts it fails, that the session is exactly as before, and that `out` got nothing.
+fn refused(
+    session: &mut Session,
+    request: impl FnOnce(&mut Session, &mut Vec<f64>) -> Result<(), CoreError>,
+) -> CoreError {
+    let before = session.clone();
+    let mut out = vec![42.0];
+    let err = request(session, &mut out).expect_err("request must be refused");
+    assert_eq!(
+        *session, before,
+        "a refused request changed the session ({err})"
+    );
+    assert_eq!(out, vec![42.0], "a refused request wrote output ({err})");
+    err
+}
+
+#[test]
+fn new_rejects_invalid_config() {
+    let err = Session::new(SessionConfig { dt: 0.0, ..base() }).expect_err("dt = 0 is invalid");
+    assert!(matches!(err, CoreError::InvalidConfig(m) if m.starts_with("dt:")));
+}
+
+#[test]
+fn fresh_session_state() {
+    let s = session(base());
+    assert_eq!(
+        (s.action_dim(), s.step(), s.episodes_completed()),
+        (2, 0, 0)
+    );
+    assert_eq!(s.shift(), &[0.0, 0.0]);
+    assert!(!s.probe_pending());
+    assert!(!s.is_pass_through());
+    assert_eq!(s.config(), &base());
+}
+
+#[test]
+fn probe_follows_the_law() {
+    let mut s = session(SessionConfig {
+        amplitude: vec![0.2, 0.3],
+        ..base()
+    });
+    let a = [2.0, -1.0];
+    pair(&mut s, &a, 0.0);
+    pair(&mut s, &a, 1.5);
+    let v = s.shift().to_vec();
+    assert!(v.iter().any(|&x| x != 0.0), "the second report moves v");
+    let p = probe(&mut s, 2, &a, false);
+    for i in 0..2 {
+        let k = [0.2, 0.3][i];
+        assert_eq!(p[i], a[i] + (v[i] + k * sine(W[i], 2)));
+    }
+    assert!(s.probe_pending());
+}
+
+#[test]
+fn broadcast_equals_explicit_vectors() {
+    let explicit = SessionConfig {
+        amplitude: vec![K, K],
+        learning_rate: vec![ALPHA, ALPHA],
+        action_low: vec![-3.0, -3.0],
+        action_high: vec![3.0, 3.0],
+        ..base()
+    };
+    let broadcast = SessionConfig {
+        action_low: vec![-3.0],
+        action_high: vec![3.0],
+        ..base()
+    };
+    let (mut x, mut y) = (session(explicit), session(broadcast));
+    for t in 0..50 {
+        let a = [0.1 * t as f64, -0.05 * t as f64];
+        let q = (t as f64 * 0.37).sin();
+        assert_eq!(pair(&mut x, &a, q), pair(&mut y, &a, q));
+    }
+}
+
+#[test]
+fn first_report_of_an_episode_never_moves_v() {
+    // s = sin(0) = 0 at t = 0, and the washout starts at rest, so v stays 0 whatever q is.
+    let mut s = session(SessionConfig {
+        disable_highpass: true,
+        ..base()
+    });
+    let (action, outcome) = {
+        probe(&mut s, 0, &[1.0, 2.0], true);
+        report(&mut s, 0, 1e6)
+    };
+    assert_eq!(s.shift(), &[0.0, 0.0]);
+    assert_eq!(action, vec![1.0, 2.0]);
+    assert_eq!(outcome, ReportOutcome::default());
+    assert_eq!((s.step(), s.probe_pending()), (1, false));
+}
+
+#[test]
+fn disabled_highpass_uses_q_directly() {
+    let mut s = session(SessionConfig {
+        disable_highpass: true,
+        ..base()
+    });
+    pair(&mut s, &[0.0, 0.0], 5.0);
+    let (_, action) = pair(&mut s, &[1.0, 1.0], 2.0);
+    for i in 0..2 {
+        let v = ALPHA * sine(W[i], 1) * 2.0;
+        assert_eq!(s.shift()[i], v);
+        assert_eq!(action[i], 1.0 + v);
+    }
+}
+
+#[test]
+fn highpass_starts_at_rest_and_follows_the_washout() {
+    let beta = 1.0 / (1.0 + 6.0 * DT);
+    let qs = [10.0, 12.0, 11.0, -3.0, 4.0];
+    let mut s = session(base());
+    for episode in 0..2 {
+        // A different q level on the first report of each episode must not leak into the next steps.
+        let offset = 100.0 * episode as f64;
+        let (mut y, mut x_prev, mut v) = (0.0, qs[0] + offset, [0.0; 2]);
+        for (t, &q) in qs.iter().enumerate() {
+            let q = q + offset;
+            y = if t == 0 { 0.0 } else { beta * (y + q - x_prev) };
+            x_prev = q;
+            for (v, w) in v.iter_mut().zip(W) {
+                *v += ALPHA * sine(w, t as u64) * y;
+            }
+            pair(&mut s, &[0.0, 0.0], q);
+            for (got, want) in s.shift().iter().zip(v) {
+                assert_relative_eq!(*got, want, epsilon = 1e-12);
+            }
+        }
+        s.end_episode();
+    }
+}
+
+#[test]
+fn clipping_bounds_probe_and_action() {
+    let config = SessionConfig {
+        amplitude: vec![1.0],
+        disable_highpass: true,
+        action_low: vec![-0.5, f64::NEG_INFINITY],
+        action_high: vec![0.5],
+        ..base()
+    };
+    let mut s = session(config);
+    pair(&mut s, &[0.0, 0.0], 0.0);
+    let p = probe(&mut s, 1, &[3.0, -3.0], false);
+    assert_eq!(p, vec![0.5, -3.0 + sine(W[1], 1)]);
+    let (action, _) = report(&mut s, 1, 0.0);
+    assert_eq!(action, vec![0.5, -3.0]);
+    let (p, action) = pair(&mut s, &[-7.0, 9.0], 0.0);
+    assert_eq!(p[0], -0.5);
+    assert_eq!(action, vec![-0.5, 0.5]);
+}
+
+#[test]
+fn unbounded_outputs_saturate_instead_of_overflowing() {
+    let mut s = session(SessionConfig {
+        amplitude: vec![f64::MAX],
+        ..base()
+    });
+    pair(&mut s, &[0.0, 0.0], 0.0);
+    let (p, action) = pair(&mut s, &[f64::MAX, f64::MAX], 1.0);
+    assert_eq!(
+        p,
+        vec![f64::MAX, f64::MAX],
+        "a + K s overflows in both dimensions at t = 1"
+    );
+    assert!(action.iter().all(|x| x.is_finite()));
+}
+
+#[test]
+fn shift_limit_clamps_v() {
+    let config = SessionConfig {
+        learning_rate: vec![1e3],
+        disable_highpass: true,
+        shift_limit: Some(0.3),
+        ..base()
+    };
+    let mut s = session(config);
+    for t in 0..40 {
+        pair(&mut s, &[0.0, 0.0], if t % 2 == 0 { 50.0 } else { -50.0 });
+        assert!(
+            s.shift().iter().all(|v| v.abs() <= 0.3),
+            "v = {:?}",
+            s.shift()
+        );
+    }
+    assert!(
+        s.shift().iter().any(|v| v.abs() == 0.3),
+        "the limit is reached with this alpha"
+    );
+}
+
+/// v after one report of `q` at step 1 of the current episode, without high-pass.
+fn shift_after_step_one(s: &mut Session, q: f64) -> Vec<f64> {
+    pair(s, &[0.0, 0.0], 0.0);
+    pair(s, &[0.0, 0.0], q);
+    let v = s.shift().to_vec();
+    s.end_episode();
+    v
+}
+
+#[test]
+fn learning_rate_decays_per_completed_episode() {
+    let mut s = session(SessionConfig {
+        disable_highpass: true,
+        lr_decay: Some(0.5),
+        ..base()
+    });
+    for e in 0..4 {
+        assert_eq!(s.episodes_completed(), e);
+        let v = shift_after_step_one(&mut s, 3.0);
+        for i in 0..2 {
+            assert_relative_eq!(
+                v[i],
+                ALPHA * 0.5f64.powi(e as i32) * sine(W[i], 1) * 3.0,
+                epsilon = 1e-15
+            );
+        }
+    }
+}
+
+#[test]
+fn no_decay_when_unset() {
+    let mut s = session(SessionConfig {
+        disable_highpass: true,
+        ..base()
+    });
+    let first = shift_after_step_one(&mut s, 3.0);
+    for _ in 0..3 {
+        assert_eq!(shift_after_step_one(&mut s, 3.0), first);
+    }
+}
+
+#[test]
+fn pass_through_after_max_episodes() {
+    let config = SessionConfig {
+        max_episodes: 2,
+        disable_highpass: true,
+        action_low: vec![-1.0],
+        action_high: vec![1.0],
+        ..base()
+    };
+    let mut s = session(config);
+    assert!(shift_after_step_one(&mut s, 3.0).iter().all(|&v| v != 0.0));
+    assert!(!s.is_pass_through());
+    assert!(shift_after_step_one(&mut s, 3.0).iter().all(|&v| v != 0.0));
+    assert!(s.is_pass_through());
+    for t in 0..5 {
+        let (p, action) = pair(&mut s, &[0.25, 4.0], 1e3);
+        assert_eq!(p, vec![0.25, 1.0]);
+        assert_eq!(action, vec![0.25, 1.0]);
+        assert_eq!(s.shift(), &[0.0, 0.0]);
+        assert_eq!(s.step(), t + 1);
+    }
+    // The protocol is unchanged: a report still needs its probe.
+    assert_eq!(
+        refused(&mut s, |s, out| s.report(5, 1.0, out).map(drop)),
+        CoreError::NoPendingProbe { step: 5 }
+    );
+    assert_eq!(s.end_episode(), 3);
+    assert!(s.is_pass_through());
+}
+
+#[test]
+fn unlimited_episodes_never_pass_through() {
+    let mut s = session(base());
+    for _ in 0..10 {
+        s.end_episode();
+    }
+    assert!(!s.is_pass_through());
+}
+
+#[test]
+fn step_mismatch_is_refused() {
+    let mut s = session(base());
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    let err = refused(&mut s, |s, out| s.probe(0, &[0.0, 0.0], false, out));
+    assert_eq!(
+        err,
+        CoreError::StepMismatch {
+            expected: 1,
+            got: 0
+        }
+    );
+    assert_eq!(err.to_string(), "step mismatch: expected step 1, got 0");
+    let err = refused(&mut s, |s, out| s.probe(2, &[0.0, 0.0], false, out));
+    assert_eq!(
+        err,
+        CoreError::StepMismatch {
+            expected: 1,
+            got: 2
+        }
+    );
+    probe(&mut s, 1, &[0.0, 0.0], false);
+    let err = refused(&mut s, |s, out| s.report(2, 1.0, out).map(drop));
+    assert_eq!(
+        err,
+        CoreError::StepMismatch {
+            expected: 1,
+            got: 2
+        }
+    );
+    let err = refused(&mut s, |s, out| s.report(u64::MAX, 1.0, out).map(drop));
+    assert_eq!(
+        err,
+        CoreError::StepMismatch {
+            expected: 1,
+            got: u64::MAX
+        }
+    );
+}
+
+#[test]
+fn report_without_probe_is_refused() {
+    let mut s = session(base());
+    let err = refused(&mut s, |s, out| s.report(0, 1.0, out).map(drop));
+    assert_eq!(err, CoreError::NoPendingProbe { step: 0 });
+    assert_eq!(
+        err.to_string(),
+        "no pending probe at step 0: call Probe before Report"
+    );
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    assert_eq!(
+        refused(&mut s, |s, out| s.report(1, 1.0, out).map(drop)),
+        CoreError::NoPendingProbe { step: 1 }
+    );
+}
+
+#[test]
+fn probe_retry_replaces_the_pending_action() {
+    let mut s = session(SessionConfig {
+        disable_highpass: true,
+        ..base()
+    });
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    let first = probe(&mut s, 1, &[1.0, 1.0], false);
+    assert_eq!(
+        probe(&mut s, 1, &[1.0, 1.0], false),
+        first,
+        "the probe is deterministic"
+    );
+    let replaced = probe(&mut s, 1, &[2.0, -2.0], false);
+    for i in 0..2 {
+        assert_eq!(replaced[i], [2.0, -2.0][i] + K * sine(W[i], 1));
+    }
+    let (action, _) = report(&mut s, 1, 1.0);
+    for i in 0..2 {
+        assert_eq!(action[i], [2.0, -2.0][i] + s.shift()[i]);
+    }
+}
+
+#[test]
+fn report_retry_replays_without_updating() {
+    let mut s = session(base());
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    probe(&mut s, 1, &[0.5, 0.5], false);
+    let (action, outcome) = report(&mut s, 1, 7.0);
+    assert!(!outcome.replayed);
+    let after = s.clone();
+    for q in [7.0, -1e300] {
+        let (again, outcome) = report(&mut s, 1, q);
+        assert_eq!(again, action);
+        assert_eq!(
+            outcome,
+            ReportOutcome {
+                replayed: true,
+                nonfinite_skipped: false
+            }
+        );
+        assert_eq!(s, after, "a replay updates nothing");
+    }
+    // The replayed q must still be valid.
+    assert!(matches!(
+        refused(&mut s, |s, out| s.report(1, f64::NAN, out).map(drop)),
+        CoreError::InvalidArgument(m) if m.starts_with("q_value:")
+    ));
+    // Once the next probe arrives, step t - 1 is history.
+    probe(&mut s, 2, &[0.5, 0.5], false);
+    assert_eq!(
+        refused(&mut s, |s, out| s.report(1, 7.0, out).map(drop)),
+        CoreError::StepMismatch {
+            expected: 2,
+            got: 1
+        }
+    );
+}
+
+#[test]
+fn report_retry_is_impossible_after_an_episode_end() {
+    let mut s = session(base());
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    s.end_episode();
+    assert_eq!(
+        refused(&mut s, |s, out| s.report(0, 1.0, out).map(drop)),
+        CoreError::NoPendingProbe { step: 0 }
+    );
+}
+
+#[test]
+fn end_episode_resets_the_episode_state() {
+    let mut s = session(SessionConfig {
+        disable_highpass: true,
+        ..base()
+    });
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    probe(&mut s, 2, &[0.0, 0.0], false);
+    assert_eq!(s.end_episode(), 1);
+    assert_eq!(
+        (s.step(), s.probe_pending(), s.shift()),
+        (0, false, &[0.0, 0.0][..])
+    );
+    assert_eq!(s.end_episode(), 2);
+}
+
+#[test]
+fn episode_start_ends_a_running_episode() {
+    let mut s = session(SessionConfig {
+        disable_highpass: true,
+        ..base()
+    });
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    assert_ne!(s.shift(), &[0.0, 0.0]);
+    let p = probe(&mut s, 0, &[1.0, 2.0], true);
+    assert_eq!(p, vec![1.0, 2.0], "v was reset and s(0) = 0");
+    assert_eq!(
+        (s.episodes_completed(), s.step(), s.probe_pending()),
+        (1, 0, true)
+    );
+    assert_eq!(s.shift(), &[0.0, 0.0]);
+}
+
+#[test]
+fn episode_start_on_a_fresh_episode_changes_nothing() {
+    let mut s = session(base());
+    let mut plain = s.clone();
+    assert_eq!(
+        probe(&mut s, 0, &[1.0, 2.0], true),
+        probe(&mut plain, 0, &[1.0, 2.0], false)
+    );
+    assert_eq!(s, plain);
+    assert_eq!(s.episodes_completed(), 0);
+    s.end_episode();
+    probe(&mut s, 0, &[1.0, 2.0], true);
+    assert_eq!(
+        s.episodes_completed(),
+        1,
+        "an explicit end followed by episode_start counts once"
+    );
+}
+
+#[test]
+fn episode_start_with_a_pending_step_zero_probe_ends_that_episode() {
+    // CONTRACT.md: "t > 0 or a pending probe" ends the episode, even at t = 0.
+    let mut s = session(base());
+    probe(&mut s, 0, &[1.0, 2.0], true);
+    probe(&mut s, 0, &[1.0, 2.0], true);
+    assert_eq!(
+        (s.episodes_completed(), s.step(), s.probe_pending()),
+        (1, 0, true)
+    );
+}
+
+#[test]
+fn episode_start_requires_step_zero_and_a_refusal_changes_nothing() {
+    let mut s = session(base());
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    pair(&mut s, &[0.0, 0.0], 2.0);
+    let err = refused(&mut s, |s, out| s.probe(2, &[0.0, 0.0], true, out));
+    assert_eq!(
+        err,
+        CoreError::StepMismatch {
+            expected: 0,
+            got: 2
+        }
+    );
+    assert_eq!(s.episodes_completed(), 0);
+    let err = refused(&mut s, |s, out| s.probe(0, &[0.0, f64::NAN], true, out));
+    assert!(matches!(err, CoreError::InvalidArgument(_)));
+    assert_eq!((s.episodes_completed(), s.step()), (0, 2));
+}
+
+#[test]
+fn nonfinite_update_is_skipped() {
+    let config = SessionConfig {
+        learning_rate: vec![1e300],
+        disable_highpass: true,
+        ..base()
+    };
+    let mut s = session(config);
+    pair(&mut s, &[0.0, 0.0], 1e308);
+    probe(&mut s, 1, &[1.0, 1.0], false);
+    let (action, outcome) = report(&mut s, 1, 1e308);
+    assert_eq!(
+        outcome,
+        ReportOutcome {
+            replayed: false,
+            nonfinite_skipped: true
+        }
+    );
+    assert_eq!(s.shift(), &[0.0, 0.0]);
+    assert_eq!(action, vec![1.0, 1.0]);
+    assert_eq!((s.step(), s.nonfinite_skips()), (2, 1));
+    probe(&mut s, 2, &[1.0, 1.0], false);
+    let (_, outcome) = report(&mut s, 2, 1e-300);
+    assert!(!outcome.nonfinite_skipped, "a moderate q updates as usual");
+    assert_ne!(s.shift(), &[0.0, 0.0]);
+}
+
+#[test]
+fn highpass_overflow_skips_once_and_recovers() {
+    // Tiny alpha: only the overflowed filter output can make the update non-finite.
+    let mut s = session(SessionConfig {
+        learning_rate: vec![1e-300],
+        ..base()
+    });
+    pair(&mut s, &[0.0, 0.0], -f64::MAX);
+    let t = s.step();
+    probe(&mut s, t, &[0.0, 0.0], false);
+    assert!(report(&mut s, t, f64::MAX).1.nonfinite_skipped);
+    for q in [f64::MAX, 1.0, 2.0] {
+        let t = s.step();
+        probe(&mut s, t, &[0.0, 0.0], false);
+        assert!(
+            !report(&mut s, t, q).1.nonfinite_skipped,
+            "the washout restarted at rest"
+        );
+    }
+    assert!(s.shift().iter().all(|v| v.is_finite()));
+}
+
+#[test]
+fn shift_limit_turns_an_overflow_into_the_limit() {
+    // clamp(+-inf, -L, L) is finite, so with a shift limit the update is applied, not skipped.
+    let config = SessionConfig {
+        learning_rate: vec![1e300],
+        disable_highpass: true,
+        shift_limit: Some(2.0),
+        ..base()
+    };
+    let mut s = session(config);
+    pair(&mut s, &[0.0, 0.0], 0.0);
+    probe(&mut s, 1, &[0.0, 0.0], false);
+    let (action, outcome) = report(&mut s, 1, 1e308);
+    assert!(!outcome.nonfinite_skipped);
+    assert_eq!(s.shift(), &[2.0, 2.0]);
+    assert_eq!(action, vec![2.0, 2.0]);
+}
+
+#[test]
+fn bad_action_is_refused() {
+    let mut s = session(base());
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    for bad in [&[0.0][..], &[0.0, 0.0, 0.0], &[]] {
+        let err = refused(&mut s, |s, out| s.probe(1, bad, false, out));
+        assert_eq!(
+            err,
+            CoreError::InvalidArgument(format!(
+                "action: expected length 2 (action_dim), got {}",
+                bad.len()
+            ))
+        );
+    }
+    for x in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        let err = refused(&mut s, |s, out| s.probe(1, &[0.0, x], false, out));
+        assert_eq!(
+            err,
+            CoreError::InvalidArgument(format!("action[1]: expected a finite number, got {x}"))
+        );
+        assert!(s.check_probe(1, &[x, 0.0], false).is_err());
+    }
+    assert_eq!(s.check_probe(1, &[0.0, 0.0], false), Ok(()));
+}
+
+#[test]
+fn nonfinite_q_is_refused() {
+    let mut s = session(base());
+    probe(&mut s, 0, &[0.0, 0.0], false);
+    for q in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        let err = refused(&mut s, |s, out| s.report(0, q, out).map(drop));
+        assert_eq!(
+            err,
+            CoreError::InvalidArgument(format!("q_value: expected a finite number, got {q}"))
+        );
+    }
+    assert_eq!(s.check_report(0, 1.0), Ok(()));
+}
+
+#[test]
+fn outputs_are_appended() {
+    let mut s = session(base());
+    let mut out = vec![9.0];
+    s.probe(0, &[1.0, 2.0], false, &mut out).expect("probe");
+    s.report(0, 0.0, &mut out).expect("report");
+    assert_eq!(out, vec![9.0, 1.0, 2.0, 1.0, 2.0]);
+}
