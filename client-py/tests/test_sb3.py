@@ -20,6 +20,10 @@ from esa_client.sb3 import ESAPPO, ESASAC
 
 N_ENVS = 4
 
+# Tiny MLPs run fastest single-threaded; with more threads than free cores torch
+# spends its time spinning (10x slower on a busy 2-core machine).
+th.set_num_threads(1)
+
 
 class RecordActions(gym.Wrapper):
     """Keeps every action the env executes."""
@@ -163,10 +167,8 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
         assert th.equal(a, b)
     model.esa_close()
     assert not server.running() and not server.socket_path.exists()
-    loaded.learn(256 * N_ENVS)
+    loaded.learn(256 * N_ENVS)  # spawns a fresh server for the loaded model
     loaded_server = loaded._esa.client.server
-    del loaded
-    import gc
-
-    gc.collect()
+    assert loaded_server.pid != server.pid
+    loaded.esa_close()
     assert not loaded_server.running()
