@@ -1,0 +1,53 @@
+"""The Python client against an esa-server started by hand on loopback TCP (port 0)."""
+
+import os
+import signal
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from esa_client import EsaClient, SessionConfig
+from esa_client.reference import ReferenceBatch
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def tcp_server():
+    binary = os.environ.get("ESA_SERVER_BIN") or str(REPO_ROOT / "target/release/esa-server")
+    if not os.access(binary, os.X_OK):
+        pytest.fail(f"esa-server not found at {binary}: run `cargo build --release -p esa-server`")
+    process = subprocess.Popen(
+        [binary, "--listen", "127.0.0.1:0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        # The server prints this line once it is bound, so connecting right after works.
+        line = process.stdout.readline()
+        assert line.startswith("listening on "), line
+        yield line.split()[-1]
+    finally:
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+
+
+def test_client_over_tcp_matches_reference(tcp_server):
+    config = SessionConfig(
+        action_dim=2, dt=0.04, amplitude=0.2, frequency=[31.4, 15.7], learning_rate=0.3
+    )
+    rng = np.random.default_rng(0)
+    with EsaClient(tcp_server, timeout=5.0) as client:
+        client.wait_ready(timeout=10)
+        batch = client.create_batch(config, 4, use_stream=True)
+        reference = ReferenceBatch([config] * 4)
+        for t in range(50):
+            actions = rng.normal(size=(4, 2))
+            starts = np.full(4, t == 0)
+            probes = batch.probe(actions, starts)
+            np.testing.assert_allclose(probes, reference.probe(actions, starts), rtol=1e-9)
+            q = -np.tanh(np.sum(probes**2, axis=1))
+            np.testing.assert_allclose(batch.report(q), reference.report(q), rtol=1e-9)
+        batch.close()
