@@ -25,7 +25,8 @@ class EsaRuntime:
         vec_env: The learner's VecEnv (gives the env count and ``dt``).
         low: Lower action bounds of the space ESA works in (shape ``(D,)``).
         high: Upper action bounds.
-        use_stream: Use the StepStream transport instead of the batch RPCs.
+        use_stream: Carry the round trips on one StepStream (default; it measured about
+            twice as fast per step as ProbeBatch/ReportBatch calls inside SB3's loop).
     """
 
     def __init__(
@@ -36,7 +37,7 @@ class EsaRuntime:
         low: np.ndarray,
         high: np.ndarray,
         *,
-        use_stream: bool = False,
+        use_stream: bool = True,
     ) -> None:
         """Connects (or spawns the server) and creates one session per env."""
         n_envs = vec_env.num_envs  # type: ignore[attr-defined]
