@@ -3,7 +3,8 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
-use tokio_stream::{Stream, StreamExt};
+use futures_util::stream::{self, Stream, StreamExt};
+use tokio::sync::watch;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::Error;
@@ -14,12 +15,20 @@ use crate::pb::esa_service_server::EsaService;
 /// `esa.v1.EsaService` over gRPC.
 pub struct GrpcService {
     handler: Arc<EsaHandler>,
+    stop: watch::Receiver<bool>,
 }
 
 impl GrpcService {
-    pub fn new(handler: Arc<EsaHandler>) -> Self {
-        Self { handler }
+    /// The service over `handler`; open StepStreams end once `stop` turns true.
+    pub fn new(handler: Arc<EsaHandler>, stop: watch::Receiver<bool>) -> Self {
+        Self { handler, stop }
     }
+}
+
+/// Completes once `stop` turns true (or its sender is gone).
+pub(crate) async fn stopped(mut stop: watch::Receiver<bool>) {
+    // Err means the sender is gone: the server has stopped either way.
+    let _ = stop.wait_for(|stop| *stop).await;
 }
 
 fn respond<T>(result: Result<T, Error>) -> Result<Response<T>, Status> {
@@ -90,15 +99,25 @@ impl EsaService for GrpcService {
 
     /// Answers each message as it arrives, in order, without a relay task or
     /// channel: the response stream is the request stream mapped through the
-    /// handler. A transport error from the client ends the stream.
+    /// handler. A transport error from the client ends the stream; server
+    /// shutdown ends it with UNAVAILABLE so the client knows to reconnect.
     async fn step_stream(
         &self,
         request: Request<Streaming<pb::StepStreamRequest>>,
     ) -> Result<Response<ResponseStream>, Status> {
         let handler = Arc::clone(&self.handler);
+        let stop = self.stop.clone();
         let responses = request
             .into_inner()
-            .map(move |message| message.map(|req| handler.step(req)));
+            .map(move |message| message.map(|req| handler.step(req)))
+            .take_until(stopped(self.stop.clone()))
+            .chain(
+                stream::once(async move {
+                    stop.borrow()
+                        .then(|| Err(Status::unavailable("the server is shutting down")))
+                })
+                .filter_map(std::future::ready),
+            );
         Ok(Response::new(Box::pin(responses)))
     }
 }

@@ -47,6 +47,8 @@ impl EsaHandler {
             .render(self.store.live(), self.store.expired_total())
     }
 
+    /// Creates a session (a UUID id when none is given), or returns the
+    /// existing one for the same id and an identical config.
     pub fn create_session(
         &self,
         req: pb::CreateSessionRequest,
@@ -58,6 +60,7 @@ impl EsaHandler {
         })
     }
 
+    /// Probes one session at its current step.
     pub fn probe(&self, req: pb::ProbeRequest) -> Result<pb::ProbeResponse, Error> {
         self.observe(Rpc::Probe, || {
             self.store.with_session(&req.session_id, |session| {
@@ -71,6 +74,7 @@ impl EsaHandler {
         })
     }
 
+    /// Reports Q for one session's pending probe (or replays the last report).
     pub fn report(&self, req: pb::ReportRequest) -> Result<pb::ReportResponse, Error> {
         self.observe(Rpc::Report, || {
             self.store.with_session(&req.session_id, |session| {
@@ -85,6 +89,7 @@ impl EsaHandler {
         })
     }
 
+    /// Ends one session's episode.
     pub fn end_episode(&self, req: pb::EndEpisodeRequest) -> Result<pb::EndEpisodeResponse, Error> {
         self.observe(Rpc::EndEpisode, || {
             self.store.with_session(&req.session_id, |session| {
@@ -95,6 +100,7 @@ impl EsaHandler {
         })
     }
 
+    /// Closes a session; its id is NOT_FOUND afterwards.
     pub fn close_session(
         &self,
         req: pb::CloseSessionRequest,
@@ -105,6 +111,7 @@ impl EsaHandler {
         })
     }
 
+    /// A snapshot of one session's config and state.
     pub fn get_session(&self, req: pb::GetSessionRequest) -> Result<pb::GetSessionResponse, Error> {
         self.observe(Rpc::GetSession, || {
             self.store.with_session(&req.session_id, |session| {
@@ -119,10 +126,12 @@ impl EsaHandler {
         })
     }
 
+    /// Probes N sessions at once; all-or-nothing.
     pub fn probe_batch(&self, req: pb::ProbeBatchRequest) -> Result<pb::ProbeBatchResponse, Error> {
         self.observe(Rpc::ProbeBatch, || self.run_probe_batch(req))
     }
 
+    /// Reports to N sessions at once; all-or-nothing.
     pub fn report_batch(
         &self,
         req: pb::ReportBatchRequest,

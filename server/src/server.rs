@@ -9,13 +9,14 @@ use std::time::Duration;
 
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::{TcpListener, UnixListener};
+use tokio::sync::watch;
 use tokio_stream::wrappers::UnixListenerStream;
 use tokio_stream::Stream;
 use tonic::transport::server::{Connected, Router, TcpIncoming};
 use tonic_health::server::HealthReporter;
 
 use crate::error::Error;
-use crate::grpc::GrpcService;
+use crate::grpc::{stopped, GrpcService};
 use crate::handler::EsaHandler;
 use crate::pb;
 use crate::pb::esa_service_server::EsaServiceServer;
@@ -156,7 +157,8 @@ impl EsaServer {
     }
 
     /// Serves EsaService, health and reflection on `listener` until
-    /// `shutdown` completes, then lets open calls finish for the grace time.
+    /// `shutdown` completes. Then open StepStreams end with UNAVAILABLE and
+    /// other calls in flight get the grace time to finish.
     pub async fn serve(
         self,
         listener: Listener,
@@ -166,9 +168,10 @@ impl EsaServer {
             .sweep_interval
             .map(|every| AbortOnDrop(spawn_sweeper(self.handler(), every)));
 
+        let (stop_tx, stop_rx) = watch::channel(false);
         let (health, health_service) = tonic_health::server::health_reporter();
         health.set_serving::<EsaServiceServer<GrpcService>>().await;
-        let esa = EsaServiceServer::new(GrpcService::new(self.handler()))
+        let esa = EsaServiceServer::new(GrpcService::new(self.handler(), stop_rx))
             .max_decoding_message_size(self.max_message_bytes);
         let router = tonic::transport::Server::builder()
             .add_service(health_service)
@@ -178,12 +181,12 @@ impl EsaServer {
         match listener {
             Listener::Tcp(listener) => {
                 let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-                self.run(router, incoming, shutdown, health).await
+                self.run(router, incoming, shutdown, health, stop_tx).await
             }
             Listener::Unix(listener, path) => {
                 let _remove_socket = RemoveOnDrop(path);
                 let incoming = UnixListenerStream::new(listener);
-                self.run(router, incoming, shutdown, health).await
+                self.run(router, incoming, shutdown, health, stop_tx).await
             }
         }
     }
@@ -194,24 +197,22 @@ impl EsaServer {
         incoming: I,
         shutdown: impl Future<Output = ()>,
         health: HealthReporter,
+        stop_tx: watch::Sender<bool>,
     ) -> Result<(), Error>
     where
         I: Stream<Item = Result<IO, IE>>,
         IO: AsyncRead + AsyncWrite + Connected + Unpin + Send + 'static,
         IE: Into<Box<dyn std::error::Error + Send + Sync>>,
     {
-        let (stop_tx, mut stop_rx) = tokio::sync::watch::channel(false);
-        let stop = async move {
-            // Err means the sender is gone, which only happens on return.
-            let _ = stop_rx.wait_for(|stop| *stop).await;
-        };
-        let serving = router.serve_with_incoming_shutdown(incoming, stop);
+        let serving = router.serve_with_incoming_shutdown(incoming, stopped(stop_tx.subscribe()));
         tokio::pin!(serving);
         let result = tokio::select! {
             result = &mut serving => result,
             () = shutdown => {
                 tracing::info!("shutting down");
                 health.set_not_serving::<EsaServiceServer<GrpcService>>().await;
+                // Ends open StepStreams too, which would otherwise hold
+                // shutdown for the whole grace time.
                 let _ = stop_tx.send(true);
                 match tokio::time::timeout(self.shutdown_grace, &mut serving).await {
                     Ok(result) => result,

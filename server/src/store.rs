@@ -267,3 +267,94 @@ fn check_id(id: &str) -> Result<(), Error> {
 fn duration_nanos(d: Duration) -> u64 {
     u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use esa_core::SessionConfig;
+
+    fn session() -> Session {
+        Session::new(SessionConfig::new(
+            1,
+            0.01,
+            vec![0.2],
+            vec![60.0],
+            vec![0.25],
+        ))
+        .unwrap()
+    }
+
+    fn store_with(ids: &[&str]) -> SessionStore {
+        let store = SessionStore::new(None, 100);
+        for id in ids {
+            store.create((*id).to_owned(), session()).unwrap();
+        }
+        store
+    }
+
+    #[test]
+    fn batch_sessions_come_in_request_order() {
+        let store = store_with(&["b", "a", "c"]);
+        store
+            .with_session("a", |s| {
+                s.end_episode();
+                Ok(())
+            })
+            .unwrap();
+        let ids = ["c".to_owned(), "a".to_owned(), "b".to_owned()];
+        let episodes = store
+            .with_batch(&ids, |sessions| {
+                Ok(sessions
+                    .iter()
+                    .map(|s| s.episodes_completed())
+                    .collect::<Vec<_>>())
+            })
+            .unwrap();
+        assert_eq!(episodes, vec![0, 1, 0]);
+    }
+
+    #[test]
+    fn batches_in_opposite_orders_do_not_deadlock() {
+        let store = Arc::new(store_with(&["a", "b", "c", "d"]));
+        let forward: Vec<String> = ["a", "b", "c", "d"].map(String::from).to_vec();
+        let backward: Vec<String> = forward.iter().rev().cloned().collect();
+        let workers: Vec<_> = [forward, backward]
+            .into_iter()
+            .map(|ids| {
+                let store = Arc::clone(&store);
+                std::thread::spawn(move || {
+                    for _ in 0..20_000 {
+                        store
+                            .with_batch(&ids, |sessions| {
+                                sessions.iter_mut().for_each(|s| {
+                                    s.end_episode();
+                                });
+                                Ok(())
+                            })
+                            .unwrap();
+                    }
+                })
+            })
+            .collect();
+        for worker in workers {
+            worker.join().unwrap();
+        }
+        let total = store
+            .with_session("c", |s| Ok(s.episodes_completed()))
+            .unwrap();
+        assert_eq!(total, 40_000);
+    }
+
+    #[test]
+    fn an_expired_id_is_replaced_and_counted_once() {
+        let store = SessionStore::new(Some(Duration::ZERO), 1);
+        store.create("x".into(), session()).unwrap();
+        std::thread::sleep(Duration::from_millis(2));
+        // At the limit, but the expired session's slot is reused.
+        store.create("x".into(), session()).unwrap();
+        assert_eq!((store.live(), store.expired_total()), (1, 1));
+        std::thread::sleep(Duration::from_millis(2));
+        assert_eq!(store.sweep(), 1);
+        assert_eq!((store.live(), store.expired_total()), (0, 2));
+    }
+}

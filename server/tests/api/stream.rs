@@ -4,11 +4,12 @@
 use esa_server::pb;
 use esa_server::pb::step_stream_request::Kind as Req;
 use esa_server::pb::step_stream_response::Kind as Resp;
+use esa_server::EsaServer;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Code, Streaming};
 
-use crate::common::{config, create, get, start, Client};
+use crate::common::{config, create, get, start, start_with, Client};
 
 struct Stream {
     requests: mpsc::Sender<pb::StepStreamRequest>,
@@ -166,4 +167,29 @@ async fn pipelined_requests_are_answered_in_order() {
     drop(stream.requests);
     assert!(stream.responses.message().await.unwrap().is_none());
     server.stop().await;
+}
+
+#[tokio::test]
+async fn shutdown_ends_open_streams_with_unavailable() {
+    // A grace time far beyond the timeout below: only ending the stream
+    // lets shutdown finish in time.
+    let server =
+        start_with(EsaServer::builder().shutdown_grace(std::time::Duration::from_secs(600))).await;
+    let mut client = server.client().await;
+    create(&mut client, "s", config(1)).await;
+    let mut stream = Stream::open(&mut client).await;
+    stream.send(probe_batch(&["s"], 0, vec![0.5])).await;
+    assert!(matches!(stream.next().await, Resp::ProbeBatch(_)));
+
+    let stopping = tokio::spawn(server.stop());
+    let status = stream
+        .responses
+        .message()
+        .await
+        .expect_err("the stream ends with an error status");
+    assert_eq!(status.code(), Code::Unavailable, "{status:?}");
+    tokio::time::timeout(std::time::Duration::from_secs(30), stopping)
+        .await
+        .expect("shutdown finished without waiting for the grace time")
+        .unwrap();
 }
