@@ -19,6 +19,25 @@ fn actions_at(step: u64) -> Vec<f64> {
         .collect()
 }
 
+async fn create_all(client: &mut Client, ids: &[String]) {
+    for (id, d) in ids.iter().zip(DIMS) {
+        create(client, id, config(d)).await;
+    }
+}
+
+/// Probes every session of `ids` at `step` with [`actions_at`].
+async fn probe_all(client: &mut Client, ids: &[String], step: u64) {
+    client
+        .probe_batch(pb::ProbeBatchRequest {
+            session_ids: ids.to_vec(),
+            steps: vec![step; ids.len()],
+            actions: actions_at(step),
+            episode_starts: vec![],
+        })
+        .await
+        .unwrap();
+}
+
 async fn snapshot(client: &mut Client, ids: &[String]) -> Vec<pb::GetSessionResponse> {
     let mut out = Vec::new();
     for id in ids {
@@ -104,21 +123,11 @@ async fn a_batch_with_one_bad_item_changes_no_session() {
     let server = start().await;
     let mut client = server.client().await;
     let ids = batch_ids("s");
-    for (id, d) in ids.iter().zip(DIMS) {
-        create(&mut client, id, config(d)).await;
-    }
+    create_all(&mut client, &ids).await;
     // Every session at step 2 with a pending probe, except the last at step 2
     // without one.
     for step in 0..2 {
-        client
-            .probe_batch(pb::ProbeBatchRequest {
-                session_ids: ids.clone(),
-                steps: vec![step; 3],
-                actions: actions_at(step),
-                episode_starts: vec![],
-            })
-            .await
-            .unwrap();
+        probe_all(&mut client, &ids, step).await;
         client
             .report_batch(pb::ReportBatchRequest {
                 session_ids: ids.clone(),
@@ -265,19 +274,9 @@ async fn report_batch_retry_replays_the_same_actions() {
     let server = start().await;
     let mut client = server.client().await;
     let ids = batch_ids("r");
-    for (id, d) in ids.iter().zip(DIMS) {
-        create(&mut client, id, config(d)).await;
-    }
+    create_all(&mut client, &ids).await;
     for step in 0..3 {
-        client
-            .probe_batch(pb::ProbeBatchRequest {
-                session_ids: ids.clone(),
-                steps: vec![step; 3],
-                actions: actions_at(step),
-                episode_starts: vec![],
-            })
-            .await
-            .unwrap();
+        probe_all(&mut client, &ids, step).await;
         let request = pb::ReportBatchRequest {
             session_ids: ids.clone(),
             steps: vec![step; 3],

@@ -151,6 +151,24 @@ pub async fn report(
         .map(tonic::Response::into_inner)
 }
 
+pub async fn end_episode(client: &mut Client, id: &str) -> Result<pb::EndEpisodeResponse, Status> {
+    client
+        .end_episode(pb::EndEpisodeRequest {
+            session_id: id.into(),
+        })
+        .await
+        .map(tonic::Response::into_inner)
+}
+
+pub async fn close(client: &mut Client, id: &str) -> Result<pb::CloseSessionResponse, Status> {
+    client
+        .close_session(pb::CloseSessionRequest {
+            session_id: id.into(),
+        })
+        .await
+        .map(tonic::Response::into_inner)
+}
+
 /// Asserts that `result` failed with `code` and a message containing every
 /// one of `needles`.
 #[track_caller]

@@ -4,7 +4,9 @@
 use esa_server::pb;
 use tonic::Code;
 
-use crate::common::{assert_error, config, create, get, probe, report, start, Client};
+use crate::common::{
+    assert_error, close, config, create, end_episode, get, probe, report, start, Client,
+};
 
 async fn create_result(
     client: &mut Client,
@@ -31,24 +33,8 @@ async fn unknown_session_is_not_found_on_every_rpc() {
     );
     assert_error(report(&mut client, id, 0, 0.0).await, Code::NotFound, &[id]);
     assert_error(get(&mut client, id).await, Code::NotFound, &[id]);
-    assert_error(
-        client
-            .end_episode(pb::EndEpisodeRequest {
-                session_id: id.into(),
-            })
-            .await,
-        Code::NotFound,
-        &[id],
-    );
-    assert_error(
-        client
-            .close_session(pb::CloseSessionRequest {
-                session_id: id.into(),
-            })
-            .await,
-        Code::NotFound,
-        &[id],
-    );
+    assert_error(end_episode(&mut client, id).await, Code::NotFound, &[id]);
+    assert_error(close(&mut client, id).await, Code::NotFound, &[id]);
     assert_error(
         client
             .probe_batch(pb::ProbeBatchRequest {
@@ -302,11 +288,7 @@ async fn session_ids_must_be_1_to_128_bytes() {
         &["session_id"],
     );
     assert_error(
-        client
-            .close_session(pb::CloseSessionRequest {
-                session_id: String::new(),
-            })
-            .await,
+        close(&mut client, "").await,
         Code::InvalidArgument,
         &["session_id"],
     );

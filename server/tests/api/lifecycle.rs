@@ -4,7 +4,9 @@ use esa_core::Session;
 use esa_server::pb;
 use tonic::Code;
 
-use crate::common::{assert_error, config, create, get, probe, q_of, report, start};
+use crate::common::{
+    assert_error, close, config, create, end_episode, get, probe, q_of, report, start,
+};
 
 #[tokio::test]
 async fn full_lifecycle() {
@@ -41,31 +43,16 @@ async fn full_lifecycle() {
     }
     assert!(get(&mut client, "env-0").await.unwrap().shift != vec![0.0, 0.0]);
 
-    let ended = client
-        .end_episode(pb::EndEpisodeRequest {
-            session_id: "env-0".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let ended = end_episode(&mut client, "env-0").await.unwrap();
     assert_eq!(ended.episodes_completed, 1);
     let after = get(&mut client, "env-0").await.unwrap();
     assert_eq!((after.step, after.episodes_completed), (0, 1));
     assert_eq!(after.shift, vec![0.0, 0.0]);
 
-    client
-        .close_session(pb::CloseSessionRequest {
-            session_id: "env-0".into(),
-        })
-        .await
-        .unwrap();
+    close(&mut client, "env-0").await.unwrap();
     assert_error(get(&mut client, "env-0").await, Code::NotFound, &["env-0"]);
     assert_error(
-        client
-            .close_session(pb::CloseSessionRequest {
-                session_id: "env-0".into(),
-            })
-            .await,
+        close(&mut client, "env-0").await,
         Code::NotFound,
         &["env-0"],
     );

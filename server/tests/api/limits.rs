@@ -6,7 +6,7 @@ use esa_server::pb;
 use esa_server::EsaServer;
 use tonic::Code;
 
-use crate::common::{assert_error, config, create, start, start_with};
+use crate::common::{assert_error, close, config, create, start, start_with};
 
 #[tokio::test]
 async fn max_sessions_is_resource_exhausted() {
@@ -25,12 +25,7 @@ async fn max_sessions_is_resource_exhausted() {
     // Re-creating an existing session at the limit is still fine.
     assert_eq!(create(&mut client, "a", config(1)).await, "a");
 
-    client
-        .close_session(pb::CloseSessionRequest {
-            session_id: "b".into(),
-        })
-        .await
-        .unwrap();
+    close(&mut client, "b").await.unwrap();
     assert_eq!(create(&mut client, "d", config(1)).await, "d");
     assert_eq!(server.handler.store().live(), 3);
     server.stop().await;
