@@ -338,8 +338,13 @@ class ReferenceClient:
         n: int | None = None,
         *,
         ids: Sequence[str] | None = None,
+        use_stream: bool = False,
     ) -> ReferenceBatch:
-        """Creates N sessions (one config for all, or one per session)."""
+        """Creates N sessions (one config for all, or one per session).
+
+        ``use_stream`` is accepted for signature compatibility with
+        :meth:`esa_client.EsaClient.create_batch`; there is no transport here.
+        """
         return ReferenceBatch(as_batch_configs(configs, n), ids)
 
     def close(self) -> None:
