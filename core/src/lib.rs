@@ -44,6 +44,7 @@ mod error;
 mod highpass;
 mod lanes;
 mod session;
+mod sine;
 
 pub use config::{SessionConfig, MAX_ACTION_DIM};
 pub use error::CoreError;

@@ -3,6 +3,7 @@
 use crate::config::SessionConfig;
 use crate::highpass::Washout;
 use crate::lanes::Lanes;
+use crate::sine;
 use crate::CoreError;
 
 /// What a successful [`Session::report`] did besides returning the improved action.
@@ -143,10 +144,7 @@ impl Session {
                     .map(|(&a, (&lo, &hi))| clip(a, lo, hi)),
             );
         } else {
-            // A pass of its own keeps the sine calls out of the loop that the compiler vectorizes.
-            for (s, &w) in lanes.sine.iter_mut().zip(lanes.frequency) {
-                *s = (w * tau).sin();
-            }
+            sine::sines(lanes.frequency, tau, lanes.sine);
             let perturbation = (lanes
                 .shift
                 .iter()
