@@ -19,6 +19,7 @@ from esa_client import EsaConfig, SessionBatch
 from esa_client.sb3 import ESAPPO, ESASAC
 
 N_ENVS = 4
+pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")
 
 # Tiny MLPs run fastest single-threaded; with more threads than free cores torch
 # spends its time spinning (10x slower on a busy 2-core machine).
