@@ -98,6 +98,7 @@ def build_model(method: str, env: gym.Env, seed: int, hyperparams: dict[str, Any
     """
     spec = get_method(method)
     hp = dict(hyperparams)
+    hp.pop("n_envs", None)  # used to build the env (see training.py)
     kwargs: dict[str, Any] = {
         "policy_kwargs": {"net_arch": hp.pop("net_arch")},
         "seed": seed,

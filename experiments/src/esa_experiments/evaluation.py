@@ -6,8 +6,10 @@ parameter or action noise: just ``model.policy``), for ``episodes`` episodes on
 a separate evaluation env whose episode ``i`` is reset with seed
 ``seed + i``: every evaluation of every method sees the same initial states.
 
-Training wall-clock is measured separately from evaluation time, so that
-``train_seconds`` is comparable across methods (the ESA overhead ratio).
+Training wall-clock (``train_seconds``) and the training process's CPU time
+(``train_cpu_seconds``; a spawned esa-server's own CPU is not included) are
+measured without evaluation time, so they are comparable across methods (the
+ESA overhead ratio). On a shared machine the CPU time is the steadier one.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 import pandas as pd
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import KVWriter, Logger
 
 from esa_experiments.param_noise import noise_free
 
@@ -97,11 +100,14 @@ class PeriodicEvaluation(BaseCallback):
         self.rows: list[dict[str, float]] = []
         self._next_eval = 0
         self._train_seconds = 0.0
+        self._train_cpu_seconds = 0.0
         self._eval_seconds = 0.0
         self._since = 0.0
+        self._cpu_since = 0.0
 
     def _evaluate(self) -> None:
         self._train_seconds += time.perf_counter() - self._since
+        self._train_cpu_seconds += time.process_time() - self._cpu_since
         start = time.perf_counter()
         returns, lengths = run_episodes(
             self.model, self.eval_env, self.settings.episodes, self.eval_seed
@@ -114,14 +120,17 @@ class PeriodicEvaluation(BaseCallback):
                 "return_std": float(returns.std()),
                 "length_mean": float(lengths.mean()),
                 "train_seconds": self._train_seconds,
+                "train_cpu_seconds": self._train_cpu_seconds,
                 "eval_seconds": self._eval_seconds,
             }
         )
         self._next_eval = self.num_timesteps + self.settings.every
         self._since = time.perf_counter()
+        self._cpu_since = time.process_time()
 
     def _on_training_start(self) -> None:
         self._since = time.perf_counter()
+        self._cpu_since = time.process_time()
         self._evaluate()
 
     def _on_step(self) -> bool:
@@ -140,6 +149,37 @@ class PeriodicEvaluation(BaseCallback):
         return pd.DataFrame(self.rows)
 
 
+LOGGED_PREFIXES = ("esa/", "param_noise/", "train/", "rollout/")
+"""SB3 logger keys kept in a run's training log."""
+
+
+class LogCapture(KVWriter):
+    """An SB3 logger output that keeps the logged values (ESA and noise statistics)."""
+
+    def __init__(self) -> None:
+        """Starts with no rows."""
+        self.rows: list[dict[str, float]] = []
+
+    def write(
+        self, key_values: dict[str, object], key_excluded: dict[str, object], step: int = 0
+    ) -> None:
+        """Keeps the numeric values of the interesting keys of one dump."""
+        row = {
+            key: float(value)
+            for key, value in key_values.items()
+            if key.startswith(LOGGED_PREFIXES) and isinstance(value, (int, float, np.number))
+        }
+        if row:
+            self.rows.append({"step": step, **row})
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def frame(self) -> pd.DataFrame:
+        """One row per logger dump (just a ``step`` column if nothing was logged)."""
+        return pd.DataFrame(self.rows) if self.rows else pd.DataFrame({"step": []})
+
+
 def train_and_evaluate(
     model: BaseAlgorithm,
     total_steps: int,
@@ -147,8 +187,8 @@ def train_and_evaluate(
     settings: EvalSettings,
     seed: int,
     progress: ProgressFn | None = None,
-) -> pd.DataFrame:
-    """Trains ``model`` with periodic evaluation and returns the evaluation table.
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Trains ``model`` with periodic evaluation; returns the evaluation table and training log.
 
     Args:
         model: the model to train.
@@ -159,5 +199,7 @@ def train_and_evaluate(
         progress: optional step-count callback.
     """
     callback = PeriodicEvaluation(eval_env, settings, seed, progress)
+    log = LogCapture()
+    model.set_logger(Logger(folder=None, output_formats=[log]))
     model.learn(total_timesteps=total_steps, callback=callback)
-    return callback.frame()
+    return callback.frame(), log.frame()

@@ -52,6 +52,21 @@ class Outcome:
     error: str | None = None
 
 
+def pin_server_binary() -> str:
+    """Resolves the esa-server binary once and makes every worker use it.
+
+    Without ``ESA_SERVER_BIN`` each spawned server would look the binary up
+    itself (possibly running ``cargo build``, and possibly getting a different
+    build midway through a study); resolving it here (building at most once)
+    keeps all runs of a session on one binary.
+    """
+    from esa_client.sidecar import BINARY_ENV, find_server_binary
+
+    path = str(find_server_binary())
+    os.environ[BINARY_ENV] = path
+    return path
+
+
 def _init_worker() -> None:
     import torch
 
@@ -79,6 +94,8 @@ def run_one(spec: RunSpec, base: Path | None, progress: ProgressFn | None = None
     try:
         result = load_study(spec.study).run(spec, progress or (lambda _: None))
         result.meta["seconds"] = time.perf_counter() - start
+        if spec.config.get("uses_server"):
+            result.meta["esa_server_bin"] = os.environ.get("ESA_SERVER_BIN")
         RunStore(spec.study, spec.budget, base).write(spec, result)
     except Exception:  # one failed run must not stop the others
         return Outcome(spec, time.perf_counter() - start, traceback.format_exc())
@@ -108,6 +125,8 @@ def execute(
     for var in _THREAD_VARS:
         os.environ.setdefault(var, "1")
     console = console or Console()
+    if any(spec.config.get("uses_server") for spec in specs):
+        console.print(f"esa-server: {pin_server_binary()}")
     ctx = mp.get_context("spawn")
     outcomes: list[Outcome] = []
     columns = (

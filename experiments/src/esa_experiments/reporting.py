@@ -16,7 +16,7 @@ from pathlib import Path
 from esa_experiments.algorithms import BASELINE_OF, METHODS
 from esa_experiments.plotting import Panel, learning_curves
 from esa_experiments.runs import RunStore, atomic_write_text
-from esa_experiments.tables import summary, to_markdown
+from esa_experiments.tables import exploration_stats, summary, to_markdown
 from esa_experiments.tasks import TASKS
 from esa_experiments.training import StepBudget
 
@@ -69,6 +69,12 @@ def rl_section(
     )
     thresholds = {env: TASKS[env].threshold for env in envs}
     table = to_markdown(summary(frame, envs, methods, labels, thresholds, baselines or BASELINE_OF))
+    stats = exploration_stats(store.load("log"), envs, methods, labels)
+    if not stats.empty:
+        table += (
+            "\n\nWhat the exploration add-ons did (training-log means, mean ± SE over seeds):"
+            f"\n\n{to_markdown(stats)}"
+        )
     atomic_write_text(store.artifact("table.md"), table + "\n")
     return f"![{store.study}]({store.relative(figure)})\n\n{table}\n"
 

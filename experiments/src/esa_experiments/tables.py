@@ -8,8 +8,9 @@ Per (env, method), over seeds (mean +- standard error):
 * steps to threshold: first evaluated step whose return reaches the env's
   threshold (median over the seeds that reached it, and how many did);
 * train s: training wall-clock seconds, evaluation excluded;
-* ESA overhead: mean train time of an ESA method / that of its base method
-  on the same env (``ppo_esa`` / ``ppo``, ``sac_esa`` / ``sac``).
+* overhead vs base: mean training wall-clock and CPU time of an ESA method
+  divided by those of its base method on the same env (``ppo_esa`` / ``ppo``,
+  ``sac_esa`` / ``sac``; the ablation compares every variant with PPO).
 """
 
 from __future__ import annotations
@@ -27,10 +28,10 @@ def over_seeds(runs: pd.DataFrame, x: str, y: str) -> pd.DataFrame:
     return stats.reset_index()
 
 
-def _mean_sem(values: Sequence[float]) -> str:
+def _mean_sem(values: Sequence[float], fmt: str = "{:.1f}") -> str:
     array = np.asarray(values, dtype=float)
     sem = array.std(ddof=1) / np.sqrt(len(array)) if len(array) > 1 else 0.0
-    return f"{array.mean():.1f} ± {sem:.1f}"
+    return f"{fmt.format(array.mean())} ± {fmt.format(sem)}"
 
 
 def _trapezoid(y: np.ndarray, x: np.ndarray) -> float:
@@ -52,6 +53,7 @@ def _per_seed(runs: pd.DataFrame, threshold: float) -> pd.DataFrame:
                 "auc": _trapezoid(returns, steps) / span if span > 0 else returns[-1],
                 "to_threshold": reached[0] if reached.size else np.nan,
                 "train_seconds": run.train_seconds.iloc[-1],
+                "train_cpu_seconds": run.train_cpu_seconds.iloc[-1],
             }
         )
     return pd.DataFrame(rows)
@@ -67,7 +69,7 @@ def summary(
 ) -> pd.DataFrame:
     """The summary table (one row per env and method that has finished runs)."""
     rows = []
-    train_time: dict[tuple[str, str], float] = {}
+    train_time: dict[tuple[str, str], tuple[float, float]] = {}
     per_method: dict[tuple[str, str], pd.DataFrame] = {}
     for env in envs:
         for method in methods:
@@ -75,15 +77,17 @@ def summary(
             if not runs.empty:
                 seeds = _per_seed(runs, thresholds.get(env, np.nan))
                 per_method[env, method] = seeds
-                train_time[env, method] = float(seeds.train_seconds.mean())
+                train_time[env, method] = (
+                    float(seeds.train_seconds.mean()),
+                    float(seeds.train_cpu_seconds.mean()),
+                )
     for (env, method), seeds in per_method.items():
         reached = seeds.to_threshold.dropna()
         base = baselines.get(method)
-        overhead = (
-            f"{train_time[env, method] / train_time[env, base]:.2f}x"
-            if (env, base) in train_time
-            else ""
-        )
+        overhead = ""
+        if (env, base) in train_time:
+            (wall, cpu), (base_wall, base_cpu) = train_time[env, method], train_time[env, base]
+            overhead = f"{wall / base_wall:.2f}x / {cpu / base_cpu:.2f}x"
         rows.append(
             {
                 "env": env,
@@ -98,10 +102,41 @@ def summary(
                     if len(reached)
                     else f"not reached (0/{len(seeds)})"
                 ),
-                "train s": f"{seeds.train_seconds.mean():.0f}",
-                "ESA overhead": overhead,
+                "train s (wall / CPU)": (
+                    f"{seeds.train_seconds.mean():.1f} / {seeds.train_cpu_seconds.mean():.1f}"
+                ),
+                "overhead vs base (wall / CPU)": overhead,
             }
         )
+    return pd.DataFrame(rows)
+
+
+EXPLORATION_STATS = {
+    "esa/mean_abs_shift": "mean abs(improved - sampled action)",
+    "esa/improvement": "mean Q(improved) - Q(sampled)",
+    "param_noise/sigma": "param-noise sigma",
+    "param_noise/distance": "param-noise action distance",
+}
+"""Training-log statistics shown per method (means over training, then over seeds)."""
+
+
+def exploration_stats(
+    log: pd.DataFrame, envs: Sequence[str], methods: Sequence[str], labels: Mapping[str, str]
+) -> pd.DataFrame:
+    """What the exploration add-ons did during training (ESA shifts, noise scale)."""
+    keys = [key for key in EXPLORATION_STATS if key in log.columns]
+    rows = []
+    for env in envs:
+        for method in methods:
+            runs = log[(log.env == env) & (log.method == method)].dropna(subset=keys, how="all")
+            if runs.empty or not keys:
+                continue
+            per_seed = runs.groupby("seed")[keys].mean()
+            row = {"env": env, "method": labels.get(method, method)}
+            for key in keys:
+                values = per_seed[key].dropna()
+                row[EXPLORATION_STATS[key]] = _mean_sem(values, "{:.4g}") if len(values) else ""
+            rows.append(row)
     return pd.DataFrame(rows)
 
 

@@ -12,9 +12,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-import pandas as pd
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.env_util import make_vec_env
 
 from esa_experiments.algorithms import build_model, get_method, resolve_hyperparams
 from esa_experiments.evaluation import EvalSettings, ProgressFn, train_and_evaluate
@@ -82,28 +81,38 @@ def rl_spec(
         "eval_every": budget.eval_every_off if off else budget.eval_every_on,
         "eval_episodes": budget.eval_episodes,
         "hyperparams": hyperparams,
+        "uses_server": kind.addon == "esa",
     }
     return RunSpec(study, env, variant or method, seed, budget_name, config)
 
 
 @contextlib.contextmanager
-def trained(spec: RunSpec, progress: ProgressFn) -> Iterator[tuple[pd.DataFrame, BaseAlgorithm]]:
-    """Trains the run's model and yields its evaluation table and the trained model.
+def trained(spec: RunSpec, progress: ProgressFn) -> Iterator[tuple[RunResult, BaseAlgorithm]]:
+    """Trains the run's model and yields its result and the trained model.
+
+    The result holds the evaluation table, the training log (SB3 logger values:
+    ESA and parameter-noise statistics, losses) as the extra table ``log``, and
+    the mean of each ``esa/`` and ``param_noise/`` statistic in the sidecar.
 
     Everything (envs, ESA server) is closed when the block exits.
     """
     config = spec.config
     task = get_task(spec.env)
-    env = Monitor(task.make())
+    env = make_vec_env(task.make, n_envs=config["hyperparams"].get("n_envs", 1), seed=spec.seed)
     eval_env = task.make()
     model: BaseAlgorithm | None = None
     try:
         model = build_model(config["method"], env, spec.seed, config["hyperparams"])
         settings = EvalSettings(every=config["eval_every"], episodes=config["eval_episodes"])
-        frame = train_and_evaluate(
+        frame, log = train_and_evaluate(
             model, config["total_steps"], eval_env, settings, spec.seed, progress
         )
-        yield frame, model
+        means = {
+            f"mean {key}": float(log[key].mean())
+            for key in log.columns
+            if key.startswith(("esa/", "param_noise/"))
+        }
+        yield RunResult(frame, means, {"log": log}), model
     finally:
         if model is not None and hasattr(model, "esa_close"):
             model.esa_close()
@@ -113,5 +122,5 @@ def trained(spec: RunSpec, progress: ProgressFn) -> Iterator[tuple[pd.DataFrame,
 
 def run_training(spec: RunSpec, progress: ProgressFn) -> RunResult:
     """Trains and evaluates one run (the ``run`` of studies that need nothing more)."""
-    with trained(spec, progress) as (frame, _):
-        return RunResult(frame)
+    with trained(spec, progress) as (result, _):
+        return result

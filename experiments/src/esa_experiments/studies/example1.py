@@ -100,7 +100,7 @@ def specs(
     """One run per (objective, method, seed); ESC and GD are deterministic but cheap."""
     config = {**asdict(args), "total_steps": args.steps}
     return [
-        RunSpec(NAME, env, method, seed, budget, config)
+        RunSpec(NAME, env, method, seed, budget, {**config, "uses_server": method == "esc"})
         for env in envs
         for method in methods
         for seed in seeds
@@ -173,7 +173,7 @@ def _run_gradient_descent(args: Args, env: str, progress: ProgressFn) -> pd.Data
 
 def run(spec: RunSpec, progress: ProgressFn) -> RunResult:
     """One trajectory of one method on one objective."""
-    config = {k: v for k, v in spec.config.items() if k != "total_steps"}
+    config = {k: v for k, v in spec.config.items() if k not in ("total_steps", "uses_server")}
     config["frequency"] = tuple(config["frequency"])
     args = Args(**config)
     if spec.method == "esc":

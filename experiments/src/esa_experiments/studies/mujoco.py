@@ -34,9 +34,10 @@ SMOKE = StepBudget(
     eval_every_on=128,
     eval_every_off=150,
     eval_episodes=1,
-    # Two PPO rollouts (ESAPPO starts probing on the second) and a short warm-up.
+    # Two PPO rollouts of 4 envs x 32 steps (ESAPPO probes from the second one on)
+    # and a short off-policy warm-up.
     overrides={
-        "ppo": {"n_steps": 128, "batch_size": 64, "n_epochs": 2},
+        "ppo": {"n_steps": 32, "batch_size": 64, "n_epochs": 2},
         "sac": {"learning_starts": 100, "batch_size": 64},
         "ddpg": {"learning_starts": 100, "batch_size": 64},
     },
@@ -52,12 +53,16 @@ class Args:
 
 BUDGETS = {
     "smoke": Args({env: SMOKE for env in ENVS}),
+    # Sized from measured CPU rates (steps per CPU-second, one torch thread):
+    # PPO ~700, PPO+ESA ~400, PPO+ParamNoise ~700, SAC ~130, SAC+ESA ~90,
+    # DDPG ~230. About 20 CPU-minutes per seed for all 28 runs. PPO totals are
+    # whole rollouts (1024 or 2048 steps).
     "full": Args(
         {
-            "InvertedPendulum-v5": StepBudget(30_000, 5_000, 2_000, 500, 5),
-            "Hopper-v5": StepBudget(20_000, 4_000, 2_000, 500, 3),
-            "Walker2d-v5": StepBudget(20_000, 4_000, 2_000, 500, 3),
-            "Quadrotor-circle": StepBudget(20_000, 4_000, 2_000, 500, 3),
+            "InvertedPendulum-v5": StepBudget(30_720, 4_000, 2_048, 500, 5),
+            "Hopper-v5": StepBudget(20_480, 3_000, 2_048, 500, 3),
+            "Walker2d-v5": StepBudget(20_480, 3_000, 2_048, 500, 3),
+            "Quadrotor-circle": StepBudget(30_720, 3_000, 2_048, 500, 3),
         }
     ),
 }

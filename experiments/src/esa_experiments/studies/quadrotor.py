@@ -70,7 +70,7 @@ def _trajectory(episode: TrackedEpisode) -> pd.DataFrame:
 
 def run(spec: RunSpec, progress: ProgressFn) -> RunResult:
     """Trains, evaluates, then flies the final policy once and keeps its trajectory."""
-    with trained(spec, progress) as (frame, model):
+    with trained(spec, progress) as (result, model):
         env = get_task(spec.env).make()
         try:
             episode = record_episode(
@@ -80,13 +80,14 @@ def run(spec: RunSpec, progress: ProgressFn) -> RunResult:
             )
         finally:
             env.close()
-    meta = {
-        "flight_return": episode.episode_return,
-        "flight_mean_position_error": episode.mean_position_error,
-        "flight_seconds": float(episode.times[-1]),
-        "flight_termination": episode.termination,
-    }
-    return RunResult(frame, meta, {"trajectory": _trajectory(episode)})
+    result.meta.update(
+        flight_return=episode.episode_return,
+        flight_mean_position_error=episode.mean_position_error,
+        flight_seconds=float(episode.times[-1]),
+        flight_termination=episode.termination,
+    )
+    result.tables["trajectory"] = _trajectory(episode)
+    return result
 
 
 def _full_target(env_key: str) -> np.ndarray:

@@ -1,0 +1,74 @@
+"""Bad command-line input gets a clear error (exit code 2) and runs nothing."""
+
+import pytest
+
+from esa_experiments.commands import main
+
+
+def run_cli(tmp_path, capsys, *argv):
+    code = main(["--root", str(tmp_path), *argv])
+    out = capsys.readouterr()
+    return code, " ".join((out.out + out.err).split())
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["run", "nope"],
+            "expected a study in ['example1', 'mujoco', 'ablation', 'quadrotor'], got 'nope'",
+        ),
+        (["plot", "nope"], "expected a study in"),
+        (["run", "mujoco", "--methods", "ppo", "td3"], "unknown methods ['td3']"),
+        (["run", "mujoco", "--methods", "ppo,bogus"], "unknown methods ['bogus']"),
+        (["run", "mujoco", "--envs", "CartPole-v1"], "unknown envs ['CartPole-v1']"),
+        (["run", "ablation", "--envs", "Hopper-v5"], "unknown envs ['Hopper-v5']"),
+        (
+            ["run", "example1", "--seeds", "4-1"],
+            "--seeds: expected a range low-high with low <= high",
+        ),
+        (["run", "example1", "--seeds", "x"], "--seeds: expected seeds like"),
+        (["run", "example1", "--seeds", "-2"], "--seeds: expected seeds like"),
+        (["run", "example1", "--jobs", "0"], "--jobs: expected an integer >= 1, got 0"),
+        (["run", "example1", "--budget", "huge"], "--budget: expected one of ['smoke', 'full']"),
+    ],
+)
+def test_bad_input_is_rejected(tmp_path, capsys, argv, message):
+    code, out = run_cli(tmp_path, capsys, *argv)
+    assert code == 2
+    assert "error:" in out and message in out
+    assert not (tmp_path / "results-smoke").exists() and not (tmp_path / "results").exists()
+
+
+def test_plot_before_running_is_a_clear_error(tmp_path, capsys):
+    code, out = run_cli(tmp_path, capsys, "plot", "mujoco")
+    assert code == 2 and "run the study first" in out
+
+
+def test_dry_run_lists_the_selection(tmp_path, capsys):
+    code, out = run_cli(
+        tmp_path,
+        capsys,
+        "run",
+        "mujoco",
+        "--dry-run",
+        "--seeds",
+        "0-1",
+        "--methods",
+        "ppo",
+        "sac",
+        "--envs",
+        "Hopper-v5",
+    )
+    assert code == 0
+    assert "4 runs, 0 done, 0 stale" in out
+    assert out.count("would run") == 4
+    assert "would run Hopper-v5 sac s1 (300 steps)" in out
+    assert not (tmp_path / "results-smoke").exists()
+
+
+def test_list_shows_every_study(tmp_path, capsys):
+    code, out = run_cli(tmp_path, capsys, "list")
+    assert code == 0
+    for name in ("example1", "mujoco", "ablation", "quadrotor"):
+        assert f"{name}:" in out

@@ -1,0 +1,105 @@
+"""Every study's smoke budget, end to end through the real esa-server.
+
+Runs ``python -m esa_experiments run STUDY --budget smoke --seeds 0 --jobs 2``
+and ``plot STUDY`` into a temporary root, then checks that every run's CSV,
+the figures and the tables exist and are sane, and that a second ``run`` is a
+no-op (resumability).
+"""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from esa_experiments.commands import main
+from esa_experiments.runs import RunStore
+from esa_experiments.studies import STUDY_NAMES, load_study
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def server_bin():
+    """The real server binary; the spawned workers find it through ESA_SERVER_BIN."""
+    path = Path(os.environ.get("ESA_SERVER_BIN") or REPO_ROOT / "target" / "release" / "esa-server")
+    if not (path.is_file() and os.access(path, os.X_OK)):
+        pytest.fail(f"esa-server not found at {path}: run `cargo build --release -p esa-server`")
+    os.environ["ESA_SERVER_BIN"] = str(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    return tmp_path_factory.mktemp("experiments")
+
+
+def check_rl_run(frame: pd.DataFrame, total_steps: int) -> None:
+    assert list(frame.columns) == [
+        "step",
+        "return_mean",
+        "return_std",
+        "length_mean",
+        "train_seconds",
+        "train_cpu_seconds",
+        "eval_seconds",
+    ]
+    assert frame.step.iloc[0] == 0 and frame.step.iloc[-1] == total_steps
+    assert frame.step.is_monotonic_increasing and frame.train_seconds.is_monotonic_increasing
+    assert np.isfinite(frame.to_numpy(float)).all()
+    assert (frame.length_mean >= 1).all()
+
+
+def check_example1_run(frame: pd.DataFrame, total_steps: int, env: str, method: str) -> None:
+    assert list(frame.columns) == ["t", "J", "J_probe"] and len(frame) == total_steps
+    assert np.isfinite(frame.to_numpy(float)).all()
+    # J at the start (2, 2): optimum (0.1, 0.5), or (0, 0) at t = 0 when time-varying.
+    assert frame.J.iloc[0] == pytest.approx(8.0 if env == "timevarying" else 1.9**2 + 1.5**2)
+    # Every method gets much closer to the optimum than the start.
+    assert frame.J.iloc[-100:].mean() < 0.1 * frame.J.iloc[0], method
+
+
+@pytest.mark.parametrize("name", STUDY_NAMES)
+def test_smoke_budget(name, root, capsys):
+    assert (
+        main(["--root", str(root), "run", name, "--budget", "smoke", "--seeds", "0", "--jobs", "2"])
+        == 0
+    )
+    study = load_study(name)
+    specs = study.specs(study.BUDGETS["smoke"], "smoke", [0], study.ENVS, study.METHODS)
+    store = RunStore(name, "smoke", root)
+    for spec in specs:
+        assert store.status(spec) == "done", spec.label
+        frame = pd.read_csv(store.csv_path(spec))
+        if name == "example1":
+            check_example1_run(frame, spec.config["total_steps"], spec.env, spec.method)
+        else:
+            check_rl_run(frame, spec.config["total_steps"])
+
+    assert main(["--root", str(root), "plot", name, "--budget", "smoke"]) == 0
+    pngs = sorted(store.dir.glob("*.png"))
+    assert pngs and all(p.stat().st_size > 10_000 for p in pngs)
+    table = (store.dir / "table.md").read_text()
+    summary_table = table.split("\n\n")[0]
+    rows = [line for line in summary_table.splitlines() if line.startswith("| ")][1:]
+    assert len(rows) == len(specs)
+    section = (store.dir / "section.md").read_text()
+    for png in pngs:
+        assert f"results-smoke/{name}/{png.name}" in section
+    assert not (root / "RESULTS.md").exists()
+
+    # Resumable: everything is done, nothing runs again.
+    mtimes = {p: p.stat().st_mtime_ns for p in store.runs_dir.iterdir()}
+    capsys.readouterr()
+    assert main(["--root", str(root), "run", name, "--budget", "smoke", "--seeds", "0"]) == 0
+    assert f"{len(specs)} done, 0 stale" in " ".join(capsys.readouterr().out.split())
+    assert {p: p.stat().st_mtime_ns for p in store.runs_dir.iterdir()} == mtimes
+
+
+def test_quadrotor_smoke_flights(root):
+    flights = RunStore("quadrotor", "smoke", root).load("trajectory")
+    assert set(flights.env) == {"Quadrotor-circle", "Quadrotor-eight"}
+    assert np.isfinite(
+        flights[["x", "y", "z", "target_x", "target_y", "target_z"]].to_numpy()
+    ).all()

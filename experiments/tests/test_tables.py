@@ -1,0 +1,86 @@
+"""Summary statistics and the RESULTS.md section update."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from esa_experiments.reporting import update_results
+from esa_experiments.runs import RunStore
+from esa_experiments.tables import over_seeds, summary, to_markdown
+
+
+def curve(method, seed, returns, seconds):
+    steps = np.arange(len(returns)) * 100
+    return pd.DataFrame(
+        {
+            "env": "E",
+            "method": method,
+            "seed": seed,
+            "step": steps,
+            "return_mean": returns,
+            "train_seconds": np.linspace(0, seconds, len(returns)),
+            "train_cpu_seconds": np.linspace(0, seconds / 2, len(returns)),
+        }
+    )
+
+
+def test_summary_metrics():
+    frame = pd.concat(
+        [
+            curve("ppo", 0, [0, 10, 20], 10.0),
+            curve("ppo", 1, [0, 20, 40], 10.0),
+            curve("ppo_esa", 0, [0, 50, 50], 15.0),
+        ]
+    )
+    table = summary(
+        frame,
+        ["E"],
+        ["ppo", "ppo_esa"],
+        {"ppo": "PPO", "ppo_esa": "PPO+ESA"},
+        {"E": 30.0},
+        {"ppo_esa": "ppo"},
+    )
+    ppo, esa = table.iloc[0], table.iloc[1]
+    assert ppo["final return"] == f"30.0 ± {np.std([20, 40], ddof=1) / np.sqrt(2):.1f}"
+    # AUC = trapezoid area / step span: (0+10)/2 + (10+20)/2 = 20 -> 2000 / 200 = 10; seed 1: 20.
+    assert ppo["AUC (mean return)"].startswith("15.0 ± 5.0")
+    assert ppo["steps to threshold"] == "200 (1/2)"
+    assert esa["steps to threshold"] == "100 (1/1)"
+    column = "overhead vs base (wall / CPU)"
+    assert esa[column] == "1.50x / 1.50x" and ppo[column] == ""
+    assert ppo["train s (wall / CPU)"] == "10.0 / 5.0"
+    assert ppo["seeds"] == 2 and ppo["steps"] == 200
+
+
+def test_over_seeds_single_seed_has_zero_error():
+    stats = over_seeds(curve("ppo", 0, [1.0, 2.0], 1.0), "step", "return_mean")
+    assert stats["sem"].tolist() == [0.0, 0.0]
+
+
+def test_markdown_table():
+    text = to_markdown(pd.DataFrame({"a": [1], "b": ["x"]}))
+    assert text == "| a | b |\n|---|---|\n| 1 | x |"
+
+
+def test_update_results_replaces_only_its_section(tmp_path):
+    store = RunStore("mujoco", "full", tmp_path)
+    (tmp_path / "RESULTS.md").write_text("# Results\n\nprose stays\n")
+    update_results("mujoco", "first", store)
+    update_results("example1", "other", RunStore("example1", "full", tmp_path))
+    update_results("mujoco", "second", store)
+    text = (tmp_path / "RESULTS.md").read_text()
+    assert "prose stays" in text and "other" in text
+    assert "second" in text and "first" not in text
+    assert text.count("<!-- BEGIN mujoco -->") == 1
+
+
+def test_smoke_sections_never_touch_results_md(tmp_path):
+    target = update_results("mujoco", "smoke text", RunStore("mujoco", "smoke", tmp_path))
+    assert target == tmp_path / "results-smoke" / "mujoco" / "section.md"
+    assert not (tmp_path / "RESULTS.md").exists()
+
+
+@pytest.mark.parametrize("returns", [[5.0, 5.0]])
+def test_threshold_never_reached(returns):
+    table = summary(curve("ppo", 0, returns, 1.0), ["E"], ["ppo"], {}, {"E": 10.0}, {})
+    assert table.iloc[0]["steps to threshold"] == "not reached (0/1)"
