@@ -137,7 +137,12 @@ class ServerProcess:
         with open(self._log_path, "wb") as log:
             try:
                 self._process = subprocess.Popen(
-                    args, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
+                    args,
+                    stdin=subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    # Plain log lines: their tail ends up in Python error messages.
+                    env={**os.environ, "NO_COLOR": "1"},
                 )
             except OSError as err:
                 shutil.rmtree(self._workdir, ignore_errors=True)
