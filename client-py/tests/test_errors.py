@@ -123,7 +123,7 @@ def test_bad_session_ids(client):
 def test_batch_garbage(client, use_stream):
     session_id = unique("twice")
     batch = client.create_batch(CONFIG, 2, ids=[session_id, session_id], use_stream=use_stream)
-    with pytest.raises(InvalidArgument, match="1"):  # the message names the duplicate item
+    with pytest.raises(InvalidArgument, match="item 1"):  # names the duplicate item
         batch.probe(np.zeros((2, 2)))
     assert not client.session_state(session_id).probe_pending
     good = client.create_batch(CONFIG, 3, use_stream=use_stream)
