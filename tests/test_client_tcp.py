@@ -15,9 +15,13 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture
 def tcp_server():
-    binary = os.environ.get("ESA_SERVER_BIN") or str(REPO_ROOT / "target/release/esa-server")
+    binary = os.environ.get("ESA_SERVER_BIN") or str(
+        REPO_ROOT / "target/release/esa-server"
+    )
     if not os.access(binary, os.X_OK):
-        pytest.fail(f"esa-server not found at {binary}: run `cargo build --release -p esa-server`")
+        pytest.fail(
+            f"esa-server not found at {binary}: run `cargo build --release -p esa-server`"
+        )
     process = subprocess.Popen(
         [binary, "--listen", "127.0.0.1:0"],
         stdout=subprocess.PIPE,
@@ -47,7 +51,9 @@ def test_client_over_tcp_matches_reference(tcp_server):
             actions = rng.normal(size=(4, 2))
             starts = np.full(4, t == 0)
             probes = batch.probe(actions, starts)
-            np.testing.assert_allclose(probes, reference.probe(actions, starts), rtol=1e-9)
+            np.testing.assert_allclose(
+                probes, reference.probe(actions, starts), rtol=1e-9
+            )
             q = -np.tanh(np.sum(probes**2, axis=1))
             np.testing.assert_allclose(batch.report(q), reference.report(q), rtol=1e-9)
         batch.close()
