@@ -2,7 +2,10 @@
 
 Both track their sessions' step counters, so callers only pass actions and
 Q-values. A failed call changes no counter, so repeating it is safe (the server
-treats a repeated probe or report of the same step as a retry).
+treats a repeated probe or report of the same step as a retry). One exception
+follows from the contract: if an episode-start probe reached the server but its
+answer was lost, repeating it ends one more (empty) episode, which counts toward
+``lr_decay`` and ``max_episodes``.
 """
 
 from __future__ import annotations
