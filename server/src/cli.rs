@@ -46,7 +46,8 @@ pub struct Cli {
     #[arg(long, value_name = "BYTES", default_value_t = 64 << 20)]
     pub max_message_bytes: usize,
 
-    /// Seconds that shutdown waits for open calls (e.g. StepStreams) to end.
+    /// Seconds that shutdown waits for calls in flight to finish (open
+    /// StepStreams are ended at once with UNAVAILABLE).
     #[arg(long, value_name = "SECONDS", default_value_t = 5.0, value_parser = parse_seconds)]
     pub shutdown_grace: f64,
 

@@ -30,7 +30,9 @@ struct Slot {
 
 /// All live sessions of one server, shared by every transport.
 pub struct SessionStore {
-    sessions: DashMap<String, Arc<Slot>>,
+    // foldhash: several times faster than SipHash on short ids, still seeded
+    // per process.
+    sessions: DashMap<String, Arc<Slot>, foldhash::fast::RandomState>,
     live: AtomicUsize,
     expired_total: AtomicU64,
     ttl_nanos: Option<u64>,
@@ -43,7 +45,7 @@ impl SessionStore {
     /// and which refuses to hold more than `max_sessions` at once.
     pub fn new(ttl: Option<Duration>, max_sessions: usize) -> Self {
         Self {
-            sessions: DashMap::new(),
+            sessions: DashMap::default(),
             live: AtomicUsize::new(0),
             expired_total: AtomicU64::new(0),
             ttl_nanos: ttl.map(duration_nanos),
@@ -120,22 +122,29 @@ impl SessionStore {
         ids: &[String],
         f: impl FnOnce(&mut [&mut Session]) -> Result<R, Error>,
     ) -> Result<R, Error> {
-        for (index, id) in ids.iter().enumerate() {
-            check_id(id).map_err(|err| Error::item(index, err))?;
-        }
-        // Locks are taken in id order, the same order for every batch, so two
-        // batches sharing sessions cannot deadlock. The stable sort keeps equal
-        // ids in request order, which also finds duplicates.
-        let mut order: Vec<usize> = (0..ids.len()).collect();
-        order.sort_by(|&a, &b| ids.get(a).cmp(&ids.get(b)));
+        let now = self.now();
+        let slots = ids
+            .iter()
+            .enumerate()
+            .map(|(index, id)| {
+                self.lookup_at(id, now)
+                    .map_err(|err| Error::item(index, err))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        // Locks are taken in address order, the same order for every batch,
+        // so two batches sharing sessions cannot deadlock. The stable sort
+        // keeps repeats of one session in request order, side by side.
+        let mut order: Vec<usize> = (0..slots.len()).collect();
+        order.sort_by_key(|&index| slots.get(index).map(Arc::as_ptr));
         for pair in order.windows(2) {
             if let [first, second] = *pair {
-                if let (Some(a), Some(b)) = (ids.get(first), ids.get(second)) {
-                    if a == b {
+                if let (Some(a), Some(b)) = (slots.get(first), slots.get(second)) {
+                    if Arc::ptr_eq(a, b) {
+                        let id = ids.get(second).map_or("", String::as_str);
                         return Err(Error::item(
                             second,
                             Error::InvalidArgument(format!(
-                                "session id {b:?} also appears at item {first}; \
+                                "session id {id:?} also appears at item {first}; \
                                  a session may appear at most once per batch"
                             )),
                         ));
@@ -143,11 +152,6 @@ impl SessionStore {
                 }
             }
         }
-        let slots = ids
-            .iter()
-            .enumerate()
-            .map(|(index, id)| self.lookup(id).map_err(|err| Error::item(index, err)))
-            .collect::<Result<Vec<_>, _>>()?;
         let mut guards: Vec<Option<MutexGuard<'_, Session>>> = Vec::with_capacity(slots.len());
         guards.resize_with(slots.len(), || None);
         for &index in &order {
@@ -192,8 +196,12 @@ impl SessionStore {
 
     /// The live session `id`, marked as used now.
     fn lookup(&self, id: &str) -> Result<Arc<Slot>, Error> {
+        self.lookup_at(id, self.now())
+    }
+
+    /// The live session `id`, marked as used at `now`.
+    fn lookup_at(&self, id: &str, now: u64) -> Result<Arc<Slot>, Error> {
         check_id(id)?;
-        let now = self.now();
         match self.sessions.get(id) {
             None => return Err(Error::NotFound(id.to_owned())),
             Some(slot) if !self.is_expired(&slot, now) => {
