@@ -42,9 +42,12 @@ fn signal(child: &Child, name: &str) {
     assert!(status.success());
 }
 
-/// Waits (bounded) for the child to exit and returns whether it succeeded.
-fn wait_exit(child: &mut Child) -> bool {
-    let deadline = Instant::now() + Duration::from_secs(20);
+/// Waits for the child to exit and returns whether it succeeded. The servers
+/// run with a shutdown grace far beyond this deadline, so exiting in time
+/// means shutdown did not hang on connections. The wait is async so that
+/// this runtime's client connections keep answering the server's goodbye.
+async fn wait_exit(child: &mut Child) -> bool {
+    let deadline = Instant::now() + Duration::from_secs(30);
     loop {
         if let Some(status) = child.try_wait().expect("wait") {
             return status.success();
@@ -53,7 +56,7 @@ fn wait_exit(child: &mut Child) -> bool {
             let _ = child.kill();
             panic!("esa-server did not exit after the signal");
         }
-        std::thread::sleep(Duration::from_millis(20));
+        tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }
 
@@ -104,6 +107,8 @@ async fn serves_tcp_with_metrics_and_stops_on_sigterm() {
         "127.0.0.1:0",
         "--session-ttl",
         "0.5",
+        "--shutdown-grace",
+        "600",
     ]);
     let metrics_url = read_line_after(&mut stdout, "metrics on ");
     let addr = read_line_after(&mut stdout, "listening on ");
@@ -131,20 +136,28 @@ async fn serves_tcp_with_metrics_and_stops_on_sigterm() {
     stream.read_to_string(&mut page).await.unwrap();
     assert!(page.contains("esa_sessions_live 1"), "{page}");
 
-    drop(client);
+    // The client stays connected: shutdown must not wait for it to leave.
     signal(&child, "TERM");
-    assert!(wait_exit(&mut child), "esa-server exited with an error");
+    assert!(
+        wait_exit(&mut child).await,
+        "esa-server exited with an error"
+    );
+    drop(client);
 }
 
 #[tokio::test]
 async fn serves_a_unix_socket_and_removes_it_on_sigint() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("bin.sock");
-    let (mut child, mut stdout) = launch(&["--uds", path.to_str().unwrap()]);
+    let (mut child, mut stdout) =
+        launch(&["--uds", path.to_str().unwrap(), "--shutdown-grace", "600"]);
     let addr = read_line_after(&mut stdout, "listening on ");
     assert_eq!(addr, format!("unix:{}", path.display()));
     assert!(path.exists());
     signal(&child, "INT");
-    assert!(wait_exit(&mut child), "esa-server exited with an error");
+    assert!(
+        wait_exit(&mut child).await,
+        "esa-server exited with an error"
+    );
     assert!(!path.exists(), "socket file left behind");
 }
