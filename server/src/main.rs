@@ -8,6 +8,7 @@ use std::process::ExitCode;
 
 use clap::Parser;
 use esa_server::metrics::serve_metrics;
+use esa_server::server::io_context;
 use esa_server::{Error, Listener};
 use tracing_subscriber::EnvFilter;
 
@@ -33,7 +34,9 @@ async fn run(cli: Cli) -> Result<(), Error> {
         None => Listener::tcp(cli.listen).await?,
     };
     if let Some(addr) = cli.metrics_listen {
-        let metrics_listener = tokio::net::TcpListener::bind(addr).await?;
+        let metrics_listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|err| io_context(err, format!("cannot serve metrics on {addr}")))?;
         let url = format!("http://{}/metrics", metrics_listener.local_addr()?);
         announce(&format!("metrics on {url}"));
         let handler = server.handler();

@@ -2,7 +2,10 @@
 //! binary use, the listeners (TCP or Unix socket) and graceful shutdown.
 
 use std::future::Future;
+use std::io;
 use std::net::SocketAddr;
+use std::os::unix::fs::FileTypeExt;
+use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -115,25 +118,34 @@ pub enum Listener {
 impl Listener {
     /// Binds a TCP listener (port 0 picks a free port).
     pub async fn tcp(addr: SocketAddr) -> Result<Self, Error> {
-        Ok(Listener::Tcp(TcpListener::bind(addr).await?))
+        let listener = TcpListener::bind(addr)
+            .await
+            .map_err(|err| io_context(err, format!("cannot listen on {addr}")))?;
+        Ok(Listener::Tcp(listener))
     }
 
     /// Binds a Unix domain socket at `path`. A socket file left behind by a
-    /// server that died is replaced; a live one is an error.
+    /// server that died is replaced; a live socket or any other file is an
+    /// error (and never deleted).
     pub fn unix(path: &Path) -> Result<Self, Error> {
-        if path.exists() {
-            if std::os::unix::net::UnixStream::connect(path).is_ok() {
-                return Err(Error::Io(std::io::Error::new(
-                    std::io::ErrorKind::AddrInUse,
-                    format!("{}: another server is listening there", path.display()),
+        let context = || format!("cannot listen on unix:{}", path.display());
+        if let Ok(meta) = std::fs::symlink_metadata(path) {
+            let is_socket = meta.file_type().is_socket();
+            if !is_socket || UnixStream::connect(path).is_ok() {
+                let why = if is_socket {
+                    "another server is listening there"
+                } else {
+                    "the path exists and is not a socket"
+                };
+                return Err(Error::Io(io::Error::new(
+                    io::ErrorKind::AddrInUse,
+                    format!("{}: {why}", context()),
                 )));
             }
-            std::fs::remove_file(path)?;
+            std::fs::remove_file(path).map_err(|err| io_context(err, context()))?;
         }
-        Ok(Listener::Unix(
-            UnixListener::bind(path)?,
-            path.to_path_buf(),
-        ))
+        let listener = UnixListener::bind(path).map_err(|err| io_context(err, context()))?;
+        Ok(Listener::Unix(listener, path.to_path_buf()))
     }
 
     /// The bound address: `127.0.0.1:50051`, or `unix:/path` for a socket.
@@ -254,6 +266,11 @@ fn spawn_sweeper(handler: Arc<EsaHandler>, every: Duration) -> tokio::task::Join
             }
         }
     })
+}
+
+/// `err` with `context` in front of its message (the kind is kept).
+pub fn io_context(err: io::Error, context: String) -> io::Error {
+    io::Error::new(err.kind(), format!("{context}: {err}"))
 }
 
 struct AbortOnDrop(tokio::task::JoinHandle<()>);

@@ -60,6 +60,21 @@ async fn serves_on_a_unix_socket_and_removes_it_on_shutdown() {
 }
 
 #[tokio::test]
+async fn listen_errors_name_the_address_and_never_delete_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("precious.txt");
+    std::fs::write(&file, "keep me").unwrap();
+    let err = Listener::unix(&file).err().expect("not a socket");
+    assert!(err.to_string().contains("not a socket"), "{err}");
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "keep me");
+
+    let taken = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = taken.local_addr().unwrap();
+    let err = Listener::tcp(addr).await.err().expect("address in use");
+    assert!(err.to_string().contains(&addr.to_string()), "{err}");
+}
+
+#[tokio::test]
 async fn a_stale_socket_file_is_replaced() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("stale.sock");
