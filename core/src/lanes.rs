@@ -1,12 +1,14 @@
-//! Per-dimension state of a session, stored as the columns of one D x 8 nalgebra matrix.
+//! Per-dimension state of a session and the per-dimension steps of the law (the hot loops).
 //!
-//! One allocation per session (instead of one per vector) keeps an idle D = 6 session well under the
-//! 1 KiB budget of issue 7, and the column-major layout keeps every per-dimension vector contiguous, so the
-//! hot loops run over plain slices without bounds checks.
+//! The state is the columns of one D x 8 nalgebra matrix: one allocation per session (instead of one per
+//! vector) keeps an idle D = 6 session near the 1 KiB budget of issue 7, and the column-major layout
+//! keeps every per-dimension vector contiguous, so each step is one fused loop over plain slices that
+//! the compiler vectorizes, without bounds checks.
 
 use nalgebra::DMatrix;
 
 use crate::config::{lane, SessionConfig};
+use crate::sine::{sin_reduced, REDUCTION_LIMIT};
 
 const AMPLITUDE: usize = 0;
 const FREQUENCY: usize = 1;
@@ -21,29 +23,31 @@ const COLUMNS: usize = 8;
 // `split_mut` hands out the mutable columns as one contiguous tail in this order.
 const _: () = assert!(SHIFT + 1 == SINE && SINE + 1 == ACTION && ACTION + 1 == COLUMNS);
 
-/// Mutable views of every column at once, borrowed from [`Lanes`].
-pub(crate) struct LanesMut<'a> {
+/// Every column at once, borrowed from [`Lanes`].
+struct Columns<'a> {
     /// K, broadcast.
-    pub amplitude: &'a [f64],
+    amplitude: &'a [f64],
     /// w, broadcast.
-    pub frequency: &'a [f64],
+    frequency: &'a [f64],
     /// alpha_e = alpha * gamma_a^e for the current episode.
-    pub rate: &'a [f64],
+    rate: &'a [f64],
     /// Lower bound, saturated at `-f64::MAX` so clipping always yields a finite value.
-    pub low: &'a [f64],
+    low: &'a [f64],
     /// Upper bound, saturated at `f64::MAX`.
-    pub high: &'a [f64],
+    high: &'a [f64],
     /// v.
-    pub shift: &'a mut [f64],
-    /// `sin(w * tau)` of the last probe, reused by the report.
-    pub sine: &'a mut [f64],
+    shift: &'a mut [f64],
+    /// `sin(w * tau)` of the last probe, reused by its report.
+    sine: &'a mut [f64],
     /// The sampled action `a_t` of the last probe.
-    pub action: &'a mut [f64],
+    action: &'a mut [f64],
 }
 
 #[derive(Clone, Debug, PartialEq)]
 pub(crate) struct Lanes {
     columns: DMatrix<f64>,
+    /// Largest w: tells in O(1) whether every `w * tau` is inside the fast sine's range.
+    max_frequency: f64,
 }
 
 impl Lanes {
@@ -62,7 +66,11 @@ impl Lanes {
                 *x = lane(values, i, default).clamp(-f64::MAX, f64::MAX);
             }
         }
-        let mut lanes = Self { columns };
+        let max_frequency = columns.column(FREQUENCY).max();
+        let mut lanes = Self {
+            columns,
+            max_frequency,
+        };
         lanes.set_rate(&config.learning_rate, 1.0);
         lanes
     }
@@ -83,22 +91,94 @@ impl Lanes {
     }
 
     pub fn shift(&self) -> &[f64] {
-        self.column_slice(SHIFT)
+        self.column(SHIFT)
     }
 
-    pub fn low(&self) -> &[f64] {
-        self.column_slice(LOW)
+    /// Holds `a`, caches `s = sin(w * tau)` and appends `clip(a + (v + K s), lo, hi)` per dimension.
+    pub fn probe(&mut self, action: &[f64], tau: f64, out: &mut Vec<f64>) {
+        // One range check per probe keeps the per-lane loop branch-free (and so vectorized).
+        if tau * self.max_frequency <= REDUCTION_LIMIT {
+            self.probe_with(action, tau, out, sin_reduced);
+        } else {
+            self.probe_with(action, tau, out, f64::sin);
+        }
     }
 
-    pub fn high(&self) -> &[f64] {
-        self.column_slice(HIGH)
+    #[inline(always)]
+    fn probe_with(
+        &mut self,
+        action: &[f64],
+        tau: f64,
+        out: &mut Vec<f64>,
+        sin: impl Fn(f64) -> f64,
+    ) {
+        let fresh = append_zeros(out, action.len());
+        let c = self.split_mut();
+        let held = c.action.iter_mut().zip(c.sine.iter_mut());
+        let params = c.frequency.iter().zip(c.amplitude).zip(c.shift.iter());
+        let bounds = c.low.iter().zip(c.high);
+        let dims = fresh
+            .iter_mut()
+            .zip(action)
+            .zip(held)
+            .zip(params)
+            .zip(bounds);
+        for ((((probe, &a), (held, sine)), ((&w, &k), &v)), (&lo, &hi)) in dims {
+            // Exactly `w_i * (t * dt)`, the expression every client reproduces.
+            let s = sin(w * tau);
+            *held = a;
+            *sine = s;
+            *probe = clip(a + (v + k * s), lo, hi);
+        }
     }
 
-    pub fn action(&self) -> &[f64] {
-        self.column_slice(ACTION)
+    /// Holds `a` and appends `clip(a, lo, hi)`: the pass-through probe.
+    pub fn hold(&mut self, action: &[f64], out: &mut Vec<f64>) {
+        let c = self.split_mut();
+        for (held, &a) in c.action.iter_mut().zip(action) {
+            *held = a;
+        }
+        push_clipped(out, action.iter().copied(), c.low, c.high);
     }
 
-    fn column_slice(&self, column: usize) -> &[f64] {
+    /// `v <- clamp(v + alpha_e s h, -L, L)` unless an element would be non-finite (then v is kept), and
+    /// appends the improved action `clip(a + v, lo, hi)`. Returns whether v was updated.
+    pub fn update(&mut self, h: f64, limit: f64, out: &mut Vec<f64>) -> bool {
+        let fresh = append_zeros(out, self.dim());
+        let c = self.split_mut();
+        // The candidates go to `fresh` first: v must stay untouched unless all of them are finite.
+        let mut finite = true;
+        let steps = c.shift.iter().zip(c.rate).zip(c.sine.iter());
+        for (candidate, ((&v, &rate), &s)) in fresh.iter_mut().zip(steps) {
+            *candidate = (v + rate * s * h).clamp(-limit, limit);
+            finite &= candidate.is_finite();
+        }
+        let dims = c
+            .shift
+            .iter_mut()
+            .zip(c.action.iter())
+            .zip(c.low.iter().zip(c.high));
+        for (slot, ((v, &a), (&lo, &hi))) in fresh.iter_mut().zip(dims) {
+            if finite {
+                *v = *slot;
+            }
+            *slot = clip(a + *v, lo, hi);
+        }
+        finite
+    }
+
+    /// Appends the improved action for the held `a` and current v: `clip(a + v)`, or `clip(a)` when
+    /// `pass_through`.
+    pub fn push_action(&self, pass_through: bool, out: &mut Vec<f64>) {
+        let (action, shift) = (self.column(ACTION), self.column(SHIFT));
+        let values = action
+            .iter()
+            .zip(shift)
+            .map(|(&a, &v)| if pass_through { a } else { a + v });
+        push_clipped(out, values, self.column(LOW), self.column(HIGH));
+    }
+
+    fn column(&self, column: usize) -> &[f64] {
         let dim = self.dim();
         self.columns
             .as_slice()
@@ -106,8 +186,8 @@ impl Lanes {
             .unwrap_or_default()
     }
 
-    #[inline]
-    pub fn split_mut(&mut self) -> LanesMut<'_> {
+    #[inline(always)]
+    fn split_mut(&mut self) -> Columns<'_> {
         let dim = self.dim();
         let all = self.columns.as_mut_slice();
         let (fixed, rest) = all.split_at_mut(SHIFT * dim);
@@ -117,7 +197,7 @@ impl Lanes {
         let (frequency, fixed) = fixed.split_at(dim);
         let (rate, fixed) = fixed.split_at(dim);
         let (low, high) = fixed.split_at(dim);
-        LanesMut {
+        Columns {
             amplitude,
             frequency,
             rate,
@@ -130,26 +210,91 @@ impl Lanes {
     }
 }
 
+/// Grows `out` by `n` zeros and returns them to be overwritten: writing through a slice, unlike `push`,
+/// has no per-element capacity check, so the loops that fill it vectorize.
+fn append_zeros(out: &mut Vec<f64>, n: usize) -> &mut [f64] {
+    let start = out.len();
+    out.resize(start + n, 0.0);
+    out.get_mut(start..).unwrap_or_default()
+}
+
+fn push_clipped(out: &mut Vec<f64>, values: impl Iterator<Item = f64>, low: &[f64], high: &[f64]) {
+    out.extend(
+        values
+            .zip(low.iter().zip(high))
+            .map(|(x, (&lo, &hi))| clip(x, lo, hi)),
+    );
+}
+
+/// `x` clipped to `[lo, hi]`; the bounds are finite (unbounded sides saturate at `f64::MAX`), so an
+/// overflowed `a + v` still yields a finite value.
+#[inline(always)]
+fn clip(x: f64, lo: f64, hi: f64) -> f64 {
+    // Plain comparisons compile to maxsd/minsd; f64::max/min would add NaN handling that x never needs.
+    let x = if x < lo { lo } else { x };
+    if x > hi {
+        hi
+    } else {
+        x
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    #[test]
-    fn resolves_broadcasts_and_saturates_unbounded_sides() {
-        let config = SessionConfig {
+    fn config() -> SessionConfig {
+        SessionConfig {
             action_low: vec![f64::NEG_INFINITY, -1.0, -2.0],
             ..SessionConfig::new(3, 0.01, vec![0.5], vec![10.0, 20.0, 30.0], vec![2.0])
-        };
-        let mut lanes = Lanes::new(&config);
-        lanes.set_rate(&config.learning_rate, 0.5);
+        }
+    }
+
+    #[test]
+    fn resolves_broadcasts_and_saturates_unbounded_sides() {
+        let mut lanes = Lanes::new(&config());
+        lanes.set_rate(&config().learning_rate, 0.5);
         assert_eq!(lanes.dim(), 3);
-        assert_eq!(lanes.low(), &[-f64::MAX, -1.0, -2.0]);
-        assert_eq!(lanes.high(), &[f64::MAX; 3]);
-        let split = lanes.split_mut();
-        assert_eq!(split.amplitude, &[0.5; 3]);
-        assert_eq!(split.frequency, &[10.0, 20.0, 30.0]);
-        assert_eq!(split.rate, &[1.0; 3]);
-        assert_eq!(split.low.len() + split.high.len() + split.shift.len(), 9);
-        assert_eq!((split.sine.len(), split.action.len()), (3, 3));
+        assert_eq!(lanes.max_frequency, 30.0);
+        assert_eq!(lanes.column(LOW), &[-f64::MAX, -1.0, -2.0]);
+        assert_eq!(lanes.column(HIGH), &[f64::MAX; 3]);
+        let c = lanes.split_mut();
+        assert_eq!(c.amplitude, &[0.5; 3]);
+        assert_eq!(c.frequency, &[10.0, 20.0, 30.0]);
+        assert_eq!(c.rate, &[1.0; 3]);
+        assert_eq!(c.shift, &[0.0; 3]);
+        assert_eq!((c.sine.len(), c.action.len()), (3, 3));
+    }
+
+    #[test]
+    fn probe_falls_back_to_libm_far_beyond_the_reduction_range() {
+        let mut lanes = Lanes::new(&config());
+        for tau in [0.37, 3.3e4, 3.4e4, 1e9] {
+            let mut out = Vec::new();
+            lanes.probe(&[0.0; 3], tau, &mut out);
+            let sine = lanes.split_mut().sine.to_vec();
+            for (s, w) in sine.iter().zip([10.0, 20.0, 30.0]) {
+                let exact = (w * tau).sin();
+                assert!(
+                    (s - exact).abs() <= f64::EPSILON,
+                    "sin({w} * {tau}) = {exact}, got {s}"
+                );
+                if w * tau > REDUCTION_LIMIT {
+                    assert_eq!(*s, exact, "libm itself beyond the limit");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn skipped_update_keeps_v_and_still_returns_the_action() {
+        let mut lanes = Lanes::new(&config());
+        lanes.probe(&[1.0, 0.5, 0.25], 0.1, &mut Vec::new());
+        let mut out = vec![7.0];
+        assert!(!lanes.update(f64::INFINITY, f64::INFINITY, &mut out));
+        assert_eq!(lanes.shift(), &[0.0; 3]);
+        assert_eq!(out, vec![7.0, 1.0, 0.5, 0.25]);
+        assert!(lanes.update(1.0, f64::INFINITY, &mut out));
+        assert_ne!(lanes.shift(), &[0.0; 3]);
     }
 }

@@ -3,7 +3,6 @@
 use crate::config::SessionConfig;
 use crate::highpass::Washout;
 use crate::lanes::Lanes;
-use crate::sine;
 use crate::CoreError;
 
 /// What a successful [`Session::report`] did besides returning the improved action.
@@ -128,33 +127,11 @@ impl Session {
         if episode_start && (self.step > 0 || self.probe_pending) {
             self.end_episode();
         }
-        let pass_through = self.is_pass_through();
-        // Exactly `w_i * (t * dt)` so every client reproduces s bit for bit.
-        let tau = self.step as f64 * self.config.dt;
-        let lanes = self.lanes.split_mut();
-        for (held, &a) in lanes.action.iter_mut().zip(action) {
-            *held = a;
-        }
-        let bounds = lanes.low.iter().zip(lanes.high);
-        if pass_through {
-            out.extend(
-                action
-                    .iter()
-                    .zip(bounds)
-                    .map(|(&a, (&lo, &hi))| clip(a, lo, hi)),
-            );
+        if self.is_pass_through() {
+            self.lanes.hold(action, out);
         } else {
-            sine::sines(lanes.frequency, tau, lanes.sine);
-            let perturbation = (lanes
-                .shift
-                .iter()
-                .zip(lanes.amplitude)
-                .zip(lanes.sine.iter()))
-            .map(|((&v, &k), &s)| v + k * s);
-            out.extend(
-                (action.iter().zip(perturbation).zip(bounds))
-                    .map(|((&a, u), (&lo, &hi))| clip(a + u, lo, hi)),
-            );
+            let tau = self.step as f64 * self.config.dt;
+            self.lanes.probe(action, tau, out);
         }
         self.probe_pending = true;
         self.report_replayable = false;
@@ -196,24 +173,25 @@ impl Session {
     ) -> Result<ReportOutcome, CoreError> {
         self.check_report(step, q_value)?;
         if self.is_replay(step) {
-            self.push_action(out);
+            self.lanes.push_action(self.is_pass_through(), out);
             return Ok(ReportOutcome {
                 replayed: true,
                 nonfinite_skipped: false,
             });
         }
         let mut nonfinite_skipped = false;
-        if !self.is_pass_through() {
+        if self.is_pass_through() {
+            self.lanes.push_action(true, out);
+        } else {
             let h = match &mut self.washout {
                 Some(washout) => washout.apply(q_value),
                 None => q_value,
             };
-            nonfinite_skipped = !self.update_shift(h);
+            nonfinite_skipped = !self.lanes.update(h, self.shift_limit, out);
             if nonfinite_skipped {
                 self.nonfinite_skips = self.nonfinite_skips.saturating_add(1);
             }
         }
-        self.push_action(out);
         self.step = self.step.saturating_add(1);
         self.probe_pending = false;
         self.report_replayable = true;
@@ -261,54 +239,6 @@ impl Session {
 
     fn is_replay(&self, step: u64) -> bool {
         self.report_replayable && self.step.checked_sub(1) == Some(step)
-    }
-
-    /// Applies `v <- clamp(v + alpha_e s h, -L, L)` unless an element would be non-finite; returns whether applied.
-    fn update_shift(&mut self, h: f64) -> bool {
-        let limit = self.shift_limit;
-        let next = |v: f64, rate: f64, s: f64| (v + rate * s * h).clamp(-limit, limit);
-        let lanes = self.lanes.split_mut();
-        let all_finite = (lanes.shift.iter().zip(lanes.rate).zip(lanes.sine.iter()))
-            .all(|((&v, &rate), &s)| next(v, rate, s).is_finite());
-        if !all_finite {
-            return false;
-        }
-        for ((v, &rate), &s) in lanes
-            .shift
-            .iter_mut()
-            .zip(lanes.rate)
-            .zip(lanes.sine.iter())
-        {
-            *v = next(*v, rate, s);
-        }
-        true
-    }
-
-    /// Appends `clip(a_t + v, lo, hi)` (or `clip(a_t)` in pass-through) for the last probed action.
-    fn push_action(&self, out: &mut Vec<f64>) {
-        let pass_through = self.is_pass_through();
-        let bounds = self.lanes.low().iter().zip(self.lanes.high());
-        let dims = self
-            .lanes
-            .action()
-            .iter()
-            .zip(self.lanes.shift())
-            .zip(bounds);
-        out.extend(
-            dims.map(|((&a, &v), (&lo, &hi))| clip(if pass_through { a } else { a + v }, lo, hi)),
-        );
-    }
-}
-
-/// `x` clipped to `[lo, hi]`; the bounds are finite (unbounded sides saturate at `f64::MAX`), so an
-/// overflowed `a + v` still yields a finite value.
-fn clip(x: f64, lo: f64, hi: f64) -> f64 {
-    // Plain comparisons compile to minsd/maxsd; f64::max/min would add NaN handling that x never needs.
-    let x = if x < lo { lo } else { x };
-    if x > hi {
-        hi
-    } else {
-        x
     }
 }
 

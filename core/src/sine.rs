@@ -1,10 +1,10 @@
-//! The probe's sinusoid `s_i = sin(w_i * tau)` for every dimension at once, without a libm call per lane.
+//! `sin` for the probe's sinusoid `s_i = sin(w_i * tau)`, without a libm call per lane.
 //!
 //! libm's `sin` costs ~20-30 ns on the target machine, which alone would spend the whole 100 ns budget of
 //! a D = 6 probe/report pair (issue 7). Here the argument is reduced by Cody-Waite with fdlibm's
-//! three-part pi/2 and evaluated with fdlibm's `__kernel_sin`/`__kernel_cos` polynomials: branch-free,
-//! so the lanes vectorize, and within 2.2e-16 (one ulp of 1.0) of libm's `sin` (tested below), far inside
-//! the 1e-9 to which clients must reproduce the law. Arguments beyond [`REDUCTION_LIMIT`] fall back to libm.
+//! three-part pi/2 and evaluated with fdlibm's `__kernel_sin`/`__kernel_cos` polynomials: inlinable and
+//! branch-free, so a loop over the lanes vectorizes, and within 2.2e-16 (one ulp of 1.0) of libm's `sin` (tested below), far inside
+//! the 1e-9 to which clients must reproduce the law. Arguments beyond [`REDUCTION_LIMIT`] need libm.
 
 use std::f64::consts::FRAC_2_PI;
 
@@ -34,34 +34,24 @@ const C4: f64 = -2.7557314351390663e-07;
 const C5: f64 = 2.087572321298175e-09;
 const C6: f64 = -1.1359647557788195e-11;
 
-/// Writes `sin(w_i * tau)` into `out[i]` for every lane.
-pub fn sines(frequency: &[f64], tau: f64, out: &mut [f64]) {
-    for (s, &w) in out.iter_mut().zip(frequency) {
-        *s = reduced_sin(w * tau);
-    }
-    // Rare fix-up pass so the main loop stays branch-free.
-    for (s, &w) in out.iter_mut().zip(frequency) {
-        let x = w * tau;
-        if x.abs() > REDUCTION_LIMIT {
-            *s = x.sin();
-        }
-    }
-}
-
-/// `sin(x)` for `|x| <= REDUCTION_LIMIT` (garbage beyond, which [`sines`] overwrites).
-#[inline]
-fn reduced_sin(x: f64) -> f64 {
+#[inline(always)]
+pub fn sin_reduced(x: f64) -> f64 {
     let shifted = x * FRAC_2_PI + SHIFTER;
     let quadrant = shifted.to_bits();
     let k = shifted - SHIFTER;
-    // k * PIO2_1 is exact and close to x, so the first subtraction is exact too.
-    let r = ((x - k * PIO2_1) - k * PIO2_2) - k * PIO2_3;
+    // k * PIO2_1 is exact and close to x, so the first subtraction is exact; the two small parts are
+    // summed apart from it to shorten the dependency chain.
+    let r = (x - k * PIO2_1) - (k * PIO2_2 + k * PIO2_3);
+    // Estrin's scheme instead of Horner's: a single lane (D = 1) is bound by latency, not throughput.
     let z = r * r;
-    let sin_r = r + z * r * (S1 + z * (S2 + z * (S3 + z * (S4 + z * (S5 + z * S6)))));
+    let z2 = z * z;
+    let z4 = z2 * z2;
+    let sin_poly = (S1 + z * S2) + z2 * (S3 + z * S4) + z4 * (S5 + z * S6);
+    let sin_r = r + z * r * sin_poly;
+    let cos_poly = (C1 + z * C2) + z2 * (C3 + z * C4) + z4 * (C5 + z * C6);
     let half_z = 0.5 * z;
     let w = 1.0 - half_z;
-    let cos_tail = z * z * (C1 + z * (C2 + z * (C3 + z * (C4 + z * (C5 + z * C6)))));
-    let cos_r = w + (((1.0 - w) - half_z) + cos_tail);
+    let cos_r = w + (((1.0 - w) - half_z) + z2 * cos_poly);
     let magnitude = if quadrant & 1 == 0 { sin_r } else { cos_r };
     if quadrant & 2 == 0 {
         magnitude
@@ -76,23 +66,20 @@ mod tests {
 
     /// Largest |ours - libm| over `xs`.
     fn max_error(xs: impl Iterator<Item = f64>) -> f64 {
-        xs.map(|x| {
-            let mut out = [0.0];
-            sines(&[x], 1.0, &mut out);
-            (out[0] - x.sin()).abs()
-        })
-        .fold(0.0, f64::max)
+        xs.map(|x| (sin_reduced(x) - x.sin()).abs())
+            .fold(0.0, f64::max)
     }
 
-    /// One ulp of 1.0 (measured: below half of that).
+    /// One ulp of 1.0.
     const TOLERANCE: f64 = f64::EPSILON;
 
     #[test]
     fn matches_libm_on_the_probe_grid() {
         // w * (t * dt) as the session computes it: long episodes, frequencies up to Nyquist.
-        let grid = [(0.01, 60.0), (0.01, 75.0), (0.002, 1570.0), (0.05, 62.8)]
+        let cases: [(f64, f64); 4] = [(0.01, 60.0), (0.01, 75.0), (0.002, 1570.0), (0.05, 62.8)];
+        let grid = cases
             .into_iter()
-            .flat_map(|(dt, w): (f64, f64)| (0..200_000u64).map(move |t| w * (t as f64 * dt)));
+            .flat_map(|(dt, w)| (0..200_000u64).map(move |t| w * (t as f64 * dt)));
         assert!(max_error(grid) <= TOLERANCE);
     }
 
@@ -116,24 +103,13 @@ mod tests {
     }
 
     #[test]
-    fn exact_at_zero_and_near_quadrant_edges() {
-        let mut out = [1.0];
-        sines(&[0.0], 0.0, &mut out);
-        assert_eq!(out[0].to_bits(), 0.0f64.to_bits());
+    fn exact_at_zero_and_close_near_quadrant_edges() {
+        assert_eq!(sin_reduced(0.0).to_bits(), 0.0f64.to_bits());
         let edges = (1..2000).flat_map(|k| {
             let x = k as f64 * std::f64::consts::FRAC_PI_4;
             [x.next_down(), x, x.next_up()]
         });
         assert!(max_error(edges) <= TOLERANCE);
-    }
-
-    #[test]
-    fn falls_back_to_libm_beyond_the_limit() {
-        let xs = [REDUCTION_LIMIT * 1.000_001, 1e12, -3e15, 1e300, -f64::MAX];
-        let mut out = [0.0; 5];
-        sines(&xs, 1.0, &mut out);
-        for (s, x) in out.iter().zip(xs) {
-            assert_eq!(*s, x.sin());
-        }
+        assert!(max_error([REDUCTION_LIMIT, -REDUCTION_LIMIT].into_iter()) <= TOLERANCE);
     }
 }
