@@ -1,0 +1,269 @@
+//! `esa-bench`: load generator for the real `esa-server` binary (issue 7).
+//!
+//! Starts the server as a child process on loopback TCP and on a Unix
+//! socket and measures, for D-dimensional sessions:
+//! - pair latency (probe + report; p50/p90/p99) of one client, per socket
+//!   and API (Probe/Report, ProbeBatch/ReportBatch, StepStream), for each
+//!   batch size;
+//! - session-steps per second of several concurrent clients per batch size;
+//! - resident memory per session with many live sessions (a fresh server).
+//!
+//! Optionally it measures a second server at `--baseline ADDR` (the Python
+//! grpcio baseline) with the same throughput loop. Every loop is bounded in
+//! pairs and time; everything stays on loopback. Results go to `--json`.
+
+mod driver;
+mod error;
+mod measure;
+mod memory;
+mod server_process;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::Parser;
+use serde::Serialize;
+
+use crate::driver::{connect, create_sessions, Api, Stepper};
+use crate::error::Result;
+use crate::measure::{Bounds, Latency, Throughput, Workload};
+use crate::memory::Rss;
+use crate::server_process::{Address, ServerProcess, Socket};
+
+/// Measures esa-server latency, throughput and memory; writes JSON.
+#[derive(Debug, Parser)]
+#[command(name = "esa-bench", version)]
+struct Cli {
+    /// The esa-server binary to start.
+    #[arg(long, default_value = "target/release/esa-server")]
+    server: PathBuf,
+    /// Where to write the results.
+    #[arg(long, default_value = "bench/results/server.json")]
+    json: PathBuf,
+    /// Action dimension D of every session.
+    #[arg(long, default_value_t = 6)]
+    dim: usize,
+    /// Batch sizes (sessions per pair).
+    #[arg(long, value_delimiter = ',', default_value = "1,8,64,256,1024")]
+    batches: Vec<usize>,
+    /// Concurrent clients (connections, one pair in flight each) in the
+    /// throughput runs.
+    #[arg(long, default_value_t = 4)]
+    concurrency: usize,
+    /// Tokio worker threads of this load generator (the server has its own).
+    #[arg(long, default_value_t = 1)]
+    client_threads: usize,
+    /// Unmeasured warm-up per measurement, seconds.
+    #[arg(long, default_value_t = 0.3)]
+    warmup: f64,
+    /// Longest measured window per measurement, seconds.
+    #[arg(long, default_value_t = 2.0)]
+    window: f64,
+    /// Most measured pairs per client and measurement.
+    #[arg(long, default_value_t = 100_000)]
+    max_pairs: u64,
+    /// Sessions created for the memory measurement (0 skips it).
+    #[arg(long, default_value_t = 100_000)]
+    rss_sessions: usize,
+    /// Also measure the server at this loopback address (e.g. the Python
+    /// baseline) with the throughput loop at `--baseline-batch`.
+    #[arg(long)]
+    baseline: Option<SocketAddr>,
+    /// Batch size of the baseline comparison.
+    #[arg(long, default_value_t = 64)]
+    baseline_batch: usize,
+}
+
+/// A latency measurement and what it measured.
+#[derive(Debug, Serialize)]
+struct LatencyRow {
+    socket: Socket,
+    api: Api,
+    batch: usize,
+    #[serde(flatten)]
+    latency: Latency,
+}
+
+/// A throughput measurement and what it measured.
+#[derive(Debug, Serialize)]
+struct ThroughputRow {
+    socket: Socket,
+    api: Api,
+    batch: usize,
+    #[serde(flatten)]
+    throughput: Throughput,
+}
+
+/// The baseline server measured with the same loops.
+#[derive(Debug, Serialize)]
+struct Baseline {
+    address: SocketAddr,
+    latency: LatencyRow,
+    throughput: ThroughputRow,
+}
+
+/// Everything one run measured; the report generator reads this.
+#[derive(Debug, Serialize)]
+struct Results {
+    server: PathBuf,
+    dim: usize,
+    client_threads: usize,
+    bounds: Bounds,
+    latency: Vec<LatencyRow>,
+    throughput: Vec<ThroughputRow>,
+    rss: Option<Rss>,
+    baseline: Option<Baseline>,
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(cli.client_threads.max(1))
+        .enable_all()
+        .build();
+    let outcome = match runtime {
+        Ok(runtime) => runtime.block_on(run(&cli)),
+        Err(err) => Err(err.into()),
+    };
+    match outcome {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("esa-bench: {err}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(cli: &Cli) -> Result<()> {
+    let bounds = Bounds {
+        warmup: Duration::from_secs_f64(cli.warmup),
+        window: Duration::from_secs_f64(cli.window),
+        max_pairs: cli.max_pairs,
+    };
+    let mut results = Results {
+        server: cli.server.clone(),
+        dim: cli.dim,
+        client_threads: cli.client_threads,
+        bounds,
+        latency: Vec::new(),
+        throughput: Vec::new(),
+        rss: None,
+        baseline: None,
+    };
+    // Room for every session the latency and throughput runs hold at once.
+    let max_sessions = cli.concurrency.max(1) * cli.batches.iter().max().copied().unwrap_or(1) + 16;
+    for socket in [Socket::Tcp, Socket::Uds] {
+        let server = ServerProcess::start(&cli.server, socket, max_sessions)?;
+        let address = server.address();
+        for (api, batch) in workloads(&cli.batches) {
+            let workload = Workload {
+                api,
+                batch,
+                dim: cli.dim,
+            };
+            let name = format!("{socket:?}-{api:?}-{batch}").to_lowercase();
+            let latency = measure_latency(address, workload, bounds, &name).await?;
+            eprintln!(
+                "latency    {name:<18} p50 {:>9.1} us  p99 {:>9.1} us  ({} pairs)",
+                latency.p50_us, latency.p99_us, latency.pairs
+            );
+            results.latency.push(LatencyRow {
+                socket,
+                api,
+                batch,
+                latency,
+            });
+            if api == Api::Unary {
+                continue;
+            }
+            let throughput =
+                measure::throughput(address, workload, cli.concurrency, bounds, &name).await?;
+            eprintln!(
+                "throughput {name:<18} {:>12.0} session-steps/s  ({} clients)",
+                throughput.session_steps_per_s, throughput.concurrency
+            );
+            results.throughput.push(ThroughputRow {
+                socket,
+                api,
+                batch,
+                throughput,
+            });
+        }
+    }
+    if let Some(address) = cli.baseline {
+        results.baseline = Some(measure_baseline(cli, address, bounds).await?);
+    }
+    if cli.rss_sessions > 0 {
+        let rss = memory::rss_per_session(&cli.server, cli.rss_sessions, cli.dim, cli.concurrency)
+            .await?;
+        eprintln!(
+            "rss        {} sessions: {:.0} B/session idle, {:.0} B/session stepped",
+            rss.sessions, rss.idle_bytes_per_session, rss.stepped_bytes_per_session
+        );
+        results.rss = Some(rss);
+    }
+    if let Some(dir) = cli.json.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(&cli.json, serde_json::to_string_pretty(&results)?)?;
+    eprintln!("wrote {}", cli.json.display());
+    Ok(())
+}
+
+/// Single-session Probe/Report, then ProbeBatch/ReportBatch and StepStream
+/// pairs for every batch size.
+fn workloads(batches: &[usize]) -> Vec<(Api, usize)> {
+    let mut out = vec![(Api::Unary, 1)];
+    for api in [Api::Batch, Api::Stream] {
+        out.extend(batches.iter().map(|&batch| (api, batch)));
+    }
+    out
+}
+
+/// One client's pair latency on fresh sessions named after `name`.
+async fn measure_latency(
+    address: &Address,
+    workload: Workload,
+    bounds: Bounds,
+    name: &str,
+) -> Result<Latency> {
+    let mut client = connect(address).await?;
+    let ids = create_sessions(&mut client, name, workload.batch, workload.dim).await?;
+    let mut stepper = Stepper::new(client, workload.api, ids, workload.dim).await?;
+    let latency = measure::latency(&mut stepper, bounds).await?;
+    stepper.close().await?;
+    Ok(latency)
+}
+
+async fn measure_baseline(cli: &Cli, address: SocketAddr, bounds: Bounds) -> Result<Baseline> {
+    let target = Address::Tcp(address);
+    let workload = Workload {
+        api: Api::Batch,
+        batch: cli.baseline_batch,
+        dim: cli.dim,
+    };
+    let latency = measure_latency(&target, workload, bounds, "baseline-latency").await?;
+    let throughput =
+        measure::throughput(&target, workload, cli.concurrency, bounds, "baseline").await?;
+    eprintln!(
+        "baseline   {address} batch {}: p50 {:.1} us, {:.0} session-steps/s",
+        workload.batch, latency.p50_us, throughput.session_steps_per_s
+    );
+    let row = |latency| LatencyRow {
+        socket: Socket::Tcp,
+        api: Api::Batch,
+        batch: workload.batch,
+        latency,
+    };
+    Ok(Baseline {
+        address,
+        latency: row(latency),
+        throughput: ThroughputRow {
+            socket: Socket::Tcp,
+            api: Api::Batch,
+            batch: workload.batch,
+            throughput,
+        },
+    })
+}

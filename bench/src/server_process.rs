@@ -1,0 +1,136 @@
+//! The real `esa-server` binary as a child process: start it on loopback TCP
+//! or a Unix socket, learn its address from the `listening on` line, read
+//! its resident memory, kill it on drop.
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use tempfile::TempDir;
+
+use crate::error::{Error, Result};
+
+/// How long a starting server may take to print its `listening on` line.
+const STARTUP_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Where a server listens.
+#[derive(Clone, Debug)]
+pub enum Address {
+    /// gRPC over loopback TCP.
+    Tcp(SocketAddr),
+    /// gRPC over a Unix domain socket.
+    Unix(PathBuf),
+}
+
+/// Which kind of socket to start a server on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Socket {
+    /// `--listen 127.0.0.1:0`.
+    Tcp,
+    /// `--uds <tempdir>/esa.sock`.
+    Uds,
+}
+
+/// A running esa-server child; killed when dropped.
+pub struct ServerProcess {
+    child: Child,
+    address: Address,
+    // Holds the Unix socket's directory until the server is gone.
+    _dir: Option<TempDir>,
+}
+
+impl ServerProcess {
+    /// Starts `binary` on `socket` with sessions that never expire (a bench
+    /// may pause between phases) and room for `max_sessions`.
+    pub fn start(binary: &Path, socket: Socket, max_sessions: usize) -> Result<Self> {
+        let mut command = Command::new(binary);
+        command
+            .args(["--session-ttl", "0", "--max-sessions"])
+            .arg(max_sessions.to_string())
+            // Per-request logging would be measured too; keep only problems.
+            .env("RUST_LOG", "warn")
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit());
+        let dir = match socket {
+            Socket::Tcp => {
+                command.args(["--listen", "127.0.0.1:0"]);
+                None
+            }
+            Socket::Uds => {
+                let dir = tempfile::tempdir()?;
+                command.arg("--uds").arg(dir.path().join("esa.sock"));
+                Some(dir)
+            }
+        };
+        let mut child = command
+            .spawn()
+            .map_err(|err| Error::Server(format!("cannot run {}: {err}", binary.display())))?;
+        let address = match child.stdout.take().map(wait_for_address) {
+            Some(Ok(address)) => address,
+            Some(Err(err)) => {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(err);
+            }
+            None => return Err(Error::Server("no stdout pipe".into())),
+        };
+        Ok(Self {
+            child,
+            address,
+            _dir: dir,
+        })
+    }
+
+    /// The address the server announced.
+    pub fn address(&self) -> &Address {
+        &self.address
+    }
+
+    /// The server's resident set size in KiB (`VmRSS` of /proc/PID/status).
+    pub fn rss_kib(&self) -> Result<u64> {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id()))?;
+        status
+            .lines()
+            .find_map(|line| line.strip_prefix("VmRSS:"))
+            .and_then(|rest| rest.trim().trim_end_matches("kB").trim().parse().ok())
+            .ok_or_else(|| Error::Server("no VmRSS line in /proc/PID/status".into()))
+    }
+}
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Reads the child's stdout until `listening on ADDR`, then keeps draining
+/// it in the background so the child never blocks on a full pipe.
+fn wait_for_address(stdout: std::process::ChildStdout) -> Result<Address> {
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        let mut sent = false;
+        for line in BufReader::new(stdout).lines().map_while(|line| line.ok()) {
+            if !sent {
+                if let Some(address) = line.strip_prefix("listening on ") {
+                    sent = tx.send(address.to_owned()).is_ok();
+                }
+            }
+        }
+    });
+    let line = rx
+        .recv_timeout(STARTUP_TIMEOUT)
+        .map_err(|_| Error::Server("no `listening on` line (did it exit?)".into()))?;
+    match line.strip_prefix("unix:") {
+        Some(path) => Ok(Address::Unix(PathBuf::from(path))),
+        None => line
+            .parse()
+            .map(Address::Tcp)
+            .map_err(|_| Error::Server(format!("cannot parse address {line:?}"))),
+    }
+}
