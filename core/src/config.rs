@@ -83,14 +83,10 @@ impl SessionConfig {
             )));
         }
         check_each("amplitude", &self.amplitude, dim, |k| {
-            (k.is_finite() && k >= 0.0)
-                .then_some(())
-                .ok_or_else(|| format!("expected a finite number >= 0, got {k}"))
+            expect(k.is_finite() && k >= 0.0, "a finite number >= 0", k)
         })?;
         check_each("frequency", &self.frequency, dim, |w| {
-            if !(w.is_finite() && w > 0.0) {
-                return Err(format!("expected a finite number > 0, got {w}"));
-            }
+            expect(w.is_finite() && w > 0.0, "a finite number > 0", w)?;
             if w * self.dt >= PI {
                 return Err(format!(
                     "expected w * dt < pi (Nyquist), got {w} * {} = {}",
@@ -101,9 +97,7 @@ impl SessionConfig {
             Ok(())
         })?;
         check_each("learning_rate", &self.learning_rate, dim, |a| {
-            (a.is_finite() && a >= 0.0)
-                .then_some(())
-                .ok_or_else(|| format!("expected a finite number >= 0, got {a}"))
+            expect(a.is_finite() && a >= 0.0, "a finite number >= 0", a)
         })?;
         check_positive("highpass_cutoff", self.highpass_cutoff)?;
         self.check_bounds(dim)?;
@@ -121,16 +115,20 @@ impl SessionConfig {
     fn check_bounds(&self, dim: usize) -> Result<(), CoreError> {
         if !self.action_low.is_empty() {
             check_each("action_low", &self.action_low, dim, |lo| {
-                (!lo.is_nan() && lo < f64::INFINITY)
-                    .then_some(())
-                    .ok_or_else(|| format!("expected a finite number or -inf, got {lo}"))
+                expect(
+                    !lo.is_nan() && lo < f64::INFINITY,
+                    "a finite number or -inf",
+                    lo,
+                )
             })?;
         }
         if !self.action_high.is_empty() {
             check_each("action_high", &self.action_high, dim, |hi| {
-                (!hi.is_nan() && hi > f64::NEG_INFINITY)
-                    .then_some(())
-                    .ok_or_else(|| format!("expected a finite number or +inf, got {hi}"))
+                expect(
+                    !hi.is_nan() && hi > f64::NEG_INFINITY,
+                    "a finite number or +inf",
+                    hi,
+                )
             })?;
         }
         if self.action_low.is_empty() || self.action_high.is_empty() {
@@ -164,6 +162,15 @@ pub(crate) fn lane(values: &[f64], i: usize, default: f64) -> f64 {
         [] => default,
         [only] => *only,
         _ => values.get(i).copied().unwrap_or(default),
+    }
+}
+
+/// `Ok` when `ok`, else the "expected ..., got ..." half of a message (the caller adds the field).
+fn expect(ok: bool, expected: &str, got: f64) -> Result<(), String> {
+    if ok {
+        Ok(())
+    } else {
+        Err(format!("expected {expected}, got {got}"))
     }
 }
 

@@ -185,7 +185,7 @@ fn resolve(session: &Session, step: &StepChoice) -> u64 {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 512, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: 1024, ..ProptestConfig::default() })]
 
     #[test]
     fn outputs_stay_finite_and_bounded_and_refusals_change_nothing((config, requests) in scenario()) {

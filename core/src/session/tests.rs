@@ -60,6 +60,14 @@ fn refused(
     err
 }
 
+fn refused_probe(session: &mut Session, step: u64, action: &[f64], start: bool) -> CoreError {
+    refused(session, |s, out| s.probe(step, action, start, out))
+}
+
+fn refused_report(session: &mut Session, step: u64, q: f64) -> CoreError {
+    refused(session, |s, out| s.report(step, q, out).map(drop))
+}
+
 #[test]
 fn new_rejects_invalid_config() {
     let err = Session::new(SessionConfig { dt: 0.0, ..base() }).expect_err("dt = 0 is invalid");
@@ -301,7 +309,7 @@ fn pass_through_after_max_episodes() {
     }
     // The protocol is unchanged: a report still needs its probe.
     assert_eq!(
-        refused(&mut s, |s, out| s.report(5, 1.0, out).map(drop)),
+        refused_report(&mut s, 5, 1.0),
         CoreError::NoPendingProbe { step: 5 }
     );
     assert_eq!(s.end_episode(), 3);
@@ -321,7 +329,7 @@ fn unlimited_episodes_never_pass_through() {
 fn step_mismatch_is_refused() {
     let mut s = session(base());
     pair(&mut s, &[0.0, 0.0], 1.0);
-    let err = refused(&mut s, |s, out| s.probe(0, &[0.0, 0.0], false, out));
+    let err = refused_probe(&mut s, 0, &[0.0, 0.0], false);
     assert_eq!(
         err,
         CoreError::StepMismatch {
@@ -330,7 +338,7 @@ fn step_mismatch_is_refused() {
         }
     );
     assert_eq!(err.to_string(), "step mismatch: expected step 1, got 0");
-    let err = refused(&mut s, |s, out| s.probe(2, &[0.0, 0.0], false, out));
+    let err = refused_probe(&mut s, 2, &[0.0, 0.0], false);
     assert_eq!(
         err,
         CoreError::StepMismatch {
@@ -339,7 +347,7 @@ fn step_mismatch_is_refused() {
         }
     );
     probe(&mut s, 1, &[0.0, 0.0], false);
-    let err = refused(&mut s, |s, out| s.report(2, 1.0, out).map(drop));
+    let err = refused_report(&mut s, 2, 1.0);
     assert_eq!(
         err,
         CoreError::StepMismatch {
@@ -347,7 +355,7 @@ fn step_mismatch_is_refused() {
             got: 2
         }
     );
-    let err = refused(&mut s, |s, out| s.report(u64::MAX, 1.0, out).map(drop));
+    let err = refused_report(&mut s, u64::MAX, 1.0);
     assert_eq!(
         err,
         CoreError::StepMismatch {
@@ -360,7 +368,7 @@ fn step_mismatch_is_refused() {
 #[test]
 fn report_without_probe_is_refused() {
     let mut s = session(base());
-    let err = refused(&mut s, |s, out| s.report(0, 1.0, out).map(drop));
+    let err = refused_report(&mut s, 0, 1.0);
     assert_eq!(err, CoreError::NoPendingProbe { step: 0 });
     assert_eq!(
         err.to_string(),
@@ -368,7 +376,7 @@ fn report_without_probe_is_refused() {
     );
     pair(&mut s, &[0.0, 0.0], 1.0);
     assert_eq!(
-        refused(&mut s, |s, out| s.report(1, 1.0, out).map(drop)),
+        refused_report(&mut s, 1, 1.0),
         CoreError::NoPendingProbe { step: 1 }
     );
 }
@@ -422,13 +430,13 @@ fn report_retry_replays_without_updating() {
     }
     // The replayed q must still be valid.
     assert!(matches!(
-        refused(&mut s, |s, out| s.report(1, f64::NAN, out).map(drop)),
+        refused_report(&mut s, 1, f64::NAN),
         CoreError::InvalidArgument(m) if m.starts_with("q_value:")
     ));
     // Once the next probe arrives, step t - 1 is history.
     probe(&mut s, 2, &[0.5, 0.5], false);
     assert_eq!(
-        refused(&mut s, |s, out| s.report(1, 7.0, out).map(drop)),
+        refused_report(&mut s, 1, 7.0),
         CoreError::StepMismatch {
             expected: 2,
             got: 1
@@ -442,7 +450,7 @@ fn report_retry_is_impossible_after_an_episode_end() {
     pair(&mut s, &[0.0, 0.0], 1.0);
     s.end_episode();
     assert_eq!(
-        refused(&mut s, |s, out| s.report(0, 1.0, out).map(drop)),
+        refused_report(&mut s, 0, 1.0),
         CoreError::NoPendingProbe { step: 0 }
     );
 }
@@ -518,7 +526,7 @@ fn episode_start_requires_step_zero_and_a_refusal_changes_nothing() {
     let mut s = session(base());
     pair(&mut s, &[0.0, 0.0], 1.0);
     pair(&mut s, &[0.0, 0.0], 2.0);
-    let err = refused(&mut s, |s, out| s.probe(2, &[0.0, 0.0], true, out));
+    let err = refused_probe(&mut s, 2, &[0.0, 0.0], true);
     assert_eq!(
         err,
         CoreError::StepMismatch {
@@ -527,7 +535,7 @@ fn episode_start_requires_step_zero_and_a_refusal_changes_nothing() {
         }
     );
     assert_eq!(s.episodes_completed(), 0);
-    let err = refused(&mut s, |s, out| s.probe(0, &[0.0, f64::NAN], true, out));
+    let err = refused_probe(&mut s, 0, &[0.0, f64::NAN], true);
     assert!(matches!(err, CoreError::InvalidArgument(_)));
     assert_eq!((s.episodes_completed(), s.step()), (0, 2));
 }
@@ -604,7 +612,7 @@ fn bad_action_is_refused() {
     let mut s = session(base());
     pair(&mut s, &[0.0, 0.0], 1.0);
     for bad in [&[0.0][..], &[0.0, 0.0, 0.0], &[]] {
-        let err = refused(&mut s, |s, out| s.probe(1, bad, false, out));
+        let err = refused_probe(&mut s, 1, bad, false);
         assert_eq!(
             err,
             CoreError::InvalidArgument(format!(
@@ -614,7 +622,7 @@ fn bad_action_is_refused() {
         );
     }
     for x in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
-        let err = refused(&mut s, |s, out| s.probe(1, &[0.0, x], false, out));
+        let err = refused_probe(&mut s, 1, &[0.0, x], false);
         assert_eq!(
             err,
             CoreError::InvalidArgument(format!("action[1]: expected a finite number, got {x}"))
@@ -629,7 +637,7 @@ fn nonfinite_q_is_refused() {
     let mut s = session(base());
     probe(&mut s, 0, &[0.0, 0.0], false);
     for q in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
-        let err = refused(&mut s, |s, out| s.report(0, q, out).map(drop));
+        let err = refused_report(&mut s, 0, q);
         assert_eq!(
             err,
             CoreError::InvalidArgument(format!("q_value: expected a finite number, got {q}"))
