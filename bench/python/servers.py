@@ -1,0 +1,52 @@
+"""Starting the servers the Python benchmarks talk to, as child processes on loopback."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator, Sequence
+from contextlib import AbstractContextManager, contextmanager
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def server_binary() -> str:
+    """The esa-server binary: ``ESA_SERVER_BIN`` or the release build of this checkout."""
+    binary = os.environ.get("ESA_SERVER_BIN") or str(REPO_ROOT / "target/release/esa-server")
+    if not os.access(binary, os.X_OK):
+        raise SystemExit(f"esa-server not found at {binary}: run `cargo build --release`")
+    return binary
+
+
+@contextmanager
+def serving(args: Sequence[str]) -> Iterator[str]:
+    """Runs a server that prints ``listening on ADDR`` once bound; yields ADDR, then stops it."""
+    process = subprocess.Popen(
+        list(args), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
+    try:
+        line = process.stdout.readline() if process.stdout else ""
+        if not line.startswith("listening on "):
+            raise RuntimeError(f"{args[0]} did not start: {line!r}")
+        yield line.split()[-1]
+    finally:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+def esa_server_tcp() -> AbstractContextManager[str]:
+    """The real esa-server on 127.0.0.1 with a free port."""
+    return serving([server_binary(), "--listen", "127.0.0.1:0", "--session-ttl", "0"])
+
+
+def baseline_server() -> AbstractContextManager[str]:
+    """The Python grpcio baseline (``baseline_server.py``) on 127.0.0.1 with a free port."""
+    script = Path(__file__).with_name("baseline_server.py")
+    return serving([sys.executable, str(script), "--listen", "127.0.0.1:0"])

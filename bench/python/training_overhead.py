@@ -1,0 +1,121 @@
+"""Training wall-clock with and without ESA: PPO vs ESAPPO and SAC vs ESASAC.
+
+Each pair trains for the same number of steps on InvertedPendulum-v5 with 8 envs
+(``DummyVecEnv``), the same seed and hyperparameters, torch on one thread. Only
+``learn()`` is timed; for the ESA agents that includes spawning their private
+esa-server (Unix socket, StepStream), the round trips and ESAPPO's auxiliary critic.
+The pairs run alternately ``repeats`` times so background load hits both alike.
+
+Usage::
+
+    python bench/python/training_overhead.py [--ppo-steps 12288] [--sac-steps 8000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch as th
+from esa_client.sb3 import ESAPPO, ESASAC, EsaConfig
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.env_util import make_vec_env
+
+from servers import server_binary
+
+
+@dataclass
+class Args:
+    """Benchmark settings (all overridable on the command line)."""
+
+    env_id: str = "InvertedPendulum-v5"
+    n_envs: int = 8
+    ppo_steps: int = 12_288
+    ppo_n_steps: int = 256
+    sac_steps: int = 8_000
+    sac_learning_starts: int = 800
+    repeats: int = 2
+    seed: int = 0
+    out: str = "bench/results/training.json"
+
+
+def parse_args() -> Args:
+    """Reads ``Args`` from the command line (``--ppo-steps 4096`` etc.)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for field in dataclasses.fields(Args):
+        flag = "--" + field.name.replace("_", "-")
+        parser.add_argument(flag, type=type(field.default), default=field.default)
+    return Args(**vars(parser.parse_args()))
+
+
+def train_seconds(name: str, args: Args) -> float:
+    """Builds agent ``name`` on fresh envs and returns the wall-clock seconds of ``learn()``."""
+    env = make_vec_env(args.env_id, n_envs=args.n_envs, seed=args.seed)
+    common = dict(seed=args.seed, device="cpu", verbose=0)
+    if name in ("PPO", "ESAPPO"):
+        kwargs = dict(n_steps=args.ppo_n_steps, batch_size=64, **common)
+        model = (
+            ESAPPO("MlpPolicy", env, esa=EsaConfig(), **kwargs)
+            if name == "ESAPPO"
+            else (PPO("MlpPolicy", env, **kwargs))
+        )
+        steps = args.ppo_steps
+    else:
+        kwargs = dict(learning_starts=args.sac_learning_starts, **common)
+        model = (
+            ESASAC("MlpPolicy", env, esa=EsaConfig(), **kwargs)
+            if name == "ESASAC"
+            else (SAC("MlpPolicy", env, **kwargs))
+        )
+        steps = args.sac_steps
+    start = time.perf_counter()
+    model.learn(steps)
+    seconds = time.perf_counter() - start
+    if isinstance(model, (ESAPPO, ESASAC)):
+        model.esa_close()
+    env.close()
+    return seconds
+
+
+def main() -> None:
+    """Times every agent ``repeats`` times, alternating, and writes the ratios."""
+    args = parse_args()
+    th.set_num_threads(1)
+    # Without it every spawn would first ask cargo whether the binary is up to date.
+    os.environ["ESA_SERVER_BIN"] = server_binary()
+    pairs = {"PPO": "ESAPPO", "SAC": "ESASAC"}
+    seconds: dict[str, list[float]] = {name: [] for pair in pairs.items() for name in pair}
+    for _ in range(args.repeats):
+        for plain, esa in pairs.items():
+            for name in (plain, esa):
+                seconds[name].append(train_seconds(name, args))
+                print(f"{name:<7} {seconds[name][-1]:7.2f} s", flush=True)
+    rows = []
+    for plain, esa in pairs.items():
+        ratios = np.asarray(seconds[esa]) / np.asarray(seconds[plain])
+        rows.append(
+            {
+                "plain": plain,
+                "esa": esa,
+                "steps": args.ppo_steps if plain == "PPO" else args.sac_steps,
+                "plain_seconds": seconds[plain],
+                "esa_seconds": seconds[esa],
+                "ratio_median": float(np.median(ratios)),
+                "ratios": ratios.tolist(),
+            }
+        )
+        print(f"{esa}/{plain} wall-clock ratio: {np.median(ratios):.3f} ({ratios.round(3)})")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"args": dataclasses.asdict(args), "rows": rows}, indent=2))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,475 @@
+"""Writes BENCHMARKS.md and the latency-vs-batch PNG from the results of ``bench/run.sh``.
+
+Reads ``bench/results/``: ``server.json`` (esa-bench), ``python.json``
+(client_latency.py), ``training.json`` (training_overhead.py), ``run.json``
+(machine, load and commands, written by run.sh) and criterion's estimates of
+the core pair bench under ``target/criterion``. Every issue-7 target is listed
+with its measured figure and PASS or MISS.
+
+Usage::
+
+    python bench/report.py [--results bench/results] [--out BENCHMARKS.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+PLOT_NAME = "latency_vs_batch.png"
+
+
+@dataclass
+class Target:
+    """One target of issue 7 and what was measured for it."""
+
+    name: str
+    goal: str
+    measured: str
+    passed: bool | None  # None: could not be measured in this run
+
+
+def load(path: Path) -> dict | None:
+    """The JSON at ``path``, or None if that part of the run did not happen."""
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def criterion_medians(root: Path) -> dict[tuple[str, int], float]:
+    """Median ns per pair of the core bench: ``{(clock, D): ns}`` with clock wall or cpu."""
+    out = {}
+    for clock in ("wall", "cpu"):
+        for estimates in sorted(root.glob(f"probe_report_pair_{clock}/*/new/estimates.json")):
+            dim = int(estimates.parent.parent.name)
+            out[(clock, dim)] = json.loads(estimates.read_text())["median"]["point_estimate"]
+    return out
+
+
+def table(header: list[str], rows: list[list[str]]) -> str:
+    """A markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def find(rows: list[dict], **match: object) -> dict | None:
+    """The first row whose fields equal ``match``."""
+    return next((r for r in rows if all(r.get(k) == v for k, v in match.items())), None)
+
+
+def fmt(value: float, digits: int = 1) -> str:
+    """A number with thousands separators."""
+    return f"{value:,.{digits}f}"
+
+
+def verdict(target: Target) -> str:
+    """PASS, MISS or n/a."""
+    return {True: "PASS", False: "MISS", None: "n/a"}[target.passed]
+
+
+def at_most(limit: float) -> Callable[[float], bool]:
+    """A check that a figure is <= ``limit``."""
+    return lambda x: x <= limit
+
+
+def targets(
+    core: dict, server: dict | None, python: dict | None, training: dict | None
+) -> list[Target]:
+    """Every target of issue 7 with its measured figure."""
+    out = []
+    wall, cpu = core.get(("wall", 6)), core.get(("cpu", 6))
+    out.append(
+        Target(
+            "core pair, D = 6 (criterion median, wall clock; on-CPU beside it)",
+            "<= 100 ns",
+            f"{fmt(wall)} ns wall, {fmt(cpu)} ns on-CPU" if wall and cpu else "not measured",
+            wall <= 100 if wall else None,
+        )
+    )
+    latency = server["latency"] if server else []
+    for socket, api, label, limit in [
+        ("tcp", "unary", "Rust client, 1 session, Probe+Report over TCP, p50", 100),
+        ("uds", "unary", "Rust client, 1 session, Probe+Report over Unix socket, p50", 60),
+        ("tcp", "stream", "Rust client, 1 session, StepStream over TCP, p50", 60),
+        ("uds", "stream", "Rust client, 1 session, StepStream over Unix socket, p50", 60),
+    ]:
+        row = find(latency, socket=socket, api=api, batch=1)
+        out.append(
+            Target(
+                label,
+                f"<= {limit} us",
+                f"{fmt(row['p50_us'])} us (p99 {fmt(row['p99_us'])} us)" if row else "not measured",
+                row["p50_us"] <= limit if row else None,
+            )
+        )
+    best_256 = max(
+        (r for r in (server["throughput"] if server else []) if r["batch"] == 256),
+        key=lambda r: r["session_steps_per_s"],
+        default=None,
+    )
+    out.append(
+        Target(
+            "batched 256 x D = 6, session-steps/s (best transport)",
+            ">= 1,000,000",
+            (
+                f"{fmt(best_256['session_steps_per_s'], 0)} ({best_256['socket']}/"
+                f"{best_256['api']}, {best_256['concurrency']} clients)"
+            )
+            if best_256
+            else "not measured",
+            best_256["session_steps_per_s"] >= 1e6 if best_256 else None,
+        )
+    )
+    py_rows = python["rows"] if python else []
+    esa_8 = [r for r in py_rows if r["server"] == "esa-server" and r["envs"] == 8]
+    best_8 = min(esa_8, key=lambda r: r["p50_us"], default=None)
+    out.append(
+        Target(
+            "Python SessionBatch(8) pair p50 (best transport)",
+            "<= 250 us",
+            f"{fmt(best_8['p50_us'])} us ({best_8['socket']}/{best_8['api']})"
+            if best_8
+            else "not measured",
+            best_8["p50_us"] <= 250 if best_8 else None,
+        )
+    )
+    ratio = python_ratio(py_rows)
+    out.append(
+        Target(
+            "throughput vs Python grpcio baseline at batch 64 (Python client, best vs best)",
+            ">= 10x",
+            f"{ratio:.1f}x" if ratio else "not measured",
+            ratio >= 10 if ratio else None,
+        )
+    )
+    for row in training["rows"] if training else []:
+        out.append(
+            Target(
+                f"{row['esa']} / {row['plain']} wall-clock ({row['steps']} steps, 8 envs)",
+                "<= 1.25" if row["plain"] == "PPO" else "(no target; reported)",
+                f"{row['ratio_median']:.2f}",
+                row["ratio_median"] <= 1.25 if row["plain"] == "PPO" else None,
+            )
+        )
+    rss = server.get("rss") if server else None
+    out.append(
+        Target(
+            "RSS per idle session (100,000 sessions, D = 6)",
+            "<= 1 KiB",
+            f"{fmt(rss['idle_bytes_per_session'], 0)} B" if rss else "not measured",
+            rss["idle_bytes_per_session"] <= 1024 if rss else None,
+        )
+    )
+    return out
+
+
+def python_ratio(rows: list[dict]) -> float | None:
+    """Best esa-server over best baseline session-steps/s at 64 envs (same Python client)."""
+
+    def best(server: str) -> float | None:
+        rates = [
+            r["session_steps_per_s"] for r in rows if r["server"] == server and r["envs"] == 64
+        ]
+        return max(rates) if rates else None
+
+    esa, baseline = best("esa-server"), best("python-grpcio")
+    return esa / baseline if esa and baseline else None
+
+
+def plot(server: dict | None, python: dict | None, path: Path) -> None:
+    """Pair latency (p50, band to p90) vs batch size, per transport; Rust and Python clients."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+    panels = [
+        (axes[0], "Rust client (esa-bench), D = 6", server["latency"] if server else [], "batch"),
+        (axes[1], "Python SessionBatch, D = 6", python["rows"] if python else [], "envs"),
+    ]
+    for ax, title, rows, size in panels:
+        series: dict[str, list[dict]] = {}
+        for row in rows:
+            if row.get("api") == "unary":
+                continue
+            label = "/".join(str(row[k]) for k in ("server", "socket", "api") if k in row)
+            series.setdefault(label, []).append(row)
+        for label, points in sorted(series.items()):
+            points.sort(key=lambda r: r[size])
+            x = [p[size] for p in points]
+            line = ax.plot(x, [p["p50_us"] for p in points], marker="o", label=label)[0]
+            ax.fill_between(
+                x,
+                [p["p50_us"] for p in points],
+                [p["p90_us"] for p in points],
+                color=line.get_color(),
+                alpha=0.1,
+            )
+        ax.set_xscale("log", base=2)
+        sizes = sorted({row[size] for row in rows})
+        ax.set_xticks(sizes, [str(n) for n in sizes])
+        ax.set_yscale("log")
+        ax.set_xlabel("sessions per pair (batch size)")
+        ax.set_title(title)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    axes[0].set_ylabel("probe + report pair latency, us (line p50, band to p90)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def server_sections(server: dict) -> list[str]:
+    """Markdown for the esa-bench results."""
+    bounds = server["bounds"]
+    lines = [
+        "## Server, from the Rust load generator (`esa-bench`)",
+        "",
+        f"Sessions of D = {server['dim']}; load generator on {server['client_threads']} tokio "
+        f"thread(s), the server with its default runtime (one worker per core). Each "
+        f"measurement: {bounds['warmup']['secs'] + bounds['warmup']['nanos'] / 1e9:g} s "
+        f"warm-up, then at most {bounds['window']['secs'] + bounds['window']['nanos'] / 1e9:g} s "
+        f"or {bounds['max_pairs']:,} pairs. A pair = probe + report round trips; `unary` = "
+        "`Probe`+`Report` (one session), `batch` = `ProbeBatch`+`ReportBatch` calls, "
+        "`stream` = both on one `StepStream`.",
+        "",
+        "### Pair latency, one client",
+        "",
+    ]
+    rows = [
+        [
+            r["socket"],
+            r["api"],
+            str(r["batch"]),
+            fmt(r["p50_us"]),
+            fmt(r["p90_us"]),
+            fmt(r["p99_us"]),
+            fmt(r["mean_us"]),
+            f"{r['pairs']:,}",
+        ]
+        for r in server["latency"]
+    ]
+    lines.append(
+        table(["socket", "api", "batch", "p50 us", "p90 us", "p99 us", "mean us", "pairs"], rows)
+    )
+    lines += ["", "### Throughput, concurrent clients", ""]
+    rows = [
+        [
+            r["socket"],
+            r["api"],
+            str(r["batch"]),
+            str(r["concurrency"]),
+            fmt(r["session_steps_per_s"], 0),
+            f"{r['pairs']:,}",
+            fmt(r["seconds"], 2),
+        ]
+        for r in server["throughput"]
+    ]
+    lines.append(
+        table(["socket", "api", "batch", "clients", "session-steps/s", "pairs", "seconds"], rows)
+    )
+    rss = server.get("rss")
+    if rss:
+        lines += [
+            "",
+            "### Memory",
+            "",
+            f"A fresh server (TCP), VmRSS from `/proc/<pid>/status`: {rss['before_kib']:,} KiB "
+            f"with one session created and closed; {rss['idle_kib']:,} KiB with "
+            f"{rss['sessions']:,} idle sessions of D = {rss['dim']} "
+            f"(**{fmt(rss['idle_bytes_per_session'], 0)} B per session**); "
+            f"{rss['stepped_kib']:,} KiB after one probe + report on each "
+            f"({fmt(rss['stepped_bytes_per_session'], 0)} B per session).",
+        ]
+    baseline = server.get("baseline")
+    if baseline:
+        tp = baseline["throughput"]
+        lines += [
+            "",
+            "### The Python grpcio baseline under the same load generator",
+            "",
+            f"`bench/python/baseline_server.py` at batch {tp['batch']}, TCP, "
+            f"ProbeBatch/ReportBatch: p50 {fmt(baseline['latency']['p50_us'])} us for one "
+            f"client; {fmt(tp['session_steps_per_s'], 0)} session-steps/s with "
+            f"{tp['concurrency']} clients.",
+        ]
+        esa = find(server["throughput"], socket="tcp", api="batch", batch=tp["batch"])
+        if esa:
+            lines[-1] += (
+                f" esa-server, same loop: {fmt(esa['session_steps_per_s'], 0)} "
+                f"(**{esa['session_steps_per_s'] / tp['session_steps_per_s']:.1f}x**)."
+            )
+    return lines
+
+
+def python_section(python: dict) -> list[str]:
+    """Markdown for the Python client results."""
+    args = python["args"]
+    lines = [
+        "## Python client (`SessionBatch`)",
+        "",
+        f"One pair = `batch.probe(actions)` + `-|probe|^2` + `batch.report(q)`, D = {args['dim']}; "
+        f"{args['warmup']:g} s warm-up, then at most {args['window']:g} s or "
+        f"{args['max_pairs']:,} pairs. `batch` = ProbeBatch/ReportBatch calls "
+        "(`use_stream=False`, the default), `stream` = the StepStream. `uds` is "
+        "`EsaClient.spawn()`, what the SB3 drop-ins use. `reference` = "
+        "`esa_client.reference` in-process; `python-grpcio` = `bench/python/baseline_server.py`.",
+        "",
+    ]
+    rows = [
+        [
+            r["server"],
+            r["socket"],
+            r["api"],
+            str(r["envs"]),
+            fmt(r["p50_us"]),
+            fmt(r["p99_us"]),
+            fmt(r["session_steps_per_s"], 0),
+        ]
+        for r in python["rows"]
+    ]
+    lines.append(
+        table(["server", "socket", "api", "envs", "p50 us", "p99 us", "session-steps/s"], rows)
+    )
+    lines += ["", "Throughput ratio esa-server / python-grpcio at 64 envs, same client:", ""]
+    for api in ("batch", "stream"):
+        base = find(python["rows"], server="python-grpcio", api=api, envs=64)
+        for socket in ("tcp", "uds"):
+            esa = find(python["rows"], server="esa-server", socket=socket, api=api, envs=64)
+            if esa and base:
+                ratio = esa["session_steps_per_s"] / base["session_steps_per_s"]
+                lines.append(f"- {socket}/{api} vs baseline tcp/{api}: {ratio:.1f}x")
+    ratio = python_ratio(python["rows"])
+    if ratio:
+        lines.append(f"- best vs best: {ratio:.1f}x")
+    return lines
+
+
+def training_section(training: dict) -> list[str]:
+    """Markdown for the training-overhead results."""
+    args = training["args"]
+    lines = [
+        "## Training overhead",
+        "",
+        f"{args['env_id']}, {args['n_envs']} envs (DummyVecEnv), seed {args['seed']}, torch on "
+        f"one thread, SB3 defaults except PPO `n_steps={args['ppo_n_steps']}`, `batch_size=64` "
+        f"and SAC `learning_starts={args['sac_learning_starts']}`; ESA agents with "
+        "`EsaConfig()` defaults and a private esa-server (Unix socket, StepStream). Wall-clock "
+        f"of `learn()`, {args['repeats']} alternating repeats; ratio = median of the "
+        "per-repeat ratios.",
+        "",
+    ]
+    rows = [
+        [
+            f"{r['esa']} / {r['plain']}",
+            f"{r['steps']:,}",
+            ", ".join(fmt(s, 2) for s in r["plain_seconds"]),
+            ", ".join(fmt(s, 2) for s in r["esa_seconds"]),
+            f"{r['ratio_median']:.2f}",
+        ]
+        for r in training["rows"]
+    ]
+    lines.append(table(["pair", "steps", "plain s", "ESA s", "ratio"], rows))
+    return lines
+
+
+def core_section(core: dict) -> list[str]:
+    """Markdown for the criterion core bench."""
+    rows = [
+        [
+            str(d),
+            fmt(core[("wall", d)]) if ("wall", d) in core else "-",
+            fmt(core[("cpu", d)]) if ("cpu", d) in core else "-",
+        ]
+        for d in sorted({d for _, d in core})
+    ]
+    return [
+        "## Core (`cargo bench -p esa-core --bench pair`)",
+        "",
+        "One probe + report through `esa_core::Session` (criterion median per pair).",
+        "",
+        table(["D", "wall ns", "on-CPU ns"], rows),
+    ]
+
+
+def machine_section(run: dict | None) -> list[str]:
+    """Markdown for the machine, the load and the commands."""
+    if not run:
+        return ["## Machine", "", "(run.json missing: run `bench/run.sh`)"]
+    load = run["loadavg"]
+    lines = [
+        "## Machine and run",
+        "",
+        f"- CPU: {run['cpu_model']}, {run['cores']} cores; RAM {run['ram_gib']:.1f} GiB; "
+        f"{run['kernel']}",
+        f"- Run: {run['started']} to {run['finished']} (UTC), commit `{run['commit']}`",
+        f"- Load average (1 min) sampled every {run['load_interval_s']} s during the run: "
+        f"min {load['min']:.2f}, mean {load['mean']:.2f}, max {load['max']:.2f} "
+        f"({load['samples']} samples); at start `{run['loadavg_start']}`, "
+        f"at end `{run['loadavg_end']}`",
+        "",
+        "Commands (`bench/run.sh`, what `make bench` runs):",
+        "",
+        "```",
+        *run["commands"],
+        "```",
+    ]
+    return lines
+
+
+def main() -> None:
+    """Reads the results and writes BENCHMARKS.md and the PNG."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--results", type=Path, default=REPO_ROOT / "bench/results")
+    parser.add_argument("--criterion", type=Path, default=REPO_ROOT / "target/criterion")
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "BENCHMARKS.md")
+    args = parser.parse_args()
+    server = load(args.results / "server.json")
+    python = load(args.results / "python.json")
+    training = load(args.results / "training.json")
+    run = load(args.results / "run.json")
+    core = criterion_medians(args.criterion)
+    plot(server, python, args.results / PLOT_NAME)
+    notes = args.results.parent / "NOTES.md"
+
+    lines = [
+        "# Benchmarks",
+        "",
+        "Generated by `bench/report.py` from one `make bench` run (`bench/run.sh`); "
+        "do not edit by hand. Issue 7's targets first, then every measurement.",
+        "",
+        "## Targets",
+        "",
+        table(
+            ["target", "goal", "measured", ""],
+            [
+                [t.name, t.goal, t.measured, verdict(t)]
+                for t in targets(core, server, python, training)
+            ],
+        ),
+        "",
+        f"![pair latency vs batch size](bench/results/{PLOT_NAME})",
+        "",
+    ]
+    if notes.is_file():
+        lines += [notes.read_text().strip(), ""]
+    lines += machine_section(run) + [""]
+    if core:
+        lines += core_section(core) + [""]
+    if server:
+        lines += server_sections(server) + [""]
+    if python:
+        lines += python_section(python) + [""]
+    if training:
+        lines += training_section(training) + [""]
+    args.out.write_text("\n".join(lines))
+    print(f"wrote {args.out} and {args.results / PLOT_NAME}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,107 @@
+#!/usr/bin/env bash
+# The whole benchmark run behind `make bench`: core criterion bench, the Rust load
+# generator (with the Python grpcio baseline beside it), the Python client bench,
+# the training-overhead bench, then bench/report.py writes BENCHMARKS.md and
+# bench/results/latency_vs_batch.png. Everything stays on loopback.
+#
+# Usage: bench/run.sh [--quick]   (--quick: short windows for a smoke test; the
+# results still go to bench/results/, so do not commit a quick run)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PY=${PY:-.venv/bin/python}
+CARGO=${CARGO:-cargo}
+RESULTS=bench/results
+LOAD_INTERVAL=5
+export ESA_SERVER_BIN=${ESA_SERVER_BIN:-$PWD/target/release/esa-server}
+export MUJOCO_GL=${MUJOCO_GL:-egl}
+
+if [[ ${1:-} == --quick ]]; then
+  CRITERION_ARGS=(--warm-up-time 0.5 --measurement-time 1)
+  BENCH_ARGS=(--warmup 0.1 --window 0.3 --rss-sessions 20000)
+  PY_ARGS=(--warmup 0.1 --window 0.3)
+  TRAIN_ARGS=(--ppo-steps 4096 --sac-steps 1600 --sac-learning-starts 400 --repeats 1)
+else
+  CRITERION_ARGS=(--warm-up-time 2 --measurement-time 4)
+  BENCH_ARGS=()
+  PY_ARGS=()
+  TRAIN_ARGS=()
+fi
+
+mkdir -p "$RESULTS"
+started=$(date -u +%FT%TZ)
+loadavg_start=$(cat /proc/loadavg)
+# Samples the load for the report; stopped by its own PID at exit.
+(while true; do cut -d' ' -f1 /proc/loadavg; sleep "$LOAD_INTERVAL"; done) >"$RESULTS/loadavg.tmp.txt" &
+sampler=$!
+baseline_pid=
+cleanup() {
+  kill "$sampler" 2>/dev/null || true
+  [[ -n $baseline_pid ]] && kill "$baseline_pid" 2>/dev/null || true
+}
+trap cleanup EXIT
+
+commands=()
+run() {
+  commands+=("$*")
+  echo "+ $*" >&2
+  "$@"
+}
+
+run "$CARGO" build --release -p esa-server -p esa-bench
+run "$CARGO" bench -p esa-core --bench pair -- --noplot "${CRITERION_ARGS[@]}"
+
+# The Python baseline on a free loopback port, for the load generator's comparison.
+coproc BASELINE { exec "$PY" bench/python/baseline_server.py --listen 127.0.0.1:0; }
+baseline_pid=$BASELINE_PID
+read -r -u "${BASELINE[0]}" line
+baseline_addr=${line##* }
+commands+=("$PY bench/python/baseline_server.py --listen 127.0.0.1:0  # -> $baseline_addr")
+run target/release/esa-bench --server "$ESA_SERVER_BIN" --json "$RESULTS/server.json" \
+  --baseline "$baseline_addr" "${BENCH_ARGS[@]}"
+kill "$baseline_pid"
+wait "$baseline_pid" 2>/dev/null || true
+baseline_pid=
+
+run "$PY" bench/python/client_latency.py --out "$RESULTS/python.json" "${PY_ARGS[@]}"
+run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TRAIN_ARGS[@]}"
+
+finished=$(date -u +%FT%TZ)
+loadavg_end=$(cat /proc/loadavg)
+kill "$sampler" 2>/dev/null || true
+commands+=("$PY bench/report.py")
+"$PY" - "$RESULTS" "$started" "$finished" "$loadavg_start" "$loadavg_end" "$LOAD_INTERVAL" \
+  "${commands[@]}" <<'PYEOF'
+import json, os, platform, subprocess, sys
+results, started, finished, load_start, load_end, interval, *commands = sys.argv[1:]
+lscpu = dict(
+    line.split(":", 1) for line in subprocess.run(
+        ["lscpu"], capture_output=True, text=True, check=True
+    ).stdout.splitlines() if ":" in line
+)
+mem_kib = next(int(l.split()[1]) for l in open("/proc/meminfo") if l.startswith("MemTotal:"))
+samples = [float(x) for x in open(f"{results}/loadavg.tmp.txt").read().split()]
+commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+run = {
+    "cpu_model": lscpu.get("Model name", "?").strip(),
+    "cores": os.cpu_count(),
+    "ram_gib": mem_kib / 2**20,
+    "kernel": platform.platform(),
+    "started": started,
+    "finished": finished,
+    "commit": commit,
+    "loadavg_start": load_start,
+    "loadavg_end": load_end,
+    "load_interval_s": int(interval),
+    "loadavg": {
+        "samples": len(samples),
+        "min": min(samples, default=float("nan")),
+        "mean": sum(samples) / len(samples) if samples else float("nan"),
+        "max": max(samples, default=float("nan")),
+    },
+    "commands": commands,
+}
+open(f"{results}/run.json", "w").write(json.dumps(run, indent=2))
+PYEOF
+rm -f "$RESULTS/loadavg.tmp.txt"
+"$PY" bench/report.py
