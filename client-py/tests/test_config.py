@@ -1,6 +1,7 @@
 """Client-side validation of SessionConfig and EsaConfig, and the proto round trip."""
 
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -26,6 +27,8 @@ BASE = dict(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=
         dict(highpass_cutoff=0.0),
         dict(action_low=1.0, action_high=1.0),
         dict(action_low=math.inf),
+        dict(action_low=-math.inf),
+        dict(action_high=[1.0, math.inf]),
         dict(action_high=[math.nan, 1.0]),
         dict(shift_limit=-1.0),
         dict(lr_decay=0.0),
@@ -66,6 +69,17 @@ def test_esa_config_spreads_a_scalar_frequency_over_dimensions():
     assert config.frequency == pytest.approx((10 * math.pi, 7.5 * math.pi, 5 * math.pi))
     assert esa.session_config(1, dt=0.04).frequency == (10 * math.pi,)
     assert EsaConfig(frequency=[1.0, 2.0]).session_config(2, 0.04).frequency == (1.0, 2.0)
+
+
+def test_esa_config_maps_open_box_bounds_to_finite_ones():
+    esa = EsaConfig()
+    config = esa.session_config(
+        2, dt=0.04, action_low=[-np.inf, -1.0], action_high=[np.inf, np.inf]
+    )
+    assert config.action_low == (-sys.float_info.max, -1.0)
+    assert config.action_high == ()
+    with pytest.raises(ValueError, match="action_low finite"):
+        esa.session_config(1, dt=0.04, action_low=[np.inf])
 
 
 def test_esa_config_dt_overrides_and_nyquist_is_explained():

@@ -27,9 +27,10 @@ pub struct SessionConfig {
     pub highpass_cutoff: Option<f64>,
     /// When true the washout is the identity.
     pub disable_highpass: bool,
-    /// Lower action bound; empty = unbounded, `-inf` = unbounded in that dimension.
+    /// Lower action bound; finite; empty = unbounded. The contract rejects infinities
+    /// anywhere in a request, so a client with a partly unbounded space sends `f64::MIN`.
     pub action_low: Vec<f64>,
-    /// Upper action bound; empty = unbounded, `+inf` = unbounded in that dimension.
+    /// Upper action bound; finite; empty = unbounded (`f64::MAX` per dimension).
     pub action_high: Vec<f64>,
     /// Shift limit L: every element of v stays in `[-L, L]`; finite, > 0; `None` = no clamp.
     pub shift_limit: Option<f64>,
@@ -115,20 +116,12 @@ impl SessionConfig {
     fn check_bounds(&self, dim: usize) -> Result<(), CoreError> {
         if !self.action_low.is_empty() {
             check_each("action_low", &self.action_low, dim, |lo| {
-                expect(
-                    !lo.is_nan() && lo < f64::INFINITY,
-                    "a finite number or -inf",
-                    lo,
-                )
+                expect(lo.is_finite(), "a finite number", lo)
             })?;
         }
         if !self.action_high.is_empty() {
             check_each("action_high", &self.action_high, dim, |hi| {
-                expect(
-                    !hi.is_nan() && hi > f64::NEG_INFINITY,
-                    "a finite number or +inf",
-                    hi,
-                )
+                expect(hi.is_finite(), "a finite number", hi)
             })?;
         }
         if self.action_low.is_empty() || self.action_high.is_empty() {
@@ -482,16 +475,25 @@ mod tests {
             },
             "action_low[1]:",
         );
+        rejects(
+            SessionConfig {
+                action_low: vec![f64::NEG_INFINITY, 0.0],
+                ..valid()
+            },
+            "action_low[0]:",
+        );
+        rejects(
+            SessionConfig {
+                action_high: vec![f64::INFINITY],
+                ..valid()
+            },
+            "action_high[0]:",
+        );
         let one_sided = SessionConfig {
-            action_low: vec![f64::NEG_INFINITY, 0.0],
+            action_low: vec![f64::MIN, 0.0],
             ..valid()
         };
         assert_eq!(one_sided.validate(), Ok(()));
-        let open = SessionConfig {
-            action_high: vec![f64::INFINITY],
-            ..valid()
-        };
-        assert_eq!(open.validate(), Ok(()));
     }
 
     #[test]

@@ -245,7 +245,7 @@ mod tests {
 
     fn config() -> SessionConfig {
         SessionConfig {
-            action_low: vec![f64::NEG_INFINITY, -1.0, -2.0],
+            action_low: vec![f64::MIN, -1.0, -2.0],
             ..SessionConfig::new(3, 0.01, vec![0.5], vec![10.0, 20.0, 30.0], vec![2.0])
         }
     }

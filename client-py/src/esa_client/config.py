@@ -10,6 +10,7 @@ once the environment's action space and time step are known.
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
@@ -45,6 +46,17 @@ def _check(ok: bool, expected: str, got: object) -> None:
 
 def _all_finite(values: tuple[float, ...]) -> bool:
     return all(math.isfinite(x) for x in values)
+
+
+def _finite_bound(bound: Vector | None, unbounded: float) -> Vector | None:
+    """Maps a gymnasium-style bound, where ``unbounded`` (+-inf) marks an open side, to the
+    contract's finite form: all open = no bound, some open = float max there."""
+    if bound is None:
+        return None
+    values = np.asarray(bound, dtype=np.float64)
+    if np.all(values == unbounded):
+        return None
+    return np.where(values == unbounded, math.copysign(sys.float_info.max, unbounded), values)
 
 
 @dataclass(frozen=True)
@@ -113,17 +125,15 @@ class SessionConfig:
                 "highpass_cutoff finite and > 0",
                 self.highpass_cutoff,
             )
-        # An infinite bound on its own side means "unbounded there" (as in gymnasium's Box).
-        _check(
-            all(x < math.inf for x in self.action_low),
-            "action_low finite or -inf",
-            self.action_low,
-        )
-        _check(
-            all(x > -math.inf for x in self.action_high),
-            "action_high finite or +inf",
-            self.action_high,
-        )
+        # The contract rejects infinities anywhere in a request; EsaConfig.session_config
+        # turns a gymnasium Box's infinite bounds into float max, which clips to the same.
+        for name in ("action_low", "action_high"):
+            _check(
+                _all_finite(getattr(self, name)),
+                f"{name} finite (empty = unbounded; +-sys.float_info.max = unbounded in "
+                "one dimension)",
+                getattr(self, name),
+            )
         if self.action_low and self.action_high:
             low = np.broadcast_to(self.action_low, d)
             high = np.broadcast_to(self.action_high, d)
@@ -267,8 +277,8 @@ class EsaConfig:
             learning_rate=self.learning_rate,
             highpass_cutoff=self.highpass_cutoff,
             disable_highpass=self.disable_highpass,
-            action_low=action_low,
-            action_high=action_high,
+            action_low=_finite_bound(action_low, -math.inf),
+            action_high=_finite_bound(action_high, math.inf),
             shift_limit=self.shift_limit,
             lr_decay=self.lr_decay,
             max_episodes=self.max_episodes,

@@ -190,7 +190,7 @@ fn clipping_bounds_probe_and_action() {
     let config = SessionConfig {
         amplitude: vec![1.0],
         disable_highpass: true,
-        action_low: vec![-0.5, f64::NEG_INFINITY],
+        action_low: vec![-0.5, f64::MIN],
         action_high: vec![0.5],
         ..base()
     };

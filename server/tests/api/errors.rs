@@ -200,6 +200,21 @@ async fn bad_configs_are_invalid_argument_and_create_nothing() {
             },
             "action_high",
         ),
+        // CONTRACT: inf anywhere in a request is INVALID_ARGUMENT, even on a bound's open side.
+        (
+            pb::SessionConfig {
+                action_low: vec![f64::NEG_INFINITY],
+                ..config(1)
+            },
+            "action_low",
+        ),
+        (
+            pb::SessionConfig {
+                action_high: vec![f64::INFINITY],
+                ..config(1)
+            },
+            "action_high",
+        ),
         (
             pb::SessionConfig {
                 shift_limit: Some(f64::INFINITY),
