@@ -6,6 +6,11 @@ Each pair trains for the same number of steps on InvertedPendulum-v5 with 8 envs
 esa-server (Unix socket, StepStream), the round trips and ESAPPO's auxiliary critic.
 The pairs run alternately ``repeats`` times so background load hits both alike.
 
+To tell the service's share from the algorithm's, the ESA agents' time is also split
+by wrapping three methods with timers: the round trips (``SessionBatch.probe`` and
+``.report``), the whole ESA step (``EsaRuntime.improve``: round trips plus critic
+evaluations) and ESAPPO's auxiliary-critic fit.
+
 Usage::
 
     python bench/python/training_overhead.py [--ppo-steps 12288] [--sac-steps 8000]
@@ -18,12 +23,17 @@ import dataclasses
 import json
 import os
 import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch as th
+from esa_client import SessionBatch
 from esa_client.sb3 import ESAPPO, ESASAC, EsaConfig
+from esa_client.sb3.runtime import EsaRuntime
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -54,8 +64,46 @@ def parse_args() -> Args:
     return Args(**vars(parser.parse_args()))
 
 
-def train_seconds(name: str, args: Args) -> float:
-    """Builds agent ``name`` on fresh envs and returns the wall-clock seconds of ``learn()``."""
+# (class, method, bucket): where the ESA agents' extra time goes.
+TIMED = [
+    (SessionBatch, "probe", "round_trips"),
+    (SessionBatch, "report", "round_trips"),
+    (EsaRuntime, "improve", "esa_step"),
+    (ESAPPO, "_fit_esa_critic", "critic_fit"),
+]
+
+
+@contextmanager
+def timed_methods() -> Iterator[dict[str, float]]:
+    """Wraps the ``TIMED`` methods with timers; yields the seconds per bucket."""
+    seconds: dict[str, float] = defaultdict(float)
+
+    def wrap(method: Callable, bucket: str) -> Callable:
+        def timed(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                seconds[bucket] += time.perf_counter() - start
+
+        return timed
+
+    originals = [(cls, name, getattr(cls, name)) for cls, name, _ in TIMED]
+    for (cls, name, bucket), (_, _, method) in zip(TIMED, originals, strict=True):
+        setattr(cls, name, wrap(method, bucket))
+    try:
+        yield seconds
+    finally:
+        for cls, name, method in originals:
+            setattr(cls, name, method)
+
+
+def train_seconds(name: str, args: Args) -> tuple[float, dict[str, float]]:
+    """Builds agent ``name`` on fresh envs and times ``learn()``.
+
+    Returns:
+        The wall-clock seconds and the seconds spent in each ``TIMED`` bucket.
+    """
     env = make_vec_env(args.env_id, n_envs=args.n_envs, seed=args.seed)
     common = dict(seed=args.seed, device="cpu", verbose=0)
     if name in ("PPO", "ESAPPO"):
@@ -74,13 +122,14 @@ def train_seconds(name: str, args: Args) -> float:
             else (SAC("MlpPolicy", env, **kwargs))
         )
         steps = args.sac_steps
-    start = time.perf_counter()
-    model.learn(steps)
-    seconds = time.perf_counter() - start
+    with timed_methods() as buckets:
+        start = time.perf_counter()
+        model.learn(steps)
+        seconds = time.perf_counter() - start
     if isinstance(model, (ESAPPO, ESASAC)):
         model.esa_close()
     env.close()
-    return seconds
+    return seconds, dict(buckets)
 
 
 def main() -> None:
@@ -91,11 +140,15 @@ def main() -> None:
     os.environ["ESA_SERVER_BIN"] = server_binary()
     pairs = {"PPO": "ESAPPO", "SAC": "ESASAC"}
     seconds: dict[str, list[float]] = {name: [] for pair in pairs.items() for name in pair}
+    buckets: dict[str, list[dict[str, float]]] = {name: [] for name in seconds}
     for _ in range(args.repeats):
         for plain, esa in pairs.items():
             for name in (plain, esa):
-                seconds[name].append(train_seconds(name, args))
-                print(f"{name:<7} {seconds[name][-1]:7.2f} s", flush=True)
+                wall, split = train_seconds(name, args)
+                seconds[name].append(wall)
+                buckets[name].append(split)
+                parts = ", ".join(f"{k} {v:.2f} s" for k, v in split.items())
+                print(f"{name:<7} {wall:7.2f} s  {parts}", flush=True)
     rows = []
     for plain, esa in pairs.items():
         ratios = np.asarray(seconds[esa]) / np.asarray(seconds[plain])
@@ -108,6 +161,7 @@ def main() -> None:
                 "esa_seconds": seconds[esa],
                 "ratio_median": float(np.median(ratios)),
                 "ratios": ratios.tolist(),
+                "esa_buckets": buckets[esa],
             }
         )
         print(f"{esa}/{plain} wall-clock ratio: {np.median(ratios):.3f} ({ratios.round(3)})")
