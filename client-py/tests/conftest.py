@@ -59,3 +59,19 @@ def random_config(rng: np.random.Generator, action_dim: int | None = None) -> Se
 def make_config():
     """Factory for random valid configs (seeded by the caller)."""
     return random_config
+
+
+@pytest.fixture(scope="session")
+def zenoh_client(server_bin):
+    """One private server with Zenoh on loopback (and gRPC on a Unix socket), over Zenoh."""
+    from esa_client import ZenohEsaClient
+
+    with ZenohEsaClient.spawn(server_bin) as c:
+        yield c
+
+
+@pytest.fixture(scope="session")
+def zenoh_grpc_client(zenoh_client):
+    """A gRPC client of the same server as ``zenoh_client``: same sessions, other transport."""
+    with EsaClient(zenoh_client.server.address) as c:
+        yield c

@@ -12,7 +12,8 @@ Quick start::
 
 Stable-baselines3 drop-ins live in :mod:`esa_client.sb3`, a gymnasium wrapper in
 :mod:`esa_client.wrappers`, and an in-process implementation of the update law in
-:mod:`esa_client.reference`.
+:mod:`esa_client.reference`. ``ZenohEsaClient`` and ``ShardedEsaClient`` (extra
+``esa-client[zenoh]``) offer the same API over Zenoh, for one server or N shards.
 """
 
 from .client import EsaClient
@@ -29,6 +30,19 @@ from .errors import (
 )
 from .session import Session, SessionBatch, SessionState
 
+# Zenoh is an optional extra (esa-client[zenoh]): its clients load on first use.
+_ZENOH_EXPORTS = {"ZenohEsaClient", "ShardedEsaClient"}
+
+
+def __getattr__(name: str) -> object:
+    """Imports the Zenoh clients lazily, so that the package works without eclipse-zenoh."""
+    if name in _ZENOH_EXPORTS:
+        from . import zenoh_client
+
+        return getattr(zenoh_client, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 __all__ = [
     "DeadlineExceeded",
     "EsaClient",
@@ -43,7 +57,9 @@ __all__ = [
     "SessionConfig",
     "SessionNotFound",
     "SessionState",
+    "ShardedEsaClient",
     "StepMismatch",
+    "ZenohEsaClient",
 ]
 
 __version__ = "0.1.0"

@@ -7,6 +7,7 @@ import os
 import time
 import uuid
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
@@ -16,7 +17,10 @@ from .config import SessionConfig
 from .errors import EsaError, ServerUnavailable
 from .session import Session, SessionBatch, SessionState, as_batch_configs
 from .sidecar import ServerProcess
-from .transport import call
+from .transport import StreamTransport, UnaryTransport, call
+
+if TYPE_CHECKING:
+    from .sharding import BatchTransport
 
 _CHANNEL_OPTIONS = [
     # The server is local: never route through an HTTP proxy from the environment.
@@ -242,6 +246,19 @@ class EsaClient:
                     session.close()
             raise
         return SessionBatch(self, [s.id for s in created], per_session, use_stream=use_stream)
+
+    def batch_transport(
+        self, ids: Sequence[str], action_dim: int, *, use_stream: bool = False
+    ) -> BatchTransport:
+        """What a :class:`SessionBatch` of these sessions sends its round trips through.
+
+        Args:
+            ids: The batch's session ids (transports that route by id need them).
+            action_dim: The batch's shared action dimension.
+            use_stream: Use the ``StepStream`` RPC instead of ``ProbeBatch`` / ``ReportBatch``.
+        """
+        transport = StreamTransport if use_stream else UnaryTransport
+        return transport(self.stub, self.timeout)
 
     def close(self) -> None:
         """Closes the channel and stops the server if :meth:`spawn` started it. Idempotent."""

@@ -18,7 +18,7 @@ import numpy as np
 
 from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
-from .transport import StreamTransport, UnaryTransport, call
+from .transport import call
 
 if TYPE_CHECKING:
     from .client import EsaClient
@@ -202,8 +202,7 @@ class SessionBatch:
         self.ids = tuple(ids)
         self.configs = tuple(configs)
         self.n, self.action_dim = len(self.ids), self.configs[0].action_dim
-        transport = StreamTransport if use_stream else UnaryTransport
-        self._transport = transport(client.stub, client.timeout)
+        self._transport = client.batch_transport(self.ids, self.action_dim, use_stream=use_stream)
         self._steps = np.zeros(self.n, dtype=np.int64)
         self._next_starts = np.zeros(self.n, dtype=bool)
 

@@ -15,6 +15,7 @@ import shutil
 import signal
 import subprocess
 import tempfile
+import time
 import weakref
 from collections.abc import Sequence
 from pathlib import Path
@@ -164,6 +165,33 @@ class ServerProcess:
     def output_tail(self) -> str:
         """The last lines the server wrote to stdout/stderr."""
         return _tail(self._log_path)
+
+    def announced(self, prefix: str, timeout: float) -> list[str]:
+        """Waits for the ``listening on`` line; returns what follows ``prefix`` in earlier lines.
+
+        The server prints its ``zenoh listening on LOCATOR`` (and ``metrics on URL``)
+        lines before ``listening on ADDR``, so once that one is out all are.
+
+        Raises:
+            ServerUnavailable: If the server exits or does not get there within ``timeout`` s.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            self.check_running()
+            try:
+                lines = self._log_path.read_text(errors="replace").splitlines()
+            except OSError:
+                lines = []
+            if any(line.startswith("listening on ") for line in lines):
+                return [line[len(prefix) :] for line in lines if line.startswith(prefix)]
+            if time.monotonic() > deadline:
+                raise ServerUnavailable(
+                    f"{self.binary} printed no `listening on` line within {timeout} s; "
+                    f"its output:\n{self.output_tail()}",
+                    grpc.StatusCode.UNAVAILABLE,
+                )
+            # The output goes to a file (so that it never blocks the server): poll it.
+            time.sleep(0.01)
 
     def check_running(self) -> None:
         """Raises ``ServerUnavailable`` with the server's output if it has exited."""

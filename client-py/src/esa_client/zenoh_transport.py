@@ -1,0 +1,254 @@
+"""The esa contract over Zenoh queries (CONTRACT.md section 3).
+
+Each RPC is a queryable at ``<prefix>/<RpcName>`` (default prefix ``esa/v1``): the
+query payload is the protobuf request, a reply is the protobuf response, and a
+reply error carries a ``StreamError`` (gRPC code number plus message).
+:class:`ZenohStub` mirrors the generated ``EsaServiceStub`` (one callable per RPC,
+``stub.Probe(request, timeout=...)``), so sessions and batches run unchanged over it.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Sequence
+from typing import Any, Generic, TypeVar
+
+import grpc
+import zenoh
+from google.protobuf.message import DecodeError, Message
+
+from ._proto.esa.v1 import esa_pb2
+from .errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
+
+DEFAULT_PREFIX = "esa/v1"
+
+Response = TypeVar("Response", bound=Message)
+
+# Response type of each RPC; StepStream answers one StepStreamRequest per query.
+_RESPONSES: dict[str, type[Message]] = {
+    "CreateSession": esa_pb2.CreateSessionResponse,
+    "Probe": esa_pb2.ProbeResponse,
+    "Report": esa_pb2.ReportResponse,
+    "EndEpisode": esa_pb2.EndEpisodeResponse,
+    "CloseSession": esa_pb2.CloseSessionResponse,
+    "GetSession": esa_pb2.GetSessionResponse,
+    "ProbeBatch": esa_pb2.ProbeBatchResponse,
+    "ReportBatch": esa_pb2.ReportBatchResponse,
+    "StepStream": esa_pb2.StepStreamResponse,
+}
+
+
+def check_prefix(prefix: str) -> str:
+    """Returns ``prefix`` if it is a literal Zenoh key expression (as the server requires)."""
+    chunks = prefix.split("/")
+    if not prefix or any(not c or any(ch in c for ch in "*$?#") for c in chunks):
+        raise ValueError(f"expected a key prefix without wildcards like 'esa/v1', got {prefix!r}")
+    return prefix
+
+
+def peer_config(connect: Sequence[str], timeout: float) -> zenoh.Config:
+    """A Zenoh peer that only talks to ``connect``: no listener, no scouting, no gossip.
+
+    Opening a session with it fails (instead of retrying forever) when an endpoint
+    is not reachable within ``timeout`` seconds.
+    """
+    if not connect:
+        raise ValueError("expected at least one Zenoh endpoint like 'tcp/127.0.0.1:7447', got []")
+    config = zenoh.Config()
+    for key, value in (
+        ("mode", '"peer"'),
+        ("connect/endpoints", json.dumps(list(connect))),
+        ("connect/timeout_ms", str(max(1, round(timeout * 1000)))),
+        ("connect/exit_on_failure", "true"),
+        ("listen/endpoints", "[]"),
+        ("scouting/multicast/enabled", "false"),
+        ("scouting/gossip/enabled", "false"),
+    ):
+        config.insert_json5(key, value)
+    return config
+
+
+def open_session(config: zenoh.Config, where: str) -> zenoh.Session:
+    """Opens a Zenoh session, raising ``ServerUnavailable`` (naming ``where``) on failure."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as err:
+        raise ServerUnavailable(
+            f"cannot open a Zenoh session to {where}: {err}", grpc.StatusCode.UNAVAILABLE
+        ) from None
+
+
+class ZenohRpc(Generic[Response]):
+    """One RPC of the contract as a Zenoh querier: ``rpc(request, timeout=...) -> response``."""
+
+    def __init__(
+        self, session: zenoh.Session, key: str, response: type[Response], timeout: float
+    ) -> None:
+        """Declares the querier for ``key``; every query waits at most ``timeout`` seconds."""
+        self.key = key
+        self._response = response
+        self._timeout = timeout
+        # Exactly one server answers a key; NONE hands its reply over at once instead
+        # of holding it until the query is finalized.
+        self._querier = session.declare_querier(
+            key,
+            consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+            timeout=timeout,
+        )
+
+    @property
+    def matched(self) -> bool:
+        """True while a server's queryable for this key is reachable."""
+        return self._querier.matching_status.matching
+
+    def wait_matched(self, timeout: float) -> bool:
+        """Waits up to ``timeout`` seconds for a queryable; returns whether one is reachable."""
+        ready = threading.Event()
+        listener = self._querier.declare_matching_listener(
+            lambda status: ready.set() if status.matching else None
+        )
+        try:
+            return self.matched or ready.wait(timeout)
+        finally:
+            listener.undeclare()
+
+    def __call__(self, request: Message, timeout: float | None = None) -> Response:
+        """Sends ``request`` and returns the decoded response.
+
+        Args:
+            request: The request message.
+            timeout: Accepted for stub compatibility; the querier's deadline applies.
+
+        Raises:
+            EsaError: The server's error as its typed exception; ``ServerUnavailable``
+                when no server serves the key; ``DeadlineExceeded`` when none answered in time.
+        """
+        if not self.matched:
+            raise self._unavailable()
+        replies = self._querier.get(
+            payload=request.SerializeToString(), encoding=zenoh.Encoding.APPLICATION_PROTOBUF
+        )
+        for reply in replies:
+            if reply.ok is not None:
+                return self._decode(self._response, reply.ok.payload.to_bytes())
+            raise self._error(reply.err)
+        # The query ended without a reply: the server went away while it was pending.
+        raise self._unavailable()
+
+    def _unavailable(self) -> ServerUnavailable:
+        return ServerUnavailable(
+            f"no esa server serves {self.key} over Zenoh: it is not running, not connected, "
+            "or serves another prefix or shard",
+            grpc.StatusCode.UNAVAILABLE,
+        )
+
+    def _decode(self, message_type: type[Any], data: bytes) -> Any:
+        try:
+            return message_type.FromString(data)
+        except DecodeError as err:
+            raise EsaError(
+                f"{self.key} answered with bytes that are not a {message_type.__name__}: {err}"
+            ) from None
+
+    def _error(self, error: zenoh.ReplyError) -> EsaError:
+        if error.encoding == zenoh.Encoding.APPLICATION_PROTOBUF:
+            return esa_error(self._decode(esa_pb2.StreamError, error.payload.to_bytes()))
+        # Errors the server did not write come from Zenoh itself; the one it sends
+        # to a querier is its deadline ("Timeout").
+        text = error.payload.to_string()
+        if text == "Timeout":
+            return DeadlineExceeded(
+                f"no answer from {self.key} within {self._timeout} s",
+                grpc.StatusCode.DEADLINE_EXCEEDED,
+            )
+        return EsaError(f"{self.key}: zenoh error {text!r}")
+
+    def close(self) -> None:
+        """Undeclares the querier."""
+        self._querier.undeclare()
+
+
+class ZenohStub:
+    """The ``EsaServiceStub`` interface over Zenoh: one :class:`ZenohRpc` attribute per RPC.
+
+    ``StepStream`` is a plain query here: one ``StepStreamRequest`` in, one
+    ``StepStreamResponse`` (possibly carrying an in-band ``error``) out.
+
+    Attributes:
+        prefix: The key prefix, e.g. ``esa/v1`` or ``esa/v1/shard/1``.
+    """
+
+    CreateSession: ZenohRpc[esa_pb2.CreateSessionResponse]
+    Probe: ZenohRpc[esa_pb2.ProbeResponse]
+    Report: ZenohRpc[esa_pb2.ReportResponse]
+    EndEpisode: ZenohRpc[esa_pb2.EndEpisodeResponse]
+    CloseSession: ZenohRpc[esa_pb2.CloseSessionResponse]
+    GetSession: ZenohRpc[esa_pb2.GetSessionResponse]
+    ProbeBatch: ZenohRpc[esa_pb2.ProbeBatchResponse]
+    ReportBatch: ZenohRpc[esa_pb2.ReportBatchResponse]
+    StepStream: ZenohRpc[esa_pb2.StepStreamResponse]
+
+    def __init__(self, session: zenoh.Session, prefix: str, timeout: float) -> None:
+        """Declares one querier per RPC under ``prefix`` on ``session``."""
+        self.prefix = check_prefix(prefix)
+        self._rpcs = {
+            name: ZenohRpc(session, f"{prefix}/{name}", response, timeout)
+            for name, response in _RESPONSES.items()
+        }
+        for name, rpc in self._rpcs.items():
+            setattr(self, name, rpc)
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
+        """True if the server behind this prefix answers a query within ``timeout`` seconds.
+
+        Args:
+            timeout: Bound on the whole check.
+            wait_for_ready: Wait for the server's queryables to become reachable
+                instead of failing at once when they are not (yet).
+        """
+        probe = self.GetSession
+        if not (probe.wait_matched(timeout) if wait_for_ready else probe.matched):
+            return False
+        try:
+            # An empty id is refused by every server: any answer proves it serves.
+            probe(esa_pb2.GetSessionRequest())
+        except (ServerUnavailable, DeadlineExceeded):
+            return False
+        except EsaError:
+            return True
+        return True
+
+    def close(self) -> None:
+        """Undeclares every querier."""
+        for rpc in self._rpcs.values():
+            rpc.close()
+
+
+class StepQueryTransport:
+    """``SessionBatch`` round trips over the ``StepStream`` key (``use_stream=True`` on Zenoh).
+
+    Zenoh queries are already message-oriented, so there is no stream to keep
+    open: each probe or report is one query whose answer may carry an in-band error.
+    """
+
+    def __init__(self, stub: ZenohStub) -> None:
+        """Sends through ``stub.StepStream``."""
+        self._rpc = stub.StepStream
+
+    def _round_trip(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
+        response = self._rpc(request)
+        if response.HasField("error"):
+            raise esa_error(response.error)
+        return response
+
+    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
+        """Sends one ProbeBatch as a StepStream query."""
+        return self._round_trip(esa_pb2.StepStreamRequest(probe_batch=request)).probe_batch
+
+    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
+        """Sends one ReportBatch as a StepStream query."""
+        return self._round_trip(esa_pb2.StepStreamRequest(report_batch=request)).report_batch
+
+    def close(self) -> None:
+        """Nothing to release."""

@@ -1,0 +1,148 @@
+"""Over Zenoh every failure is the same typed exception as over gRPC, and never a hang."""
+
+import math
+import os
+import signal
+import time
+import uuid
+
+import grpc
+import numpy as np
+import pytest
+import zenoh
+
+from esa_client import (
+    DeadlineExceeded,
+    InvalidArgument,
+    ResourceExhausted,
+    ServerUnavailable,
+    SessionAlreadyExists,
+    SessionConfig,
+    SessionNotFound,
+    StepMismatch,
+    ZenohEsaClient,
+)
+from esa_client._proto.esa.v1 import esa_pb2
+from esa_client.zenoh_transport import peer_config
+
+CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
+
+
+def unique(prefix):
+    return f"{prefix}-{uuid.uuid4()}"
+
+
+def test_not_found(zenoh_client):
+    with pytest.raises(SessionNotFound) as info:
+        zenoh_client.get_session(unique("missing"))
+    assert info.value.code == grpc.StatusCode.NOT_FOUND and "not found" in info.value.message
+
+
+def test_invalid_argument_changes_nothing(zenoh_client):
+    session = zenoh_client.create_session(CONFIG, unique("bad"))
+    session.probe([0.1, 0.2], episode_start=True)
+    before = session.state()
+    for bad in ([math.nan, 0.0], [0.0]):
+        with pytest.raises(InvalidArgument) as info:
+            session.probe(bad)
+        assert info.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    bad_config = CONFIG.to_proto()
+    bad_config.dt = 0.0
+    with pytest.raises(InvalidArgument, match="dt"):
+        zenoh_client.create_session(bad_config)
+    after = session.state()
+    assert (after.step, after.probe_pending) == (before.step, before.probe_pending)
+    np.testing.assert_array_equal(after.shift, before.shift)
+
+
+def test_step_mismatch(zenoh_client):
+    session = zenoh_client.create_session(CONFIG, unique("steps"))
+    with pytest.raises(StepMismatch) as info:
+        session.report(1.0)
+    assert info.value.code == grpc.StatusCode.FAILED_PRECONDITION
+    with pytest.raises(StepMismatch, match="expected"):
+        session.probe([0.0, 0.0], step=3)
+
+
+def test_already_exists(zenoh_client):
+    session_id = unique("dup")
+    zenoh_client.create_session(CONFIG, session_id)
+    other = SessionConfig(action_dim=2, dt=0.05, amplitude=0.3, frequency=10.0, learning_rate=0.5)
+    with pytest.raises(SessionAlreadyExists) as info:
+        zenoh_client.create_session(other, session_id)
+    assert info.value.code == grpc.StatusCode.ALREADY_EXISTS
+
+
+def test_resource_exhausted(server_bin):
+    with ZenohEsaClient.spawn(server_bin, max_sessions=1) as small:
+        small.create_session(CONFIG)
+        with pytest.raises(ResourceExhausted) as info:
+            small.create_session(CONFIG)
+        assert info.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED
+
+
+@pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
+def test_batch_errors_name_the_item_and_change_nothing(zenoh_client, use_stream):
+    batch = zenoh_client.create_batch(CONFIG, 3, use_stream=use_stream)
+    actions = np.zeros((3, 2))
+    actions[2, 1] = math.inf
+    with pytest.raises(InvalidArgument, match="item 2"):
+        batch.probe(actions, [True, True, True])
+    assert not any(s.probe_pending for s in batch.states())
+    with pytest.raises(StepMismatch):
+        batch.report([1.0, 2.0, 3.0])  # nothing was probed
+    batch.probe(np.zeros((3, 2)), [True, True, True])
+    assert batch.report([1.0, 2.0, 3.0]).shape == (3, 2)
+
+
+def test_garbage_bytes_get_a_stream_error_payload(zenoh_client):
+    """The wire format itself: a reply error whose payload is a StreamError message."""
+    with zenoh.open(peer_config(zenoh_client.address.split(","), 5.0)) as session:
+        replies = list(session.get("esa/v1/Probe", payload=b"\xff\xff\xff", timeout=5.0))
+    assert len(replies) == 1 and replies[0].err is not None
+    error = esa_pb2.StreamError.FromString(replies[0].err.payload.to_bytes())
+    assert error.code == grpc.StatusCode.INVALID_ARGUMENT.value[0] and error.message
+
+
+def test_no_server_on_the_prefix_is_unavailable_at_once(zenoh_client):
+    with ZenohEsaClient(
+        zenoh_client.address, prefix="nobody/here", timeout=5.0, wait_ready=False
+    ) as lost:
+        assert not lost.healthy()
+        start = time.monotonic()
+        with pytest.raises(ServerUnavailable, match="nobody/here/GetSession") as info:
+            lost.session_state("x")
+        assert time.monotonic() - start < 1.0
+        assert info.value.code == grpc.StatusCode.UNAVAILABLE
+
+
+def test_unreachable_endpoint_is_unavailable():
+    start = time.monotonic()
+    with pytest.raises(ServerUnavailable, match="tcp/127.0.0.1:1"):
+        ZenohEsaClient("tcp/127.0.0.1:1", timeout=1.0)
+    assert time.monotonic() - start < 5.0
+
+
+def test_a_stopped_server_gives_deadline_exceeded(server_bin):
+    with ZenohEsaClient.spawn(server_bin, timeout=0.5) as client:
+        session = client.create_session(CONFIG)
+        os.kill(client.server.pid, signal.SIGSTOP)
+        try:
+            start = time.monotonic()
+            with pytest.raises(DeadlineExceeded) as info:
+                session.probe([0.0, 0.0], episode_start=True)
+            assert 0.4 < time.monotonic() - start < 3.0
+            assert info.value.code == grpc.StatusCode.DEADLINE_EXCEEDED
+        finally:
+            os.kill(client.server.pid, signal.SIGCONT)
+        # The retry after the deadline is safe and answered.
+        assert session.probe([0.0, 0.0], episode_start=True).shape == (2,)
+
+
+def test_bad_arguments_are_value_errors():
+    with pytest.raises(ValueError, match="endpoint"):
+        ZenohEsaClient("127.0.0.1:7447")
+    with pytest.raises(ValueError, match="prefix"):
+        ZenohEsaClient("tcp/127.0.0.1:7447", prefix="esa/*")
+    with pytest.raises(ValueError, match="timeout"):
+        ZenohEsaClient("tcp/127.0.0.1:7447", timeout=0)
