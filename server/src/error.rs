@@ -43,6 +43,9 @@ pub enum Error {
     /// The reflection service could not be built from the descriptors.
     #[error("reflection: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
+    /// The Zenoh session could not be opened, declared on or closed.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
     /// One item of a batch failed; nothing in the batch was applied.
     #[error("item {index}: {source}")]
     Item {
@@ -76,7 +79,7 @@ impl Error {
             Error::InvalidArgument(_) => Code::InvalidArgument,
             Error::ResourceExhausted(_) => Code::ResourceExhausted,
             Error::AlreadyExists(_) => Code::AlreadyExists,
-            Error::Transport(_) | Error::Io(_) => Code::Unavailable,
+            Error::Transport(_) | Error::Io(_) | Error::Zenoh(_) => Code::Unavailable,
             Error::Reflection(_) => Code::Internal,
             Error::Item { source, .. } => source.code(),
         }

@@ -1,9 +1,10 @@
 //! esa-server: Extremum-Seeking Action selection as a service.
 //!
-//! Layers, each a thin wrapper over the next: transports ([`grpc`], and any
-//! other adapter) call the transport-independent [`handler::EsaHandler`],
-//! which validates requests and runs them against the [`store::SessionStore`]
-//! of `esa_core::Session`s. [`server::EsaServer`] assembles the gRPC server.
+//! Layers, each a thin wrapper over the next: transports ([`grpc`],
+//! [`zenoh_transport`], and any other adapter) call the
+//! transport-independent [`handler::EsaHandler`], which validates requests
+//! and runs them against the [`store::SessionStore`] of `esa_core::Session`s.
+//! [`server::EsaServer`] assembles the gRPC server.
 
 pub mod convert;
 pub mod error;
@@ -13,6 +14,7 @@ pub mod metrics;
 pub mod rpc;
 pub mod server;
 pub mod store;
+pub mod zenoh_transport;
 
 pub use error::Error;
 pub use handler::EsaHandler;

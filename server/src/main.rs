@@ -9,6 +9,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use esa_server::metrics::serve_metrics;
 use esa_server::server::io_context;
+use esa_server::zenoh_transport::ZenohService;
 use esa_server::{Error, Listener};
 use tracing_subscriber::EnvFilter;
 
@@ -46,11 +47,24 @@ async fn run(cli: Cli) -> Result<(), Error> {
             }
         });
     }
+    let zenoh = match cli.zenoh()? {
+        Some((config, prefix)) => {
+            let service = ZenohService::start(server.handler(), config, &prefix).await?;
+            for locator in service.locators().await {
+                announce(&format!("zenoh listening on {locator}"));
+            }
+            Some(service)
+        }
+        None => None,
+    };
     let shutdown = shutdown_signal()?;
     // The line launchers (tests, the Python client) wait for; it comes after
     // binding, so connecting as soon as it is read succeeds.
     announce(&format!("listening on {}", listener.address()?));
     server.serve(listener, shutdown).await?;
+    if let Some(service) = zenoh {
+        service.close().await?;
+    }
     tracing::info!("stopped");
     Ok(())
 }
