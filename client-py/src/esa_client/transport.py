@@ -60,10 +60,35 @@ class UnaryTransport:
         """Nothing to release."""
 
 
+class StepMessages:
+    """Batch round trips as ``StepStream`` messages; subclasses carry one message each way.
+
+    A ``StepStreamResponse`` may carry an in-band ``error``, raised here as its typed
+    exception.
+    """
+
+    def _exchange(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
+        raise NotImplementedError
+
+    def _round_trip(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
+        response = self._exchange(request)
+        if response.HasField("error"):
+            raise esa_error(response.error)
+        return response
+
+    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
+        """Sends one ProbeBatch as a StepStream message."""
+        return self._round_trip(esa_pb2.StepStreamRequest(probe_batch=request)).probe_batch
+
+    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
+        """Sends one ReportBatch as a StepStream message."""
+        return self._round_trip(esa_pb2.StepStreamRequest(report_batch=request)).report_batch
+
+
 _END = object()
 
 
-class StreamTransport:
+class StreamTransport(StepMessages):
     """Batch round trips over one long-lived ``StepStream``.
 
     gRPC's blocking stream iterator has no per-message deadline, so a reader thread
@@ -104,7 +129,7 @@ class StreamTransport:
             self._requests.put(_END)  # type: ignore[union-attr]
         self._requests, self._call = None, None
 
-    def _round_trip(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
+    def _exchange(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
         if self._call is None:
             self._open()
         self._requests.put(request)  # type: ignore[union-attr]
@@ -119,18 +144,7 @@ class StreamTransport:
         if isinstance(item, EsaError):
             self._drop()
             raise item
-        response: esa_pb2.StepStreamResponse = item  # type: ignore[assignment]
-        if response.HasField("error"):
-            raise esa_error(response.error)
-        return response
-
-    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
-        """Sends one ProbeBatch on the stream."""
-        return self._round_trip(esa_pb2.StepStreamRequest(probe_batch=request)).probe_batch
-
-    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
-        """Sends one ReportBatch on the stream."""
-        return self._round_trip(esa_pb2.StepStreamRequest(report_batch=request)).report_batch
+        return item  # type: ignore[return-value]
 
     def close(self) -> None:
         """Ends the stream."""

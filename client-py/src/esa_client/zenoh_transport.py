@@ -20,6 +20,7 @@ from google.protobuf.message import DecodeError, Message
 
 from ._proto.esa.v1 import esa_pb2
 from .errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
+from .transport import StepMessages
 
 DEFAULT_PREFIX = "esa/v1"
 
@@ -225,7 +226,7 @@ class ZenohStub:
             rpc.close()
 
 
-class StepQueryTransport:
+class StepQueryTransport(StepMessages):
     """``SessionBatch`` round trips over the ``StepStream`` key (``use_stream=True`` on Zenoh).
 
     Zenoh queries are already message-oriented, so there is no stream to keep
@@ -236,19 +237,8 @@ class StepQueryTransport:
         """Sends through ``stub.StepStream``."""
         self._rpc = stub.StepStream
 
-    def _round_trip(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
-        response = self._rpc(request)
-        if response.HasField("error"):
-            raise esa_error(response.error)
-        return response
-
-    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
-        """Sends one ProbeBatch as a StepStream query."""
-        return self._round_trip(esa_pb2.StepStreamRequest(probe_batch=request)).probe_batch
-
-    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
-        """Sends one ReportBatch as a StepStream query."""
-        return self._round_trip(esa_pb2.StepStreamRequest(report_batch=request)).report_batch
+    def _exchange(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
+        return self._rpc(request)
 
     def close(self) -> None:
         """Nothing to release."""
