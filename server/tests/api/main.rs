@@ -8,6 +8,7 @@ mod common;
 mod errors;
 mod lifecycle;
 mod limits;
+mod robustness;
 mod stream;
 mod transport;
 mod ttl;
