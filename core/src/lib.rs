@@ -1,7 +1,7 @@
 //! Extremum-Seeking Action selection (ESA): the per-session update law of the esa service.
 //!
 //! Pure math and state, no I/O: the `esa-server` crate wraps it in gRPC. The normative description is
-//! CONTRACT.md section 1 (`shared/design/CONTRACT.md`), after Algorithm 1 of the ESA paper.
+//! CONTRACT.md section 1 (`docs/CONTRACT.md`), after Algorithm 1 of the ESA paper.
 //!
 //! # The update law
 //!
