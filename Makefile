@@ -55,6 +55,9 @@ fmt: venv ## apply rustfmt and ruff format
 	$(CARGO) fmt --all
 	$(VENV)/bin/ruff format $(PY_PACKAGES)
 
+bench: setup ## run every benchmark (core, server, Python client, training) -> BENCHMARKS.md
+	bench/run.sh
+
 clean: ## remove build outputs and the venv
 	$(CARGO) clean
 	rm -rf $(VENV)
