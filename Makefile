@@ -14,6 +14,7 @@ export ESA_SERVER_BIN := $(SERVER_BIN)
 export MUJOCO_GL ?= egl
 
 PY_PACKAGES := client-py experiments tests
+PY_LINT := $(PY_PACKAGES) bench
 PY_EXTRAS := -e "client-py[sb3,zenoh,dev]" -e "experiments[dev]"
 
 .PHONY: help setup build venv demo test test-rust test-python lint fmt bench clean
@@ -48,12 +49,12 @@ test-python:
 lint: venv ## rustfmt, clippy -D warnings, ruff
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy --release --workspace --all-targets -- -D warnings
-	$(VENV)/bin/ruff check $(PY_PACKAGES)
-	$(VENV)/bin/ruff format --check $(PY_PACKAGES)
+	$(VENV)/bin/ruff check $(PY_LINT)
+	$(VENV)/bin/ruff format --check $(PY_LINT)
 
 fmt: venv ## apply rustfmt and ruff format
 	$(CARGO) fmt --all
-	$(VENV)/bin/ruff format $(PY_PACKAGES)
+	$(VENV)/bin/ruff format $(PY_LINT)
 
 bench: setup ## run every benchmark (core, server, Python client, training) -> BENCHMARKS.md
 	bench/run.sh

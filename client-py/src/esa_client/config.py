@@ -49,8 +49,10 @@ def _all_finite(values: tuple[float, ...]) -> bool:
 
 
 def _finite_bound(bound: Vector | None, unbounded: float) -> Vector | None:
-    """Maps a gymnasium-style bound, where ``unbounded`` (+-inf) marks an open side, to the
-    contract's finite form: all open = no bound, some open = float max there."""
+    """Maps a gymnasium-style bound to the contract's finite form.
+
+    ``unbounded`` (+-inf) marks an open side: all open = no bound, some open = float max there.
+    """
     if bound is None:
         return None
     values = np.asarray(bound, dtype=np.float64)
