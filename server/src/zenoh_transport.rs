@@ -125,7 +125,8 @@ impl ZenohService {
     /// Opens a Zenoh session with `config` and declares one queryable per
     /// RPC under `prefix` (e.g. `esa/v1/ProbeBatch`), answered by `handler`.
     ///
-    /// Must be called inside a Tokio runtime: queries are answered on it.
+    /// Must be called inside a multi-thread Tokio runtime (Zenoh refuses the
+    /// current-thread one): queries are answered on it.
     pub async fn start(
         handler: Arc<EsaHandler>,
         config: Config,

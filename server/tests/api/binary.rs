@@ -74,6 +74,13 @@ fn help_documents_every_flag() {
         "--max-message-bytes",
         "--shutdown-grace",
         "--log-format",
+        "--zenoh",
+        "--zenoh-prefix",
+        "--zenoh-config",
+        "--zenoh-listen",
+        "--zenoh-connect",
+        "--shard",
+        "zenoh listening on",
         "--help",
         "--version",
         "RUST_LOG",
@@ -91,6 +98,9 @@ fn bad_flags_are_rejected_with_a_message() {
         &["--listen", "not-an-address"],
         &["--listen", "127.0.0.1:1", "--uds", "/tmp/x.sock"],
         &["--log-format", "xml"],
+        &["--shard", "0/2"],
+        &["--zenoh", "--shard", "2/2"],
+        &["--zenoh", "--shard", "two"],
     ] {
         let output = Command::new(BIN).args(args).output().unwrap();
         assert_eq!(output.status.code(), Some(2), "{args:?}");
@@ -160,4 +170,67 @@ async fn serves_a_unix_socket_and_removes_it_on_sigint() {
         "esa-server exited with an error"
     );
     assert!(!path.exists(), "socket file left behind");
+}
+
+// Zenoh needs a multi-thread Tokio runtime.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serves_a_zenoh_shard_beside_grpc() {
+    use esa_server::pb;
+    use prost::Message as _;
+
+    let (mut child, mut stdout) = launch(&[
+        "--listen",
+        "127.0.0.1:0",
+        "--zenoh",
+        "--shard",
+        "1/2",
+        "--shutdown-grace",
+        "600",
+    ]);
+    let locator = read_line_after(&mut stdout, "zenoh listening on ");
+    assert!(locator.starts_with("tcp/127.0.0.1:"), "{locator}");
+    let addr = read_line_after(&mut stdout, "listening on ");
+    let mut client = Client::connect(format!("http://{addr}")).await.unwrap();
+    create(&mut client, "sharded", config(2)).await;
+
+    let mut peer_config =
+        esa_server::zenoh_transport::loopback_config(&[], &[locator]).expect("peer config");
+    peer_config.insert_json5("listen/endpoints", "[]").unwrap();
+    let peer = zenoh::open(peer_config).await.expect("peer session");
+    let request = pb::GetSessionRequest {
+        session_id: "sharded".into(),
+    };
+    let replies = peer
+        .get("esa/v1/shard/1/GetSession")
+        .payload(request.encode_to_vec())
+        .await
+        .unwrap();
+    let reply = replies.recv_async().await.expect("a reply");
+    let sample = reply.result().expect("a response");
+    let state = pb::GetSessionResponse::decode(&*sample.payload().to_bytes()).unwrap();
+    assert_eq!(state, get(&mut client, "sharded").await.unwrap());
+    peer.close().await.unwrap();
+
+    signal(&child, "TERM");
+    assert!(
+        wait_exit(&mut child).await,
+        "esa-server exited with an error"
+    );
+}
+
+#[test]
+fn a_bad_zenoh_config_stops_the_server_with_a_message() {
+    let output = Command::new(BIN)
+        .args([
+            "--listen",
+            "127.0.0.1:0",
+            "--zenoh",
+            "--zenoh-config",
+            "/nonexistent.json5",
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("/nonexistent.json5"), "{stderr}");
 }

@@ -13,3 +13,4 @@ mod stream;
 mod transport;
 mod ttl;
 mod update_law;
+mod zenoh_transport;
