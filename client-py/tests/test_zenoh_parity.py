@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from esa_client import SessionConfig, SessionNotFound, ZenohEsaClient
+from esa_client.zenoh_transport import peer_config
 
 CONFIG = SessionConfig(
     action_dim=2,
@@ -101,8 +102,11 @@ def test_health_and_readiness(zenoh_client):
     assert "esa/v1" in repr(zenoh_client)
 
 
-def test_a_second_client_connects_to_the_announced_locator(zenoh_client):
-    with ZenohEsaClient(zenoh_client.address, timeout=2.0) as other:
+@pytest.mark.parametrize("own_config", [False, True], ids=["endpoints", "zenoh-config"])
+def test_a_second_client_connects_to_the_announced_locator(zenoh_client, own_config):
+    endpoints = zenoh_client.address.split(",")
+    config = peer_config(endpoints, 2.0) if own_config else None
+    with ZenohEsaClient(endpoints, timeout=2.0, config=config) as other:
         session = other.create_session(CONFIG)
         assert zenoh_client.session_state(session.id).step == 0
         session.close()

@@ -114,7 +114,8 @@ class ZenohEsaClient(EsaClient):
         self.timeout = float(timeout)
         self.server: ServerProcess | None = None
         self._closed = False
-        self._zenoh = open_session(config or peer_config(endpoints, self.timeout), self.address)
+        config = config if config is not None else peer_config(endpoints, self.timeout)
+        self._zenoh = open_session(config, self.address)
         try:
             self.stub = self._make_stub()
             if wait_ready:
