@@ -16,7 +16,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
@@ -29,6 +28,7 @@ import numpy as np
 from esa_client import EsaClient, SessionConfig
 from esa_client.reference import ReferenceClient
 
+from cli import parse_dataclass
 from servers import baseline_server, esa_server_tcp, server_binary
 
 # Steps per episode, as in the MuJoCo tasks (the episode start rides on a probe).
@@ -45,15 +45,6 @@ class Args:
     window: float = 2.0
     max_pairs: int = 20_000
     out: str = "bench/results/python.json"
-
-
-def parse_args() -> Args:
-    """Reads ``Args`` from the command line (``--window 0.5`` etc.)."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for field in dataclasses.fields(Args):
-        flag = "--" + field.name.replace("_", "-")
-        parser.add_argument(flag, type=type(field.default), default=field.default)
-    return Args(**vars(parser.parse_args()))
 
 
 def session_config(dim: int) -> SessionConfig:
@@ -129,7 +120,7 @@ def targets() -> list[Target]:
 
 def main() -> None:
     """Measures every target for every N and writes the JSON results."""
-    args = parse_args()
+    args = parse_dataclass(Args, __doc__.splitlines()[0])
     envs = [int(n) for n in args.envs.split(",")]
     rows = []
     for server, socket, api, connect in targets():

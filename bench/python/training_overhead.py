@@ -18,7 +18,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
@@ -37,6 +36,7 @@ from esa_client.sb3.runtime import EsaRuntime
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.env_util import make_vec_env
 
+from cli import parse_dataclass
 from servers import server_binary
 
 
@@ -53,15 +53,6 @@ class Args:
     repeats: int = 2
     seed: int = 0
     out: str = "bench/results/training.json"
-
-
-def parse_args() -> Args:
-    """Reads ``Args`` from the command line (``--ppo-steps 4096`` etc.)."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for field in dataclasses.fields(Args):
-        flag = "--" + field.name.replace("_", "-")
-        parser.add_argument(flag, type=type(field.default), default=field.default)
-    return Args(**vars(parser.parse_args()))
 
 
 # (class, method, bucket): where the ESA agents' extra time goes.
@@ -134,7 +125,7 @@ def train_seconds(name: str, args: Args) -> tuple[float, dict[str, float]]:
 
 def main() -> None:
     """Times every agent ``repeats`` times, alternating, and writes the ratios."""
-    args = parse_args()
+    args = parse_dataclass(Args, __doc__.splitlines()[0])
     th.set_num_threads(1)
     # Without it every spawn would first ask cargo whether the binary is up to date.
     os.environ["ESA_SERVER_BIN"] = server_binary()
