@@ -127,6 +127,9 @@ def test_a_stopped_server_gives_deadline_exceeded(server_bin):
     with ZenohEsaClient.spawn(server_bin, timeout=0.5) as client:
         session = client.create_session(CONFIG)
         os.kill(client.server.pid, signal.SIGSTOP)
+        # kill() returns before the child has stopped; waiting for the stop proves it.
+        _, status = os.waitpid(client.server.pid, os.WUNTRACED)
+        assert os.WIFSTOPPED(status)
         try:
             start = time.monotonic()
             with pytest.raises(DeadlineExceeded) as info:

@@ -26,6 +26,14 @@ CONFIG = SessionConfig(
 )
 
 
+def spread_ids(tag, n):
+    """N fresh ids owning sessions on both shards (ids are random: draw until they do)."""
+    while True:
+        ids = [f"{tag}-{k}-{uuid.uuid4()}" for k in range(n)]
+        if {shard_of(i, 2) for i in ids} == {0, 1}:
+            return ids
+
+
 @pytest.fixture(scope="module")
 def sharded(server_bin):
     with ShardedEsaClient.spawn(server_bin, shards=2) as client:
@@ -52,11 +60,10 @@ def test_the_hash_is_the_documented_one():
 
 
 def test_sessions_live_on_their_shard_only(sharded, shard_grpc):
-    ids = [f"spread-{i}-{uuid.uuid4()}" for i in range(16)]
+    ids = spread_ids("spread", 16)
     for session_id in ids:
         sharded.create_session(CONFIG, session_id)
     owners = [sharded.shard_of(i) for i in ids]
-    assert set(owners) == {0, 1}, "16 random ids should land on both shards"
     for session_id, owner in zip(ids, owners, strict=True):
         assert shard_grpc[owner].session_state(session_id).config == CONFIG
         with pytest.raises(SessionNotFound):
@@ -68,8 +75,7 @@ def test_sessions_live_on_their_shard_only(sharded, shard_grpc):
 @pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
 def test_a_batch_across_shards_matches_one_server(sharded, server_bin, use_stream):
     n = 9
-    ids = [f"parity-{i}-{uuid.uuid4()}" for i in range(n)]
-    assert {shard_of(i, 2) for i in ids} == {0, 1}
+    ids = spread_ids("parity", n)
     rng = np.random.default_rng(3)
     inputs = [(rng.normal(size=(n, 2)), rng.random(n) < 0.2, rng.normal(size=n)) for _ in range(15)]
     answers = []
@@ -99,20 +105,24 @@ def test_batch_errors_name_the_item_of_the_whole_batch(sharded):
 
 
 def test_raw_batches_must_stay_on_one_shard(sharded):
-    ids = [f"raw-{i}-{uuid.uuid4()}" for i in range(8)]
+    by_shard = {0: [], 1: []}
+    while min(len(v) for v in by_shard.values()) < 2:
+        session_id = f"raw-{uuid.uuid4()}"
+        by_shard[shard_of(session_id, 2)].append(session_id)
+    ids = by_shard[0][:2] + by_shard[1][:2]
     for session_id in ids:
         sharded.create_session(CONFIG, session_id)
-    request = esa_pb2.ProbeBatchRequest(session_ids=ids, steps=[0] * 8, actions=[0.0] * 16)
+    request = esa_pb2.ProbeBatchRequest(session_ids=ids, steps=[0] * 4, actions=[0.0] * 8)
     with pytest.raises(InvalidArgument, match="SessionBatch"):
         sharded.stub.ProbeBatch(request)
-    one_shard = [i for i in ids if shard_of(i, 2) == 0][:2]
+    one_shard = by_shard[0][:2]
     request = esa_pb2.ProbeBatchRequest(session_ids=one_shard, steps=[0, 0], actions=[0.0] * 4)
     assert len(sharded.stub.ProbeBatch(request).probes) == 4
 
 
 def test_a_killed_shard_fails_fast_and_the_other_keeps_serving(server_bin):
     with ShardedEsaClient.spawn(server_bin, shards=2, timeout=5.0) as client:
-        ids = [f"kill-{i}-{uuid.uuid4()}" for i in range(8)]
+        ids = spread_ids("kill", 8)
         batch = client.create_batch(CONFIG, 8, ids=ids)
         batch.probe(np.zeros((8, 2)), [True] * 8)
         batch.report(np.ones(8))
