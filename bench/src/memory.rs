@@ -50,7 +50,8 @@ pub async fn rss_per_session(
             let address = address.clone();
             let n = per_client.min(sessions.saturating_sub(client * per_client));
             // As long as the Python client's ids (`<uuid>-<i>`): the id is stored too.
-            let prefix = format!("{:0>36}", format!("rss-{client}"));
+            let name = format!("rss-{client}");
+            let prefix = format!("{name:0>36}");
             tokio::spawn(async move {
                 let mut connection = connect(&address).await?;
                 create_sessions(&mut connection, &prefix, n, dim).await
