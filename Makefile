@@ -57,7 +57,7 @@ fmt: venv ## apply rustfmt and ruff format
 	$(VENV)/bin/ruff format $(PY_LINT)
 
 bench: setup ## run every benchmark (core, server, Python client, training) -> BENCHMARKS.md
-	bench/run.sh
+	PY=$(PY) CARGO=$(CARGO) bash bench/run.sh
 
 clean: ## remove build outputs and the venv
 	$(CARGO) clean
