@@ -1,7 +1,7 @@
 //! Per-dimension state of a session and the per-dimension steps of the law (the hot loops).
 //!
-//! The state is the columns of one D x 8 nalgebra matrix: one allocation per session (instead of one per
-//! vector) keeps an idle D = 6 session near the 1 KiB budget of issue 7, and the column-major layout
+//! The state is the columns of one D x 9 nalgebra matrix: one allocation per session (instead of one per
+//! vector) keeps an idle D = 6 session under the 1 KiB budget of issue 7, and the column-major layout
 //! keeps every per-dimension vector contiguous, so each step is one fused loop over plain slices that
 //! the compiler vectorizes, without bounds checks.
 
@@ -15,10 +15,11 @@ const FREQUENCY: usize = 1;
 const RATE: usize = 2;
 const LOW: usize = 3;
 const HIGH: usize = 4;
-const SHIFT: usize = 5;
-const SINE: usize = 6;
-const ACTION: usize = 7;
-const COLUMNS: usize = 8;
+const LEARNING_RATE: usize = 5;
+const SHIFT: usize = 6;
+const SINE: usize = 7;
+const ACTION: usize = 8;
+const COLUMNS: usize = 9;
 
 // `split_mut` hands out the mutable columns as one contiguous tail in this order.
 const _: () = assert!(SHIFT + 1 == SINE && SINE + 1 == ACTION && ACTION + 1 == COLUMNS);
@@ -43,6 +44,68 @@ struct Columns<'a> {
     action: &'a mut [f64],
 }
 
+/// A per-dimension field of [`SessionConfig`]; the lanes hold it broadcast to D values, so the session
+/// need not keep the config's own vectors.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Field {
+    Amplitude,
+    Frequency,
+    LearningRate,
+    ActionLow,
+    ActionHigh,
+}
+
+impl Field {
+    pub const ALL: [Field; 5] = [
+        Field::Amplitude,
+        Field::Frequency,
+        Field::LearningRate,
+        Field::ActionLow,
+        Field::ActionHigh,
+    ];
+
+    /// The field's values as given in `config` (empty, length 1 or length D).
+    pub fn of(self, config: &SessionConfig) -> &[f64] {
+        match self {
+            Field::Amplitude => &config.amplitude,
+            Field::Frequency => &config.frequency,
+            Field::LearningRate => &config.learning_rate,
+            Field::ActionLow => &config.action_low,
+            Field::ActionHigh => &config.action_high,
+        }
+    }
+
+    /// The same field of `config`, writable.
+    pub fn of_mut(self, config: &mut SessionConfig) -> &mut Vec<f64> {
+        match self {
+            Field::Amplitude => &mut config.amplitude,
+            Field::Frequency => &mut config.frequency,
+            Field::LearningRate => &mut config.learning_rate,
+            Field::ActionLow => &mut config.action_low,
+            Field::ActionHigh => &mut config.action_high,
+        }
+    }
+
+    fn column(self) -> usize {
+        match self {
+            Field::Amplitude => AMPLITUDE,
+            Field::Frequency => FREQUENCY,
+            Field::LearningRate => LEARNING_RATE,
+            Field::ActionLow => LOW,
+            Field::ActionHigh => HIGH,
+        }
+    }
+
+    /// The lane value of an unset (empty) field: unbounded sides saturate so clipping stays finite.
+    fn unset(self) -> f64 {
+        match self {
+            Field::ActionLow => -f64::MAX,
+            Field::ActionHigh => f64::MAX,
+            Field::Amplitude | Field::Frequency | Field::LearningRate => 0.0,
+        }
+    }
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub(crate) struct Lanes {
     columns: DMatrix<f64>,
@@ -55,15 +118,11 @@ impl Lanes {
     pub fn new(config: &SessionConfig) -> Self {
         let dim = config.action_dim as usize;
         let mut columns = DMatrix::zeros(dim, COLUMNS);
-        let fills: [(usize, &[f64], f64); 4] = [
-            (AMPLITUDE, &config.amplitude, 0.0),
-            (FREQUENCY, &config.frequency, 0.0),
-            (LOW, &config.action_low, -f64::MAX),
-            (HIGH, &config.action_high, f64::MAX),
-        ];
-        for (column, values, default) in fills {
-            for (i, x) in columns.column_mut(column).iter_mut().enumerate() {
-                *x = lane(values, i, default).clamp(-f64::MAX, f64::MAX);
+        for field in Field::ALL {
+            let values = field.of(config);
+            for (i, x) in columns.column_mut(field.column()).iter_mut().enumerate() {
+                // A valid config's values are finite, so the lanes hold them exactly.
+                *x = lane(values, i, field.unset());
             }
         }
         let max_frequency = columns.column(FREQUENCY).max();
@@ -71,8 +130,13 @@ impl Lanes {
             columns,
             max_frequency,
         };
-        lanes.set_rate(&config.learning_rate, 1.0);
+        lanes.set_rate(1.0);
         lanes
+    }
+
+    /// The D values of a config field (broadcast; unset bounds read as `-f64::MAX` / `f64::MAX`).
+    pub fn field(&self, field: Field) -> &[f64] {
+        self.column(field.column())
     }
 
     pub fn dim(&self) -> usize {
@@ -80,9 +144,15 @@ impl Lanes {
     }
 
     /// Sets alpha_e = alpha * factor for every dimension (once per episode, not per step).
-    pub fn set_rate(&mut self, learning_rate: &[f64], factor: f64) {
-        for (i, x) in self.columns.column_mut(RATE).iter_mut().enumerate() {
-            *x = lane(learning_rate, i, 0.0) * factor;
+    pub fn set_rate(&mut self, factor: f64) {
+        let dim = self.dim();
+        let all = self.columns.as_mut_slice();
+        let (head, tail) = all.split_at_mut(LEARNING_RATE * dim);
+        let rate = head
+            .get_mut(RATE * dim..(RATE + 1) * dim)
+            .unwrap_or_default();
+        for (x, &alpha) in rate.iter_mut().zip(tail.iter()) {
+            *x = alpha * factor;
         }
     }
 
@@ -196,7 +266,8 @@ impl Lanes {
         let (amplitude, fixed) = fixed.split_at(dim);
         let (frequency, fixed) = fixed.split_at(dim);
         let (rate, fixed) = fixed.split_at(dim);
-        let (low, high) = fixed.split_at(dim);
+        let (low, fixed) = fixed.split_at(dim);
+        let (high, _learning_rate) = fixed.split_at(dim);
         Columns {
             amplitude,
             frequency,
@@ -253,11 +324,12 @@ mod tests {
     #[test]
     fn resolves_broadcasts_and_saturates_unbounded_sides() {
         let mut lanes = Lanes::new(&config());
-        lanes.set_rate(&config().learning_rate, 0.5);
+        lanes.set_rate(0.5);
         assert_eq!(lanes.dim(), 3);
         assert_eq!(lanes.max_frequency, 30.0);
         assert_eq!(lanes.column(LOW), &[-f64::MAX, -1.0, -2.0]);
         assert_eq!(lanes.column(HIGH), &[f64::MAX; 3]);
+        assert_eq!(lanes.field(Field::LearningRate), &[2.0; 3]);
         let c = lanes.split_mut();
         assert_eq!(c.amplitude, &[0.5; 3]);
         assert_eq!(c.frequency, &[10.0, 20.0, 30.0]);

@@ -2,7 +2,7 @@
 
 use crate::config::SessionConfig;
 use crate::highpass::Washout;
-use crate::lanes::Lanes;
+use crate::lanes::{Field, Lanes};
 use crate::CoreError;
 
 /// What a successful [`Session::report`] did besides returning the improved action.
@@ -19,7 +19,7 @@ pub struct ReportOutcome {
 /// Every method validates first and changes nothing when it returns an error.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Session {
-    config: SessionConfig,
+    settings: Settings,
     lanes: Lanes,
     /// `None` when the config disables the high-pass (H is the identity).
     washout: Option<Washout>,
@@ -33,6 +33,47 @@ pub struct Session {
     report_replayable: bool,
 }
 
+/// The config's scalar fields and the shapes of its per-dimension ones. The per-dimension values
+/// themselves live broadcast in the [`Lanes`]: keeping the config's own vectors too would cost an idle
+/// D = 6 session five more allocations, about a quarter of issue 7's 1 KiB budget.
+#[derive(Clone, Debug, PartialEq)]
+struct Settings {
+    dt: f64,
+    highpass_cutoff: Option<f64>,
+    disable_highpass: bool,
+    lr_decay: Option<f64>,
+    max_episodes: u64,
+    /// How each of [`Field::ALL`] was given, so [`Session::config`] returns it as sent.
+    shapes: [Shape; 5],
+}
+
+/// How a per-dimension field was given: empty, one broadcast value, or one value per dimension.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Shape {
+    Unset,
+    Broadcast,
+    PerDimension,
+}
+
+impl Shape {
+    fn of(values: &[f64]) -> Shape {
+        match values.len() {
+            0 => Shape::Unset,
+            1 => Shape::Broadcast,
+            _ => Shape::PerDimension,
+        }
+    }
+
+    /// The field as given, from its D lane values.
+    fn rebuild(self, lanes: &[f64]) -> Vec<f64> {
+        match self {
+            Shape::Unset => Vec::new(),
+            Shape::Broadcast => lanes.iter().take(1).copied().collect(),
+            Shape::PerDimension => lanes.to_vec(),
+        }
+    }
+}
+
 impl Session {
     /// Validates `config` and starts the first episode at step 0 with v = 0.
     pub fn new(config: SessionConfig) -> Result<Session, CoreError> {
@@ -43,7 +84,14 @@ impl Session {
             lanes: Lanes::new(&config),
             washout,
             shift_limit: config.shift_limit.unwrap_or(f64::INFINITY),
-            config,
+            settings: Settings {
+                dt: config.dt,
+                highpass_cutoff: config.highpass_cutoff,
+                disable_highpass: config.disable_highpass,
+                lr_decay: config.lr_decay,
+                max_episodes: config.max_episodes,
+                shapes: Field::ALL.map(|field| Shape::of(field.of(&config))),
+            },
             step: 0,
             episodes: 0,
             nonfinite_skips: 0,
@@ -53,8 +101,21 @@ impl Session {
     }
 
     /// The config as it was given (vectors not broadcast).
-    pub fn config(&self) -> &SessionConfig {
-        &self.config
+    pub fn config(&self) -> SessionConfig {
+        let s = &self.settings;
+        let mut config = SessionConfig {
+            highpass_cutoff: s.highpass_cutoff,
+            disable_highpass: s.disable_highpass,
+            // A valid limit is finite; the infinite one stands for "unset".
+            shift_limit: Some(self.shift_limit).filter(|l| l.is_finite()),
+            lr_decay: s.lr_decay,
+            max_episodes: s.max_episodes,
+            ..SessionConfig::new(self.lanes.dim() as u32, s.dt, vec![], vec![], vec![])
+        };
+        for (field, shape) in Field::ALL.into_iter().zip(s.shapes) {
+            *field.of_mut(&mut config) = shape.rebuild(self.lanes.field(field));
+        }
+        config
     }
 
     /// D.
@@ -89,7 +150,7 @@ impl Session {
 
     /// True once `e >= E > 0`: probes and actions are the clipped sampled action, v no longer moves.
     pub fn is_pass_through(&self) -> bool {
-        self.config.max_episodes > 0 && self.episodes >= self.config.max_episodes
+        self.settings.max_episodes > 0 && self.episodes >= self.settings.max_episodes
     }
 
     /// Checks a probe without changing anything, so a batch can validate every item before applying any.
@@ -130,7 +191,7 @@ impl Session {
         if self.is_pass_through() {
             self.lanes.hold(action, out);
         } else {
-            let tau = self.step as f64 * self.config.dt;
+            let tau = self.step as f64 * self.settings.dt;
             self.lanes.probe(action, tau, out);
         }
         self.probe_pending = true;
@@ -212,11 +273,11 @@ impl Session {
         self.probe_pending = false;
         self.report_replayable = false;
         let decay = self
-            .config
+            .settings
             .lr_decay
             .unwrap_or(1.0)
             .powf(self.episodes as f64);
-        self.lanes.set_rate(&self.config.learning_rate, decay);
+        self.lanes.set_rate(decay);
         self.episodes
     }
 

@@ -190,6 +190,9 @@ proptest! {
     #[test]
     fn outputs_stay_finite_and_bounded_and_refusals_change_nothing((config, requests) in scenario()) {
         let mut session = Session::new(config.clone()).expect("generated config is valid");
+        // The session keeps no copy of the config; GetSession and idempotent CreateSession rely on
+        // rebuilding it exactly, bit for bit, with every vector at the length it was given.
+        prop_assert_eq!(format!("{:?}", session.config()), format!("{:?}", &config));
         let limit = config.shift_limit.unwrap_or(f64::INFINITY);
         let mut last_report: Option<(u64, Vec<f64>)> = None;
         for request in &requests {

@@ -116,7 +116,7 @@ impl EsaHandler {
         self.observe(Rpc::GetSession, || {
             self.store.with_session(&req.session_id, |session| {
                 Ok(pb::GetSessionResponse {
-                    config: Some(config_to_proto(session.config())),
+                    config: Some(config_to_proto(&session.config())),
                     step: session.step(),
                     episodes_completed: session.episodes_completed(),
                     shift: session.shift().to_vec(),

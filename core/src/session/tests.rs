@@ -84,7 +84,7 @@ fn fresh_session_state() {
     assert_eq!(s.shift(), &[0.0, 0.0]);
     assert!(!s.probe_pending());
     assert!(!s.is_pass_through());
-    assert_eq!(s.config(), &base());
+    assert_eq!(s.config(), base());
 }
 
 #[test]
