@@ -11,6 +11,7 @@ from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.distributions import Distribution
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 from torch.nn import functional as F
@@ -99,9 +100,29 @@ class ESAPPO(EsaMixin, PPO):
         with th.no_grad():
             return self.policy.extract_features(obs, self.policy.vf_features_extractor)
 
-    def _esa_q_at(self, obs: Any) -> Any:
-        features = self._esa_features(obs)
+    def _sample(self, obs: Any) -> tuple[th.Tensor, th.Tensor, th.Tensor, Distribution, th.Tensor]:
+        """``ActorCriticPolicy.forward`` that also returns the distribution and the value features.
 
+        The ESA step evaluates the improved action's log-probability under this same
+        distribution and probes the critic on these features: keeping them spares a
+        second policy pass per step.
+        """
+        policy = self.policy
+        with th.no_grad():
+            features = policy.extract_features(obs)
+            if policy.share_features_extractor:
+                pi_features = vf_features = features
+            else:
+                pi_features, vf_features = features
+            values = policy.value_net(policy.mlp_extractor.forward_critic(vf_features))
+            latent_pi = policy.mlp_extractor.forward_actor(pi_features)
+            distribution = policy._get_action_dist_from_latent(latent_pi)
+            actions = distribution.get_actions()
+            log_probs = distribution.log_prob(actions)
+        actions = actions.reshape((-1, *self.action_space.shape))
+        return actions, values, log_probs, distribution, vf_features
+
+    def _esa_q_at(self, features: th.Tensor) -> Any:
         def q_fn(actions: np.ndarray) -> np.ndarray:
             reps = len(actions) // self.n_envs
             with th.no_grad():
@@ -154,20 +175,18 @@ class ESAPPO(EsaMixin, PPO):
             if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
                 self.policy.reset_noise(env.num_envs)
 
-            with th.no_grad():
-                obs_tensor = obs_as_tensor(self._last_obs, self.device)
-                actions, values, log_probs = self.policy(obs_tensor)
+            obs_tensor = obs_as_tensor(self._last_obs, self.device)
+            actions, values, log_probs, distribution, features = self._sample(obs_tensor)
             actions = actions.cpu().numpy()
 
             if self._esa_q_fitted:
                 improved = self._esa_runtime().improve(
                     actions.reshape(env.num_envs, -1),
                     self._last_episode_starts,
-                    self._esa_q_at(obs_tensor),
+                    self._esa_q_at(features),
                 )
                 actions = improved.reshape(actions.shape).astype(actions.dtype)
                 with th.no_grad():
-                    distribution = self.policy.get_distribution(obs_tensor)
                     log_probs = distribution.log_prob(th.as_tensor(actions, device=self.device))
 
             clipped_actions = actions
