@@ -6,6 +6,9 @@ N = 1, 8, 64 envs of D = 6 against:
 
 - esa-server over loopback TCP and a Unix socket (``EsaClient.spawn``), each with
   ``ProbeBatch``/``ReportBatch`` calls and with the ``StepStream``;
+- esa-server with ``--zenoh`` on loopback (``ZenohEsaClient.spawn``): the same two
+  ways, as queries on ``esa/v1/ProbeBatch``/``ReportBatch`` or one query per
+  StepStream message on ``esa/v1/StepStream``;
 - ``esa_client.reference`` in-process (no server, no network);
 - ``baseline_server.py``, a plain Python grpcio server, through the same client.
 
@@ -25,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from esa_client import EsaClient, SessionConfig
+from esa_client import EsaClient, SessionConfig, ZenohEsaClient
 from esa_client.reference import ReferenceClient
 
 from cli import parse_dataclass
@@ -112,6 +115,14 @@ def targets() -> list[Target]:
         out.append(("esa-server", "tcp", api, lambda: client_at(esa_server_tcp())))
         out.append(
             ("esa-server", "uds", api, lambda: EsaClient.spawn(server_binary(), timeout=30.0))
+        )
+        out.append(
+            (
+                "esa-server",
+                "zenoh",
+                api,
+                lambda: ZenohEsaClient.spawn(server_binary(), timeout=30.0),
+            )
         )
         out.append(("python-grpcio", "tcp", api, lambda: client_at(baseline_server())))
     out.append(("reference", "in-process", "-", lambda: nullcontext(ReferenceClient())))

@@ -1,12 +1,13 @@
-//! One client's view of a set of sessions: connect over TCP or a Unix
-//! socket, create the sessions, and run probe + report pairs over one of the
-//! three ways the contract offers (Probe/Report, ProbeBatch/ReportBatch, or
-//! one StepStream).
+//! One client's view of a set of sessions: connect over TCP, a Unix socket
+//! or Zenoh, create the sessions, and run probe + report pairs over one of
+//! the three ways the contract offers (Probe/Report, ProbeBatch/ReportBatch,
+//! or StepStream messages).
 
 use esa_server::pb;
 use esa_server::pb::esa_service_client::EsaServiceClient;
 use esa_server::pb::step_stream_request::Kind as Req;
 use esa_server::pb::step_stream_response::Kind as Resp;
+use esa_server::Rpc;
 use hyper_util::rt::TokioIo;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
@@ -15,9 +16,41 @@ use tonic::Streaming;
 
 use crate::error::{Error, Result};
 use crate::server_process::Address;
+use crate::zenoh_client::ZenohClient;
 
-/// The generated gRPC client on a tonic channel.
-pub type Client = EsaServiceClient<Channel>;
+/// A connection to the server over one of its transports.
+#[derive(Clone)]
+pub enum Client {
+    /// The generated gRPC client on a tonic channel (TCP or Unix socket).
+    Grpc(EsaServiceClient<Channel>),
+    /// A Zenoh peer session: one query per call.
+    Zenoh(ZenohClient),
+}
+
+/// The unary calls, each over gRPC or as a query on `<prefix>/<Rpc>`.
+macro_rules! unary_calls {
+    ($($method:ident: $rpc:ident($request:ty) -> $response:ty;)*) => {
+        impl Client {
+            $(
+                async fn $method(&mut self, request: $request) -> Result<$response> {
+                    match self {
+                        Client::Grpc(client) => Ok(client.$method(request).await?.into_inner()),
+                        Client::Zenoh(client) => client.call(Rpc::$rpc, &request).await,
+                    }
+                }
+            )*
+        }
+    };
+}
+
+unary_calls! {
+    create_session: CreateSession(pb::CreateSessionRequest) -> pb::CreateSessionResponse;
+    close_session: CloseSession(pb::CloseSessionRequest) -> pb::CloseSessionResponse;
+    probe: Probe(pb::ProbeRequest) -> pb::ProbeResponse;
+    report: Report(pb::ReportRequest) -> pb::ReportResponse;
+    probe_batch: ProbeBatch(pb::ProbeBatchRequest) -> pb::ProbeBatchResponse;
+    report_batch: ReportBatch(pb::ReportBatchRequest) -> pb::ReportBatchResponse;
+}
 
 /// Steps per episode, as in the MuJoCo tasks: keeps `t` (and so the sine
 /// arguments) realistic and exercises the episode-start path.
@@ -31,13 +64,17 @@ pub enum Api {
     Unary,
     /// `ProbeBatch` + `ReportBatch` unary calls.
     Batch,
-    /// `ProbeBatch` + `ReportBatch` messages on one `StepStream`.
+    /// `ProbeBatch` + `ReportBatch` messages on one `StepStream` (over
+    /// Zenoh: one query per message on the `StepStream` key).
     Stream,
 }
 
-/// Opens a new HTTP/2 connection to `address`.
+/// Opens a new HTTP/2 connection (or Zenoh session) to `address`.
 pub async fn connect(address: &Address) -> Result<Client> {
     let channel = match address {
+        Address::Zenoh(locators) => {
+            return Ok(Client::Zenoh(ZenohClient::connect(locators).await?))
+        }
         Address::Tcp(addr) => {
             Endpoint::try_from(format!("http://{addr}"))?
                 .tcp_nodelay(true)
@@ -59,7 +96,7 @@ pub async fn connect(address: &Address) -> Result<Client> {
                 .await?
         }
     };
-    Ok(EsaServiceClient::new(channel))
+    Ok(Client::Grpc(EsaServiceClient::new(channel)))
 }
 
 /// A session config like the SB3 drop-ins send for a `dim`-D Box in [-1, 1].
@@ -89,13 +126,7 @@ pub async fn create_sessions(
             session_id: format!("{prefix}-{i}"),
             config: Some(session_config(dim)),
         };
-        ids.push(
-            client
-                .create_session(request)
-                .await?
-                .into_inner()
-                .session_id,
-        );
+        ids.push(client.create_session(request).await?.session_id);
     }
     Ok(ids)
 }
@@ -111,36 +142,54 @@ pub async fn close_sessions(client: &mut Client, ids: &[String]) -> Result<()> {
     Ok(())
 }
 
-/// The requests and responses of one StepStream.
-struct Stream {
-    requests: mpsc::Sender<pb::StepStreamRequest>,
-    responses: Streaming<pb::StepStreamResponse>,
+/// One StepStream: a gRPC stream, or StepStream queries over Zenoh.
+// One per Stepper: its size does not matter, an extra pointer hop on the
+// measured path would.
+#[allow(clippy::large_enum_variant)]
+enum Stream {
+    Grpc {
+        requests: mpsc::Sender<pb::StepStreamRequest>,
+        responses: Streaming<pb::StepStreamResponse>,
+    },
+    Zenoh(ZenohClient),
 }
 
 impl Stream {
     async fn open(client: &mut Client) -> Result<Self> {
+        let client = match client {
+            Client::Grpc(client) => client,
+            Client::Zenoh(client) => return Ok(Self::Zenoh(client.clone())),
+        };
         // One message in flight at a time: a pair is two strict round trips.
         let (requests, rx) = mpsc::channel(1);
         let responses = client
             .step_stream(ReceiverStream::new(rx))
             .await?
             .into_inner();
-        Ok(Self {
+        Ok(Self::Grpc {
             requests,
             responses,
         })
     }
 
     async fn round_trip(&mut self, kind: Req) -> Result<Resp> {
-        self.requests
-            .send(pb::StepStreamRequest { kind: Some(kind) })
-            .await
-            .map_err(|_| Error::Protocol("StepStream closed by the server".into()))?;
-        let response = self
-            .responses
-            .message()
-            .await?
-            .ok_or_else(|| Error::Protocol("StepStream ended".into()))?;
+        let request = pb::StepStreamRequest { kind: Some(kind) };
+        let response: pb::StepStreamResponse = match self {
+            Self::Grpc {
+                requests,
+                responses,
+            } => {
+                requests
+                    .send(request)
+                    .await
+                    .map_err(|_| Error::Protocol("StepStream closed by the server".into()))?;
+                responses
+                    .message()
+                    .await?
+                    .ok_or_else(|| Error::Protocol("StepStream ended".into()))?
+            }
+            Self::Zenoh(client) => client.call(Rpc::StepStream, &request).await?,
+        };
         match response.kind {
             Some(Resp::Error(err)) => Err(Error::Stream {
                 code: err.code,
@@ -230,7 +279,7 @@ impl Stepper {
                 action: self.actions.clone(),
                 episode_start,
             };
-            return Ok(self.client.probe(request).await?.into_inner().probe);
+            return Ok(self.client.probe(request).await?.probe);
         }
         let n = self.ids.len();
         let request = pb::ProbeBatchRequest {
@@ -244,7 +293,7 @@ impl Stepper {
                 Resp::ProbeBatch(response) => Ok(response.probes),
                 other => Err(unexpected("ProbeBatchResponse", &other)),
             },
-            None => Ok(self.client.probe_batch(request).await?.into_inner().probes),
+            None => Ok(self.client.probe_batch(request).await?.probes),
         }
     }
 
@@ -255,7 +304,7 @@ impl Stepper {
                 step: self.step,
                 q_value: q_values.iter().sum(),
             };
-            return Ok(self.client.report(request).await?.into_inner().action);
+            return Ok(self.client.report(request).await?.action);
         }
         let request = pb::ReportBatchRequest {
             session_ids: self.ids.clone(),
@@ -267,12 +316,7 @@ impl Stepper {
                 Resp::ReportBatch(response) => Ok(response.actions),
                 other => Err(unexpected("ReportBatchResponse", &other)),
             },
-            None => Ok(self
-                .client
-                .report_batch(request)
-                .await?
-                .into_inner()
-                .actions),
+            None => Ok(self.client.report_batch(request).await?.actions),
         }
     }
 

@@ -15,14 +15,18 @@ pub enum Error {
     /// A gRPC call failed.
     #[error("rpc failed: {0}")]
     Rpc(#[from] tonic::Status),
-    /// A StepStream request was answered with an in-band error.
-    #[error("StepStream error (gRPC code {code}): {message}")]
+    /// A StepStream message was answered with an in-band error, or a Zenoh
+    /// query with a reply error (both carry a `StreamError`).
+    #[error("server error (gRPC code {code}): {message}")]
     Stream {
         /// The gRPC status code number.
         code: i32,
         /// The server's message.
         message: String,
     },
+    /// The Zenoh session or one of its queries failed.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
     /// The server answered with something the contract does not allow.
     #[error("unexpected response: {0}")]
     Protocol(String),

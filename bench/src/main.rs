@@ -1,10 +1,11 @@
 //! `esa-bench`: load generator for the real `esa-server` binary (issue 7).
 //!
-//! Starts the server as a child process on loopback TCP and on a Unix
-//! socket and measures, for D-dimensional sessions:
+//! Starts the server as a child process on loopback TCP, on a Unix socket
+//! and with Zenoh on loopback, and measures, for D-dimensional sessions:
 //! - pair latency (probe + report; p50/p90/p99) of one client, per socket
 //!   and API (Probe/Report, ProbeBatch/ReportBatch, StepStream), for each
-//!   batch size;
+//!   batch size (over Zenoh each call, and each StepStream message, is one
+//!   query on `esa/v1/<RpcName>`);
 //! - session-steps per second of several concurrent clients per batch size;
 //! - resident memory per session with many live sessions (a fresh server).
 //!
@@ -17,6 +18,7 @@ mod error;
 mod measure;
 mod memory;
 mod server_process;
+mod zenoh_client;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -44,6 +46,14 @@ struct Cli {
     /// Action dimension D of every session.
     #[arg(long, default_value_t = 6)]
     dim: usize,
+    /// Transports to measure, each on its own server.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "tcp,uds,zenoh"
+    )]
+    sockets: Vec<Socket>,
     /// Batch sizes (sessions per pair).
     #[arg(long, value_delimiter = ',', default_value = "1,8,64,256,1024")]
     batches: Vec<usize>,
@@ -153,7 +163,7 @@ async fn run(cli: &Cli) -> Result<()> {
     };
     // Room for every session the latency and throughput runs hold at once.
     let max_sessions = cli.concurrency.max(1) * cli.batches.iter().max().copied().unwrap_or(1) + 16;
-    for socket in [Socket::Tcp, Socket::Uds] {
+    for &socket in &cli.sockets {
         let server = ServerProcess::start(&cli.server, socket, max_sessions)?;
         let address = server.address();
         for (api, batch) in workloads(&cli.batches) {

@@ -1,6 +1,6 @@
-//! The real `esa-server` binary as a child process: start it on loopback TCP
-//! or a Unix socket, learn its address from the `listening on` line, read
-//! its resident memory, kill it on drop.
+//! The real `esa-server` binary as a child process: start it on loopback TCP,
+//! a Unix socket or Zenoh, learn its address from the `listening on` (and
+//! `zenoh listening on`) lines, read its resident memory, kill it on drop.
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
@@ -23,16 +23,21 @@ pub enum Address {
     Tcp(SocketAddr),
     /// gRPC over a Unix domain socket.
     Unix(PathBuf),
+    /// Zenoh queries under the default prefix, to these locators.
+    Zenoh(Vec<String>),
 }
 
 /// Which kind of socket to start a server on.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Socket {
     /// `--listen 127.0.0.1:0`.
     Tcp,
     /// `--uds <tempdir>/esa.sock`.
     Uds,
+    /// `--zenoh` on its default loopback listener (`tcp/127.0.0.1:0`),
+    /// gRPC on `--listen 127.0.0.1:0` beside it (unused).
+    Zenoh,
 }
 
 /// A running esa-server child; killed when dropped.
@@ -61,6 +66,10 @@ impl ServerProcess {
                 command.args(["--listen", "127.0.0.1:0"]);
                 None
             }
+            Socket::Zenoh => {
+                command.args(["--listen", "127.0.0.1:0", "--zenoh"]);
+                None
+            }
             Socket::Uds => {
                 let dir = tempfile::tempdir()?;
                 command.arg("--uds").arg(dir.path().join("esa.sock"));
@@ -70,7 +79,7 @@ impl ServerProcess {
         let mut child = command
             .spawn()
             .map_err(|err| Error::Server(format!("cannot run {}: {err}", binary.display())))?;
-        let address = match child.stdout.take().map(wait_for_address) {
+        let address = match child.stdout.take().map(|out| wait_for_address(out, socket)) {
             Some(Ok(address)) => address,
             Some(Err(err)) => {
                 let _ = child.kill();
@@ -109,23 +118,37 @@ impl Drop for ServerProcess {
     }
 }
 
-/// Reads the child's stdout until `listening on ADDR`, then keeps draining
-/// it in the background so the child never blocks on a full pipe.
-fn wait_for_address(stdout: std::process::ChildStdout) -> Result<Address> {
+/// Reads the child's stdout until `listening on ADDR` (which comes after any
+/// `zenoh listening on LOCATOR` lines), then keeps draining it in the
+/// background so the child never blocks on a full pipe. For
+/// [`Socket::Zenoh`] the address is the announced locators.
+fn wait_for_address(stdout: std::process::ChildStdout, socket: Socket) -> Result<Address> {
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
+        let mut locators = Vec::new();
         let mut sent = false;
         for line in BufReader::new(stdout).lines().map_while(|line| line.ok()) {
-            if !sent {
-                if let Some(address) = line.strip_prefix("listening on ") {
-                    sent = tx.send(address.to_owned()).is_ok();
-                }
+            if sent {
+                continue;
+            }
+            if let Some(locator) = line.strip_prefix("zenoh listening on ") {
+                locators.push(locator.to_owned());
+            } else if let Some(address) = line.strip_prefix("listening on ") {
+                let announced = (address.to_owned(), std::mem::take(&mut locators));
+                sent = tx.send(announced).is_ok();
             }
         }
     });
-    let line = rx
+    let (line, locators) = rx
         .recv_timeout(STARTUP_TIMEOUT)
         .map_err(|_| Error::Server("no `listening on` line (did it exit?)".into()))?;
+    if socket == Socket::Zenoh {
+        return if locators.is_empty() {
+            Err(Error::Server("no `zenoh listening on` line".into()))
+        } else {
+            Ok(Address::Zenoh(locators))
+        };
+    }
     match line.strip_prefix("unix:") {
         Some(path) => Ok(Address::Unix(PathBuf::from(path))),
         None => line
