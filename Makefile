@@ -38,8 +38,11 @@ $(VENV)/.installed: client-py/pyproject.toml experiments/pyproject.toml
 demo: setup ## train PPO vs ESAPPO on InvertedPendulum-v5, plot and tabulate
 	$(PY) client-py/examples/demo.py
 
-test: setup test-rust test-python ## set up, then run every Rust and Python test
+test: venv test-rust test-python ## set up, then run every Rust and Python test
 
+# `cargo test` also builds target/release/esa-server, which the Python tests use. A
+# separate `cargo build` first would compile zenoh and its dependents twice: the test
+# build unifies features from dev-dependencies (rand, zerocopy, regex) differently.
 test-rust:
 	$(CARGO) test --release --workspace
 
