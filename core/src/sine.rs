@@ -52,12 +52,12 @@ pub fn sin_reduced(x: f64) -> f64 {
     let half_z = 0.5 * z;
     let w = 1.0 - half_z;
     let cos_r = w + (((1.0 - w) - half_z) + z2 * cos_poly);
-    let magnitude = if quadrant & 1 == 0 { sin_r } else { cos_r };
-    if quadrant & 2 == 0 {
-        magnitude
-    } else {
-        -magnitude
-    }
+    // Quadrant selection by bit masks, not branches: the quadrant of each lane changes from step to
+    // step with no pattern a branch predictor could learn, and masks keep the lane loop vectorizable.
+    let use_cos = 0u64.wrapping_sub(quadrant & 1);
+    let magnitude = (sin_r.to_bits() & !use_cos) | (cos_r.to_bits() & use_cos);
+    let sign = (quadrant & 2) << 62;
+    f64::from_bits(magnitude ^ sign)
 }
 
 #[cfg(test)]
