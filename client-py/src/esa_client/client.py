@@ -6,8 +6,8 @@ import contextlib
 import os
 import time
 import uuid
-from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, TypeVar
 
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
@@ -43,6 +43,28 @@ def _check_address(address: str) -> str:
     if not sep or not host or not port.isdigit():
         raise ValueError(f"expected 'host:port' or 'unix:/path', got {address!r}")
     return address
+
+
+_Client = TypeVar("_Client", bound="EsaClient")
+
+
+def connect_spawned(
+    server: ServerProcess, connect: Callable[[], _Client], startup_timeout: float
+) -> _Client:
+    """Returns ``connect()``'s client once ``server`` is healthy; the client then owns it.
+
+    What every ``spawn`` does after starting its server: if connecting or waiting
+    fails, the server is stopped before the error propagates, so no child process
+    outlives a failed ``spawn``.
+    """
+    try:
+        client = connect()
+        client.server = server
+        client._wait_healthy(startup_timeout, server)
+    except BaseException:
+        server.stop()
+        raise
+    return client
 
 
 class EsaClient:
@@ -119,14 +141,9 @@ class EsaClient:
         server = ServerProcess(
             binary, session_ttl=session_ttl, max_sessions=max_sessions, extra_args=extra_args
         )
-        try:
-            client = cls(server.address, timeout=timeout)
-            client.server = server
-            client._wait_healthy(startup_timeout, server)
-        except BaseException:
-            server.stop()
-            raise
-        return client
+        return connect_spawned(
+            server, lambda: cls(server.address, timeout=timeout), startup_timeout
+        )
 
     def _wait_healthy(self, timeout: float, server: ServerProcess | None) -> None:
         deadline = time.monotonic() + timeout

@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 import grpc
 import zenoh
 
-from .client import EsaClient
+from .client import EsaClient, connect_spawned
 from .errors import ServerUnavailable
 from .sharding import BatchTransport, ShardedBatchTransport, ShardedStub, shard_of, shard_prefix
 from .sidecar import ServerProcess
@@ -163,14 +163,11 @@ class ZenohEsaClient(EsaClient):
         server, locators = _spawn_zenoh_server(
             binary, args, session_ttl, max_sessions, startup_timeout
         )
-        try:
-            client = cls(locators, prefix=prefix, timeout=timeout, wait_ready=False)
-            client.server = server
-            client._wait_healthy(startup_timeout, server)
-        except BaseException:
-            server.stop()
-            raise
-        return client
+        return connect_spawned(
+            server,
+            lambda: cls(locators, prefix=prefix, timeout=timeout, wait_ready=False),
+            startup_timeout,
+        )
 
     def healthy(self, *, timeout: float | None = None, wait_for_ready: bool = False) -> bool:
         """True if every server behind this client answers a query.
