@@ -31,14 +31,33 @@ class EsaMixin:
     esa_address: str | None
     _esa: EsaRuntime | None
 
-    def _init_esa(self, esa: EsaConfig | None, esa_address: str | None) -> None:
-        """Sets the ESA attributes; call before the SB3 constructor (it may set up the model)."""
+    def __init__(
+        self,
+        policy: Any,
+        env: Any,
+        *args: Any,
+        esa: EsaConfig | None = None,
+        esa_address: str | None = None,
+        **kwargs: Any,
+    ) -> None:
+        """Creates the SB3 model; the ESA sessions are created when training starts.
+
+        Args:
+            policy: As for the SB3 algorithm.
+            env: As for the SB3 algorithm.
+            *args: Further positional arguments of the SB3 algorithm.
+            esa: The ESA hyperparameters (default ``EsaConfig()``).
+            esa_address: An esa-server address; None spawns a private server.
+            **kwargs: Any other argument of the SB3 algorithm.
+
+        Raises:
+            ValueError: If the action space is not a Box.
+        """
+        # Set before the SB3 constructor: it may set up the model, which can read them.
         self.esa = esa if esa is not None else EsaConfig()
         self.esa_address = esa_address
         self._esa = None
-
-    def _check_esa_space(self) -> None:
-        """Rejects action spaces ESA cannot work in; call after the SB3 constructor."""
+        super().__init__(policy, env, *args, **kwargs)  # type: ignore[call-arg]
         space = self.action_space  # type: ignore[attr-defined]
         if space is not None and not isinstance(space, spaces.Box):
             raise ValueError(f"expected a Box action space for ESA, got {space}")

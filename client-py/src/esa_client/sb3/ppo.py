@@ -69,13 +69,12 @@ class ESAPPO(EsaMixin, PPO):
         **kwargs: Any,
     ) -> None:
         """Creates the PPO model and the auxiliary critic."""
-        self._init_esa(esa, esa_address)
+        # Set before the SB3 constructor: its _setup_model builds the critic from them.
         self.esa_q_net_arch = tuple(esa_q_net_arch)
         self.esa_q_learning_rate = esa_q_learning_rate
         self.esa_q_epochs = esa_q_epochs
         self._esa_q_fitted = False
-        super().__init__(policy, env, *args, **kwargs)
-        self._check_esa_space()
+        super().__init__(policy, env, *args, esa=esa, esa_address=esa_address, **kwargs)
 
     def _setup_model(self) -> None:
         super()._setup_model()

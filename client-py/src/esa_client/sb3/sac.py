@@ -9,7 +9,6 @@ import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.noise import ActionNoise
 
-from ..config import EsaConfig
 from .mixin import EsaMixin, tile_obs
 
 
@@ -40,20 +39,6 @@ class ESASAC(EsaMixin, SAC):
             spawns a private server that stops with the model (or ``esa_close()``).
         **kwargs: Any other SAC argument.
     """
-
-    def __init__(
-        self,
-        policy: Any,
-        env: Any,
-        *args: Any,
-        esa: EsaConfig | None = None,
-        esa_address: str | None = None,
-        **kwargs: Any,
-    ) -> None:
-        """Creates the SAC model; the ESA sessions are created when training starts."""
-        self._init_esa(esa, esa_address)
-        super().__init__(policy, env, *args, **kwargs)
-        self._check_esa_space()
 
     def _esa_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         dim = int(np.prod(self.action_space.shape))
