@@ -17,7 +17,12 @@ import numpy as np
 
 from .config import SessionConfig
 from .errors import InvalidArgument, SessionNotFound, StepMismatch
-from .session import SessionState, as_batch_configs, check_indices
+from .session import SessionState, as_batch_configs, check_array, check_indices
+
+
+def _invalid(message: str) -> InvalidArgument:
+    # The server's status code, so that callers handle both alike.
+    return InvalidArgument(message, grpc.StatusCode.INVALID_ARGUMENT)
 
 
 class ReferenceBatch:
@@ -93,10 +98,7 @@ class ReferenceBatch:
             return default
         out = np.asarray(steps)
         if out.shape != (self.n,) or not np.issubdtype(out.dtype, np.integer) or np.any(out < 0):
-            raise InvalidArgument(
-                f"expected steps of shape ({self.n},) with integers >= 0, got {out!r}",
-                grpc.StatusCode.INVALID_ARGUMENT,
-            )
+            raise _invalid(f"expected steps of shape ({self.n},) with integers >= 0, got {out!r}")
         return out.astype(np.int64)
 
     def _end(self, mask: np.ndarray) -> None:
@@ -134,21 +136,12 @@ class ReferenceBatch:
             StepMismatch: An explicit step is not the session's step (nothing changes).
         """
         self._check_open()
-        a = np.asarray(actions, dtype=np.float64)
-        if a.shape != (self.n, self.action_dim) or not np.all(np.isfinite(a)):
-            raise InvalidArgument(
-                f"expected finite actions of shape ({self.n}, {self.action_dim}), got {a!r}",
-                grpc.StatusCode.INVALID_ARGUMENT,
-            )
+        a = check_array(actions, (self.n, self.action_dim), "actions", finite=True, error=_invalid)
         starts = self._next_starts.copy()
         if episode_starts is not None:
-            flags = np.asarray(episode_starts)
-            if flags.shape != (self.n,):
-                raise InvalidArgument(
-                    f"expected episode_starts of shape ({self.n},), got {flags.shape}",
-                    grpc.StatusCode.INVALID_ARGUMENT,
-                )
-            starts |= flags.astype(bool)
+            starts |= check_array(
+                episode_starts, (self.n,), "episode_starts", dtype=bool, error=_invalid
+            )
         ends = starts & ((self._t > 0) | self._pending)
         expected = np.where(ends, 0, self._t)
         given = self._steps_arg(steps, expected)
@@ -184,11 +177,7 @@ class ReferenceBatch:
             StepMismatch: No pending probe, or an explicit step that does not match.
         """
         self._check_open()
-        q = np.asarray(q_values, dtype=np.float64)
-        if q.shape != (self.n,) or not np.all(np.isfinite(q)):
-            raise InvalidArgument(
-                f"expected {self.n} finite q_values, got {q!r}", grpc.StatusCode.INVALID_ARGUMENT
-            )
+        q = check_array(q_values, (self.n,), "q_values", finite=True, error=_invalid)
         given = self._steps_arg(steps, self._t)
         fresh = self._pending & (given == self._t)
         retry = ~self._pending & self._retryable & (given == self._t - 1)

@@ -10,7 +10,7 @@ answer was lost, repeating it ends one more (empty) episode, which counts toward
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -73,6 +73,36 @@ def as_batch_configs(
     dims = {c.action_dim for c in out}
     if len(dims) != 1:
         raise ValueError(f"expected one action_dim across the batch, got {sorted(dims)}")
+    return out
+
+
+def check_array(
+    values: np.ndarray | Sequence[float] | Sequence[bool],
+    shape: tuple[int, ...],
+    name: str,
+    *,
+    dtype: type = np.float64,
+    finite: bool = False,
+    error: Callable[[str], Exception] = ValueError,
+) -> np.ndarray:
+    """Returns ``values`` as a ``dtype`` array, checking its shape (and finiteness).
+
+    Args:
+        values: A batch argument, e.g. the actions.
+        shape: The shape it must have.
+        name: The argument's name, for the message.
+        dtype: The array's dtype.
+        finite: Also require every value to be finite.
+        error: Builds the exception from the message (``ValueError`` by default).
+
+    Raises:
+        Exception: Built by ``error``, if the shape is wrong or a value is not finite.
+    """
+    out = np.asarray(values, dtype=dtype)
+    if out.shape != shape:
+        raise error(f"expected {name} of shape {shape}, got {out.shape}")
+    if finite and not np.all(np.isfinite(out)):
+        raise error(f"expected finite {name}, got {out!r}")
     return out
 
 
@@ -229,17 +259,10 @@ class SessionBatch:
         Returns:
             The probes, shape ``(N, D)``.
         """
-        a = np.asarray(actions, dtype=np.float64)
-        if a.shape != (self.n, self.action_dim):
-            raise ValueError(
-                f"expected actions of shape {(self.n, self.action_dim)}, got {a.shape}"
-            )
+        a = check_array(actions, (self.n, self.action_dim), "actions")
         starts = self._next_starts.copy()
         if episode_starts is not None:
-            flags = np.asarray(episode_starts, dtype=bool)
-            if flags.shape != (self.n,):
-                raise ValueError(f"expected episode_starts of shape ({self.n},), got {flags.shape}")
-            starts |= flags
+            starts |= check_array(episode_starts, (self.n,), "episode_starts", dtype=bool)
         step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
         request = esa_pb2.ProbeBatchRequest(
             session_ids=self.ids,
@@ -267,9 +290,7 @@ class SessionBatch:
         Returns:
             The improved actions, shape ``(N, D)``.
         """
-        q = np.asarray(q_values, dtype=np.float64)
-        if q.shape != (self.n,):
-            raise ValueError(f"expected q_values of shape ({self.n},), got {q.shape}")
+        q = check_array(q_values, (self.n,), "q_values")
         step = self._steps if steps is None else np.asarray(steps, np.int64)
         request = esa_pb2.ReportBatchRequest(
             session_ids=self.ids, steps=step.tolist(), q_values=q.tolist()
