@@ -16,7 +16,7 @@ from stable_baselines3 import DDPG, PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
-from esa_experiments.configs import algorithm_hyperparams, esa_hyperparams
+from esa_experiments.configs import algorithm_hyperparams, esa_hyperparams, lookup
 from esa_experiments.param_noise import PPOParamNoise, SACParamNoise
 
 
@@ -60,10 +60,7 @@ def get_method(name: str) -> Method:
     Raises:
         ValueError: for an unknown name (the message lists the known ones).
     """
-    try:
-        return METHODS[name]
-    except KeyError:
-        raise ValueError(f"expected a method in {sorted(METHODS)}, got {name!r}") from None
+    return lookup(METHODS, name, "a method")
 
 
 def resolve_hyperparams(

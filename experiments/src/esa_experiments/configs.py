@@ -2,13 +2,15 @@
 
 Both are layered: a base table overridden by a per-env table. Resolved values
 are plain dicts so they can be stored in run sidecars and fingerprinted.
+:func:`lookup` resolves the names of the in-code tables (methods, tasks).
 """
 
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from esa_experiments.runs import EXPERIMENTS_DIR
 
@@ -18,6 +20,25 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 CONFIG_DIR = EXPERIMENTS_DIR / "configs"
+
+_T = TypeVar("_T")
+
+
+def lookup(table: Mapping[str, _T], key: str, kind: str) -> _T:
+    """Returns ``table[key]``.
+
+    Args:
+        table: A table of named entries.
+        key: The name.
+        kind: What an entry is, with its article (``"a method"``), for the message.
+
+    Raises:
+        ValueError: for an unknown name (the message lists the known ones).
+    """
+    try:
+        return table[key]
+    except KeyError:
+        raise ValueError(f"expected {kind} in {sorted(table)}, got {key!r}") from None
 
 
 def _load(path: Path) -> dict[str, Any]:

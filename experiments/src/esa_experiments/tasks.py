@@ -11,6 +11,8 @@ from typing import Any
 
 import gymnasium as gym
 
+from esa_experiments.configs import lookup
+
 
 @dataclass(frozen=True)
 class Task:
@@ -47,7 +49,4 @@ def get_task(key: str) -> Task:
     Raises:
         ValueError: for an unknown key (the message lists the known ones).
     """
-    try:
-        return TASKS[key]
-    except KeyError:
-        raise ValueError(f"expected an env in {sorted(TASKS)}, got {key!r}") from None
+    return lookup(TASKS, key, "an env")
