@@ -491,6 +491,17 @@ def machine_section(run: dict | None) -> list[str]:
         f"min {load['min']:.2f}, mean {load['mean']:.2f}, max {load['max']:.2f} "
         f"({load['samples']} samples); at start `{run['loadavg_start']}`, "
         f"at end `{run['loadavg_end']}`",
+    ]
+    share = run.get("cpu_time_percent")
+    if share:
+        busy = 100 - share["idle"] - share["iowait"]
+        lines.append(
+            f"- CPU time of both cores over the run (`/proc/stat`): {busy:.0f} % busy, "
+            f"including {share['steal']:.1f} % steal (time the hypervisor gave other guests "
+            f"while this one wanted to run); user {share['user']:.0f} %, "
+            f"system {share['system']:.0f} %, idle {share['idle']:.0f} %"
+        )
+    lines += [
         "",
         "Commands (`bench/run.sh`, what `make bench` runs):",
         "",

@@ -31,6 +31,8 @@ fi
 mkdir -p "$RESULTS"
 started=$(date -u +%FT%TZ)
 loadavg_start=$(cat /proc/loadavg)
+# On a VM the hypervisor's steal time slows every figure; its share is reported.
+cpu_start=$(grep '^cpu ' /proc/stat)
 # Samples the load for the report; stopped by its own PID at exit.
 (while true; do cut -d' ' -f1 /proc/loadavg; sleep "$LOAD_INTERVAL"; done) >"$RESULTS/loadavg.tmp.txt" &
 sampler=$!
@@ -68,12 +70,17 @@ run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TR
 
 finished=$(date -u +%FT%TZ)
 loadavg_end=$(cat /proc/loadavg)
+cpu_end=$(grep '^cpu ' /proc/stat)
 kill "$sampler" 2>/dev/null || true
 commands+=("$PY bench/report.py")
 "$PY" - "$RESULTS" "$started" "$finished" "$loadavg_start" "$loadavg_end" "$LOAD_INTERVAL" \
-  "${commands[@]}" <<'PYEOF'
+  "$cpu_start" "$cpu_end" "${commands[@]}" <<'PYEOF'
 import json, os, platform, subprocess, sys
-results, started, finished, load_start, load_end, interval, *commands = sys.argv[1:]
+results, started, finished, load_start, load_end, interval, cpu_start, cpu_end, *commands = sys.argv[1:]
+# /proc/stat "cpu" fields: user nice system idle iowait irq softirq steal (jiffies).
+fields = ["user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal"]
+spent = [int(b) - int(a) for a, b in zip(cpu_start.split()[1:9], cpu_end.split()[1:9])]
+cpu_share = {name: 100 * x / max(sum(spent), 1) for name, x in zip(fields, spent)}
 lscpu = dict(
     line.split(":", 1) for line in subprocess.run(
         ["lscpu"], capture_output=True, text=True, check=True
@@ -99,6 +106,7 @@ run = {
         "mean": sum(samples) / len(samples) if samples else float("nan"),
         "max": max(samples, default=float("nan")),
     },
+    "cpu_time_percent": cpu_share,
     "commands": commands,
 }
 open(f"{results}/run.json", "w").write(json.dumps(run, indent=2))
