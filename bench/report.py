@@ -450,9 +450,11 @@ def training_section(training: dict) -> list[str]:
         "",
         "Split of the ESA agents' time (mean over repeats): `round trips` = inside "
         "`SessionBatch.probe`/`.report` (client, network, server); `ESA step` = the whole "
-        "`EsaRuntime.improve` (round trips + three critic evaluations + bookkeeping); `critic "
-        "fit` = ESAPPO's auxiliary-critic training. `ratio without round trips` = "
-        "(ESA s - round trips s) / plain s: what the agent would cost with a free service.",
+        "`EsaRuntime.improve` (round trips, the critic at the probes, and on one step in "
+        "eight the critic at the sampled and improved actions for the `esa/improvement` "
+        "statistic); `critic fit` = ESAPPO's auxiliary-critic training. `ratio without round "
+        "trips` = (ESA s - round trips s) / plain s: what the agent would cost with a free "
+        "service.",
     ]
     return lines
 
