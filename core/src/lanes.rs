@@ -23,6 +23,8 @@ const COLUMNS: usize = 9;
 
 // `split_mut` hands out the mutable columns as one contiguous tail in this order.
 const _: () = assert!(SHIFT + 1 == SINE && SINE + 1 == ACTION && ACTION + 1 == COLUMNS);
+// `set_rate` splits the matrix between the two rate columns.
+const _: () = assert!(RATE < LEARNING_RATE);
 
 /// Every column at once, borrowed from [`Lanes`].
 struct Columns<'a> {
@@ -55,6 +57,15 @@ pub(crate) enum Field {
     ActionHigh,
 }
 
+// Per-field tables (a session's `shapes`) are indexed by `field as usize` in the order of `ALL`.
+const _: () = {
+    let mut i = 0;
+    while i < Field::ALL.len() {
+        assert!(Field::ALL[i] as usize == i);
+        i += 1;
+    }
+};
+
 impl Field {
     pub const ALL: [Field; 5] = [
         Field::Amplitude,
@@ -72,17 +83,6 @@ impl Field {
             Field::LearningRate => &config.learning_rate,
             Field::ActionLow => &config.action_low,
             Field::ActionHigh => &config.action_high,
-        }
-    }
-
-    /// The same field of `config`, writable.
-    pub fn of_mut(self, config: &mut SessionConfig) -> &mut Vec<f64> {
-        match self {
-            Field::Amplitude => &mut config.amplitude,
-            Field::Frequency => &mut config.frequency,
-            Field::LearningRate => &mut config.learning_rate,
-            Field::ActionLow => &mut config.action_low,
-            Field::ActionHigh => &mut config.action_high,
         }
     }
 

@@ -43,7 +43,8 @@ struct Settings {
     disable_highpass: bool,
     lr_decay: Option<f64>,
     max_episodes: u64,
-    /// How each of [`Field::ALL`] was given, so [`Session::config`] returns it as sent.
+    /// How each field was given, indexed by `Field as usize` (the order of [`Field::ALL`]), so
+    /// [`Session::config`] returns it as sent.
     shapes: [Shape; 5],
 }
 
@@ -103,19 +104,22 @@ impl Session {
     /// The config as it was given (vectors not broadcast).
     pub fn config(&self) -> SessionConfig {
         let s = &self.settings;
-        let mut config = SessionConfig {
+        let given = |field: Field| s.shapes[field as usize].rebuild(self.lanes.field(field));
+        SessionConfig {
+            action_dim: self.lanes.dim() as u32,
+            dt: s.dt,
+            amplitude: given(Field::Amplitude),
+            frequency: given(Field::Frequency),
+            learning_rate: given(Field::LearningRate),
             highpass_cutoff: s.highpass_cutoff,
             disable_highpass: s.disable_highpass,
+            action_low: given(Field::ActionLow),
+            action_high: given(Field::ActionHigh),
             // A valid limit is finite; the infinite one stands for "unset".
             shift_limit: Some(self.shift_limit).filter(|l| l.is_finite()),
             lr_decay: s.lr_decay,
             max_episodes: s.max_episodes,
-            ..SessionConfig::new(self.lanes.dim() as u32, s.dt, vec![], vec![], vec![])
-        };
-        for (field, shape) in Field::ALL.into_iter().zip(s.shapes) {
-            *field.of_mut(&mut config) = shape.rebuild(self.lanes.field(field));
         }
-        config
     }
 
     /// D.
