@@ -17,6 +17,7 @@ from stable_baselines3.common.logger import configure
 
 from esa_client import EsaConfig, SessionBatch
 from esa_client.sb3 import ESAPPO, ESASAC
+from esa_client.sb3.runtime import EsaRuntime
 
 N_ENVS = 4
 pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")
@@ -173,3 +174,10 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
     assert loaded_server.pid != server.pid
     loaded.esa_close()
     assert not loaded_server.running()
+
+
+@pytest.mark.parametrize("every", [0, -3])
+def test_runtime_rejects_a_non_positive_improvement_stride(every):
+    # Checked before anything connects: no server, env or sessions are needed.
+    with pytest.raises(ValueError, match=f"expected improvement_every >= 1, got {every}"):
+        EsaRuntime(EsaConfig(), None, None, np.zeros(1), np.ones(1), improvement_every=every)
