@@ -278,6 +278,7 @@ impl Stepper {
                 step: self.step,
                 action: self.actions.clone(),
                 episode_start,
+                ..Default::default()
             };
             return Ok(self.client.probe(request).await?.probe);
         }
@@ -287,6 +288,7 @@ impl Stepper {
             steps: vec![self.step; n],
             actions: self.actions.clone(),
             episode_starts: if episode_start { vec![true; n] } else { vec![] },
+            ..Default::default()
         };
         match self.stream.as_mut() {
             Some(stream) => match stream.round_trip(Req::ProbeBatch(request)).await? {
@@ -303,6 +305,7 @@ impl Stepper {
                 session_id: self.ids.concat(),
                 step: self.step,
                 q_value: q_values.iter().sum(),
+                ..Default::default()
             };
             return Ok(self.client.report(request).await?.action);
         }
@@ -310,6 +313,7 @@ impl Stepper {
             session_ids: self.ids.clone(),
             steps: vec![self.step; self.ids.len()],
             q_values,
+            ..Default::default()
         };
         match self.stream.as_mut() {
             Some(stream) => match stream.round_trip(Req::ReportBatch(request)).await? {

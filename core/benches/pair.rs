@@ -37,12 +37,12 @@ fn pair<M: Measurement>(c: &mut Criterion<M>, group: &str) {
                 let t = session.step();
                 probe.clear();
                 session
-                    .probe(t, black_box(&action), false, &mut probe)
+                    .probe(t, black_box(&action), &[], false, &mut probe)
                     .expect("probe");
                 let q = -probe.iter().map(|p| p * p).sum::<f64>();
                 improved.clear();
                 session
-                    .report(t, black_box(q), &mut improved)
+                    .report(t, black_box(q), None, &mut improved)
                     .expect("report");
                 black_box(&improved);
             })

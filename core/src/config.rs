@@ -38,7 +38,23 @@ pub struct SessionConfig {
     pub lr_decay: Option<f64>,
     /// E: once `episodes_completed >= E > 0` the session passes actions through; 0 = unlimited.
     pub max_episodes: u64,
+    /// Section 1b: divide the filtered response by its running RMS, clip it to `response_clip` and scale
+    /// the step by the probe's action scale sigma, so the law does not depend on Q's scale or offset.
+    pub normalize_response: bool,
+    /// EMA rate rho of the response's running mean square, in (0, 1]; `None` = 0.05.
+    pub response_rms_rate: Option<f64>,
+    /// Clip c of the normalized response; finite, > 0; `None` = 3.
+    pub response_clip: Option<f64>,
+    /// Leak lambda in [0, 1): `v <- (1 - lambda) v + step`; `None` = 0.
+    pub shift_leak: Option<f64>,
+    /// Trust region kappa: `|v| <= kappa * sigma` per dimension; finite, > 0; `None` = no bound.
+    pub trust_region: Option<f64>,
 }
+
+/// Default EMA rate of the response's running mean square (`response_rms_rate` unset).
+pub const DEFAULT_RESPONSE_RMS_RATE: f64 = 0.05;
+/// Default clip of the normalized response (`response_clip` unset).
+pub const DEFAULT_RESPONSE_CLIP: f64 = 3.0;
 
 impl SessionConfig {
     /// A config with the required fields set and every optional one at its default.
@@ -62,10 +78,15 @@ impl SessionConfig {
             shift_limit: None,
             lr_decay: None,
             max_episodes: 0,
+            normalize_response: false,
+            response_rms_rate: None,
+            response_clip: None,
+            shift_leak: None,
+            trust_region: None,
         }
     }
 
-    /// Checks every rule of CONTRACT.md section 1.
+    /// Checks every rule of CONTRACT.md sections 1 and 1b.
     ///
     /// The error message starts with the offending field (and index), then says what was expected and
     /// what was got, e.g. `frequency[1]: expected w * dt < pi (Nyquist), got 400 * 0.01 = 4`.
@@ -103,13 +124,17 @@ impl SessionConfig {
         check_positive("highpass_cutoff", self.highpass_cutoff)?;
         self.check_bounds(dim)?;
         check_positive("shift_limit", self.shift_limit)?;
-        if let Some(g) = self.lr_decay {
-            if !(g > 0.0 && g <= 1.0) {
-                return Err(invalid(format!(
-                    "lr_decay: expected a number in (0, 1], got {g}"
-                )));
-            }
-        }
+        check_range("lr_decay", self.lr_decay, "(0, 1]", |g| g > 0.0 && g <= 1.0)?;
+        // Section 1b. Like `highpass_cutoff`, each is validated even where it has no effect (the
+        // normalization fields without `normalize_response`): a bad value is a client bug either way.
+        check_range("response_rms_rate", self.response_rms_rate, "(0, 1]", |r| {
+            r > 0.0 && r <= 1.0
+        })?;
+        check_positive("response_clip", self.response_clip)?;
+        check_range("shift_leak", self.shift_leak, "[0, 1)", |l| {
+            (0.0..1.0).contains(&l)
+        })?;
+        check_positive("trust_region", self.trust_region)?;
         Ok(())
     }
 
@@ -190,6 +215,21 @@ fn check_each(
     Ok(())
 }
 
+/// Checks an optional scalar against an interval (`rule` must be false for NaN).
+fn check_range(
+    field: &str,
+    value: Option<f64>,
+    interval: &str,
+    rule: impl Fn(f64) -> bool,
+) -> Result<(), CoreError> {
+    match value {
+        Some(x) if !rule(x) => Err(invalid(format!(
+            "{field}: expected a number in {interval} (or unset), got {x}"
+        ))),
+        _ => Ok(()),
+    }
+}
+
 fn check_positive(field: &str, value: Option<f64>) -> Result<(), CoreError> {
     match value {
         Some(x) if !(x.is_finite() && x > 0.0) => Err(invalid(format!(
@@ -231,6 +271,11 @@ mod tests {
             shift_limit: Some(0.5),
             lr_decay: Some(1.0),
             max_episodes: 3,
+            normalize_response: true,
+            response_rms_rate: Some(1.0),
+            response_clip: Some(2.5),
+            shift_leak: Some(0.0),
+            trust_region: Some(1.0),
             ..valid()
         };
         assert_eq!(full.validate(), Ok(()));
@@ -527,6 +572,78 @@ mod tests {
             }
             .validate(),
             Ok(())
+        );
+    }
+
+    #[test]
+    fn response_rms_rate_rules() {
+        for bad in [0.0, -0.1, 1.0 + 1e-12, f64::NAN, f64::INFINITY] {
+            rejects(
+                SessionConfig {
+                    response_rms_rate: Some(bad),
+                    ..valid()
+                },
+                "response_rms_rate:",
+            );
+        }
+        for good in [1e-9, 0.05, 1.0] {
+            let config = SessionConfig {
+                response_rms_rate: Some(good),
+                ..valid()
+            };
+            assert_eq!(config.validate(), Ok(()));
+        }
+    }
+
+    #[test]
+    fn response_clip_and_trust_region_rules() {
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            rejects(
+                SessionConfig {
+                    response_clip: Some(bad),
+                    ..valid()
+                },
+                "response_clip:",
+            );
+            rejects(
+                SessionConfig {
+                    trust_region: Some(bad),
+                    ..valid()
+                },
+                "trust_region:",
+            );
+        }
+    }
+
+    #[test]
+    fn shift_leak_rules() {
+        for bad in [-1e-12, 1.0, 2.0, f64::NAN, f64::INFINITY] {
+            rejects(
+                SessionConfig {
+                    shift_leak: Some(bad),
+                    ..valid()
+                },
+                "shift_leak:",
+            );
+        }
+        for good in [0.0, 0.005, 0.999_999] {
+            let config = SessionConfig {
+                shift_leak: Some(good),
+                ..valid()
+            };
+            assert_eq!(config.validate(), Ok(()));
+        }
+    }
+
+    #[test]
+    fn normalization_fields_are_checked_without_normalize_response() {
+        rejects(
+            SessionConfig {
+                normalize_response: false,
+                response_clip: Some(-3.0),
+                ..valid()
+            },
+            "response_clip:",
         );
     }
 

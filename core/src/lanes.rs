@@ -1,6 +1,6 @@
 //! Per-dimension state of a session and the per-dimension steps of the law (the hot loops).
 //!
-//! The state is the columns of one D x 9 nalgebra matrix: one allocation per session (instead of one per
+//! The state is the columns of one D x 10 nalgebra matrix: one allocation per session (instead of one per
 //! vector) keeps an idle D = 6 session under the 1 KiB budget of issue 7, and the column-major layout
 //! keeps every per-dimension vector contiguous, so each step is one fused loop over plain slices that
 //! the compiler vectorizes, without bounds checks.
@@ -19,10 +19,12 @@ const LEARNING_RATE: usize = 5;
 const SHIFT: usize = 6;
 const SINE: usize = 7;
 const ACTION: usize = 8;
-const COLUMNS: usize = 9;
+const SCALE: usize = 9;
+const COLUMNS: usize = 10;
 
 // `split_mut` hands out the mutable columns as one contiguous tail in this order.
-const _: () = assert!(SHIFT + 1 == SINE && SINE + 1 == ACTION && ACTION + 1 == COLUMNS);
+const _: () =
+    assert!(SHIFT + 1 == SINE && SINE + 1 == ACTION && ACTION + 1 == SCALE && SCALE + 1 == COLUMNS);
 // `set_rate` splits the matrix between the two rate columns.
 const _: () = assert!(RATE < LEARNING_RATE);
 
@@ -44,6 +46,30 @@ struct Columns<'a> {
     sine: &'a mut [f64],
     /// The sampled action `a_t` of the last probe.
     action: &'a mut [f64],
+    /// The action scale sigma of the last probe (1 when it sent none).
+    scale: &'a mut [f64],
+}
+
+/// How a report turns its response into a step of v (section 1b; the defaults are section 1's law).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct StepRule {
+    /// Scale the step by sigma (`normalize_response`): `alpha_e sigma s g` instead of `alpha_e s h`.
+    pub scaled: bool,
+    /// `1 - lambda`: the share of v that survives the leak.
+    pub keep: f64,
+    /// L, or +inf.
+    pub limit: f64,
+    /// kappa, or +inf: each element of v stays within `kappa * sigma`.
+    pub trust: f64,
+}
+
+impl StepRule {
+    /// `min(L, kappa sigma)`: L, kappa and sigma are > 0, so the bound is >= 0 and never NaN, and
+    /// `clamp(-bound, bound)` cannot panic.
+    #[inline(always)]
+    fn bound(self, sigma: f64) -> f64 {
+        self.limit.min(self.trust * sigma)
+    }
 }
 
 /// A per-dimension field of [`SessionConfig`]; the lanes hold it broadcast to D values, so the session
@@ -126,6 +152,7 @@ impl Lanes {
             }
         }
         let max_frequency = columns.column(FREQUENCY).max();
+        columns.column_mut(SCALE).fill(1.0);
         let mut lanes = Self {
             columns,
             max_frequency,
@@ -162,6 +189,20 @@ impl Lanes {
 
     pub fn shift(&self) -> &[f64] {
         self.column(SHIFT)
+    }
+
+    /// Holds the action scale sigma for the coming report: 1 for an empty `scale`, else broadcast.
+    pub fn set_scale(&mut self, scale: &[f64]) {
+        let held = self.split_mut().scale;
+        match scale {
+            [] => held.fill(1.0),
+            [sigma] => held.fill(*sigma),
+            _ => {
+                for (x, &sigma) in held.iter_mut().zip(scale) {
+                    *x = sigma;
+                }
+            }
+        }
     }
 
     /// Holds `a`, caches `s = sin(w * tau)` and appends `clip(a + (v + K s), lo, hi)` per dimension.
@@ -211,30 +252,70 @@ impl Lanes {
         push_clipped(out, action.iter().copied(), c.low, c.high);
     }
 
-    /// `v <- clamp(v + alpha_e s h, -L, L)` unless an element would be non-finite (then v is kept), and
-    /// appends the improved action `clip(a + v, lo, hi)`. Returns whether v was updated.
-    pub fn update(&mut self, h: f64, limit: f64, out: &mut Vec<f64>) -> bool {
+    /// `v <- clamp((1 - lambda) v + step, -bound, bound)` with `step = alpha_e s x` (or `alpha_e sigma s x`
+    /// when `rule.scaled`) and `bound = min(L, kappa sigma)`, unless an element would be non-finite (then v
+    /// is kept), and appends the improved action `clip(a + v, lo, hi)`. Returns whether v was updated.
+    pub fn update(&mut self, x: f64, rule: StepRule, out: &mut Vec<f64>) -> bool {
+        // Two instances, so the per-lane loop has no branch on the rule.
+        if rule.scaled {
+            self.update_with::<true>(x, rule, out)
+        } else {
+            self.update_with::<false>(x, rule, out)
+        }
+    }
+
+    #[inline(always)]
+    fn update_with<const SCALED: bool>(
+        &mut self,
+        x: f64,
+        rule: StepRule,
+        out: &mut Vec<f64>,
+    ) -> bool {
         let fresh = append_zeros(out, self.dim());
         let c = self.split_mut();
         // The candidates go to `fresh` first: v must stay untouched unless all of them are finite.
         let mut finite = true;
-        let steps = c.shift.iter().zip(c.rate).zip(c.sine.iter());
-        for (candidate, ((&v, &rate), &s)) in fresh.iter_mut().zip(steps) {
-            *candidate = (v + rate * s * h).clamp(-limit, limit);
+        let steps = c
+            .shift
+            .iter()
+            .zip(c.rate)
+            .zip(c.sine.iter())
+            .zip(c.scale.iter());
+        for (candidate, (((&v, &rate), &s), &sigma)) in fresh.iter_mut().zip(steps) {
+            let gain = if SCALED { rate * sigma } else { rate };
+            // With section 1b unset (keep = 1, trust = +inf) this is `clamp(v + alpha_e s h, -L, L)`
+            // exactly.
+            let bound = rule.bound(sigma);
+            *candidate = (rule.keep * v + gain * s * x).clamp(-bound, bound);
             finite &= candidate.is_finite();
         }
         let dims = c
             .shift
             .iter_mut()
+            .zip(c.scale.iter())
             .zip(c.action.iter())
             .zip(c.low.iter().zip(c.high));
-        for (slot, ((v, &a), (&lo, &hi))) in fresh.iter_mut().zip(dims) {
-            if finite {
-                *v = *slot;
-            }
+        for (slot, (((v, &sigma), &a), (&lo, &hi))) in fresh.iter_mut().zip(dims) {
+            *v = if finite {
+                *slot
+            } else {
+                // A skipped update keeps v, but inside this report's bound: |v| <= kappa sigma holds
+                // after every report, even when sigma shrank. (A no-op for the section 1 law.)
+                v.clamp(-rule.bound(sigma), rule.bound(sigma))
+            };
             *slot = clip(a + *v, lo, hi);
         }
         finite
+    }
+
+    /// Keeps v inside this report's bound without a step, and appends the improved action: the report
+    /// whose normalization failed (see `Session::report`).
+    pub fn skip_update(&mut self, rule: StepRule, out: &mut Vec<f64>) {
+        let c = self.split_mut();
+        for (v, &sigma) in c.shift.iter_mut().zip(c.scale.iter()) {
+            *v = v.clamp(-rule.bound(sigma), rule.bound(sigma));
+        }
+        self.push_action(false, out);
     }
 
     /// Appends the improved action for the held `a` and current v: `clip(a + v)`, or `clip(a)` when
@@ -262,7 +343,8 @@ impl Lanes {
         let all = self.columns.as_mut_slice();
         let (fixed, rest) = all.split_at_mut(SHIFT * dim);
         let (shift, rest) = rest.split_at_mut(dim);
-        let (sine, action) = rest.split_at_mut(dim);
+        let (sine, rest) = rest.split_at_mut(dim);
+        let (action, scale) = rest.split_at_mut(dim);
         let (amplitude, fixed) = fixed.split_at(dim);
         let (frequency, fixed) = fixed.split_at(dim);
         let (rate, fixed) = fixed.split_at(dim);
@@ -277,6 +359,7 @@ impl Lanes {
             shift,
             sine,
             action,
+            scale,
         }
     }
 }
@@ -335,7 +418,19 @@ mod tests {
         assert_eq!(c.frequency, &[10.0, 20.0, 30.0]);
         assert_eq!(c.rate, &[1.0; 3]);
         assert_eq!(c.shift, &[0.0; 3]);
+        assert_eq!(c.scale, &[1.0; 3]);
         assert_eq!((c.sine.len(), c.action.len()), (3, 3));
+    }
+
+    #[test]
+    fn set_scale_broadcasts_and_resets_to_one() {
+        let mut lanes = Lanes::new(&config());
+        lanes.set_scale(&[0.5]);
+        assert_eq!(lanes.column(SCALE), &[0.5; 3]);
+        lanes.set_scale(&[1.0, 2.0, 3.0]);
+        assert_eq!(lanes.column(SCALE), &[1.0, 2.0, 3.0]);
+        lanes.set_scale(&[]);
+        assert_eq!(lanes.column(SCALE), &[1.0; 3]);
     }
 
     #[test]
@@ -363,10 +458,35 @@ mod tests {
         let mut lanes = Lanes::new(&config());
         lanes.probe(&[1.0, 0.5, 0.25], 0.1, &mut Vec::new());
         let mut out = vec![7.0];
-        assert!(!lanes.update(f64::INFINITY, f64::INFINITY, &mut out));
+        let rule = StepRule {
+            scaled: false,
+            keep: 1.0,
+            limit: f64::INFINITY,
+            trust: f64::INFINITY,
+        };
+        assert!(!lanes.update(f64::INFINITY, rule, &mut out));
         assert_eq!(lanes.shift(), &[0.0; 3]);
         assert_eq!(out, vec![7.0, 1.0, 0.5, 0.25]);
-        assert!(lanes.update(1.0, f64::INFINITY, &mut out));
+        assert!(lanes.update(1.0, rule, &mut out));
         assert_ne!(lanes.shift(), &[0.0; 3]);
+    }
+
+    #[test]
+    fn trust_region_bounds_each_lane_by_its_scale() {
+        let mut lanes = Lanes::new(&config());
+        lanes.probe(&[0.0; 3], 0.1, &mut Vec::new());
+        lanes.set_scale(&[0.1, 1.0, 10.0]);
+        let rule = StepRule {
+            scaled: true,
+            keep: 1.0,
+            limit: 5.0,
+            trust: 2.0,
+        };
+        // A huge response pushes every lane to its bound min(L, kappa sigma).
+        assert!(lanes.update(1e300, rule, &mut Vec::new()));
+        let bounds = [0.2, 2.0, 5.0];
+        for (v, bound) in lanes.shift().iter().zip(bounds) {
+            assert_eq!(v.abs(), bound);
+        }
     }
 }

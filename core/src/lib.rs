@@ -27,10 +27,10 @@
 //! let (mut probe, mut action) = (Vec::with_capacity(1), Vec::with_capacity(1));
 //! for t in 0..500 {
 //!     probe.clear();
-//!     session.probe(t, &[1.0], t == 0, &mut probe)?;
+//!     session.probe(t, &[1.0], &[], t == 0, &mut probe)?;
 //!     let q = -(probe[0] - 0.3) * (probe[0] - 0.3);
 //!     action.clear();
-//!     session.report(t, q, &mut action)?;
+//!     session.report(t, q, None, &mut action)?;
 //! }
 //! assert!((action[0] - 0.3).abs() < 0.05, "improved action {} should approach 0.3", action[0]);
 //! # Ok::<(), esa_core::CoreError>(())

@@ -1,9 +1,13 @@
-//! [`Session`]: the per-session state machine (probe, report, end of episode) of CONTRACT.md section 1.
+//! [`Session`]: the per-session state machine (probe, report, end of episode) of CONTRACT.md sections 1
+//! and 1b.
 
-use crate::config::SessionConfig;
+use crate::config::{SessionConfig, DEFAULT_RESPONSE_CLIP, DEFAULT_RESPONSE_RMS_RATE};
 use crate::highpass::Washout;
-use crate::lanes::{Field, Lanes};
+use crate::lanes::{Field, Lanes, StepRule};
 use crate::CoreError;
+
+/// Guard of the response normalization `h / sqrt(m + 1e-12)` (CONTRACT.md section 1b).
+const MEAN_SQUARE_GUARD: f64 = 1e-12;
 
 /// What a successful [`Session::report`] did besides returning the improved action.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -25,6 +29,9 @@ pub struct Session {
     washout: Option<Washout>,
     /// L, or +inf when unset (clamping to +-inf is the identity and keeps NaN visible).
     shift_limit: f64,
+    /// m, the running mean square of the filtered response (`normalize_response`); `None` until the first
+    /// non-zero response seeds it. Kept across episodes: the scale of Q outlives one episode.
+    mean_square: Option<f64>,
     step: u64,
     episodes: u64,
     nonfinite_skips: u64,
@@ -43,6 +50,11 @@ struct Settings {
     disable_highpass: bool,
     lr_decay: Option<f64>,
     max_episodes: u64,
+    normalize_response: bool,
+    response_rms_rate: Option<f64>,
+    response_clip: Option<f64>,
+    shift_leak: Option<f64>,
+    trust_region: Option<f64>,
     /// How each field was given, indexed by `Field as usize` (the order of [`Field::ALL`]), so
     /// [`Session::config`] returns it as sent.
     shapes: [Shape; 5],
@@ -91,8 +103,14 @@ impl Session {
                 disable_highpass: config.disable_highpass,
                 lr_decay: config.lr_decay,
                 max_episodes: config.max_episodes,
+                normalize_response: config.normalize_response,
+                response_rms_rate: config.response_rms_rate,
+                response_clip: config.response_clip,
+                shift_leak: config.shift_leak,
+                trust_region: config.trust_region,
                 shapes: Field::ALL.map(|field| Shape::of(field.of(&config))),
             },
+            mean_square: None,
             step: 0,
             episodes: 0,
             nonfinite_skips: 0,
@@ -119,6 +137,11 @@ impl Session {
             shift_limit: Some(self.shift_limit).filter(|l| l.is_finite()),
             lr_decay: s.lr_decay,
             max_episodes: s.max_episodes,
+            normalize_response: s.normalize_response,
+            response_rms_rate: s.response_rms_rate,
+            response_clip: s.response_clip,
+            shift_leak: s.shift_leak,
+            trust_region: s.trust_region,
         }
     }
 
@@ -147,6 +170,12 @@ impl Session {
         self.probe_pending
     }
 
+    /// m, the running mean square of the filtered response; `None` until seeded (or without
+    /// `normalize_response`).
+    pub fn response_mean_square(&self) -> Option<f64> {
+        self.mean_square
+    }
+
     /// How many reports skipped their shift update because it would have made v non-finite.
     pub fn nonfinite_skips(&self) -> u64 {
         self.nonfinite_skips
@@ -162,9 +191,11 @@ impl Session {
         &self,
         step: u64,
         action: &[f64],
+        action_scale: &[f64],
         episode_start: bool,
     ) -> Result<(), CoreError> {
         self.check_action(action)?;
+        self.check_action_scale(action_scale)?;
         // An episode start resets t to 0 before the step is compared.
         let expected = if episode_start { 0 } else { self.step };
         if step != expected {
@@ -178,17 +209,20 @@ impl Session {
 
     /// Probes step `t` with the sampled action `a_t`; appends the D probe values to `out`.
     ///
-    /// `probe = clip(a_t + v + K sin(w tau), lo, hi)`. Probing the same step again replaces the pending
-    /// action. With `episode_start` and `t > 0` or a pending probe, the episode is ended first (like
-    /// [`end_episode`](Self::end_episode)) and `step` must be 0.
+    /// `probe = clip(a_t + v + K sin(w tau), lo, hi)`. `action_scale` is sigma for the report that answers
+    /// this probe (empty = 1, else length 1 or D, finite and > 0). Probing the same step again replaces the
+    /// pending action and scale. With `episode_start` and `t > 0` or a pending probe, the episode is ended
+    /// first (like [`end_episode`](Self::end_episode)) and `step` must be 0. Algorithm 1's applied action
+    /// for this step is then [`applied_action`](Self::applied_action).
     pub fn probe(
         &mut self,
         step: u64,
         action: &[f64],
+        action_scale: &[f64],
         episode_start: bool,
         out: &mut Vec<f64>,
     ) -> Result<(), CoreError> {
-        self.check_probe(step, action, episode_start)?;
+        self.check_probe(step, action, action_scale, episode_start)?;
         if episode_start && (self.step > 0 || self.probe_pending) {
             self.end_episode();
         }
@@ -197,17 +231,34 @@ impl Session {
         } else {
             let tau = self.step as f64 * self.settings.dt;
             self.lanes.probe(action, tau, out);
+            self.lanes.set_scale(action_scale);
         }
         self.probe_pending = true;
         self.report_replayable = false;
         Ok(())
     }
 
+    /// Appends Algorithm 1's applied action for the last probe: `clip(a_t + v(t), lo, hi)`, the shift before
+    /// this step's report (`clip(a_t)` in pass-through). Right after a report it is `clip(a_t + v(t + 1))`.
+    pub fn applied_action(&self, out: &mut Vec<f64>) {
+        self.lanes.push_action(self.is_pass_through(), out);
+    }
+
     /// Checks a report without changing anything.
-    pub fn check_report(&self, step: u64, q_value: f64) -> Result<(), CoreError> {
+    pub fn check_report(
+        &self,
+        step: u64,
+        q_value: f64,
+        q_reference: Option<f64>,
+    ) -> Result<(), CoreError> {
         if !q_value.is_finite() {
             return Err(CoreError::InvalidArgument(format!(
                 "q_value: expected a finite number, got {q_value}"
+            )));
+        }
+        if let Some(reference) = q_reference.filter(|r| !r.is_finite()) {
+            return Err(CoreError::InvalidArgument(format!(
+                "q_reference: expected a finite number (or unset), got {reference}"
             )));
         }
         if self.is_replay(step) {
@@ -227,16 +278,21 @@ impl Session {
 
     /// Reports `q = Q(s_t, probe)` for the pending probe; appends the D improved-action values to `out`.
     ///
-    /// `v <- clamp(v + alpha_e s H[q], -L, L)` (skipped if any element would be non-finite), then
-    /// `action = clip(a_t + v, lo, hi)` and `t <- t + 1`. A report for step `t - 1` right after it was
-    /// applied returns the same action again and updates nothing.
+    /// The response is `x = q - q_reference` when a reference `Q(s_t, a_t + v(t))` is given, else `q`;
+    /// `h = H[x]`. Section 1: `v <- clamp(v + alpha_e s h, -L, L)`; section 1b adds the normalization
+    /// (`normalize_response`), the leak and the trust region (see [`SessionConfig`]). The update is skipped
+    /// if any element of v (or m) would be non-finite (v is then only kept inside this report's bound
+    /// `min(L, kappa sigma)`); then `action = clip(a_t + v, lo, hi)` and
+    /// `t <- t + 1`. A report for step `t - 1` right after it was applied returns the same action again
+    /// and updates nothing.
     pub fn report(
         &mut self,
         step: u64,
         q_value: f64,
+        q_reference: Option<f64>,
         out: &mut Vec<f64>,
     ) -> Result<ReportOutcome, CoreError> {
-        self.check_report(step, q_value)?;
+        self.check_report(step, q_value, q_reference)?;
         if self.is_replay(step) {
             self.lanes.push_action(self.is_pass_through(), out);
             return Ok(ReportOutcome {
@@ -248,11 +304,12 @@ impl Session {
         if self.is_pass_through() {
             self.lanes.push_action(true, out);
         } else {
+            let x = q_reference.map_or(q_value, |reference| q_value - reference);
             let h = match &mut self.washout {
-                Some(washout) => washout.apply(q_value),
-                None => q_value,
+                Some(washout) => washout.apply(x),
+                None => x,
             };
-            nonfinite_skipped = !self.lanes.update(h, self.shift_limit, out);
+            nonfinite_skipped = !self.update(h, out);
             if nonfinite_skipped {
                 self.nonfinite_skips = self.nonfinite_skips.saturating_add(1);
             }
@@ -283,6 +340,59 @@ impl Session {
             .powf(self.episodes as f64);
         self.lanes.set_rate(decay);
         self.episodes
+    }
+
+    /// Moves v (and m) for the filtered response `h`; appends the improved action. False when the update
+    /// was skipped because v or m would have become non-finite.
+    fn update(&mut self, h: f64, out: &mut Vec<f64>) -> bool {
+        let s = &self.settings;
+        let rule = StepRule {
+            scaled: s.normalize_response,
+            keep: s.shift_leak.map_or(1.0, |lambda| 1.0 - lambda),
+            limit: self.shift_limit,
+            trust: s.trust_region.unwrap_or(f64::INFINITY),
+        };
+        if !s.normalize_response {
+            return self.lanes.update(h, rule, out);
+        }
+        let rate = s.response_rms_rate.unwrap_or(DEFAULT_RESPONSE_RMS_RATE);
+        let clip = s.response_clip.unwrap_or(DEFAULT_RESPONSE_CLIP);
+        let mean_square = match self.mean_square {
+            None if h != 0.0 => Some(h * h),
+            None => None,
+            Some(m) => Some((1.0 - rate) * m + rate * (h * h)),
+        };
+        let g = mean_square.map_or(0.0, |m| {
+            (h / (m + MEAN_SQUARE_GUARD).sqrt()).clamp(-clip, clip)
+        });
+        // An overflowed m would silence every later response (g = h / inf = 0): skip the report instead,
+        // exactly like an update that would make v non-finite. m moves only together with v.
+        if !mean_square.map_or(true, f64::is_finite) || !g.is_finite() {
+            self.lanes.skip_update(rule, out);
+            return false;
+        }
+        let updated = self.lanes.update(g, rule, out);
+        if updated {
+            self.mean_square = mean_square;
+        }
+        updated
+    }
+
+    fn check_action_scale(&self, scale: &[f64]) -> Result<(), CoreError> {
+        let dim = self.action_dim();
+        if !matches!(scale.len(), 0 | 1) && scale.len() != dim {
+            return Err(CoreError::InvalidArgument(format!(
+                "action_scale: expected length 0 (all 1), 1 (broadcast) or {dim} (action_dim), got {}",
+                scale.len()
+            )));
+        }
+        match scale.iter().position(|x| !(x.is_finite() && *x > 0.0)) {
+            Some(i) => Err(CoreError::InvalidArgument(format!(
+                "action_scale[{i}]: expected a finite number > 0, got {}",
+                scale[i]
+            ))),
+            None => Ok(()),
+        }
     }
 
     fn check_action(&self, action: &[f64]) -> Result<(), CoreError> {

@@ -28,11 +28,11 @@ fn run(objective: Objective, steps: u64) -> Vec<f64> {
             let tau = t as f64 * DT;
             probe.clear();
             session
-                .probe(t, &SAMPLED, t == 0, &mut probe)
+                .probe(t, &SAMPLED, &[], t == 0, &mut probe)
                 .expect("probe");
             action.clear();
             session
-                .report(t, -objective(&probe, tau), &mut action)
+                .report(t, -objective(&probe, tau), None, &mut action)
                 .expect("report");
             objective(&action, tau)
         })

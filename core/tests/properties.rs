@@ -1,6 +1,7 @@
 //! Properties over any valid config and any request sequence: outputs are finite and inside the action
-//! bounds, v stays inside the shift limit, refused requests change nothing, and `check_*` agree with the
-//! requests they check.
+//! bounds, v stays inside the shift limit and the trust region (`|v| <= kappa * sigma`, CONTRACT.md
+//! section 1b), refused requests change nothing, and `check_*` agree with the requests they check. With
+//! `normalize_response`, Q and `c1 * Q + c0` give the same actions.
 
 use std::f64::consts::PI;
 
@@ -64,6 +65,7 @@ fn config() -> impl Strategy<Value = SessionConfig> {
             optional_positive,
             prop::option::of(prop_oneof![1e-3..=1.0f64, Just(1.0)]),
             0u64..4,
+            section_1b(),
         )
             .prop_map(
                 move |(
@@ -75,6 +77,7 @@ fn config() -> impl Strategy<Value = SessionConfig> {
                     limit,
                     decay,
                     max,
+                    extra,
                 )| {
                     SessionConfig {
                         highpass_cutoff: highpass.0,
@@ -84,11 +87,44 @@ fn config() -> impl Strategy<Value = SessionConfig> {
                         shift_limit: limit,
                         lr_decay: decay,
                         max_episodes: max,
+                        normalize_response: extra.normalize_response,
+                        response_rms_rate: extra.response_rms_rate,
+                        response_clip: extra.response_clip,
+                        shift_leak: extra.shift_leak,
+                        trust_region: extra.trust_region,
                         ..SessionConfig::new(dim as u32, dt, amplitude, frequency, learning_rate)
                     }
                 },
             )
     })
+}
+
+/// The fields of CONTRACT.md section 1b, each unset or any valid value (extremes included).
+#[derive(Clone, Debug)]
+struct Section1b {
+    normalize_response: bool,
+    response_rms_rate: Option<f64>,
+    response_clip: Option<f64>,
+    shift_leak: Option<f64>,
+    trust_region: Option<f64>,
+}
+
+fn section_1b() -> impl Strategy<Value = Section1b> {
+    let positive = prop_oneof![1e-3..1e3f64, Just(1e300), Just(f64::MIN_POSITIVE)];
+    (
+        prop::bool::ANY,
+        prop::option::of(prop_oneof![1e-6..=1.0f64, Just(1.0)]),
+        prop::option::of(positive.clone()),
+        prop::option::of(prop_oneof![0.0..0.999f64, Just(0.0)]),
+        prop::option::of(positive),
+    )
+        .prop_map(|(normalize_response, rate, clip, leak, trust)| Section1b {
+            normalize_response,
+            response_rms_rate: rate,
+            response_clip: clip,
+            shift_leak: leak,
+            trust_region: trust,
+        })
 }
 
 /// Which step a request names, relative to the session's state when it is sent.
@@ -104,11 +140,13 @@ enum Request {
     Probe {
         step: StepChoice,
         action: Vec<f64>,
+        scale: Vec<f64>,
         episode_start: bool,
     },
     Report {
         step: StepChoice,
         q: f64,
+        reference: Option<f64>,
     },
     EndEpisode,
 }
@@ -131,11 +169,26 @@ fn request(dim: usize) -> impl Strategy<Value = Request> {
         a
     });
     let action = prop_oneof![10 => good_action, 1 => wrong_length, 1 => with_non_finite];
+    let sigma = prop_oneof![8 => 1e-3..10.0f64, 1 => Just(1e300), 1 => Just(f64::MIN_POSITIVE)];
+    let bad_sigma = prop_oneof![Just(0.0), Just(-1.0), non_finite()];
+    let scale = prop_oneof![
+        4 => Just(Vec::new()),
+        4 => vec(sigma.clone(), 1),
+        4 => vec(sigma.clone(), dim),
+        1 => (vec(sigma, dim), 0..dim, bad_sigma).prop_map(|(mut s, i, x)| {
+            s[i] = x;
+            s
+        }),
+        1 => (dim + 1..dim + 3).prop_flat_map(|n| vec(1e-3..10.0f64, n)),
+    ];
     let q = prop_oneof![10 => finite(), 1 => non_finite()];
+    let reference = prop_oneof![4 => Just(None), 4 => finite().prop_map(Some), 1 => non_finite().prop_map(Some)];
     prop_oneof![
-        5 => (step_choice(), action, prop::bool::weighted(0.05))
-            .prop_map(|(step, action, episode_start)| Request::Probe { step, action, episode_start }),
-        5 => (step_choice(), q).prop_map(|(step, q)| Request::Report { step, q }),
+        5 => (step_choice(), action, scale, prop::bool::weighted(0.05)).prop_map(
+            |(step, action, scale, episode_start)| Request::Probe { step, action, scale, episode_start }
+        ),
+        5 => (step_choice(), q, reference)
+            .prop_map(|(step, q, reference)| Request::Report { step, q, reference }),
         1 => Just(Request::EndEpisode),
     ]
 }
@@ -194,30 +247,37 @@ proptest! {
         // rebuilding it exactly, bit for bit, with every vector at the length it was given.
         prop_assert_eq!(format!("{:?}", session.config()), format!("{:?}", &config));
         let limit = config.shift_limit.unwrap_or(f64::INFINITY);
+        let trust = config.trust_region.unwrap_or(f64::INFINITY);
+        // sigma of the pending probe, and of the last report (its bound holds until the next report).
+        let (mut pending_scale, mut bound_scale) = (vec![1.0; config.action_dim as usize], vec![1.0; config.action_dim as usize]);
         let mut last_report: Option<(u64, Vec<f64>)> = None;
         for request in &requests {
             let before = session.clone();
             let mut out = Vec::new();
             let accepted = match request {
-                Request::Probe { step, action, episode_start } => {
+                Request::Probe { step, action, scale, episode_start } => {
                     let step = match (episode_start, step) {
                         (true, StepChoice::Current) => 0,
                         _ => resolve(&session, step),
                     };
-                    let checked = session.check_probe(step, action, *episode_start);
-                    let result = session.probe(step, action, *episode_start, &mut out);
+                    let checked = session.check_probe(step, action, scale, *episode_start);
+                    let result = session.probe(step, action, scale, *episode_start, &mut out);
                     prop_assert_eq!(&checked, &result);
                     if result.is_ok() {
                         assert_valid_output(&config, &out)?;
                         prop_assert!(session.probe_pending());
+                        let mut applied = Vec::new();
+                        session.applied_action(&mut applied);
+                        assert_valid_output(&config, &applied)?;
+                        pending_scale = (0..action.len()).map(|i| bound(scale, i, 1.0)).collect();
                         last_report = None;
                     }
                     result.is_ok()
                 }
-                Request::Report { step, q } => {
+                Request::Report { step, q, reference } => {
                     let step = resolve(&session, step);
-                    let checked = session.check_report(step, *q);
-                    let result = session.report(step, *q, &mut out);
+                    let checked = session.check_report(step, *q, *reference);
+                    let result = session.report(step, *q, *reference, &mut out);
                     prop_assert_eq!(&checked, &result.as_ref().map(drop).map_err(Clone::clone));
                     if let Ok(outcome) = &result {
                         assert_valid_output(&config, &out)?;
@@ -227,6 +287,9 @@ proptest! {
                         } else {
                             prop_assert_eq!(session.step(), step + 1);
                             last_report = Some((step, out.clone()));
+                            if !session.is_pass_through() {
+                                bound_scale.clone_from(&pending_scale);
+                            }
                         }
                     }
                     result.is_ok()
@@ -242,12 +305,147 @@ proptest! {
                 prop_assert!(out.is_empty(), "a refused request wrote output");
             }
             prop_assert_eq!(session.shift().len(), config.action_dim as usize);
-            for &v in session.shift() {
-                prop_assert!(v.is_finite() && -limit <= v && v <= limit, "v = {} outside [-{}, {}]", v, limit, limit);
+            for (&v, &sigma) in session.shift().iter().zip(&bound_scale) {
+                let bound = limit.min(trust * sigma);
+                prop_assert!(v.is_finite() && -bound <= v && v <= bound, "v = {} outside [-{}, {}]", v, bound, bound);
+            }
+            if let Some(m) = session.response_mean_square() {
+                prop_assert!(m.is_finite() && m >= 0.0, "m = {}", m);
             }
             if session.is_pass_through() {
                 prop_assert!(session.shift().iter().all(|&v| v == 0.0));
             }
+        }
+    }
+}
+
+/// A config for the scale-invariance property: normalized, every other 1b field unset or set, and no
+/// action bounds (so clipping never hides a difference in v). Magnitudes stay ordinary: the property is
+/// about Q's scale, not about overflow, which the property above covers.
+fn normalized_config() -> impl Strategy<Value = SessionConfig> {
+    (1usize..=4, 1e-3..0.05f64).prop_flat_map(|(dim, dt)| {
+        (
+            per_dim(dim, 0.05..0.5f64),
+            per_dim(
+                dim,
+                (0.05..0.9f64).prop_map(move |fraction| fraction * PI / dt),
+            ),
+            per_dim(dim, 0.0..0.5f64),
+            (prop::option::of(0.1..10.0f64), prop::bool::ANY),
+            prop::option::of(0.1..2.0f64),
+            prop::option::of(0.01..=1.0f64),
+            prop::option::of(0.5..5.0f64),
+            prop::option::of(0.0..0.1f64),
+            prop::option::of(0.1..3.0f64),
+        )
+            .prop_map(
+                move |(
+                    amplitude,
+                    frequency,
+                    learning_rate,
+                    highpass,
+                    limit,
+                    rate,
+                    clip,
+                    leak,
+                    trust,
+                )| {
+                    SessionConfig {
+                        highpass_cutoff: highpass.0,
+                        disable_highpass: highpass.1,
+                        shift_limit: limit,
+                        normalize_response: true,
+                        response_rms_rate: rate,
+                        response_clip: clip,
+                        shift_leak: leak,
+                        trust_region: trust,
+                        ..SessionConfig::new(dim as u32, dt, amplitude, frequency, learning_rate)
+                    }
+                },
+            )
+    })
+}
+
+/// One step of a scale-invariance run: the sampled action, sigma and the Q "landscape" at the probe.
+#[derive(Clone, Debug)]
+struct ScaledStep {
+    action: Vec<f64>,
+    scale: f64,
+    state_level: f64,
+    episode_start: bool,
+}
+
+fn scaled_steps(dim: usize) -> impl Strategy<Value = Vec<ScaledStep>> {
+    vec(
+        (
+            vec(-2.0..2.0f64, dim),
+            0.05..2.0f64,
+            -5.0..5.0f64,
+            prop::bool::weighted(0.03),
+        )
+            .prop_map(|(action, scale, state_level, episode_start)| ScaledStep {
+                action,
+                scale,
+                state_level,
+                episode_start,
+            }),
+        1..200,
+    )
+}
+
+/// Runs `steps` with Q scaled by `c1` and offset by `c0`, reporting a paired reference when `paired`;
+/// returns every applied action (Algorithm 1's and the report's).
+fn run_scaled(
+    config: &SessionConfig,
+    steps: &[ScaledStep],
+    c1: f64,
+    c0: f64,
+    paired: bool,
+) -> Vec<f64> {
+    let mut session = Session::new(config.clone()).expect("valid config");
+    let (mut probe, mut actions) = (Vec::new(), Vec::new());
+    let q = |level: f64, u: &[f64]| {
+        c1 * (level - u.iter().map(|x| (x - 0.3) * (x - 0.3)).sum::<f64>()) + c0
+    };
+    for (t, step) in steps.iter().enumerate() {
+        let start = t == 0 || step.episode_start;
+        let at = if start { 0 } else { session.step() };
+        probe.clear();
+        session
+            .probe(at, &step.action, &[step.scale], start, &mut probe)
+            .expect("probe");
+        let applied_from = actions.len();
+        session.applied_action(&mut actions);
+        let reference = paired.then(|| q(step.state_level, &actions[applied_from..]));
+        session
+            .report(at, q(step.state_level, &probe), reference, &mut actions)
+            .expect("report");
+    }
+    actions
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+
+    /// CONTRACT.md section 1b: with normalize_response the actions do not depend on Q's scale, nor on its
+    /// offset when the washout or the paired reference removes it (up to rounding and the 1e-12 guard).
+    #[test]
+    fn normalized_actions_do_not_depend_on_the_scale_of_q(
+        (config, steps) in normalized_config().prop_flat_map(|c| {
+            let dim = c.action_dim as usize;
+            (Just(c), scaled_steps(dim))
+        }),
+        // From 0.1 up: at smaller scales h^2 nears the contract's 1e-12 guard, which the invariance
+        // explicitly excludes.
+        c1 in prop_oneof![1e-1..1e4f64, Just(1.0)],
+        c0 in -1e3..1e3f64,
+        paired in prop::bool::ANY,
+    ) {
+        let offset = if paired || !config.disable_highpass { c0 } else { 0.0 };
+        let base = run_scaled(&config, &steps, 1.0, 0.0, paired);
+        let scaled = run_scaled(&config, &steps, c1, offset, paired);
+        for (i, (a, b)) in base.iter().zip(&scaled).enumerate() {
+            prop_assert!((a - b).abs() <= 1e-6 * (1.0 + a.abs()), "action value {}: {} vs {} (c1 {}, c0 {})", i, a, b, c1, offset);
         }
     }
 }

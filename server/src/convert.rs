@@ -24,6 +24,11 @@ pub fn config_from_proto(config: Option<pb::SessionConfig>) -> Result<SessionCon
         shift_limit: c.shift_limit,
         lr_decay: c.lr_decay,
         max_episodes: c.max_episodes,
+        normalize_response: c.normalize_response,
+        response_rms_rate: c.response_rms_rate,
+        response_clip: c.response_clip,
+        shift_leak: c.shift_leak,
+        trust_region: c.trust_region,
     })
 }
 
@@ -42,6 +47,11 @@ pub fn config_to_proto(c: &SessionConfig) -> pb::SessionConfig {
         shift_limit: c.shift_limit,
         lr_decay: c.lr_decay,
         max_episodes: c.max_episodes,
+        normalize_response: c.normalize_response,
+        response_rms_rate: c.response_rms_rate,
+        response_clip: c.response_clip,
+        shift_leak: c.shift_leak,
+        trust_region: c.trust_region,
     }
 }
 
@@ -64,6 +74,11 @@ mod tests {
             shift_limit: Some(0.5),
             lr_decay: Some(0.9),
             max_episodes: 7,
+            normalize_response: true,
+            response_rms_rate: Some(0.1),
+            response_clip: Some(2.0),
+            shift_leak: Some(0.0),
+            trust_region: Some(1.5),
         };
         let core = config_from_proto(Some(wire.clone())).unwrap();
         assert_eq!(config_to_proto(&core), wire);

@@ -65,10 +65,19 @@ impl EsaHandler {
         self.observe(Rpc::Probe, || {
             self.store.with_session(&req.session_id, |session| {
                 let mut probe = Vec::with_capacity(session.action_dim());
-                session.probe(req.step, &req.action, req.episode_start, &mut probe)?;
+                session.probe(
+                    req.step,
+                    &req.action,
+                    &req.action_scale,
+                    req.episode_start,
+                    &mut probe,
+                )?;
+                let mut action = Vec::with_capacity(session.action_dim());
+                session.applied_action(&mut action);
                 Ok(pb::ProbeResponse {
                     probe,
                     step: req.step,
+                    action,
                 })
             })
         })
@@ -79,7 +88,8 @@ impl EsaHandler {
         self.observe(Rpc::Report, || {
             self.store.with_session(&req.session_id, |session| {
                 let mut action = Vec::with_capacity(session.action_dim());
-                let outcome = session.report(req.step, req.q_value, &mut action)?;
+                let outcome =
+                    session.report(req.step, req.q_value, req.q_reference, &mut action)?;
                 self.note_nonfinite(outcome.nonfinite_skipped, &req.session_id);
                 Ok(pb::ReportResponse {
                     action,
@@ -121,6 +131,7 @@ impl EsaHandler {
                     episodes_completed: session.episodes_completed(),
                     shift: session.shift().to_vec(),
                     probe_pending: session.probe_pending(),
+                    response_mean_square: session.response_mean_square(),
                 })
             })
         })
@@ -190,37 +201,48 @@ impl EsaHandler {
         };
         self.store.with_batch(&req.session_ids, |sessions| {
             let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
-            if req.actions.len() != total {
-                return Err(Error::InvalidArgument(format!(
-                    "actions: expected {total} values (the action_dim of the {n} sessions \
-                     added up), got {}",
-                    req.actions.len()
-                )));
+            check_concatenated("actions", req.actions.len(), total, n)?;
+            if !req.action_scales.is_empty() {
+                check_concatenated("action_scales", req.action_scales.len(), total, n)?;
             }
             // Every item is checked before any session changes: all-or-nothing.
-            let mut rest = req.actions.as_slice();
-            for (index, ((session, &step), start)) in
+            let mut items = Vec::with_capacity(n);
+            let (mut actions, mut scales) = (req.actions.as_slice(), req.action_scales.as_slice());
+            for (index, ((session, &step), episode_start)) in
                 sessions.iter().zip(&req.steps).zip(starts()).enumerate()
             {
-                let action = take(&mut rest, session.action_dim(), index)?;
+                let d = session.action_dim();
+                let action = take(&mut actions, d, index, "actions")?;
+                let scale = if req.action_scales.is_empty() {
+                    &[][..]
+                } else {
+                    take(&mut scales, d, index, "action_scales")?
+                };
                 session
-                    .check_probe(step, action, start)
+                    .check_probe(step, action, scale, episode_start)
                     .map_err(|err| Error::item(index, err))?;
+                items.push(ProbeItem {
+                    step,
+                    action,
+                    scale,
+                    episode_start,
+                });
             }
             let mut probes = Vec::with_capacity(total);
-            let mut rest = req.actions.as_slice();
-            for (index, ((session, &step), start)) in sessions
-                .iter_mut()
-                .zip(&req.steps)
-                .zip(starts())
-                .enumerate()
-            {
-                let action = take(&mut rest, session.action_dim(), index)?;
+            let mut actions = Vec::with_capacity(total);
+            for (index, (session, item)) in sessions.iter_mut().zip(items).enumerate() {
                 session
-                    .probe(step, action, start, &mut probes)
+                    .probe(
+                        item.step,
+                        item.action,
+                        item.scale,
+                        item.episode_start,
+                        &mut probes,
+                    )
                     .map_err(|err| Error::item(index, err))?;
+                session.applied_action(&mut actions);
             }
-            Ok(pb::ProbeBatchResponse { probes })
+            Ok(pb::ProbeBatchResponse { probes, actions })
         })
     }
 
@@ -231,28 +253,40 @@ impl EsaHandler {
         let n = check_batch_len(req.session_ids.len())?;
         check_field_len("steps", req.steps.len(), n)?;
         check_field_len("q_values", req.q_values.len(), n)?;
+        if !req.q_references.is_empty() {
+            check_field_len("q_references", req.q_references.len(), n)?;
+        }
+        let references = || {
+            req.q_references
+                .iter()
+                .copied()
+                .map(Some)
+                .chain(std::iter::repeat(None))
+        };
         self.store.with_batch(&req.session_ids, |sessions| {
-            for (index, ((session, &step), &q)) in sessions
+            for (index, (((session, &step), &q), reference)) in sessions
                 .iter()
                 .zip(&req.steps)
                 .zip(&req.q_values)
+                .zip(references())
                 .enumerate()
             {
                 session
-                    .check_report(step, q)
+                    .check_report(step, q, reference)
                     .map_err(|err| Error::item(index, err))?;
             }
             let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
             let mut actions = Vec::with_capacity(total);
-            for (index, (((session, &step), &q), id)) in sessions
+            for (index, ((((session, &step), &q), reference), id)) in sessions
                 .iter_mut()
                 .zip(&req.steps)
                 .zip(&req.q_values)
+                .zip(references())
                 .zip(&req.session_ids)
                 .enumerate()
             {
                 let outcome = session
-                    .report(step, q, &mut actions)
+                    .report(step, q, reference, &mut actions)
                     .map_err(|err| Error::item(index, err))?;
                 self.note_nonfinite(outcome.nonfinite_skipped, id);
             }
@@ -316,12 +350,31 @@ fn check_field_len(field: &str, len: usize, n: usize) -> Result<(), Error> {
     Ok(())
 }
 
-/// Splits the next `d` values off `rest` (item `index`'s action).
-fn take<'a>(rest: &mut &'a [f64], d: usize, index: usize) -> Result<&'a [f64], Error> {
+/// A concatenated per-element field must hold exactly the batch's action values.
+fn check_concatenated(field: &str, len: usize, total: usize, n: usize) -> Result<(), Error> {
+    if len != total {
+        return Err(Error::InvalidArgument(format!(
+            "{field}: expected {total} values (the action_dim of the {n} sessions \
+             added up), got {len}"
+        )));
+    }
+    Ok(())
+}
+
+/// One validated item of a ProbeBatch.
+struct ProbeItem<'a> {
+    step: u64,
+    action: &'a [f64],
+    scale: &'a [f64],
+    episode_start: bool,
+}
+
+/// Splits the next `d` values of `field` off `rest` (item `index`'s part).
+fn take<'a>(rest: &mut &'a [f64], d: usize, index: usize, field: &str) -> Result<&'a [f64], Error> {
     let (head, tail) = rest.split_at_checked(d).ok_or_else(|| {
         Error::item(
             index,
-            Error::InvalidArgument("actions: too few values for this item".into()),
+            Error::InvalidArgument(format!("{field}: too few values for this item")),
         )
     })?;
     *rest = tail;

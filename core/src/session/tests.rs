@@ -18,14 +18,16 @@ fn session(config: SessionConfig) -> Session {
 fn probe(session: &mut Session, step: u64, action: &[f64], episode_start: bool) -> Vec<f64> {
     let mut out = Vec::new();
     session
-        .probe(step, action, episode_start, &mut out)
+        .probe(step, action, &[], episode_start, &mut out)
         .expect("probe accepted");
     out
 }
 
 fn report(session: &mut Session, step: u64, q: f64) -> (Vec<f64>, ReportOutcome) {
     let mut out = Vec::new();
-    let outcome = session.report(step, q, &mut out).expect("report accepted");
+    let outcome = session
+        .report(step, q, None, &mut out)
+        .expect("report accepted");
     (out, outcome)
 }
 
@@ -61,11 +63,11 @@ fn refused(
 }
 
 fn refused_probe(session: &mut Session, step: u64, action: &[f64], start: bool) -> CoreError {
-    refused(session, |s, out| s.probe(step, action, start, out))
+    refused(session, |s, out| s.probe(step, action, &[], start, out))
 }
 
 fn refused_report(session: &mut Session, step: u64, q: f64) -> CoreError {
-    refused(session, |s, out| s.report(step, q, out).map(drop))
+    refused(session, |s, out| s.report(step, q, None, out).map(drop))
 }
 
 #[test]
@@ -627,9 +629,9 @@ fn bad_action_is_refused() {
             err,
             CoreError::InvalidArgument(format!("action[1]: expected a finite number, got {x}"))
         );
-        assert!(s.check_probe(1, &[x, 0.0], false).is_err());
+        assert!(s.check_probe(1, &[x, 0.0], &[], false).is_err());
     }
-    assert_eq!(s.check_probe(1, &[0.0, 0.0], false), Ok(()));
+    assert_eq!(s.check_probe(1, &[0.0, 0.0], &[], false), Ok(()));
 }
 
 #[test]
@@ -643,14 +645,303 @@ fn nonfinite_q_is_refused() {
             CoreError::InvalidArgument(format!("q_value: expected a finite number, got {q}"))
         );
     }
-    assert_eq!(s.check_report(0, 1.0), Ok(()));
+    assert_eq!(s.check_report(0, 1.0, None), Ok(()));
 }
 
 #[test]
 fn outputs_are_appended() {
     let mut s = session(base());
     let mut out = vec![9.0];
-    s.probe(0, &[1.0, 2.0], false, &mut out).expect("probe");
-    s.report(0, 0.0, &mut out).expect("report");
+    s.probe(0, &[1.0, 2.0], &[], false, &mut out)
+        .expect("probe");
+    s.report(0, 0.0, None, &mut out).expect("report");
     assert_eq!(out, vec![9.0, 1.0, 2.0, 1.0, 2.0]);
+}
+
+// ---- CONTRACT.md section 1b: applied action, action scale, paired response, normalization, leak, trust ----
+
+fn report_paired(session: &mut Session, step: u64, q: f64, reference: Option<f64>) -> Vec<f64> {
+    let mut out = Vec::new();
+    session
+        .report(step, q, reference, &mut out)
+        .expect("report accepted");
+    out
+}
+
+fn probe_scaled(session: &mut Session, step: u64, action: &[f64], scale: &[f64]) -> Vec<f64> {
+    let mut out = Vec::new();
+    session
+        .probe(step, action, scale, false, &mut out)
+        .expect("probe accepted");
+    out
+}
+
+fn applied(session: &Session) -> Vec<f64> {
+    let mut out = Vec::new();
+    session.applied_action(&mut out);
+    out
+}
+
+/// Filter off, so h = x and every expectation is a closed form.
+fn raw(config: SessionConfig) -> SessionConfig {
+    SessionConfig {
+        disable_highpass: true,
+        ..config
+    }
+}
+
+#[test]
+fn applied_action_is_the_shift_before_the_update() {
+    let mut s = session(SessionConfig {
+        action_low: vec![-1.0],
+        action_high: vec![1.0],
+        ..raw(base())
+    });
+    probe(&mut s, 0, &[0.5, -0.5], false);
+    assert_eq!(applied(&s), vec![0.5, -0.5], "v(0) = 0");
+    report(&mut s, 0, 3.0);
+    let v1 = s.shift().to_vec();
+    probe(&mut s, 1, &[0.9, 0.0], false);
+    let expected: Vec<f64> = [0.9, 0.0]
+        .iter()
+        .zip(&v1)
+        .map(|(a, v)| (a + v).clamp(-1.0, 1.0))
+        .collect();
+    assert_eq!(applied(&s), expected);
+    // The report's action uses v(t + 1); the probe's applied action does not depend on Q.
+    let after = report(&mut s, 1, 2.0).0;
+    assert_eq!(applied(&s), after);
+}
+
+#[test]
+fn applied_action_in_pass_through_is_the_clipped_sample() {
+    let mut s = session(SessionConfig {
+        max_episodes: 1,
+        action_low: vec![-1.0],
+        action_high: vec![1.0],
+        ..base()
+    });
+    s.end_episode();
+    probe(&mut s, 0, &[3.0, 0.25], false);
+    assert_eq!(applied(&s), vec![1.0, 0.25]);
+}
+
+#[test]
+fn unset_section_1b_fields_and_unit_scale_give_section_1_bit_for_bit() {
+    let plain = base();
+    let explicit = SessionConfig {
+        shift_leak: Some(0.0),
+        response_rms_rate: Some(0.3),
+        response_clip: Some(0.1),
+        ..base()
+    };
+    let (mut a, mut b) = (session(plain), session(explicit));
+    for t in 0..50 {
+        let action = [0.1 * t as f64, -0.2];
+        let pa = probe(&mut a, t, &action, false);
+        let pb = probe_scaled(&mut b, t, &action, &[1.0]);
+        assert_eq!(pa, pb);
+        let q = -(pa[0] - 0.3).powi(2) + (t as f64).sin();
+        assert_eq!(report(&mut a, t, q).0, report(&mut b, t, q).0);
+    }
+    assert_eq!(a.shift(), b.shift());
+}
+
+#[test]
+fn q_reference_makes_the_response_a_difference() {
+    let (mut paired, mut direct) = (session(raw(base())), session(raw(base())));
+    for t in 0..20 {
+        probe(&mut paired, t, &[0.0, 0.0], false);
+        probe(&mut direct, t, &[0.0, 0.0], false);
+        let q = 1.5 + t as f64;
+        let reference = 0.25 * t as f64;
+        assert_eq!(
+            report_paired(&mut paired, t, q, Some(reference)),
+            report_paired(&mut direct, t, q - reference, None)
+        );
+    }
+}
+
+#[test]
+fn normalized_step_seeds_m_with_the_first_nonzero_response() {
+    let config = SessionConfig {
+        normalize_response: true,
+        ..raw(base())
+    };
+    let mut s = session(config);
+    // t = 0: sin(0) = 0 in both dims, but m is still seeded by h = 4.
+    probe_scaled(&mut s, 0, &[0.0, 0.0], &[0.5]);
+    report_paired(&mut s, 0, 4.0, None);
+    assert_eq!(s.response_mean_square(), Some(16.0));
+    assert_eq!(s.shift(), &[0.0, 0.0]);
+    // t = 1: m = 0.95 * 16 + 0.05 * 4 = 15.4, g = -2 / sqrt(15.4 + 1e-12) (inside the clip of 3).
+    probe_scaled(&mut s, 1, &[0.0, 0.0], &[0.5, 2.0]);
+    report_paired(&mut s, 1, -2.0, None);
+    let m = 0.95 * 16.0 + 0.05 * 4.0;
+    assert_eq!(s.response_mean_square(), Some(m));
+    let g = -2.0 / (m + 1e-12_f64).sqrt();
+    for (i, (&v, sigma)) in s.shift().iter().zip([0.5, 2.0]).enumerate() {
+        let expected = ALPHA * sigma * sine(W[i], 1) * g;
+        assert_relative_eq!(v, expected, epsilon = TOL);
+    }
+}
+
+#[test]
+fn normalized_response_is_clipped_and_zero_until_seeded() {
+    let config = SessionConfig {
+        normalize_response: true,
+        response_rms_rate: Some(1.0),
+        response_clip: Some(0.5),
+        ..raw(base())
+    };
+    let mut s = session(config);
+    probe(&mut s, 0, &[0.0, 0.0], false);
+    report(&mut s, 0, 0.0);
+    assert_eq!(s.response_mean_square(), None, "h = 0 does not seed m");
+    probe(&mut s, 1, &[0.0, 0.0], false);
+    report(&mut s, 1, 7.0);
+    // rho = 1: m = h^2, g = h / |h| = 1, clipped to 0.5.
+    assert_eq!(s.response_mean_square(), Some(49.0));
+    for (i, &v) in s.shift().iter().enumerate() {
+        assert_relative_eq!(v, ALPHA * sine(W[i], 1) * 0.5, epsilon = TOL);
+    }
+}
+
+#[test]
+fn mean_square_survives_episode_ends() {
+    let mut s = session(SessionConfig {
+        normalize_response: true,
+        ..raw(base())
+    });
+    probe(&mut s, 0, &[0.0, 0.0], false);
+    report(&mut s, 0, 2.0);
+    s.end_episode();
+    assert_eq!(s.response_mean_square(), Some(4.0));
+    assert_eq!(s.shift(), &[0.0, 0.0]);
+}
+
+#[test]
+fn leak_decays_the_shift_before_the_step() {
+    let lambda = 0.25;
+    let mut s = session(SessionConfig {
+        shift_leak: Some(lambda),
+        ..raw(base())
+    });
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    let v1 = s.shift().to_vec();
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    for (i, (&v, &before)) in s.shift().iter().zip(&v1).enumerate() {
+        assert_relative_eq!(
+            v,
+            (1.0 - lambda) * before + ALPHA * sine(W[i], 1),
+            epsilon = TOL
+        );
+    }
+}
+
+#[test]
+fn trust_region_bounds_v_by_kappa_sigma_and_the_shift_limit() {
+    let mut s = session(SessionConfig {
+        trust_region: Some(2.0),
+        shift_limit: Some(0.3),
+        ..raw(base())
+    });
+    for t in 0..30 {
+        probe_scaled(&mut s, t, &[0.0, 0.0], &[0.1, 1.0]);
+        report(&mut s, t, 1e9 * if t % 2 == 0 { 1.0 } else { -1.0 });
+        assert!(
+            s.shift()[0].abs() <= 0.2,
+            "kappa sigma = 0.2: {:?}",
+            s.shift()
+        );
+        assert!(
+            s.shift()[1].abs() <= 0.3,
+            "L = 0.3 < kappa sigma: {:?}",
+            s.shift()
+        );
+    }
+    assert_eq!(s.shift()[0].abs(), 0.2);
+}
+
+#[test]
+fn a_later_probe_scale_replaces_the_pending_one() {
+    let mut s = session(SessionConfig {
+        trust_region: Some(1.0),
+        ..raw(base())
+    });
+    probe_scaled(&mut s, 0, &[0.0, 0.0], &[1e-3]);
+    probe_scaled(&mut s, 0, &[0.0, 0.0], &[]);
+    probe(&mut s, 0, &[0.0, 0.0], false);
+    report(&mut s, 0, 1.0);
+    probe(&mut s, 1, &[0.0, 0.0], false);
+    report(&mut s, 1, 1e6);
+    // sigma = 1 (the last probe sent none): bound 1, not 1e-3.
+    assert!(s.shift().iter().any(|v| v.abs() > 1e-3), "{:?}", s.shift());
+}
+
+#[test]
+fn bad_action_scale_is_refused_and_changes_nothing() {
+    let mut s = session(base());
+    for scale in [
+        vec![0.0],
+        vec![-1.0],
+        vec![f64::NAN],
+        vec![f64::INFINITY],
+        vec![1.0, f64::NEG_INFINITY],
+        vec![1.0, 1.0, 1.0],
+    ] {
+        let err = refused(&mut s, |s, out| s.probe(0, &[0.0, 0.0], &scale, false, out));
+        assert!(
+            matches!(&err, CoreError::InvalidArgument(m) if m.starts_with("action_scale")),
+            "{err}"
+        );
+    }
+}
+
+#[test]
+fn non_finite_q_reference_is_refused_and_changes_nothing() {
+    let mut s = session(base());
+    probe(&mut s, 0, &[0.0, 0.0], false);
+    for reference in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        let err = refused(&mut s, |s, out| {
+            s.report(0, 1.0, Some(reference), out).map(drop)
+        });
+        assert!(
+            matches!(&err, CoreError::InvalidArgument(m) if m.starts_with("q_reference")),
+            "{err}"
+        );
+    }
+}
+
+#[test]
+fn an_overflowing_mean_square_skips_the_report_and_keeps_m() {
+    let mut s = session(SessionConfig {
+        normalize_response: true,
+        ..raw(base())
+    });
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    pair(&mut s, &[0.0, 0.0], 1.0);
+    let (m, v) = (s.response_mean_square(), s.shift().to_vec());
+    probe(&mut s, 2, &[0.0, 0.0], false);
+    let mut out = Vec::new();
+    let outcome = s
+        .report(2, f64::MAX, Some(-f64::MAX), &mut out)
+        .expect("finite inputs are accepted");
+    assert!(outcome.nonfinite_skipped);
+    assert_eq!((s.response_mean_square(), s.shift()), (m, &v[..]));
+    assert_eq!(s.step(), 3);
+    assert!(out.iter().all(|x| x.is_finite()));
+}
+
+#[test]
+fn config_round_trips_the_section_1b_fields() {
+    let config = SessionConfig {
+        normalize_response: true,
+        response_rms_rate: Some(0.2),
+        response_clip: Some(1.5),
+        shift_leak: Some(0.0),
+        trust_region: Some(0.75),
+        ..base()
+    };
+    assert_eq!(session(config.clone()).config(), config);
 }

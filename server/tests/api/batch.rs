@@ -33,6 +33,7 @@ async fn probe_all(client: &mut Client, ids: &[String], step: u64) {
             steps: vec![step; ids.len()],
             actions: actions_at(step),
             episode_starts: vec![],
+            ..Default::default()
         })
         .await
         .unwrap();
@@ -67,6 +68,7 @@ async fn batches_give_the_same_results_as_unary_calls() {
                 } else {
                     vec![]
                 },
+                ..Default::default()
             })
             .await
             .unwrap()
@@ -97,6 +99,7 @@ async fn batches_give_the_same_results_as_unary_calls() {
                 session_ids: batched.clone(),
                 steps: vec![step; DIMS.len()],
                 q_values: q_values.clone(),
+                ..Default::default()
             })
             .await
             .unwrap()
@@ -133,6 +136,7 @@ async fn a_batch_with_one_bad_item_changes_no_session() {
                 session_ids: ids.clone(),
                 steps: vec![step; 3],
                 q_values: vec![1.0, -2.0, 0.5],
+                ..Default::default()
             })
             .await
             .unwrap();
@@ -149,6 +153,7 @@ async fn a_batch_with_one_bad_item_changes_no_session() {
             steps,
             actions,
             episode_starts: vec![],
+            ..Default::default()
         };
 
     let bad_probes = [
@@ -222,6 +227,7 @@ async fn a_batch_with_one_bad_item_changes_no_session() {
                     session_ids: ids.clone(),
                     steps,
                     q_values,
+                    ..Default::default()
                 })
                 .await,
             code,
@@ -246,6 +252,7 @@ async fn a_session_may_appear_only_once_per_batch() {
                 steps: vec![0; 3],
                 actions: vec![0.0; 3],
                 episode_starts: vec![],
+                ..Default::default()
             })
             .await,
         Code::InvalidArgument,
@@ -257,6 +264,7 @@ async fn a_session_may_appear_only_once_per_batch() {
                 session_ids: vec!["b".into(), "b".into()],
                 steps: vec![0; 2],
                 q_values: vec![0.0; 2],
+                ..Default::default()
             })
             .await,
         Code::InvalidArgument,
@@ -281,6 +289,7 @@ async fn report_batch_retry_replays_the_same_actions() {
             session_ids: ids.clone(),
             steps: vec![step; 3],
             q_values: vec![0.5, 1.5, -1.0],
+            ..Default::default()
         };
         let first = client
             .report_batch(request.clone())

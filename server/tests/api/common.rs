@@ -130,6 +130,7 @@ pub async fn probe(
             step,
             action: action.to_vec(),
             episode_start,
+            ..Default::default()
         })
         .await
         .map(tonic::Response::into_inner)
@@ -146,6 +147,7 @@ pub async fn report(
             session_id: id.into(),
             step,
             q_value,
+            ..Default::default()
         })
         .await
         .map(tonic::Response::into_inner)

@@ -42,6 +42,7 @@ async fn unknown_session_is_not_found_on_every_rpc() {
                 steps: vec![0],
                 actions: vec![0.0],
                 episode_starts: vec![],
+                ..Default::default()
             })
             .await,
         Code::NotFound,
@@ -53,6 +54,7 @@ async fn unknown_session_is_not_found_on_every_rpc() {
                 session_ids: vec![id.into()],
                 steps: vec![0],
                 q_values: vec![0.0],
+                ..Default::default()
             })
             .await,
         Code::NotFound,
@@ -314,6 +316,7 @@ async fn session_ids_must_be_1_to_128_bytes() {
                 steps: vec![0, 0],
                 actions: vec![0.0, 0.0],
                 episode_starts: vec![],
+                ..Default::default()
             })
             .await,
         Code::InvalidArgument,
@@ -394,6 +397,7 @@ async fn malformed_batches_are_invalid_argument_naming_the_field() {
             steps,
             actions,
             episode_starts: starts,
+            ..Default::default()
         };
     let cases = [
         (
@@ -433,6 +437,7 @@ async fn malformed_batches_are_invalid_argument_naming_the_field() {
         session_ids: ids(),
         steps,
         q_values,
+        ..Default::default()
     };
     assert_error(
         client
@@ -469,6 +474,7 @@ async fn batches_over_65536_items_are_invalid_argument() {
                 steps: vec![0; n],
                 actions: vec![0.0; n],
                 episode_starts: vec![],
+                ..Default::default()
             })
             .await,
         Code::InvalidArgument,
@@ -480,6 +486,7 @@ async fn batches_over_65536_items_are_invalid_argument() {
                 session_ids: ids,
                 steps: vec![0; n],
                 q_values: vec![0.0; n],
+                ..Default::default()
             })
             .await,
         Code::InvalidArgument,

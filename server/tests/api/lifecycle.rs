@@ -133,18 +133,18 @@ async fn probe_retry_replaces_the_pending_action() {
     let mut out = Vec::new();
     for step in 0..3 {
         out.clear();
-        twin.probe(step, &[0.1, 0.2], false, &mut out).unwrap();
+        twin.probe(step, &[0.1, 0.2], &[], false, &mut out).unwrap();
         let q = q_of(&out);
         out.clear();
-        twin.report(step, q, &mut out).unwrap();
+        twin.report(step, q, None, &mut out).unwrap();
     }
     out.clear();
-    twin.probe(3, &[0.3, 0.4], false, &mut out).unwrap();
+    twin.probe(3, &[0.3, 0.4], &[], false, &mut out).unwrap();
     assert_eq!(replaced.probe, out);
 
     let r = report(&mut client, "s", 3, 1.5).await.unwrap();
     out.clear();
-    twin.report(3, 1.5, &mut out).unwrap();
+    twin.report(3, 1.5, None, &mut out).unwrap();
     assert_eq!(r.action, out, "the report uses the replacing action");
     server.stop().await;
 }

@@ -69,6 +69,7 @@ async fn concurrent_overlapping_batches_neither_deadlock_nor_interfere() {
                         steps: vec![step; mine.len()],
                         actions: vec![0.1; mine.len()],
                         episode_starts: vec![],
+                        ..Default::default()
                     })
                     .await;
                 if probe.is_err() {
@@ -79,6 +80,7 @@ async fn concurrent_overlapping_batches_neither_deadlock_nor_interfere() {
                         session_ids: mine.clone(),
                         steps: vec![step; mine.len()],
                         q_values: vec![1.0; mine.len()],
+                        ..Default::default()
                     })
                     .await;
                 match report {

@@ -9,6 +9,7 @@ mod errors;
 mod lifecycle;
 mod limits;
 mod robustness;
+mod section_1b;
 mod stream;
 mod transport;
 mod ttl;

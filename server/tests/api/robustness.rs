@@ -81,6 +81,11 @@ impl Rng {
             shift_limit: (self.below(2) == 0).then(|| self.double()),
             lr_decay: (self.below(2) == 0).then(|| self.double()),
             max_episodes: self.step(),
+            normalize_response: self.below(2) == 0,
+            response_rms_rate: (self.below(2) == 0).then(|| self.double()),
+            response_clip: (self.below(2) == 0).then(|| self.double()),
+            shift_leak: (self.below(2) == 0).then(|| self.double()),
+            trust_region: (self.below(2) == 0).then(|| self.double()),
         })
     }
 }
@@ -109,6 +114,7 @@ async fn random_call(client: &mut Client, rng: &mut Rng) -> Result<(), tonic::St
                 step: rng.step(),
                 action: rng.doubles(),
                 episode_start: rng.below(2) == 0,
+                action_scale: rng.doubles(),
             };
             client.probe(request).await.map(drop)
         }
@@ -117,6 +123,7 @@ async fn random_call(client: &mut Client, rng: &mut Rng) -> Result<(), tonic::St
                 session_id: rng.id(),
                 step: rng.step(),
                 q_value: rng.double(),
+                q_reference: (rng.below(2) == 0).then(|| rng.double()),
             };
             client.report(request).await.map(drop)
         }
@@ -134,6 +141,7 @@ async fn random_call(client: &mut Client, rng: &mut Rng) -> Result<(), tonic::St
                 steps: (0..rng.below(5)).map(|_| rng.step()).collect(),
                 actions: rng.doubles(),
                 episode_starts: (0..rng.below(5)).map(|_| rng.below(2) == 0).collect(),
+                action_scales: rng.doubles(),
                 session_ids,
             };
             client.probe_batch(request).await.map(drop)
@@ -143,6 +151,7 @@ async fn random_call(client: &mut Client, rng: &mut Rng) -> Result<(), tonic::St
             let request = pb::ReportBatchRequest {
                 steps: (0..rng.below(5)).map(|_| rng.step()).collect(),
                 q_values: rng.doubles(),
+                q_references: rng.doubles(),
                 session_ids,
             };
             client.report_batch(request).await.map(drop)

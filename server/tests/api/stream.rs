@@ -11,13 +11,13 @@ use tonic::{Code, Streaming};
 
 use crate::common::{config, create, get, start, start_with, Client};
 
-struct Stream {
+pub(crate) struct Stream {
     requests: mpsc::Sender<pb::StepStreamRequest>,
     responses: Streaming<pb::StepStreamResponse>,
 }
 
 impl Stream {
-    async fn open(client: &mut Client) -> Self {
+    pub(crate) async fn open(client: &mut Client) -> Self {
         let (requests, rx) = mpsc::channel(16);
         let responses = client
             .step_stream(ReceiverStream::new(rx))
@@ -30,14 +30,14 @@ impl Stream {
         }
     }
 
-    async fn send(&self, kind: Option<Req>) {
+    pub(crate) async fn send(&self, kind: Option<Req>) {
         self.requests
             .send(pb::StepStreamRequest { kind })
             .await
             .expect("stream open");
     }
 
-    async fn next(&mut self) -> Resp {
+    pub(crate) async fn next(&mut self) -> Resp {
         self.responses
             .message()
             .await
@@ -54,6 +54,7 @@ fn probe_batch(ids: &[&str], step: u64, actions: Vec<f64>) -> Option<Req> {
         steps: vec![step; ids.len()],
         actions,
         episode_starts: vec![],
+        ..Default::default()
     }))
 }
 
@@ -62,6 +63,7 @@ fn report_batch(ids: &[&str], steps: Vec<u64>, q_values: Vec<f64>) -> Option<Req
         session_ids: ids.iter().map(|s| s.to_string()).collect(),
         steps,
         q_values,
+        ..Default::default()
     }))
 }
 

@@ -229,6 +229,7 @@ async fn encoded_messages_reach_the_same_sessions() {
                 session_id: "z".into(),
                 step: 0,
                 q_value: 1.0,
+                ..Default::default()
             }
             .encode_to_vec(),
         )

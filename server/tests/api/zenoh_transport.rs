@@ -15,13 +15,13 @@ use zenoh::Session;
 use crate::common::{self, config, create, get, probe, q_of, report, TestServer};
 
 /// A gRPC server and a Zenoh service on one handler, and a peer connected to it.
-struct Both {
-    grpc: TestServer,
+pub(crate) struct Both {
+    pub(crate) grpc: TestServer,
     zenoh: ZenohService,
-    peer: Session,
+    pub(crate) peer: Session,
 }
 
-async fn start_both(prefix: &str) -> Both {
+pub(crate) async fn start_both(prefix: &str) -> Both {
     let grpc = common::start().await;
     let zenoh = ZenohService::start(
         grpc.handler.clone(),
@@ -46,7 +46,7 @@ async fn start_both(prefix: &str) -> Both {
 }
 
 impl Both {
-    async fn stop(self) {
+    pub(crate) async fn stop(self) {
         self.peer.close().await.expect("close peer");
         self.zenoh.close().await.expect("close service");
         self.grpc.stop().await;
@@ -54,7 +54,7 @@ impl Both {
 }
 
 /// Sends one query; `Ok` is the decoded response, `Err` the decoded `StreamError`.
-async fn query<R: Message + Default>(
+pub(crate) async fn query<R: Message + Default>(
     peer: &Session,
     key: &str,
     request: &impl Message,
@@ -84,6 +84,7 @@ fn probe_request(id: &str, step: u64, action: &[f64], start: bool) -> pb::ProbeR
         step,
         action: action.to_vec(),
         episode_start: start,
+        ..Default::default()
     }
 }
 
@@ -120,6 +121,7 @@ async fn identical_calls_give_identical_answers() {
             session_id: "over-zenoh".into(),
             step,
             q_value: q,
+            ..Default::default()
         };
         let by_zenoh: pb::ReportResponse =
             query(&both.peer, "esa/v1/Report", &request).await.unwrap();
@@ -151,6 +153,7 @@ async fn a_session_created_over_grpc_is_usable_over_zenoh_and_stepstream() {
                 steps: vec![0],
                 actions: vec![0.3],
                 episode_starts: vec![true],
+                ..Default::default()
             },
         )),
     };
@@ -169,6 +172,7 @@ async fn a_session_created_over_grpc_is_usable_over_zenoh_and_stepstream() {
                 session_ids: vec!["shared".into()],
                 steps: vec![7],
                 q_values: vec![1.0],
+                ..Default::default()
             },
         )),
     };
