@@ -31,7 +31,7 @@ def client(server_bin):
 
 
 def random_config(rng: np.random.Generator, action_dim: int | None = None) -> SessionConfig:
-    """A random valid config exercising every optional field."""
+    """A random valid config exercising every optional field, CONTRACT.md section 1b included."""
     d = int(action_dim if action_dim is not None else rng.integers(1, 5))
     dt = float(rng.choice([0.002, 0.01, 0.04, 0.05]))
 
@@ -52,6 +52,11 @@ def random_config(rng: np.random.Generator, action_dim: int | None = None) -> Se
         shift_limit=float(rng.uniform(0.05, 1.0)) if rng.random() < 0.5 else None,
         lr_decay=float(rng.uniform(0.5, 1.0)) if rng.random() < 0.5 else None,
         max_episodes=int(rng.integers(0, 4)),
+        normalize_response=bool(rng.random() < 0.5),
+        response_rms_rate=float(rng.uniform(0.01, 1.0)) if rng.random() < 0.5 else None,
+        response_clip=float(rng.uniform(0.5, 5.0)) if rng.random() < 0.5 else None,
+        shift_leak=float(rng.uniform(0.0, 0.2)) if rng.random() < 0.5 else None,
+        trust_region=float(rng.uniform(0.1, 3.0)) if rng.random() < 0.5 else None,
     )
 
 

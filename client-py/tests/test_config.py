@@ -86,3 +86,60 @@ def test_esa_config_dt_overrides_and_nyquist_is_explained():
     assert EsaConfig(dt=0.01).session_config(1, dt=0.5).dt == 0.01
     with pytest.raises(ValueError, match="Nyquist"):
         EsaConfig().session_config(1, dt=0.2)
+
+
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        (dict(amplitude=-1.0), "amplitude"),
+        (dict(amplitude=[0.1, math.nan]), "amplitude"),
+        (dict(frequency=0.0), "frequency"),
+        (dict(frequency=-31.4), "frequency"),
+        (dict(learning_rate=math.nan), "learning_rate"),
+        (dict(learning_rate=-0.1), "learning_rate"),
+        (dict(highpass_cutoff=-1.0), "highpass_cutoff"),
+        (dict(lr_decay=2.0), "lr_decay"),
+        (dict(max_episodes=-3), "max_episodes"),
+        (dict(shift_limit=0.0), "shift_limit"),
+        (dict(response_rms_rate=0.0), "response_rms_rate"),
+        (dict(response_clip=math.inf), "response_clip"),
+        (dict(shift_leak=1.0), "shift_leak"),
+        (dict(trust_region=-1.0), "trust_region"),
+        (dict(gate=1.5), "gate"),
+        (dict(gate=True), "gate"),
+        (dict(paired_response="yes"), "paired_response"),
+        (dict(use_policy_std=1), "use_policy_std"),
+        (dict(dt=0.0), "dt"),
+        (dict(dt=0.05, frequency=100.0), "Nyquist"),
+        (dict(amplitude=[0.1, 0.2], learning_rate=[0.1, 0.2, 0.3]), "length"),
+    ],
+)
+def test_esa_config_rejects_every_bad_field_when_built(change, field):
+    with pytest.raises(ValueError, match="expected") as raised:
+        EsaConfig(**change)
+    assert field in str(raised.value)
+
+
+def test_esa_config_accepts_per_dimension_vectors_before_the_env_is_known():
+    esa = EsaConfig(amplitude=[0.1, 0.2, 0.3], frequency=[30.0, 20.0, 10.0])
+    assert esa.session_config(3, dt=0.01).amplitude == (0.1, 0.2, 0.3)
+    with pytest.raises(ValueError, match="amplitude"):
+        esa.session_config(2, dt=0.01)
+
+
+def test_paper_preset_is_section_1_with_the_papers_settings():
+    paper = EsaConfig.paper()
+    config = paper.session_config(2, dt=0.01)
+    assert (paper.amplitude, paper.frequency) == (0.2, 10 * math.pi)
+    assert not config.normalize_response
+    assert config.trust_region is None and config.shift_leak is None
+    assert not paper.paired_response and not paper.use_policy_std and paper.gate is None
+    assert EsaConfig.paper(amplitude=0.1).amplitude == 0.1
+    with pytest.raises(ValueError, match="amplitude"):
+        EsaConfig.paper(amplitude=-0.1)
+
+
+def test_the_default_is_the_bounded_scale_free_law():
+    config = EsaConfig().session_config(2, dt=0.01)
+    assert config.normalize_response
+    assert config.trust_region is not None and config.shift_leak is not None

@@ -36,8 +36,10 @@ def test_wrapper_applies_the_improved_action(client):
         obs, _ = env.reset(seed=episode)
         for t in range(30):
             action = rng.uniform(-1, 1, size=1).astype(np.float32)
-            probe = reference.probe(action, episode_start=t == 0)
-            want = reference.report(q_fn(obs, probe.astype(np.float32)))
+            probe, want = reference.probe_applied(action, episode_start=t == 0)
+            reference.report(
+                q_fn(obs, probe.astype(np.float32)), q_reference=q_fn(obs, want.astype(np.float32))
+            )
             obs, _, terminated, truncated, info = env.step(action)
             np.testing.assert_allclose(info["esa_action"], want, rtol=1e-6)
             np.testing.assert_array_equal(applied[-1], info["esa_action"])

@@ -61,6 +61,18 @@ def _finite_bound(bound: Vector | None, unbounded: float) -> Vector | None:
     return np.where(values == unbounded, math.copysign(sys.float_info.max, unbounded), values)
 
 
+_OPTIONAL_SCALARS = (
+    "highpass_cutoff",
+    "shift_limit",
+    "lr_decay",
+    "response_rms_rate",
+    "response_clip",
+    "shift_leak",
+    "trust_region",
+)
+"""The proto3 ``optional double`` fields of ``SessionConfig`` (None = unset)."""
+
+
 @dataclass(frozen=True)
 class SessionConfig:
     """The configuration of one ESA session, mirroring ``esa.v1.SessionConfig``.
@@ -82,6 +94,14 @@ class SessionConfig:
         shift_limit: Bound L on every element of the shift v; None = no clamp.
         lr_decay: Per-episode learning-rate decay in (0, 1]; None = 1.
         max_episodes: Episodes after which the session passes actions through; 0 = never.
+        normalize_response: Scale-free law (CONTRACT.md section 1b): the filtered response is
+            divided by its running RMS, clipped to ``response_clip`` and the step scaled by the
+            probe's action scale, so one learning rate fits every reward scale.
+        response_rms_rate: EMA rate of the response's mean square, in (0, 1]; None = 0.05.
+        response_clip: Clip of the normalized response (finite, > 0); None = 3.
+        shift_leak: Leak lambda in [0, 1): ``v <- (1 - lambda) v + step``; None = 0.
+        trust_region: kappa (finite, > 0): ``|v| <= kappa * action_scale`` per dimension;
+            None = no bound from it.
     """
 
     action_dim: int
@@ -96,6 +116,11 @@ class SessionConfig:
     shift_limit: float | None = None
     lr_decay: float | None = None
     max_episodes: int = 0
+    normalize_response: bool = False
+    response_rms_rate: float | None = None
+    response_clip: float | None = None
+    shift_leak: float | None = None
+    trust_region: float | None = None
 
     def __post_init__(self) -> None:
         """Validates every field and normalizes vectors to tuples."""
@@ -144,14 +169,22 @@ class SessionConfig:
                 "action_low < action_high in every dimension",
                 (self.action_low, self.action_high),
             )
-        if self.shift_limit is not None:
-            _check(
-                math.isfinite(self.shift_limit) and self.shift_limit > 0,
-                "shift_limit finite and > 0",
-                self.shift_limit,
-            )
-        if self.lr_decay is not None:
-            _check(0 < self.lr_decay <= 1, "lr_decay in (0, 1]", self.lr_decay)
+        for name in ("shift_limit", "response_clip", "trust_region"):
+            value = getattr(self, name)
+            if value is not None:
+                _check(math.isfinite(value) and value > 0, f"{name} finite and > 0", value)
+        for name in ("lr_decay", "response_rms_rate"):
+            value = getattr(self, name)
+            if value is not None:
+                _check(0 < value <= 1, f"{name} in (0, 1]", value)
+        if self.shift_leak is not None:
+            _check(0 <= self.shift_leak < 1, "shift_leak in [0, 1)", self.shift_leak)
+        _check(
+            isinstance(self.normalize_response, (bool, np.bool_)),
+            "normalize_response a bool",
+            self.normalize_response,
+        )
+        object.__setattr__(self, "normalize_response", bool(self.normalize_response))
         _check(
             isinstance(self.max_episodes, (int, np.integer)) and self.max_episodes >= 0,
             "max_episodes an integer >= 0",
@@ -179,8 +212,9 @@ class SessionConfig:
             action_low=self.action_low,
             action_high=self.action_high,
             max_episodes=self.max_episodes,
+            normalize_response=self.normalize_response,
         )
-        for name in ("highpass_cutoff", "shift_limit", "lr_decay"):
+        for name in _OPTIONAL_SCALARS:
             if getattr(self, name) is not None:
                 setattr(message, name, getattr(self, name))
         return message
@@ -190,7 +224,7 @@ class SessionConfig:
         """Builds (and validates) a config from an ``esa.v1.SessionConfig`` message."""
         values = {}
         for field in fields(cls):
-            if field.name in ("highpass_cutoff", "shift_limit", "lr_decay"):
+            if field.name in _OPTIONAL_SCALARS:
                 values[field.name] = (
                     getattr(message, field.name) if message.HasField(field.name) else None
                 )
@@ -207,23 +241,52 @@ class SessionConfig:
 class EsaConfig:
     """ESA hyperparameters for a trainer (:mod:`esa_client.sb3`, :mod:`esa_client.wrappers`).
 
-    Defaults follow the paper's inverted-pendulum ablation: amplitude K = 0.2 was the
-    best trade-off and frequencies between 5 pi and 10 pi rad/s worked, with gains
-    dropping above 10 pi.
+    ``EsaConfig()`` is the shipped default: the bounded, scale-free law of CONTRACT.md
+    section 1b (normalized response, paired reference, trust region in units of the
+    policy's standard deviation, leak), one setting for every environment, chosen by a
+    study on InvertedPendulum-v5 only (``experiments/RESULTS.md``). :meth:`paper` is the
+    paper's law (section 1) with its settings.
+
+    Every field is checked when the config is built (``ValueError`` naming the field);
+    the rules that need the environment (Nyquist for its ``dt``, one frequency per
+    action dimension) are checked when a trainer or wrapper is constructed.
+
+    On the paper's two update laws: Eq. 5 is ``v += alpha sin(w t) H[Q]``, Algorithm 1
+    writes ``v += alpha K sin(w t) H[Q]``. The service implements Eq. 5 (``alpha`` here is
+    Algorithm 1's ``alpha K``). Both apply ``a_t + v(t)`` to the environment (the shift
+    before this step's update), which is what the trainers here apply and store.
 
     Attributes:
-        amplitude: Perturbation amplitude K, in the units of the action space ESA works in
-            (SAC: the squashed [-1, 1] space; PPO: the policy's action space).
+        amplitude: Perturbation amplitude K of the probe, in the units of the action space
+            ESA works in (SAC: the squashed [-1, 1] space; PPO: the policy's action space).
+            The probe only queries the critic; the environment gets ``a_t + v(t)``.
         frequency: Perturbation frequency w in rad/s. A scalar is spread over
             ``[w / 2, w]`` across action dimensions so every dimension has its own
             frequency (otherwise demodulation cannot tell the dimensions apart);
             a sequence gives the per-dimension frequencies exactly.
-        learning_rate: ESA learning rate alpha on the (high-pass filtered) Q-value.
+        learning_rate: ESA learning rate alpha (Eq. 5). With ``normalize_response`` it is
+            in units of the action scale per step; without, it multiplies Q itself.
         highpass_cutoff: Washout cutoff in rad/s; None = ``min(frequency) / 10``.
-        disable_highpass: Feed the raw Q-value to the update (ablation).
+        disable_highpass: Feed the raw response to the update (ablation).
         lr_decay: Per-episode decay of the learning rate in (0, 1]; None = no decay.
         max_episodes: Episodes per environment after which ESA stops intervening; 0 = never.
         shift_limit: Bound on every element of the shift v; None = no clamp.
+        normalize_response: Divide the filtered response by its running RMS (section 1b),
+            so one learning rate fits every reward scale.
+        response_rms_rate: EMA rate of that running mean square; None = 0.05.
+        response_clip: Clip of the normalized response; None = 3.
+        shift_leak: Leak lambda in [0, 1) of the shift per step; None = 0.
+        trust_region: kappa: ``|v| <= kappa * sigma`` per dimension, sigma the action
+            scale the trainer sends (see ``use_policy_std``); None = no bound.
+        paired_response: Report ``Q(s, probe) - Q(s, a_t + v(t))`` (one more row in the
+            same critic batch) instead of ``Q(s, probe)``: removes the state's own change
+            of Q, which otherwise swamps the probe's.
+        use_policy_std: Send the policy's standard deviation as the action scale sigma
+            (else 1): the trust region and the normalized step then shrink as the policy
+            converges, so ESA fades out by itself.
+        gate: Minimum critic quality before ESA intervenes: the rank correlation between
+            the critic's ``Q(s, a) - Q(s, mu)`` and the algorithm's own advantage estimate
+            (ESAPPO: GAE on each rollout). None = ESA from the first step the critic exists.
         dt: Seconds per environment step. None reads it from the environment
             (``env.unwrapped.dt``, else ``1 / metadata["render_fps"]``); set it when the
             environment has neither, or to override it.
@@ -231,13 +294,73 @@ class EsaConfig:
 
     amplitude: float | Sequence[float] = 0.2
     frequency: float | Sequence[float] = 10 * math.pi
-    learning_rate: float | Sequence[float] = 0.05
+    learning_rate: float | Sequence[float] = 0.02
     highpass_cutoff: float | None = None
     disable_highpass: bool = False
     lr_decay: float | None = None
     max_episodes: int = 0
     shift_limit: float | None = None
+    normalize_response: bool = True
+    response_rms_rate: float | None = None
+    response_clip: float | None = None
+    shift_leak: float | None = 0.005
+    trust_region: float | None = 1.0
+    paired_response: bool = True
+    use_policy_std: bool = True
+    gate: float | None = 0.1
     dt: float | None = None
+
+    def __post_init__(self) -> None:
+        """Checks every field that does not depend on the environment.
+
+        Raises:
+            ValueError: Naming the first bad field ("expected ..., got ...").
+        """
+        for name in ("paired_response", "use_policy_std", "normalize_response"):
+            _check(isinstance(getattr(self, name), bool), f"{name} a bool", getattr(self, name))
+        if self.gate is not None:
+            _check(
+                isinstance(self.gate, (int, float))
+                and not isinstance(self.gate, bool)
+                and -1 <= self.gate <= 1,
+                "gate a rank correlation in [-1, 1] (or None)",
+                self.gate,
+            )
+        if self.dt is not None:
+            _check(
+                isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0,
+                "dt finite and > 0 (or None: read from the env)",
+                self.dt,
+            )
+        # The session rules, with as many dimensions as the vector fields name and (unless dt
+        # is set) a time step so fine that only the environment's own dt can break Nyquist.
+        vectors = (self.amplitude, self.frequency, self.learning_rate)
+        dims = max([int(np.size(v)) for v in vectors if np.ndim(v) > 0] or [1])
+        self.session_config(max(dims, 1), 1e-9)
+
+    @classmethod
+    def paper(cls, **overrides: object) -> EsaConfig:
+        """The paper's law and settings: Eq. 5 on the raw Q, K = 0.2, w = 10 pi, no bounds.
+
+        CONTRACT.md section 1 without any section 1b field: the step scales with Q's
+        magnitude and the shift is unbounded. alpha = 0.05 is ours (the paper gives none).
+
+        Args:
+            **overrides: Fields to change, e.g. ``amplitude=0.1``.
+        """
+        values: dict[str, object] = dict(
+            amplitude=0.2,
+            frequency=10 * math.pi,
+            learning_rate=0.05,
+            normalize_response=False,
+            shift_leak=None,
+            trust_region=None,
+            paired_response=False,
+            use_policy_std=False,
+            gate=None,
+        )
+        values.update(overrides)
+        return cls(**values)  # type: ignore[arg-type]
 
     def frequencies(self, action_dim: int) -> tuple[float, ...]:
         """Returns the per-dimension frequencies for ``action_dim`` dimensions."""
@@ -284,4 +407,9 @@ class EsaConfig:
             shift_limit=self.shift_limit,
             lr_decay=self.lr_decay,
             max_episodes=self.max_episodes,
+            normalize_response=self.normalize_response,
+            response_rms_rate=self.response_rms_rate,
+            response_clip=self.response_clip,
+            shift_leak=self.shift_leak,
+            trust_region=self.trust_region,
         )

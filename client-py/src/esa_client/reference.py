@@ -1,4 +1,4 @@
-"""In-process numpy implementation of the ESA update law (CONTRACT.md section 1).
+"""In-process numpy implementation of the ESA update law (CONTRACT.md sections 1 and 1b).
 
 This is the executable specification the server is cross-checked against, and the
 no-network baseline for benchmarks. :class:`ReferenceBatch` and
@@ -68,6 +68,20 @@ class ReferenceBatch:
             [c.lr_decay if c.lr_decay is not None else 1.0 for c in self.configs]
         )
         self._max_episodes = np.array([c.max_episodes for c in self.configs], dtype=np.int64)
+        # Section 1b.
+        self._normalize = np.array([c.normalize_response for c in self.configs])
+        self._rho = np.array(
+            [c.response_rms_rate if c.response_rms_rate is not None else 0.05 for c in self.configs]
+        )
+        self._clip = np.array(
+            [c.response_clip if c.response_clip is not None else 3.0 for c in self.configs]
+        )
+        self._keep = np.array(
+            [1.0 - c.shift_leak if c.shift_leak is not None else 1.0 for c in self.configs]
+        )[:, None]
+        self._trust = np.array(
+            [c.trust_region if c.trust_region is not None else np.inf for c in self.configs]
+        )[:, None]
 
         self._t = np.zeros(n, dtype=np.int64)
         self._episodes = np.zeros(n, dtype=np.int64)
@@ -80,6 +94,10 @@ class ReferenceBatch:
         self._retryable = np.zeros(n, dtype=bool)
         self._last_action = np.zeros((n, d))
         self._next_starts = np.zeros(n, dtype=bool)
+        self._scale = np.ones((n, d))
+        # m per session, valid where seeded (both persist across episodes).
+        self._mean_square = np.zeros(n)
+        self._seeded = np.zeros(n, dtype=bool)
         self._closed = False
 
     @property
@@ -121,6 +139,7 @@ class ReferenceBatch:
         episode_starts: np.ndarray | Sequence[bool] | None = None,
         *,
         steps: np.ndarray | Sequence[int] | None = None,
+        action_scales: np.ndarray | float | None = None,
     ) -> np.ndarray:
         """Returns the probes ``clip(a + v + K sin(w t dt))``, shape ``(N, D)``.
 
@@ -130,13 +149,32 @@ class ReferenceBatch:
                 :meth:`reset`. A flagged session with ``t > 0`` or a pending probe first
                 ends its episode.
             steps: Explicit step per session (advanced; default: the tracked step).
+            action_scales: sigma for this step's reports, ``(N, D)`` or a scalar; None = 1.
 
         Raises:
-            InvalidArgument: Wrong shape or non-finite action (nothing changes).
+            InvalidArgument: Wrong shape or non-finite action or scale (nothing changes).
             StepMismatch: An explicit step is not the session's step (nothing changes).
         """
+        return self.probe_applied(
+            actions, episode_starts, steps=steps, action_scales=action_scales
+        )[0]
+
+    def probe_applied(
+        self,
+        actions: np.ndarray,
+        episode_starts: np.ndarray | Sequence[bool] | None = None,
+        *,
+        steps: np.ndarray | Sequence[int] | None = None,
+        action_scales: np.ndarray | float | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Returns ``(probes, applied)``: the probes and ``clip(a + v(t))`` (Algorithm 1)."""
         self._check_open()
         a = check_array(actions, (self.n, self.action_dim), "actions", finite=True, error=_invalid)
+        scale = np.ones((self.n, self.action_dim))
+        if action_scales is not None:
+            scale = np.broadcast_to(np.asarray(action_scales, np.float64), scale.shape).copy()
+            if not np.all(np.isfinite(scale) & (scale > 0)):
+                raise _invalid(f"expected action_scales finite and > 0, got {scale!r}")
         starts = self._next_starts.copy()
         if episode_starts is not None:
             starts |= check_array(
@@ -156,21 +194,31 @@ class ReferenceBatch:
         self._next_starts[:] = False
         passthrough = self._passthrough()[:, None]
         perturbed = np.where(passthrough, a, a + (self._v + self._k * self._phase()))
+        applied = np.where(passthrough, a, a + self._v)
         self._action = a
+        self._scale = np.where(passthrough, self._scale, scale)
         self._pending[:] = True
         self._retryable[:] = False
-        return np.clip(perturbed, self._low, self._high)
+        return (
+            np.clip(perturbed, self._low, self._high),
+            np.clip(applied, self._low, self._high),
+        )
 
     def report(
         self,
         q_values: np.ndarray | Sequence[float],
         *,
+        q_references: np.ndarray | Sequence[float] | None = None,
         steps: np.ndarray | Sequence[int] | None = None,
-    ) -> np.ndarray:
+        defer: bool = False,
+    ) -> np.ndarray | None:
         """Takes ``Q(s_t, probe)`` per session and returns the improved actions, shape ``(N, D)``.
 
         A report carrying step ``t - 1`` right after that step was reported returns the
-        same improved action again without updating anything (a safe retry).
+        same improved action again without updating anything (a safe retry). With
+        ``q_references`` the response is ``q - q_reference``. ``defer`` is accepted for
+        signature compatibility with :meth:`esa_client.SessionBatch.report`: the report
+        is applied at once (there is no round trip to save) and None returned.
 
         Raises:
             InvalidArgument: Wrong shape or non-finite value (nothing changes).
@@ -178,6 +226,10 @@ class ReferenceBatch:
         """
         self._check_open()
         q = check_array(q_values, (self.n,), "q_values", finite=True, error=_invalid)
+        if q_references is not None:
+            reference = check_array(
+                q_references, (self.n,), "q_references", finite=True, error=_invalid
+            )
         given = self._steps_arg(steps, self._t)
         fresh = self._pending & (given == self._t)
         retry = ~self._pending & self._retryable & (given == self._t - 1)
@@ -188,20 +240,23 @@ class ReferenceBatch:
             raise StepMismatch(
                 f"item {i}: {reason}, got step {given[i]}", grpc.StatusCode.FAILED_PRECONDITION
             )
-        # Filter at rest on the first report of an episode: x_{-1} = x_0, y_{-1} = 0.
-        x_prev = np.where(self._filter_at_rest, q, self._x_prev)
-        y_prev = np.where(self._filter_at_rest, 0.0, self._y_prev)
-        alpha = self._alpha * (self._decay**self._episodes)[:, None]
         with np.errstate(invalid="ignore", over="ignore"):
-            h = np.where(self._filtered, self._beta * (y_prev + q - x_prev), q)
-            v_new = np.clip(self._v + alpha * self._phase() * h[:, None], -self._limit, self._limit)
-        update = (
-            fresh[:, None]
-            & ~self._passthrough()[:, None]
-            & np.all(np.isfinite(v_new), axis=1, keepdims=True)
-        )
-        self._v = np.where(update, v_new, self._v)
-        self._x_prev = np.where(fresh, q, self._x_prev)
+            x = q if q_references is None else q - reference
+            # Filter at rest on the first report of an episode: x_{-1} = x_0, y_{-1} = 0.
+            x_prev = np.where(self._filter_at_rest, x, self._x_prev)
+            y_prev = np.where(self._filter_at_rest, 0.0, self._y_prev)
+            h = np.where(self._filtered, self._beta * (y_prev + x - x_prev), x)
+            v_new, m_new, has_m, normalized_ok = self._step_candidates(h)
+        active = fresh & ~self._passthrough()
+        update = active & np.all(np.isfinite(v_new), axis=1) & normalized_ok
+        bound = np.minimum(self._limit, self._trust * self._scale)
+        # A skipped update keeps v, inside this report's bound (as the server does).
+        kept = np.clip(self._v, -bound, bound)
+        self._v = np.where(update[:, None], v_new, np.where(active[:, None], kept, self._v))
+        committed = update & self._normalize & has_m
+        self._mean_square = np.where(committed, m_new, self._mean_square)
+        self._seeded |= committed
+        self._x_prev = np.where(fresh, x, self._x_prev)
         # An overflowed output restarts the filter from this sample instead of poisoning
         # the rest of the episode with inf/NaN (same as the server).
         self._y_prev = np.where(fresh, np.where(np.isfinite(h), h, 0.0), self._y_prev)
@@ -211,7 +266,28 @@ class ReferenceBatch:
         self._t += fresh
         self._pending &= ~fresh
         self._retryable |= fresh
-        return self._last_action.copy()
+        return None if defer else self._last_action.copy()
+
+    def _step_candidates(
+        self, h: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The candidate v and m, where m is set, and where the normalization stayed finite."""
+        alpha = self._alpha * (self._decay**self._episodes)[:, None]
+        # The first non-zero h seeds m (NaN counts as non-zero, as on the server).
+        has_m = self._seeded | (h != 0.0)
+        m_new = np.where(
+            self._seeded, (1.0 - self._rho) * self._mean_square + self._rho * (h * h), h * h
+        )
+        g = np.where(has_m, np.clip(h / np.sqrt(m_new + 1e-12), -self._clip, self._clip), 0.0)
+        normalized_ok = ~self._normalize | ((~has_m | np.isfinite(m_new)) & np.isfinite(g))
+        response = np.where(self._normalize, g, h)[:, None]
+        gain = np.where(self._normalize[:, None], alpha * self._scale, alpha)
+        bound = np.minimum(self._limit, self._trust * self._scale)
+        v_new = np.clip(self._keep * self._v + gain * self._phase() * response, -bound, bound)
+        return v_new, m_new, has_m, normalized_ok
+
+    def flush(self) -> None:
+        """Nothing is ever deferred here; present for API symmetry with SessionBatch."""
 
     def end_episode(self, indices: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
         """Ends the episodes of the given sessions (default: all); returns their episode counts."""
@@ -238,6 +314,7 @@ class ReferenceBatch:
                 episodes_completed=int(self._episodes[i]),
                 shift=self._v[i].copy(),
                 probe_pending=bool(self._pending[i]),
+                response_mean_square=(float(self._mean_square[i]) if self._seeded[i] else None),
             )
             for i in range(self.n)
         ]
@@ -280,16 +357,46 @@ class ReferenceSession:
         *,
         episode_start: bool = False,
         step: int | None = None,
+        action_scale: float | Sequence[float] | np.ndarray | None = None,
     ) -> np.ndarray:
         """Returns the probe for the sampled ``action`` (see :meth:`ReferenceBatch.probe`)."""
-        steps = None if step is None else [step]
-        return self._batch.probe(
-            np.asarray(action, dtype=np.float64)[None, :], [episode_start], steps=steps
+        return self.probe_applied(
+            action, episode_start=episode_start, step=step, action_scale=action_scale
         )[0]
 
-    def report(self, q_value: float, *, step: int | None = None) -> np.ndarray:
+    def probe_applied(
+        self,
+        action: np.ndarray | Sequence[float],
+        *,
+        episode_start: bool = False,
+        step: int | None = None,
+        action_scale: float | Sequence[float] | np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Returns ``(probe, applied)`` (see :meth:`ReferenceBatch.probe_applied`)."""
+        steps = None if step is None else [step]
+        scales = (
+            None
+            if action_scale is None
+            else np.broadcast_to(action_scale, (self.config.action_dim,))[None, :]
+        )
+        probes, applied = self._batch.probe_applied(
+            np.asarray(action, dtype=np.float64)[None, :],
+            [episode_start],
+            steps=steps,
+            action_scales=scales,
+        )
+        return probes[0], applied[0]
+
+    def report(
+        self, q_value: float, *, q_reference: float | None = None, step: int | None = None
+    ) -> np.ndarray:
         """Takes Q at the probe; returns the improved action (see :meth:`ReferenceBatch.report`)."""
-        return self._batch.report([q_value], steps=None if step is None else [step])[0]
+        references = None if q_reference is None else [q_reference]
+        improved = self._batch.report(
+            [q_value], q_references=references, steps=None if step is None else [step]
+        )
+        assert improved is not None
+        return improved[0]
 
     def end_episode(self) -> int:
         """Ends the episode; returns the number of completed episodes."""

@@ -6,6 +6,11 @@ treats a repeated probe or report of the same step as a retry). One exception
 follows from the contract: if an episode-start probe reached the server but its
 answer was lost, repeating it ends one more (empty) episode, which counts toward
 ``lr_decay`` and ``max_episodes``.
+
+Algorithm 1's step (CONTRACT.md section 1b) needs one round trip: ``probe_applied``
+returns the probe and the action to apply, ``clip(a_t + v(t))``; the report of that
+step can then be deferred (``report(..., defer=True)``) and rides with the next
+probe, pipelined on a StepStream.
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ class SessionState:
         episodes_completed: Number of completed episodes e.
         shift: Current shift v, shape ``(action_dim,)``.
         probe_pending: True between a probe and its report.
+        response_mean_square: The running mean square m of the filtered response
+            (``normalize_response``); None until the first non-zero response seeds it.
     """
 
     config: SessionConfig
@@ -41,6 +48,7 @@ class SessionState:
     episodes_completed: int
     shift: np.ndarray
     probe_pending: bool
+    response_mean_square: float | None = None
 
     @classmethod
     def from_proto(cls, message: esa_pb2.GetSessionResponse) -> SessionState:
@@ -51,6 +59,9 @@ class SessionState:
             episodes_completed=message.episodes_completed,
             shift=np.array(message.shift, dtype=np.float64),
             probe_pending=message.probe_pending,
+            response_mean_square=(
+                message.response_mean_square if message.HasField("response_mean_square") else None
+            ),
         )
 
 
@@ -142,6 +153,7 @@ class Session:
         *,
         episode_start: bool = False,
         step: int | None = None,
+        action_scale: float | Sequence[float] | np.ndarray | None = None,
     ) -> np.ndarray:
         """Sends the sampled action and returns the probe at which to evaluate Q.
 
@@ -149,9 +161,29 @@ class Session:
             action: The sampled action a_t, shape ``(action_dim,)``.
             episode_start: True on an episode's first step: ends the running episode first.
             step: Explicit step (advanced; default: the tracked step, 0 on episode start).
+            action_scale: sigma for this step's report (e.g. the policy's standard
+                deviation): a scalar or one value per dimension, finite and > 0; None = 1.
 
         Returns:
             The probe ``clip(a_t + v + K sin(w t dt))``, shape ``(action_dim,)``.
+        """
+        return self.probe_applied(
+            action, episode_start=episode_start, step=step, action_scale=action_scale
+        )[0]
+
+    def probe_applied(
+        self,
+        action: np.ndarray | Sequence[float],
+        *,
+        episode_start: bool = False,
+        step: int | None = None,
+        action_scale: float | Sequence[float] | np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Like :meth:`probe`, and also returns Algorithm 1's action to apply to the env.
+
+        Returns:
+            ``(probe, applied)``: the probe, and ``clip(a_t + v(t))``, the shift before this
+            step's report; both shape ``(action_dim,)``.
         """
         if step is None:
             step = 0 if episode_start else self._step
@@ -160,23 +192,33 @@ class Session:
             step=step,
             action=np.asarray(action, dtype=np.float64).reshape(-1).tolist(),
             episode_start=episode_start,
+            action_scale=[] if action_scale is None else np.ravel(action_scale).tolist(),
         )
         response = call(self._client.stub.Probe, request, self._client.timeout)
         self._step = step
-        return np.array(response.probe, dtype=np.float64)
+        return (
+            np.array(response.probe, dtype=np.float64),
+            np.array(response.action, dtype=np.float64),
+        )
 
-    def report(self, q_value: float, *, step: int | None = None) -> np.ndarray:
-        """Sends ``Q(s_t, probe)`` and returns the improved action to apply to the env.
+    def report(
+        self, q_value: float, *, q_reference: float | None = None, step: int | None = None
+    ) -> np.ndarray:
+        """Sends ``Q(s_t, probe)`` and returns the improved action ``clip(a_t + v(t + 1))``.
 
         Args:
             q_value: The critic's value at the probe.
+            q_reference: The critic's value at the applied action ``a_t + v(t)`` in the
+                same state: the law then uses ``q_value - q_reference`` (CONTRACT.md 1b).
             step: Explicit step (advanced; default: the pending probe's step).
 
         Returns:
-            The improved action ``clip(a_t + v(t + 1))``, shape ``(action_dim,)``.
+            The improved action, shape ``(action_dim,)``.
         """
         step = self._step if step is None else step
         request = esa_pb2.ReportRequest(session_id=self.id, step=step, q_value=float(q_value))
+        if q_reference is not None:
+            request.q_reference = float(q_reference)
         response = call(self._client.stub.Report, request, self._client.timeout)
         self._step = step + 1
         return np.array(response.action, dtype=np.float64)
@@ -235,6 +277,8 @@ class SessionBatch:
         self._transport = client.batch_transport(self.ids, self.action_dim, use_stream=use_stream)
         self._steps = np.zeros(self.n, dtype=np.int64)
         self._next_starts = np.zeros(self.n, dtype=bool)
+        # A report sent with the next probe (``report(..., defer=True)``).
+        self._deferred: esa_pb2.ReportBatchRequest | None = None
 
     @property
     def steps(self) -> np.ndarray:
@@ -247,6 +291,7 @@ class SessionBatch:
         episode_starts: np.ndarray | Sequence[bool] | None = None,
         *,
         steps: np.ndarray | Sequence[int] | None = None,
+        action_scales: np.ndarray | float | None = None,
     ) -> np.ndarray:
         """Sends the N sampled actions and returns the N probes.
 
@@ -255,49 +300,125 @@ class SessionBatch:
             episode_starts: Episode-start flags, shape ``(N,)`` (e.g. a VecEnv's ``dones``
                 from the previous step); sessions flagged by :meth:`reset` count too.
             steps: Explicit steps (advanced; default: the tracked ones, 0 on episode start).
+            action_scales: sigma per session and dimension for this step's reports (e.g. the
+                policy's standard deviation), shape ``(N, D)`` or a scalar, finite and > 0;
+                None = 1.
 
         Returns:
             The probes, shape ``(N, D)``.
+        """
+        return self.probe_applied(
+            actions, episode_starts, steps=steps, action_scales=action_scales
+        )[0]
+
+    def probe_applied(
+        self,
+        actions: np.ndarray,
+        episode_starts: np.ndarray | Sequence[bool] | None = None,
+        *,
+        steps: np.ndarray | Sequence[int] | None = None,
+        action_scales: np.ndarray | float | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Like :meth:`probe`, and also returns Algorithm 1's actions to apply to the envs.
+
+        A report deferred with ``report(..., defer=True)`` is sent first, in the same
+        round trip on a StepStream. If it fails, its error is raised, nothing of this
+        probe is applied and the report stays pending (calling again retries both).
+
+        Returns:
+            ``(probes, applied)``, both shape ``(N, D)``: the probes, and
+            ``clip(a_t + v(t))``, the shift before this step's report.
         """
         a = check_array(actions, (self.n, self.action_dim), "actions")
         starts = self._next_starts.copy()
         if episode_starts is not None:
             starts |= check_array(episode_starts, (self.n,), "episode_starts", dtype=bool)
         step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
+        scales: list[float] = []
+        if action_scales is not None:
+            shape = (self.n, self.action_dim)
+            scales = np.broadcast_to(np.asarray(action_scales, np.float64), shape).ravel().tolist()
         request = esa_pb2.ProbeBatchRequest(
             session_ids=self.ids,
             steps=step.tolist(),
             actions=a.ravel().tolist(),
             episode_starts=starts.tolist(),
+            action_scales=scales,
         )
-        response = self._transport.probe_batch(request)
+        if self._deferred is None:
+            response = self._transport.probe_batch(request)
+        else:
+            _, response = self._transport.report_then_probe(self._deferred, request)
+            self._deferred = None
         self._steps = step
         self._next_starts[:] = False
-        return np.array(response.probes, dtype=np.float64).reshape(self.n, self.action_dim)
+        shape = (self.n, self.action_dim)
+        return (
+            np.array(response.probes, dtype=np.float64).reshape(shape),
+            np.array(response.actions, dtype=np.float64).reshape(shape),
+        )
 
     def report(
         self,
         q_values: np.ndarray | Sequence[float],
         *,
+        q_references: np.ndarray | Sequence[float] | None = None,
         steps: np.ndarray | Sequence[int] | None = None,
-    ) -> np.ndarray:
+        defer: bool = False,
+    ) -> np.ndarray | None:
         """Sends ``Q(s_t, probe)`` for the N sessions and returns the N improved actions.
 
         Args:
             q_values: One value per session, shape ``(N,)``.
+            q_references: The critic at the applied actions ``a_t + v(t)`` (same states),
+                shape ``(N,)``: the law then uses ``q_values - q_references``.
             steps: Explicit steps (advanced; default: the pending probes' steps).
+            defer: Send the report with the next :meth:`probe` / :meth:`probe_applied`
+                (one round trip for both on a StepStream) and return None. For trainers
+                that apply :meth:`probe_applied`'s actions and do not need this answer.
+                :meth:`flush` sends it on its own; :meth:`end_episode`, :meth:`states`
+                and :meth:`close` flush first. If sending it fails, it stays pending:
+                calling the probe again retries both (after a lost connection), and a
+                new ``report`` replaces it (after a bad value).
 
         Returns:
-            The improved actions, shape ``(N, D)``.
+            The improved actions ``clip(a_t + v(t + 1))``, shape ``(N, D)``; None if deferred.
         """
         q = check_array(q_values, (self.n,), "q_values")
-        step = self._steps if steps is None else np.asarray(steps, np.int64)
+        references: list[float] = []
+        if q_references is not None:
+            references = check_array(q_references, (self.n,), "q_references").tolist()
+        if steps is not None:
+            step = np.asarray(steps, np.int64)
+        elif self._deferred is not None:
+            # A report of the same steps replaces the deferred one (e.g. after it failed).
+            step = np.asarray(self._deferred.steps, np.int64)
+        else:
+            step = self._steps
+        self._deferred = None
         request = esa_pb2.ReportBatchRequest(
-            session_ids=self.ids, steps=step.tolist(), q_values=q.tolist()
+            session_ids=self.ids,
+            steps=step.tolist(),
+            q_values=q.tolist(),
+            q_references=references,
         )
+        if defer:
+            self._deferred = request
+            self._steps = step + 1
+            return None
         response = self._transport.report_batch(request)
         self._steps = step + 1
         return np.array(response.actions, dtype=np.float64).reshape(self.n, self.action_dim)
+
+    def flush(self) -> None:
+        """Sends a deferred report now (nothing if none is pending).
+
+        Raises:
+            EsaError: The report's error; it then stays pending.
+        """
+        if self._deferred is not None:
+            self._transport.report_batch(self._deferred)
+            self._deferred = None
 
     def end_episode(self, indices: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
         """Ends the episodes of the given sessions now (one call each; default: all).
@@ -306,6 +427,7 @@ class SessionBatch:
             The completed-episode counts of those sessions.
         """
         idx = check_indices(indices, self.n)
+        self.flush()
         counts = []
         for i in idx.tolist():
             request = esa_pb2.EndEpisodeRequest(session_id=self.ids[i])
@@ -322,11 +444,16 @@ class SessionBatch:
         self._next_starts[check_indices(indices, self.n)] = True
 
     def states(self) -> list[SessionState]:
-        """Returns a snapshot of every session."""
+        """Returns a snapshot of every session (after sending a deferred report)."""
+        self.flush()
         return [self._client.session_state(i) for i in self.ids]
 
     def close(self) -> None:
-        """Closes the stream (if any) and every session on the server."""
+        """Closes the stream (if any) and every session on the server.
+
+        A deferred report is dropped: it cannot change anything the caller still sees.
+        """
+        self._deferred = None
         self._transport.close()
         for session_id in self.ids:
             request = esa_pb2.CloseSessionRequest(session_id=session_id)

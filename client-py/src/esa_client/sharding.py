@@ -32,8 +32,7 @@ from ._proto.esa.v1 import esa_pb2
 from .errors import EsaError, InvalidArgument
 from .zenoh_transport import ZenohRpc, ZenohStub
 
-Batch = TypeVar("Batch", esa_pb2.ProbeBatchRequest, esa_pb2.ReportBatchRequest)
-Answer = TypeVar("Answer", esa_pb2.ProbeBatchResponse, esa_pb2.ReportBatchResponse)
+Answer = TypeVar("Answer")
 
 _ITEM = re.compile(r"^item (\d+): ")
 
@@ -60,6 +59,12 @@ class BatchTransport(Protocol):
 
     def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
         """One ReportBatch round trip."""
+        ...
+
+    def report_then_probe(
+        self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
+    ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
+        """A ReportBatch and the next ProbeBatch, pipelined where the transport can."""
         ...
 
     def close(self) -> None:
@@ -147,57 +152,103 @@ class ShardedBatchTransport:
         owner = np.array([shard_of(i, len(parts)) for i in ids], dtype=np.int64)
         self._items = {s: np.flatnonzero(owner == s) for s in np.unique(owner).tolist()}
 
-    def _scatter(
-        self,
-        request: Batch,
-        split: Callable[[Batch, np.ndarray], Batch],
-        send: Callable[[BatchTransport, Batch], Answer],
-        values: Callable[[Answer], Sequence[float]],
-    ) -> np.ndarray:
-        n = len(request.session_ids)
+    def _scatter(self, send: Callable[[BatchTransport, np.ndarray], Answer]) -> dict[int, Answer]:
+        """Runs ``send(shard transport, its items)`` for every shard concurrently."""
         futures = {
-            shard: self._executor.submit(send, self._parts[shard], split(request, items))
+            shard: self._executor.submit(send, self._parts[shard], items)
             for shard, items in self._items.items()
         }
-        merged = np.empty((n, self._action_dim), dtype=np.float64)
+        answers = {}
         for shard, future in futures.items():
-            items = self._items[shard]
             try:
-                answer = future.result()
+                answers[shard] = future.result()
             except EsaError as err:
-                raise _renumbered(err, items, shard) from None
-            part = np.asarray(values(answer), dtype=np.float64)
-            merged[items] = part.reshape(-1, self._action_dim)
-        return merged
+                raise _renumbered(err, self._items[shard], shard) from None
+        return answers
 
-    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
-        """Sends the per-shard ProbeBatches concurrently; probes come back in request order."""
+    def _merged(self, n: int, parts: dict[int, Sequence[float]]) -> list[float]:
+        """The per-shard ``(k, D)`` values put back in request order, flattened."""
+        merged = np.empty((n, self._action_dim), dtype=np.float64)
+        for shard, values in parts.items():
+            merged[self._items[shard]] = np.asarray(values, dtype=np.float64).reshape(
+                -1, self._action_dim
+            )
+        return merged.ravel().tolist()
+
+    def _probe_part(
+        self, request: esa_pb2.ProbeBatchRequest
+    ) -> Callable[[np.ndarray], esa_pb2.ProbeBatchRequest]:
         actions = np.asarray(request.actions, dtype=np.float64).reshape(-1, self._action_dim)
+        scales = np.asarray(request.action_scales, dtype=np.float64).reshape(-1, self._action_dim)
         starts = list(request.episode_starts)
 
-        def split(req: esa_pb2.ProbeBatchRequest, items: np.ndarray) -> esa_pb2.ProbeBatchRequest:
+        def part(items: np.ndarray) -> esa_pb2.ProbeBatchRequest:
             return esa_pb2.ProbeBatchRequest(
-                session_ids=[req.session_ids[i] for i in items],
-                steps=[req.steps[i] for i in items],
+                session_ids=[request.session_ids[i] for i in items],
+                steps=[request.steps[i] for i in items],
                 actions=actions[items].ravel().tolist(),
                 episode_starts=[starts[i] for i in items] if starts else [],
+                action_scales=scales[items].ravel().tolist() if scales.size else [],
             )
 
-        merged = self._scatter(request, split, lambda t, r: t.probe_batch(r), lambda a: a.probes)
-        return esa_pb2.ProbeBatchResponse(probes=merged.ravel().tolist())
+        return part
+
+    @staticmethod
+    def _report_part(
+        request: esa_pb2.ReportBatchRequest,
+    ) -> Callable[[np.ndarray], esa_pb2.ReportBatchRequest]:
+        references = list(request.q_references)
+
+        def part(items: np.ndarray) -> esa_pb2.ReportBatchRequest:
+            return esa_pb2.ReportBatchRequest(
+                session_ids=[request.session_ids[i] for i in items],
+                steps=[request.steps[i] for i in items],
+                q_values=[request.q_values[i] for i in items],
+                q_references=[references[i] for i in items] if references else [],
+            )
+
+        return part
+
+    def _probe_answer(
+        self, n: int, answers: dict[int, esa_pb2.ProbeBatchResponse]
+    ) -> esa_pb2.ProbeBatchResponse:
+        return esa_pb2.ProbeBatchResponse(
+            probes=self._merged(n, {s: a.probes for s, a in answers.items()}),
+            actions=self._merged(n, {s: a.actions for s, a in answers.items()}),
+        )
+
+    def _report_answer(
+        self, n: int, answers: dict[int, esa_pb2.ReportBatchResponse]
+    ) -> esa_pb2.ReportBatchResponse:
+        return esa_pb2.ReportBatchResponse(
+            actions=self._merged(n, {s: a.actions for s, a in answers.items()})
+        )
+
+    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
+        """Sends the per-shard ProbeBatches concurrently; answers come back in request order."""
+        part = self._probe_part(request)
+        answers = self._scatter(lambda t, items: t.probe_batch(part(items)))
+        return self._probe_answer(len(request.session_ids), answers)
 
     def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
         """Sends the per-shard ReportBatches concurrently; actions come back in request order."""
+        part = self._report_part(request)
+        answers = self._scatter(lambda t, items: t.report_batch(part(items)))
+        return self._report_answer(len(request.session_ids), answers)
 
-        def split(req: esa_pb2.ReportBatchRequest, items: np.ndarray) -> esa_pb2.ReportBatchRequest:
-            return esa_pb2.ReportBatchRequest(
-                session_ids=[req.session_ids[i] for i in items],
-                steps=[req.steps[i] for i in items],
-                q_values=[req.q_values[i] for i in items],
-            )
-
-        merged = self._scatter(request, split, lambda t, r: t.report_batch(r), lambda a: a.actions)
-        return esa_pb2.ReportBatchResponse(actions=merged.ravel().tolist())
+    def report_then_probe(
+        self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
+    ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
+        """Each shard gets its part of both, pipelined on its transport; shards run concurrently."""
+        report_part, probe_part = self._report_part(report), self._probe_part(probe)
+        pairs = self._scatter(
+            lambda t, items: t.report_then_probe(report_part(items), probe_part(items))
+        )
+        n = len(probe.session_ids)
+        return (
+            self._report_answer(n, {s: pair[0] for s, pair in pairs.items()}),
+            self._probe_answer(n, {s: pair[1] for s, pair in pairs.items()}),
+        )
 
     def close(self) -> None:
         """Closes every per-shard transport."""

@@ -1,8 +1,11 @@
 """How requests reach the server: unary calls with deadlines, and a persistent StepStream.
 
-Both transports expose ``probe_batch`` / ``report_batch`` so :class:`esa_client.SessionBatch`
-does not care which one carries its round trips. Every wait is bounded by the
-client's timeout and every failure becomes an :class:`esa_client.errors.EsaError`.
+Both transports expose ``probe_batch`` / ``report_batch`` / ``report_then_probe`` so
+:class:`esa_client.SessionBatch` does not care which one carries its round trips. Every
+wait is bounded by the client's timeout and every failure becomes an
+:class:`esa_client.errors.EsaError`. ``report_then_probe`` is the pipelined step of
+CONTRACT.md section 1b: on the StepStream both messages go out before either answer is
+read, so a step costs one round trip.
 """
 
 from __future__ import annotations
@@ -56,6 +59,12 @@ class UnaryTransport:
         """Sends one ReportBatch."""
         return call(self._stub.ReportBatch, request, self._timeout)
 
+    def report_then_probe(
+        self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
+    ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
+        """Sends the ReportBatch, then the ProbeBatch (two unary round trips)."""
+        return self.report_batch(report), self.probe_batch(probe)
+
     def close(self) -> None:
         """Nothing to release."""
 
@@ -70,11 +79,24 @@ class StepMessages:
     def _exchange(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
         raise NotImplementedError
 
+    def _exchange_pair(
+        self, first: esa_pb2.StepStreamRequest, second: esa_pb2.StepStreamRequest
+    ) -> tuple[esa_pb2.StepStreamResponse, esa_pb2.StepStreamResponse]:
+        """Both answers, in order; one after the other unless a subclass pipelines them."""
+        return self._exchange(first), self._exchange(second)
+
     def _round_trip(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
-        response = self._exchange(request)
-        if response.HasField("error"):
-            raise esa_error(response.error)
-        return response
+        return _checked(self._exchange(request))
+
+    def report_then_probe(
+        self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
+    ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
+        """Sends the ReportBatch and the ProbeBatch as two messages; raises the first error."""
+        first, second = self._exchange_pair(
+            esa_pb2.StepStreamRequest(report_batch=report),
+            esa_pb2.StepStreamRequest(probe_batch=probe),
+        )
+        return _checked(first).report_batch, _checked(second).probe_batch
 
     def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
         """Sends one ProbeBatch as a StepStream message."""
@@ -83,6 +105,13 @@ class StepMessages:
     def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
         """Sends one ReportBatch as a StepStream message."""
         return self._round_trip(esa_pb2.StepStreamRequest(report_batch=request)).report_batch
+
+
+def _checked(response: esa_pb2.StepStreamResponse) -> esa_pb2.StepStreamResponse:
+    """The response, or its in-band ``error`` raised as the typed exception."""
+    if response.HasField("error"):
+        raise esa_error(response.error)
+    return response
 
 
 _END = object()
@@ -130,21 +159,37 @@ class StreamTransport(StepMessages):
         self._requests, self._call = None, None
 
     def _exchange(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
+        return self._exchange_all([request])[0]
+
+    def _exchange_pair(
+        self, first: esa_pb2.StepStreamRequest, second: esa_pb2.StepStreamRequest
+    ) -> tuple[esa_pb2.StepStreamResponse, esa_pb2.StepStreamResponse]:
+        """Writes both messages before reading: one round trip for the pair."""
+        a, b = self._exchange_all([first, second])
+        return a, b
+
+    def _exchange_all(
+        self, requests: list[esa_pb2.StepStreamRequest]
+    ) -> list[esa_pb2.StepStreamResponse]:
         if self._call is None:
             self._open()
-        self._requests.put(request)  # type: ignore[union-attr]
-        try:
-            item = self._responses.get(timeout=self._timeout)
-        except queue.Empty:
-            self._drop()
-            raise DeadlineExceeded(
-                f"no StepStream response within {self._timeout} s",
-                grpc.StatusCode.DEADLINE_EXCEEDED,
-            ) from None
-        if isinstance(item, EsaError):
-            self._drop()
-            raise item
-        return item  # type: ignore[return-value]
+        for request in requests:
+            self._requests.put(request)  # type: ignore[union-attr]
+        answers = []
+        for _ in requests:
+            try:
+                item = self._responses.get(timeout=self._timeout)
+            except queue.Empty:
+                self._drop()
+                raise DeadlineExceeded(
+                    f"no StepStream response within {self._timeout} s",
+                    grpc.StatusCode.DEADLINE_EXCEEDED,
+                ) from None
+            if isinstance(item, EsaError):
+                self._drop()
+                raise item
+            answers.append(item)
+        return answers  # type: ignore[return-value]
 
     def close(self) -> None:
         """Ends the stream."""

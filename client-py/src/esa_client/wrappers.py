@@ -17,15 +17,18 @@ from .errors import EsaError
 QFunction = Callable[[Any, np.ndarray], SupportsFloat]
 """``q_fn(observation, action) -> float``: the learner's critic at one state-action pair."""
 
+ActionScale = float | np.ndarray | Callable[[Any], Any]
+"""sigma: a scalar, one value per action dimension, or ``f(observation)`` giving either."""
+
 
 class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     """Improves every action the agent takes with ESA before the env sees it.
 
     For each ``step(action)``: the action is probed around, ``q_fn(obs, probe)``
-    scores the probe at the current observation, and the improved action from the
-    server is what the wrapped env executes. ``info["esa_action"]`` holds that
-    applied action, so a learner can store it (the paper stores ``a_t + v``).
-    Each ``reset`` starts a new ESA episode.
+    scores the probe at the current observation (and, with ``paired_response``, the
+    applied action too), and the wrapped env executes Algorithm 1's action
+    ``a_t + v(t)``. ``info["esa_action"]`` holds that applied action, so a learner can
+    store it, as the paper does. Each ``reset`` starts a new ESA episode.
 
     Example::
 
@@ -38,6 +41,9 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
             the env's action units.
         client: The client to create the session on; None spawns a private server
             that is stopped by ``close()``.
+        action_scale: sigma for the trust region and the normalized step (the policy's
+            standard deviation if the learner has one): a scalar, one value per action
+            dimension, or ``f(observation)``; None = 1 action unit.
     """
 
     def __init__(
@@ -46,11 +52,12 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         q_fn: QFunction,
         esa_config: EsaConfig | None = None,
         client: EsaClient | None = None,
+        action_scale: ActionScale | None = None,
     ) -> None:
         """Creates the ESA session for this env."""
         # Recorded so that gymnasium can re-create the wrapper from the env spec.
         gym.utils.RecordConstructorArgs.__init__(
-            self, q_fn=q_fn, esa_config=esa_config, client=client
+            self, q_fn=q_fn, esa_config=esa_config, client=client, action_scale=action_scale
         )
         gym.ActionWrapper.__init__(self, env)
         space = env.action_space
@@ -72,6 +79,8 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
                 self._client.close()
             raise
         self._q_fn = q_fn
+        self._paired = esa.paired_response
+        self._action_scale = action_scale
         self._obs: Any = None
         self._episode_start = True
 
@@ -82,14 +91,22 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         return obs, info
 
     def action(self, action: Any) -> np.ndarray:
-        """Returns the ESA-improved version of ``action`` for the current observation."""
+        """Returns the action to execute for ``action``: ``clip(a_t + v(t))`` (Algorithm 1)."""
         space = self.action_space
         sampled = np.asarray(action, dtype=np.float64).reshape(-1)
-        probe = self._session.probe(sampled, episode_start=self._episode_start)
+        scale = self._action_scale
+        if callable(scale):
+            scale = scale(self._obs)
+        probe, applied = self._session.probe_applied(
+            sampled, episode_start=self._episode_start, action_scale=scale
+        )
         self._episode_start = False
-        q_value = float(self._q_fn(self._obs, probe.reshape(space.shape).astype(space.dtype)))
-        improved = self._session.report(q_value)
-        return improved.reshape(space.shape).astype(space.dtype)
+
+        def q(point: np.ndarray) -> float:
+            return float(self._q_fn(self._obs, point.reshape(space.shape).astype(space.dtype)))
+
+        self._session.report(q(probe), q_reference=q(applied) if self._paired else None)
+        return applied.reshape(space.shape).astype(space.dtype)
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         """Steps the env with the improved action (also returned as ``info["esa_action"]``)."""

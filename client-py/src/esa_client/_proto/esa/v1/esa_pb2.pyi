@@ -7,7 +7,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class SessionConfig(_message.Message):
-    __slots__ = ("action_dim", "dt", "amplitude", "frequency", "learning_rate", "highpass_cutoff", "disable_highpass", "action_low", "action_high", "shift_limit", "lr_decay", "max_episodes")
+    __slots__ = ("action_dim", "dt", "amplitude", "frequency", "learning_rate", "highpass_cutoff", "disable_highpass", "action_low", "action_high", "shift_limit", "lr_decay", "max_episodes", "normalize_response", "response_rms_rate", "response_clip", "shift_leak", "trust_region")
     ACTION_DIM_FIELD_NUMBER: _ClassVar[int]
     DT_FIELD_NUMBER: _ClassVar[int]
     AMPLITUDE_FIELD_NUMBER: _ClassVar[int]
@@ -20,6 +20,11 @@ class SessionConfig(_message.Message):
     SHIFT_LIMIT_FIELD_NUMBER: _ClassVar[int]
     LR_DECAY_FIELD_NUMBER: _ClassVar[int]
     MAX_EPISODES_FIELD_NUMBER: _ClassVar[int]
+    NORMALIZE_RESPONSE_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_RMS_RATE_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_CLIP_FIELD_NUMBER: _ClassVar[int]
+    SHIFT_LEAK_FIELD_NUMBER: _ClassVar[int]
+    TRUST_REGION_FIELD_NUMBER: _ClassVar[int]
     action_dim: int
     dt: float
     amplitude: _containers.RepeatedScalarFieldContainer[float]
@@ -32,7 +37,12 @@ class SessionConfig(_message.Message):
     shift_limit: float
     lr_decay: float
     max_episodes: int
-    def __init__(self, action_dim: _Optional[int] = ..., dt: _Optional[float] = ..., amplitude: _Optional[_Iterable[float]] = ..., frequency: _Optional[_Iterable[float]] = ..., learning_rate: _Optional[_Iterable[float]] = ..., highpass_cutoff: _Optional[float] = ..., disable_highpass: _Optional[bool] = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., shift_limit: _Optional[float] = ..., lr_decay: _Optional[float] = ..., max_episodes: _Optional[int] = ...) -> None: ...
+    normalize_response: bool
+    response_rms_rate: float
+    response_clip: float
+    shift_leak: float
+    trust_region: float
+    def __init__(self, action_dim: _Optional[int] = ..., dt: _Optional[float] = ..., amplitude: _Optional[_Iterable[float]] = ..., frequency: _Optional[_Iterable[float]] = ..., learning_rate: _Optional[_Iterable[float]] = ..., highpass_cutoff: _Optional[float] = ..., disable_highpass: _Optional[bool] = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., shift_limit: _Optional[float] = ..., lr_decay: _Optional[float] = ..., max_episodes: _Optional[int] = ..., normalize_response: _Optional[bool] = ..., response_rms_rate: _Optional[float] = ..., response_clip: _Optional[float] = ..., shift_leak: _Optional[float] = ..., trust_region: _Optional[float] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
     __slots__ = ("session_id", "config")
@@ -49,34 +59,40 @@ class CreateSessionResponse(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class ProbeRequest(_message.Message):
-    __slots__ = ("session_id", "step", "action", "episode_start")
+    __slots__ = ("session_id", "step", "action", "episode_start", "action_scale")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
     ACTION_FIELD_NUMBER: _ClassVar[int]
     EPISODE_START_FIELD_NUMBER: _ClassVar[int]
+    ACTION_SCALE_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     step: int
     action: _containers.RepeatedScalarFieldContainer[float]
     episode_start: bool
-    def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., action: _Optional[_Iterable[float]] = ..., episode_start: _Optional[bool] = ...) -> None: ...
+    action_scale: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., action: _Optional[_Iterable[float]] = ..., episode_start: _Optional[bool] = ..., action_scale: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ProbeResponse(_message.Message):
-    __slots__ = ("probe", "step")
+    __slots__ = ("probe", "step", "action")
     PROBE_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
     probe: _containers.RepeatedScalarFieldContainer[float]
     step: int
-    def __init__(self, probe: _Optional[_Iterable[float]] = ..., step: _Optional[int] = ...) -> None: ...
+    action: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, probe: _Optional[_Iterable[float]] = ..., step: _Optional[int] = ..., action: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ReportRequest(_message.Message):
-    __slots__ = ("session_id", "step", "q_value")
+    __slots__ = ("session_id", "step", "q_value", "q_reference")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
     Q_VALUE_FIELD_NUMBER: _ClassVar[int]
+    Q_REFERENCE_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     step: int
     q_value: float
-    def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., q_value: _Optional[float] = ...) -> None: ...
+    q_reference: float
+    def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., q_value: _Optional[float] = ..., q_reference: _Optional[float] = ...) -> None: ...
 
 class ReportResponse(_message.Message):
     __slots__ = ("action", "step")
@@ -115,46 +131,54 @@ class GetSessionRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class GetSessionResponse(_message.Message):
-    __slots__ = ("config", "step", "episodes_completed", "shift", "probe_pending")
+    __slots__ = ("config", "step", "episodes_completed", "shift", "probe_pending", "response_mean_square")
     CONFIG_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
     EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
     SHIFT_FIELD_NUMBER: _ClassVar[int]
     PROBE_PENDING_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_MEAN_SQUARE_FIELD_NUMBER: _ClassVar[int]
     config: SessionConfig
     step: int
     episodes_completed: int
     shift: _containers.RepeatedScalarFieldContainer[float]
     probe_pending: bool
-    def __init__(self, config: _Optional[_Union[SessionConfig, _Mapping]] = ..., step: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., shift: _Optional[_Iterable[float]] = ..., probe_pending: _Optional[bool] = ...) -> None: ...
+    response_mean_square: float
+    def __init__(self, config: _Optional[_Union[SessionConfig, _Mapping]] = ..., step: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., shift: _Optional[_Iterable[float]] = ..., probe_pending: _Optional[bool] = ..., response_mean_square: _Optional[float] = ...) -> None: ...
 
 class ProbeBatchRequest(_message.Message):
-    __slots__ = ("session_ids", "steps", "actions", "episode_starts")
+    __slots__ = ("session_ids", "steps", "actions", "episode_starts", "action_scales")
     SESSION_IDS_FIELD_NUMBER: _ClassVar[int]
     STEPS_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     EPISODE_STARTS_FIELD_NUMBER: _ClassVar[int]
+    ACTION_SCALES_FIELD_NUMBER: _ClassVar[int]
     session_ids: _containers.RepeatedScalarFieldContainer[str]
     steps: _containers.RepeatedScalarFieldContainer[int]
     actions: _containers.RepeatedScalarFieldContainer[float]
     episode_starts: _containers.RepeatedScalarFieldContainer[bool]
-    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., actions: _Optional[_Iterable[float]] = ..., episode_starts: _Optional[_Iterable[bool]] = ...) -> None: ...
+    action_scales: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., actions: _Optional[_Iterable[float]] = ..., episode_starts: _Optional[_Iterable[bool]] = ..., action_scales: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ProbeBatchResponse(_message.Message):
-    __slots__ = ("probes",)
+    __slots__ = ("probes", "actions")
     PROBES_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
     probes: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, probes: _Optional[_Iterable[float]] = ...) -> None: ...
+    actions: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ReportBatchRequest(_message.Message):
-    __slots__ = ("session_ids", "steps", "q_values")
+    __slots__ = ("session_ids", "steps", "q_values", "q_references")
     SESSION_IDS_FIELD_NUMBER: _ClassVar[int]
     STEPS_FIELD_NUMBER: _ClassVar[int]
     Q_VALUES_FIELD_NUMBER: _ClassVar[int]
+    Q_REFERENCES_FIELD_NUMBER: _ClassVar[int]
     session_ids: _containers.RepeatedScalarFieldContainer[str]
     steps: _containers.RepeatedScalarFieldContainer[int]
     q_values: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., q_values: _Optional[_Iterable[float]] = ...) -> None: ...
+    q_references: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., q_values: _Optional[_Iterable[float]] = ..., q_references: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ReportBatchResponse(_message.Message):
     __slots__ = ("actions",)

@@ -97,7 +97,8 @@ class EsaServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Probe(self, request, context):
-        """Takes the sampled action a_t at step t and returns clip(a_t + v + K sin(w t)).
+        """Takes the sampled action a_t at step t and returns the probe
+        clip(a_t + v + K sin(w t dt)) and Algorithm 1's applied action clip(a_t + v).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -148,7 +149,9 @@ class EsaServiceServicer:
     def StepStream(self, request_iterator, context):
         """Bidirectional stream of batch probes and reports. Every request gets
         exactly one response, in order; an error answers that request only and
-        the stream stays open.
+        the stream stays open. A client may pipeline: send the ReportBatch of
+        step t and the ProbeBatch of step t + 1 back to back, then read both
+        answers (one round trip per env step).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
