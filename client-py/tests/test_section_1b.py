@@ -9,7 +9,7 @@ import uuid
 import numpy as np
 import pytest
 
-from esa_client import InvalidArgument, SessionConfig, StepMismatch
+from esa_client import InvalidArgument, SessionConfig
 from esa_client.reference import ReferenceBatch, ReferenceSession
 
 TOL = dict(rtol=1e-9, atol=1e-9)
@@ -42,7 +42,7 @@ def test_unary_session_matches_reference(client, make_config, seed):
     config = make_config(rng)
     server = client.create_session(config, f"1b-unary-{seed}-{uuid.uuid4()}")
     reference = ReferenceSession(config)
-    for episode in range(4):
+    for _episode in range(4):
         for t in range(int(rng.integers(10, 40))):
             action = rng.normal(size=config.action_dim)
             scale = rng.uniform(0.05, 2.0, size=config.action_dim) if rng.random() < 0.7 else None
