@@ -1,16 +1,20 @@
 """Short real training runs of ESASAC and ESAPPO against the real server.
 
-They check that the env executes exactly the improved actions the server
-returned, that the buffers hold them, that ESA stats reach the logger, and that
-save/load round-trips.
+They check that the env executes exactly Algorithm 1's actions ``a_t + v(t)`` that the
+server returned, that the buffers hold them (PPO: unclipped, with the exact behaviour
+log-probability), that ESA stats reach the logger, that learning rate 0 reproduces plain
+PPO and SAC bit for bit, that bad settings fail before any training, and that save/load
+round-trips.
 """
 
 import csv
+import math
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
@@ -25,6 +29,9 @@ pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")
 # Tiny MLPs run fastest single-threaded; with more threads than free cores torch
 # spends its time spinning (10x slower on a busy 2-core machine).
 th.set_num_threads(1)
+
+# ESA from the first step the critic exists, so that short runs exercise it.
+UNGATED = EsaConfig(gate=None)
 
 
 class RecordActions(gym.Wrapper):
@@ -41,21 +48,18 @@ class RecordActions(gym.Wrapper):
 
 @pytest.fixture
 def esa_calls(monkeypatch):
-    """Records the sampled actions sent to, and improved actions returned by, the server."""
-    calls = {"sampled": [], "improved": []}
-    probe, report = SessionBatch.probe, SessionBatch.report
+    """Records the sampled actions sent to, and the applied actions returned by, the server."""
+    calls = {"sampled": [], "applied": [], "scales": []}
+    probe_applied = SessionBatch.probe_applied
 
-    def recording_probe(self, actions, episode_starts=None, *, steps=None):
+    def recording(self, actions, episode_starts=None, **kwargs):
+        probes, applied = probe_applied(self, actions, episode_starts, **kwargs)
         calls["sampled"].append(np.array(actions, dtype=np.float64))
-        return probe(self, actions, episode_starts, steps=steps)
+        calls["applied"].append(applied.copy())
+        calls["scales"].append(kwargs.get("action_scales"))
+        return probes, applied
 
-    def recording_report(self, q_values, *, steps=None):
-        out = report(self, q_values, steps=steps)
-        calls["improved"].append(out.copy())
-        return out
-
-    monkeypatch.setattr(SessionBatch, "probe", recording_probe)
-    monkeypatch.setattr(SessionBatch, "report", recording_report)
+    monkeypatch.setattr(SessionBatch, "probe_applied", recording)
     return calls
 
 
@@ -65,10 +69,20 @@ def logged_columns(path):
     return {key: [float(r[key]) for r in rows if r.get(key)] for key in rows[0]}
 
 
-def assert_envs_applied(env, improved, scale):
+def assert_envs_executed(env, applied, low, high, scale=1.0):
     for i, wrapped in enumerate(env.envs):
-        applied = np.array(wrapped.actions[-len(improved) :])
-        np.testing.assert_allclose(applied, scale * improved[:, i], rtol=1e-5, atol=1e-5)
+        executed = np.array(wrapped.actions[-len(applied) :])
+        want = scale * np.clip(applied[:, i], low, high)
+        np.testing.assert_allclose(executed, want, rtol=1e-5, atol=1e-5)
+
+
+ESA_STATS = (
+    "esa/mean_abs_shift",
+    "esa/improvement",
+    "esa/shift_over_std",
+    "esa/kl_per_dim",
+    "esa/clipped_fraction",
+)
 
 
 def test_esasac_pendulum(client, esa_calls, tmp_path):
@@ -76,7 +90,7 @@ def test_esasac_pendulum(client, esa_calls, tmp_path):
     model = ESASAC(
         "MlpPolicy",
         env,
-        esa=EsaConfig(learning_rate=0.05),
+        esa=EsaConfig(learning_rate=0.2, gate=None),
         esa_address=client.address,
         learning_starts=400,
         batch_size=128,
@@ -86,17 +100,19 @@ def test_esasac_pendulum(client, esa_calls, tmp_path):
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(2400, progress_bar=True)
 
-    improved, sampled = np.stack(esa_calls["improved"]), np.stack(esa_calls["sampled"])
-    assert improved.shape == ((2400 - 400) // N_ENVS, N_ENVS, 1)
-    assert_envs_applied(env, improved, scale=2.0)  # Pendulum's Box is [-2, 2]
+    applied, sampled = np.stack(esa_calls["applied"]), np.stack(esa_calls["sampled"])
+    assert applied.shape == ((2400 - 400) // N_ENVS, N_ENVS, 1)
+    assert_envs_executed(env, applied, -1.0, 1.0, scale=2.0)  # Pendulum's Box is [-2, 2]
     end = model.replay_buffer.pos
-    stored = model.replay_buffer.actions[end - len(improved) : end]
-    np.testing.assert_allclose(stored, improved, atol=1e-6)
-    assert np.abs(improved - sampled).max() > 1e-3
-    assert np.all(np.abs(improved) <= 1.0)
+    stored = model.replay_buffer.actions[end - len(applied) : end]
+    np.testing.assert_allclose(stored, applied, atol=1e-6)
+    assert np.abs(applied - sampled).max() > 1e-3
+    assert np.all(np.abs(applied) <= 1.0)
+    scales = np.stack(esa_calls["scales"])
+    assert np.all((scales > 0) & (scales <= 1.0)), "the squashed policy's local std"
     columns = logged_columns(tmp_path)
-    for key in ("esa/mean_abs_shift", "esa/mean_probe_q", "esa/improvement"):
-        assert columns[key] and np.all(np.isfinite(columns[key]))
+    for key in ESA_STATS:
+        assert columns[key] and np.all(np.isfinite(columns[key])), key
 
     model.save(tmp_path / "esasac.zip")
     loaded = ESASAC.load(tmp_path / "esasac.zip", env=env, esa_address=client.address)
@@ -111,25 +127,33 @@ def test_esasac_pendulum(client, esa_calls, tmp_path):
     loaded.esa_close()
 
 
-class CheckLogProbs(BaseCallback):
-    """At each rollout end (policy not yet updated) recomputes the stored log-probs."""
+class CheckStorage(BaseCallback):
+    """At each rollout end (policy not yet updated), checks what the buffer holds."""
 
-    def __init__(self):
+    def __init__(self, calls):
         super().__init__()
+        self.calls = calls
         self.max_error = []
-        self.last_actions = None
+        self.checked = 0
 
     def _on_step(self):
         return True
 
     def _on_rollout_end(self):
         buffer = self.model.rollout_buffer
+        n_steps = buffer.buffer_size
+        if len(self.calls["sampled"]) < n_steps:
+            return  # ESA was not active during this rollout
+        sampled = np.stack(self.calls["sampled"][-n_steps:])
+        applied = np.stack(self.calls["applied"][-n_steps:])
+        np.testing.assert_allclose(buffer.actions, applied, atol=1e-6)
         obs = th.as_tensor(buffer.observations.reshape(-1, buffer.obs_shape[0]))
-        actions = th.as_tensor(buffer.actions.reshape(-1, buffer.action_dim))
         with th.no_grad():
-            log_probs = self.model.policy.get_distribution(obs).log_prob(actions).numpy()
+            distribution = self.model.policy.get_distribution(obs)
+            log_probs = distribution.log_prob(th.as_tensor(sampled.reshape(-1, 1))).numpy()
+        # The stored log-probability is the behaviour's: log pi_old(a_t), not of a_t + v(t).
         self.max_error.append(np.abs(log_probs - buffer.log_probs.reshape(-1)).max())
-        self.last_actions = buffer.actions.copy()
+        self.checked += 1
 
 
 def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
@@ -138,7 +162,7 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
     model = ESAPPO(
         "MlpPolicy",
         env,
-        esa=EsaConfig(learning_rate=0.05),
+        esa=EsaConfig(learning_rate=0.2, gate=None),
         n_steps=256,
         batch_size=256,
         n_epochs=4,
@@ -146,25 +170,27 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
         seed=0,
     )
     model.set_logger(configure(str(tmp_path), ["csv"]))
-    check = CheckLogProbs()
+    check = CheckStorage(esa_calls)
     model.learn(3 * 256 * N_ENVS, callback=check, progress_bar=True)
 
-    improved, sampled = np.stack(esa_calls["improved"]), np.stack(esa_calls["sampled"])
-    assert improved.shape == (2 * 256, N_ENVS, 1)  # ESA starts once the critic was fitted
-    assert_envs_applied(env, improved, scale=1.0)
-    np.testing.assert_allclose(check.last_actions, improved[-256:], atol=1e-6)
-    assert max(check.max_error) < 1e-4
-    assert np.abs(improved - sampled).max() > 1e-3
+    applied, sampled = np.stack(esa_calls["applied"]), np.stack(esa_calls["sampled"])
+    assert applied.shape == (2 * 256, N_ENVS, 1)  # ESA starts once the head was fitted
+    assert_envs_executed(env, applied, -3.0, 3.0)
+    assert check.checked == 2 and max(check.max_error) < 1e-4
+    shift = applied - sampled
+    assert np.abs(shift).max() > 1e-3
+    stds = np.stack(esa_calls["scales"])
+    assert np.all(np.abs(shift) <= 1.0 * stds + 1e-9), "the trust region bounds |v| by sigma"
     columns = logged_columns(tmp_path)
-    for key in ("esa/mean_abs_shift", "esa/improvement", "esa/q_loss"):
-        assert columns[key] and np.all(np.isfinite(columns[key]))
+    for key in (*ESA_STATS, "esa/head_loss", "esa/active", "esa/gate_correlation"):
+        assert columns[key] and np.all(np.isfinite(columns[key])), key
 
     server = model._esa.client.server
     model.save(tmp_path / "esappo.zip")
     loaded = ESAPPO.load(tmp_path / "esappo.zip", env=env)
-    assert loaded._esa_q_fitted and loaded.esa == model.esa
+    assert loaded.esa == model.esa
     for a, b in zip(
-        loaded.esa_q_net.state_dict().values(), model.esa_q_net.state_dict().values(), strict=True
+        loaded.esa_head.state_dict().values(), model.esa_head.state_dict().values(), strict=True
     ):
         assert th.equal(a, b)
     model.esa_close()
@@ -176,8 +202,111 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
     assert not loaded_server.running()
 
 
+def parameters(model):
+    return th.cat([p.detach().reshape(-1) for p in model.policy.parameters()])
+
+
+@pytest.mark.parametrize("gate", [None, 0.1], ids=["ungated", "gated"])
+def test_esappo_with_learning_rate_zero_is_plain_ppo(client, gate):
+    kwargs = dict(n_steps=128, batch_size=64, n_epochs=2, policy_kwargs=dict(net_arch=[32]))
+
+    def trained(cls, **extra):
+        env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=3)
+        model = cls("MlpPolicy", env, seed=3, **kwargs, **extra)
+        model.learn(4 * 128 * 2)
+        return model
+
+    plain = trained(PPO)
+    null = trained(ESAPPO, esa=EsaConfig(learning_rate=0.0, gate=gate), esa_address=client.address)
+    assert null._esa is not None or gate is not None, "ESA ran (with v = 0)"
+    assert th.equal(parameters(plain), parameters(null))
+    null.esa_close()
+
+
+def test_esasac_with_learning_rate_zero_is_plain_sac(client):
+    kwargs = dict(learning_starts=100, batch_size=32, policy_kwargs=dict(net_arch=[32]))
+
+    def trained(cls, **extra):
+        env = make_vec_env("Pendulum-v1", n_envs=2, seed=5)
+        model = cls("MlpPolicy", env, seed=5, **kwargs, **extra)
+        model.learn(600)
+        return model
+
+    plain = trained(SAC)
+    null = trained(
+        ESASAC,
+        esa=EsaConfig(learning_rate=0.0, gate=None),
+        esa_address=client.address,
+        esa_probe_critic="online_min",
+    )
+    assert null._esa is not None
+    assert th.equal(parameters(plain), parameters(null))
+    np.testing.assert_array_equal(plain.replay_buffer.actions, null.replay_buffer.actions)
+    null.esa_close()
+
+
+@pytest.mark.parametrize("cls", [ESAPPO, ESASAC])
+@pytest.mark.parametrize(
+    "esa, match",
+    [
+        (dict(frequency=100.0), "Nyquist"),  # InvertedPendulum: dt 0.04, pi / dt = 78.5
+        (dict(amplitude=[0.1, 0.2]), "amplitude"),  # one action dimension
+    ],
+)
+def test_env_dependent_settings_fail_at_construction(cls, esa, match, monkeypatch):
+    def never(*args, **kwargs):
+        raise AssertionError("no server may be started for a bad config")
+
+    monkeypatch.setattr(EsaRuntime, "__init__", never)
+    with pytest.raises(ValueError, match=match):
+        cls("MlpPolicy", "InvertedPendulum-v5", esa=EsaConfig(**esa))
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: EsaConfig(amplitude=-1), "amplitude"),
+        (lambda: EsaConfig(learning_rate=math.nan), "learning_rate"),
+        (lambda: ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa="fast"), "EsaConfig"),
+        (lambda: ESASAC("MlpPolicy", "Pendulum-v1", esa_probe_critic="best"), "esa_probe_critic"),
+        (lambda: ESASAC("MlpPolicy", "Pendulum-v1", esa_gate_every=0), "esa_gate_every"),
+        (
+            lambda: ESAPPO(
+                "MlpPolicy",
+                "InvertedPendulum-v5",
+                use_sde=True,
+                policy_kwargs={"squash_output": True},
+            ),
+            "squash_output",
+        ),
+    ],
+)
+def test_bad_settings_raise_before_training(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_share_features_extractor_false_trains(client):
+    model = ESAPPO(
+        "MlpPolicy",
+        make_vec_env("InvertedPendulum-v5", n_envs=2, seed=0),
+        esa=UNGATED,
+        esa_address=client.address,
+        n_steps=64,
+        batch_size=64,
+        n_epochs=1,
+        policy_kwargs=dict(share_features_extractor=False, net_arch=[16]),
+        seed=0,
+    )
+    model.learn(3 * 64 * 2)
+    assert model._esa is not None and model._esa_active
+    model.esa_close()
+
+
 @pytest.mark.parametrize("every", [0, -3])
 def test_runtime_rejects_a_non_positive_improvement_stride(every):
     # Checked before anything connects: no server, env or sessions are needed.
     with pytest.raises(ValueError, match=f"expected improvement_every >= 1, got {every}"):
-        EsaRuntime(EsaConfig(), None, None, np.zeros(1), np.ones(1), improvement_every=every)
+        EsaRuntime(
+            EsaConfig(), None, None, None, None, np.zeros(1), np.ones(1), improvement_every=every
+        )

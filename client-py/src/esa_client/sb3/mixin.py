@@ -9,6 +9,7 @@ import torch as th
 from gymnasium import spaces
 
 from ..config import EsaConfig
+from ..env_dt import env_dt
 from .runtime import EsaRuntime
 
 
@@ -51,25 +52,50 @@ class EsaMixin:
             **kwargs: Any other argument of the SB3 algorithm.
 
         Raises:
-            ValueError: If the action space is not a Box.
+            ValueError: If the action space is not a Box, or an ESA setting does not fit
+                the env (checked here, before any training: a frequency past the Nyquist
+                limit of the env's ``dt``, per-dimension vectors of the wrong length).
         """
         # Set before the SB3 constructor: it may set up the model, which can read them.
         self.esa = esa if esa is not None else EsaConfig()
+        if not isinstance(self.esa, EsaConfig):
+            raise ValueError(f"expected esa to be an EsaConfig, got {self.esa!r}")
         self.esa_address = esa_address
         self._esa = None
         super().__init__(policy, env, *args, **kwargs)  # type: ignore[call-arg]
         space = self.action_space  # type: ignore[attr-defined]
         if space is not None and not isinstance(space, spaces.Box):
             raise ValueError(f"expected a Box action space for ESA, got {space}")
+        if self.env is not None:  # type: ignore[attr-defined]
+            self._esa_session_config()
 
-    def _esa_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds of the action space ESA probes in (overridden per algorithm)."""
+    def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Bounds of the action space ESA shifts in; None where it is unbounded."""
         raise NotImplementedError
+
+    def _esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds the env's actions are clipped to, in the space ESA works in."""
+        space = self.action_space  # type: ignore[attr-defined]
+        return space.low.reshape(-1), space.high.reshape(-1)
+
+    def _esa_session_config(self) -> object:
+        low, high = self._esa_space()
+        dim = self._esa_env_bounds()[0].size
+        return self.esa.session_config(dim, env_dt(self.env, self.esa.dt), low, high)  # type: ignore[attr-defined]
 
     def _esa_runtime(self) -> EsaRuntime:
         if self._esa is None:
-            low, high = self._esa_bounds()
-            self._esa = EsaRuntime(self.esa, self.esa_address, self.env, low, high)
+            low, high = self._esa_space()
+            clip_low, clip_high = self._esa_env_bounds()
+            self._esa = EsaRuntime(
+                self.esa,
+                self.esa_address,
+                self.env,
+                low,
+                high,
+                clip_low,
+                clip_high,  # type: ignore[attr-defined]
+            )
         return self._esa
 
     def esa_close(self) -> None:

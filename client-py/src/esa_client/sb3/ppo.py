@@ -1,46 +1,54 @@
-"""``ESAPPO``: stable-baselines3 PPO whose sampled actions are improved by ESA."""
+"""``ESAPPO``: stable-baselines3 PPO whose sampled actions are shifted by ESA."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.distributions import Distribution
-from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
-from torch.nn import functional as F
 
 from ..config import EsaConfig
-from .action_critic import ActionCritic
+from .advantage_head import AdvantageHead, critic_quality, fit
 from .mixin import EsaMixin, tile_obs
 
 
 class ESAPPO(EsaMixin, PPO):
     """PPO with Extremum-Seeking Action selection; a drop-in for ``stable_baselines3.PPO``.
 
-    PPO has no action-value network to probe, so ESAPPO trains an auxiliary critic
-    ``Q(s, a)`` (an MLP on the policy's detached value features and the action) on
-    every rollout, regressing the rollout's lambda-returns (``RolloutBuffer.returns``,
-    the targets PPO's value function also uses) on the actions that were applied.
-    ESA probes that critic; the env receives the improved action, and the rollout
-    stores the improved action with its log-probability recomputed under the
-    behaviour policy, so PPO's ratio ``pi_new(a) / pi_old(a)`` is evaluated on the
-    action actually taken. ESA starts with the second rollout, once the critic has
-    been fitted once.
+    Each rollout step follows Algorithm 1 of the paper with the bounded, scale-free law
+    of CONTRACT.md section 1b: the policy samples ``a_t``, ESA probes a critic around it,
+    and the env executes ``a_t + v(t)``, the shift *before* this step's update. Because
+    ``v(t)`` does not depend on ``a_t``, the behaviour density of the executed action is
+    the policy's, translated by ``v(t)``, so the rollout stores the executed action
+    unclipped (as SB3 stores its samples) with ``log pi_old(a_t)``, its exact behaviour
+    log-probability: PPO's ratio ``pi_new(x) / b(x)`` is then a correct importance ratio.
+    The policy's standard deviation is the action scale, so the trust region bounds the
+    shift in units of it.
 
-    ESA works in the policy's action space: the env's Box bounds (PPO's Gaussian
-    actions are unsquashed), or [-1, 1] with ``squash_output`` (gSDE).
-    ``predict`` is unchanged: evaluation uses the plain policy.
+    The critic ESA probes is an advantage head on PPO's detached value latent
+    (:mod:`esa_client.sb3.advantage_head`), fitted on each rollout's normalized GAE
+    advantages. ESA intervenes only while the head passes ``EsaConfig.gate``: the rank
+    correlation of its ``A(s, a) - A(s, mu)`` with the GAE advantages of a rollout it was
+    not trained on (logged as ``esa/gate_correlation`` and ``esa/active``).
+
+    With ``EsaConfig(learning_rate=0)`` the shift stays 0 and training is bit for bit
+    plain PPO with the same seed: the executed and stored actions, their log-probabilities
+    and every random draw are PPO's (the head is initialized on a forked torch generator
+    and draws its minibatches from its own numpy generator).
+
+    ESA works in the policy's action space (PPO's Gaussian is unbounded; the env clips).
+    ``squash_output`` policies are refused: shifting a squashed sample has no density
+    under the squashed policy. ``predict`` is unchanged: evaluation uses the plain policy.
 
     Example::
 
-        model = ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa=EsaConfig(amplitude=0.2))
+        model = ESAPPO("MlpPolicy", "InvertedPendulum-v5")   # EsaConfig() by default
         model.learn(50_000)
 
     Args:
@@ -49,11 +57,15 @@ class ESAPPO(EsaMixin, PPO):
         esa: The ESA hyperparameters (default ``EsaConfig()``).
         esa_address: An esa-server address (``host:port`` or ``unix:/path``); None
             spawns a private server that stops with the model (or ``esa_close()``).
-        esa_q_net_arch: Hidden layers of the auxiliary critic.
-        esa_q_learning_rate: Adam learning rate of the auxiliary critic.
-        esa_q_epochs: Passes over each rollout when fitting the auxiliary critic
-            (minibatches of PPO's ``batch_size``).
+        esa_head_hidden: Hidden units of the advantage head.
+        esa_head_learning_rate: Adam learning rate of the advantage head.
+        esa_head_epochs: Passes over each rollout when fitting the head.
+        esa_head_batch_size: Minibatch size when fitting the head.
         **kwargs: Any other PPO argument.
+
+    Raises:
+        ValueError: If the action space is not a Box, the policy squashes its output, or
+            an ESA setting is invalid for this env (e.g. a frequency past Nyquist).
     """
 
     def __init__(
@@ -63,90 +75,103 @@ class ESAPPO(EsaMixin, PPO):
         *args: Any,
         esa: EsaConfig | None = None,
         esa_address: str | None = None,
-        esa_q_net_arch: Sequence[int] = (64, 64),
-        esa_q_learning_rate: float = 1e-3,
-        esa_q_epochs: int = 5,
+        esa_head_hidden: int = 64,
+        esa_head_learning_rate: float = 1e-3,
+        esa_head_epochs: int = 10,
+        esa_head_batch_size: int = 256,
         **kwargs: Any,
     ) -> None:
-        """Creates the PPO model and the auxiliary critic."""
-        # Set before the SB3 constructor: its _setup_model builds the critic from them.
-        self.esa_q_net_arch = tuple(esa_q_net_arch)
-        self.esa_q_learning_rate = esa_q_learning_rate
-        self.esa_q_epochs = esa_q_epochs
-        self._esa_q_fitted = False
+        """Creates the PPO model and the advantage head."""
+        # Set before the SB3 constructor: its _setup_model builds the head from them.
+        self.esa_head_hidden = esa_head_hidden
+        self.esa_head_learning_rate = esa_head_learning_rate
+        self.esa_head_epochs = esa_head_epochs
+        self.esa_head_batch_size = esa_head_batch_size
+        self._esa_head_fitted = False
+        self._esa_active = False
         super().__init__(policy, env, *args, esa=esa, esa_address=esa_address, **kwargs)
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        features_dim = self.policy.vf_features_extractor.features_dim
+        if self.policy.squash_output:
+            raise ValueError(
+                "expected a policy without squash_output for ESAPPO (the shifted sample "
+                "must have a density under the policy), got squash_output=True"
+            )
+        latent_dim = self.policy.mlp_extractor.latent_dim_vf
         action_dim = int(np.prod(self.action_space.shape))
-        self.esa_q_net = ActionCritic(features_dim, action_dim, self.esa_q_net_arch).to(self.device)
-        self.esa_q_optimizer = th.optim.Adam(
-            self.esa_q_net.parameters(), lr=self.esa_q_learning_rate
+        # A forked generator: building the head must not move PPO's random stream.
+        with th.random.fork_rng(devices=[]):
+            self.esa_head = AdvantageHead(latent_dim, action_dim, self.esa_head_hidden)
+        self.esa_head.to(self.device)
+        self.esa_head_optimizer = th.optim.Adam(
+            self.esa_head.parameters(), lr=self.esa_head_learning_rate
         )
+        self._esa_rng = np.random.default_rng(self.seed)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
-        return [*state_dicts, "esa_q_net", "esa_q_optimizer"], variables
+        return [*state_dicts, "esa_head", "esa_head_optimizer"], variables
 
-    def _esa_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        if self.policy.squash_output:
-            dim = int(np.prod(self.action_space.shape))
-            return -np.ones(dim), np.ones(dim)
-        return self.action_space.low.reshape(-1), self.action_space.high.reshape(-1)
+    def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
+        return None, None
 
-    def _esa_features(self, obs: Any) -> th.Tensor:
-        with th.no_grad():
-            return self.policy.extract_features(obs, self.policy.vf_features_extractor)
-
-    def _sample(self, obs: Any) -> tuple[th.Tensor, th.Tensor, th.Tensor, Distribution, th.Tensor]:
-        """``ActorCriticPolicy.forward`` that also returns the distribution and the value features.
-
-        The ESA step evaluates the improved action's log-probability under this same
-        distribution and probes the critic on these features: keeping them spares a
-        second policy pass per step.
-        """
+    def _value_latent(self, obs: th.Tensor | dict[str, th.Tensor]) -> th.Tensor:
         policy = self.policy
-        with th.no_grad():
-            features = policy.extract_features(obs)
-            if policy.share_features_extractor:
-                pi_features = vf_features = features
-            else:
-                pi_features, vf_features = features
-            values = policy.value_net(policy.mlp_extractor.forward_critic(vf_features))
-            latent_pi = policy.mlp_extractor.forward_actor(pi_features)
-            distribution = policy._get_action_dist_from_latent(latent_pi)
-            actions = distribution.get_actions()
-            log_probs = distribution.log_prob(actions)
-        actions = actions.reshape((-1, *self.action_space.shape))
-        return actions, values, log_probs, distribution, vf_features
+        # Without a shared extractor SB3 returns (pi_features, vf_features).
+        features = policy.extract_features(obs)
+        vf_features = features if policy.share_features_extractor else features[1]
+        return policy.mlp_extractor.forward_critic(vf_features)
 
-    def _esa_q_at(self, features: th.Tensor) -> Any:
+    def _esa_q_at(self, latent: th.Tensor) -> Any:
         def q_fn(actions: np.ndarray) -> np.ndarray:
-            reps = len(actions) // self.n_envs
+            reps = len(actions) // len(latent)
             with th.no_grad():
                 action_tensor = th.as_tensor(actions, dtype=th.float32, device=self.device)
-                return self.esa_q_net(tile_obs(features, reps), action_tensor).cpu().numpy()
+                return self.esa_head(tile_obs(latent, reps), action_tensor).cpu().numpy()
 
         return q_fn
 
-    def _fit_esa_critic(self) -> None:
-        losses = []
-        for _ in range(self.esa_q_epochs):
-            for data in self.rollout_buffer.get(self.batch_size):
-                q = self.esa_q_net(self._esa_features(data.observations), data.actions)
-                loss = F.mse_loss(q, data.returns)
-                self.esa_q_optimizer.zero_grad()
-                loss.backward()
-                self.esa_q_optimizer.step()
-                losses.append(loss.item())
-        self.logger.record("esa/q_loss", float(np.mean(losses)))
-        self._esa_q_fitted = True
+    @contextlib.contextmanager
+    def _esa_forward(self) -> Iterator[None]:
+        """Within the block, the policy's forward pass returns ESA's executed actions.
 
-    def train(self) -> None:
-        """Fits the auxiliary critic on the rollout, then runs PPO's update."""
-        self._fit_esa_critic()
-        super().train()
+        SB3's ``collect_rollouts`` calls ``policy(obs)`` for ``(actions, values,
+        log_probs)``, clips the actions for the env and stores them unclipped: this forward
+        is SB3's ``ActorCriticPolicy.forward`` with ``a_t`` replaced by ``a_t + v(t)``,
+        ``log_probs`` still ``log pi(a_t)``.
+        """
+        policy = self.policy
+
+        def forward(obs: th.Tensor, deterministic: bool = False) -> tuple[th.Tensor, ...]:
+            features = policy.extract_features(obs)
+            if policy.share_features_extractor:
+                latent_pi, latent_vf = policy.mlp_extractor(features)
+            else:
+                pi_features, vf_features = features
+                latent_pi = policy.mlp_extractor.forward_actor(pi_features)
+                latent_vf = policy.mlp_extractor.forward_critic(vf_features)
+            values = policy.value_net(latent_vf)
+            distribution = policy._get_action_dist_from_latent(latent_pi)
+            actions = distribution.get_actions(deterministic=deterministic)
+            log_prob = distribution.log_prob(actions)
+            if self._esa_active and not deterministic:
+                n = len(actions)
+                applied = self._esa_runtime().step(
+                    actions.reshape(n, -1).cpu().numpy(),
+                    np.asarray(self._last_episode_starts, dtype=bool),
+                    self._esa_q_at(latent_vf),
+                    distribution.distribution.stddev.reshape(n, -1).cpu().numpy(),
+                )
+                actions = th.as_tensor(applied, dtype=actions.dtype, device=actions.device)
+            return actions.reshape((-1, *self.action_space.shape)), values, log_prob
+
+        policy.forward = forward  # type: ignore[method-assign]
+        try:
+            yield
+        finally:
+            del policy.forward
 
     def collect_rollouts(
         self,
@@ -155,89 +180,40 @@ class ESAPPO(EsaMixin, PPO):
         rollout_buffer: RolloutBuffer,
         n_rollout_steps: int,
     ) -> bool:
-        """SB3 2.9's ``OnPolicyAlgorithm.collect_rollouts`` with the ESA step inserted.
+        """SB3's ``collect_rollouts``, with the ESA step inside the policy's forward pass."""
+        with th.no_grad(), self._esa_forward():
+            return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
 
-        Between sampling and stepping the env, the sampled actions are improved by ESA
-        and their log-probabilities recomputed; everything else is SB3's loop.
-        """
-        assert self._last_obs is not None, "No previous observation was provided"
-        self.policy.set_training_mode(False)
+    def train(self) -> None:
+        """Checks the gate and fits the advantage head on the rollout, then runs PPO's update."""
+        self._update_esa_head()
+        super().train()
 
-        n_steps = 0
-        rollout_buffer.reset()
-        if self.use_sde:
-            self.policy.reset_noise(env.num_envs)
-
-        callback.on_rollout_start()
-
-        while n_steps < n_rollout_steps:
-            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
-                self.policy.reset_noise(env.num_envs)
-
-            obs_tensor = obs_as_tensor(self._last_obs, self.device)
-            actions, values, log_probs, distribution, features = self._sample(obs_tensor)
-            actions = actions.cpu().numpy()
-
-            if self._esa_q_fitted:
-                improved = self._esa_runtime().improve(
-                    actions.reshape(env.num_envs, -1),
-                    self._last_episode_starts,
-                    self._esa_q_at(features),
-                )
-                actions = improved.reshape(actions.shape).astype(actions.dtype)
-                with th.no_grad():
-                    log_probs = distribution.log_prob(th.as_tensor(actions, device=self.device))
-
-            clipped_actions = actions
-            if isinstance(self.action_space, spaces.Box):
-                if self.policy.squash_output:
-                    clipped_actions = self.policy.unscale_action(clipped_actions)
-                else:
-                    clipped_actions = np.clip(
-                        actions, self.action_space.low, self.action_space.high
-                    )
-
-            new_obs, rewards, dones, infos = env.step(clipped_actions)
-
-            self.num_timesteps += env.num_envs
-
-            callback.update_locals(locals())
-            if not callback.on_step():
-                return False
-
-            self._update_info_buffer(infos, dones)
-            n_steps += 1
-
-            # Bootstrap truncated episodes with the value function (SB3 issue #633).
-            for idx, done in enumerate(dones):
-                if (
-                    done
-                    and infos[idx].get("terminal_observation") is not None
-                    and infos[idx].get("TimeLimit.truncated", False)
-                ):
-                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
-                    with th.no_grad():
-                        terminal_value = self.policy.predict_values(terminal_obs)[0]
-                    rewards[idx] += self.gamma * terminal_value
-
-            rollout_buffer.add(
-                self._last_obs,
-                actions,
-                rewards,
-                self._last_episode_starts,
-                values,
-                log_probs,
-            )
-            self._last_obs = new_obs
-            self._last_episode_starts = dones
-
+    def _update_esa_head(self) -> None:
+        buffer = self.rollout_buffer
+        obs = buffer.to_torch(buffer.observations.reshape(-1, *buffer.obs_shape))
+        actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
+        advantages = buffer.to_torch(buffer.advantages.reshape(-1))
         with th.no_grad():
-            values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))
-
-        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
-
-        callback.update_locals(locals())
-
-        callback.on_rollout_end()
-
-        return True
+            latent = self._value_latent(obs)
+            means = self.policy.get_distribution(obs).distribution.mean.reshape(len(obs), -1)
+        gate = self.esa.gate
+        if self._esa_head_fitted:
+            quality = critic_quality(self.esa_head, latent, actions, means, advantages)
+            self.logger.record("esa/gate_correlation", quality)
+            self._esa_active = gate is None or quality >= gate
+        loss = fit(
+            self.esa_head,
+            self.esa_head_optimizer,
+            latent,
+            actions,
+            advantages,
+            epochs=self.esa_head_epochs,
+            batch_size=self.esa_head_batch_size,
+            rng=self._esa_rng,
+        )
+        self.logger.record("esa/head_loss", loss)
+        if not self._esa_head_fitted and gate is None:
+            self._esa_active = True
+        self._esa_head_fitted = True
+        self.logger.record("esa/active", float(self._esa_active))

@@ -1,4 +1,4 @@
-"""The ESA side of an SB3 learner: one session per env, the probe/report round trip, stats."""
+"""The ESA side of an SB3 learner: one session per env, one round trip per step, statistics."""
 
 from __future__ import annotations
 
@@ -19,15 +19,22 @@ QFunction = Callable[[np.ndarray], np.ndarray]
 class EsaRuntime:
     """Connection, sessions and statistics of one learner; never pickled with the model.
 
+    Each step is Algorithm 1 with the section 1b law (CONTRACT.md): one ``probe_applied``
+    gives the probes and the actions to apply, ``a_t + v(t)``; one critic batch scores
+    the probes (and, with ``paired_response``, the applied actions as the reference);
+    the report is deferred and rides with the next step's probe on the StepStream, so a
+    step costs one round trip.
+
     Args:
         esa: The ESA hyperparameters.
         address: Server address, or None to spawn a private server for this learner.
         vec_env: The learner's VecEnv (gives the env count and ``dt``).
-        low: Lower action bounds of the space ESA works in (shape ``(D,)``).
-        high: Upper action bounds.
-        use_stream: Carry the round trips on one StepStream (default; it measured about
-            twice as fast per step as ProbeBatch/ReportBatch calls inside SB3's loop).
-        improvement_every: Measure ``esa/improvement`` (the critic's Q at the improved
+        low: Lower action bounds of the space ESA works in (shape ``(D,)``); None for an
+            unbounded space (PPO's Gaussian, whose samples SB3 stores unclipped).
+        high: Upper action bounds, or None.
+        clip_low: Bounds the environment clips to, for the clipped-action statistic.
+        clip_high: See ``clip_low``.
+        improvement_every: Measure ``esa/improvement`` (the critic's Q at the applied
             minus at the sampled actions) on one step in this many. It costs a critic
             evaluation that training does not need, so it is sampled, not paid per step.
     """
@@ -37,71 +44,70 @@ class EsaRuntime:
         esa: EsaConfig,
         address: str | None,
         vec_env: object,
-        low: np.ndarray,
-        high: np.ndarray,
+        low: np.ndarray | None,
+        high: np.ndarray | None,
+        clip_low: np.ndarray,
+        clip_high: np.ndarray,
         *,
-        use_stream: bool = True,
         improvement_every: int = 8,
     ) -> None:
         """Connects (or spawns the server) and creates one session per env."""
         if improvement_every < 1:
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
         n_envs = vec_env.num_envs  # type: ignore[attr-defined]
-        config = esa.session_config(low.size, env_dt(vec_env, esa.dt), low, high)
+        self.esa = esa
+        config = esa.session_config(clip_low.size, env_dt(vec_env, esa.dt), low, high)
         self.client = EsaClient.spawn() if address is None else EsaClient(address)
         try:
-            self.batch = self.client.create_batch(config, n_envs, use_stream=use_stream)
+            self.batch = self.client.create_batch(config, n_envs, use_stream=True)
         except BaseException:
             self.client.close()
             raise
+        self._clip = (clip_low.reshape(1, -1), clip_high.reshape(1, -1))
         self._improvement_every = improvement_every
-        # Sums of mean |shift| and mean probe Q over the steps since the last record.
-        self._sums = np.zeros(2)
-        self._count = 0
-        self._improvement_sum = 0.0
-        self._improvement_count = 0
+        self._stats = _Stats()
         self._calls = 0
 
-    def improve(
-        self, actions: np.ndarray, episode_starts: np.ndarray, q_fn: QFunction
+    def step(
+        self,
+        sampled: np.ndarray,
+        episode_starts: np.ndarray,
+        q_fn: QFunction,
+        policy_std: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Runs one probe/report round for all envs and returns the improved actions.
+        """Runs Algorithm 1's step for all envs and returns the actions to apply.
 
         Args:
-            actions: Sampled actions, shape ``(N, D)`` (any float dtype).
+            sampled: The policy's samples a_t, shape ``(N, D)`` (any float dtype).
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
             q_fn: The critic at the current observations.
+            policy_std: The policy's standard deviation, shape ``(N, D)``; sent as the
+                action scale when ``use_policy_std`` (else 1).
 
         Returns:
-            The improved actions, float64, shape ``(N, D)``.
+            ``a_t + v(t)`` (clipped to the session's bounds, if it has any), float64,
+            shape ``(N, D)``.
         """
-        sampled = np.asarray(actions, dtype=np.float64)
-        probes = self.batch.probe(sampled, episode_starts)
-        q_probe = np.asarray(q_fn(probes), dtype=np.float64)
-        improved = self.batch.report(q_probe)
-        self._sums += (np.abs(improved - sampled).mean(), q_probe.mean())
-        self._count += 1
+        a = np.asarray(sampled, dtype=np.float64)
+        scale = policy_std if self.esa.use_policy_std else None
+        probes, applied = self.batch.probe_applied(a, episode_starts, action_scales=scale)
+        n = len(a)
+        points = np.concatenate([probes, applied]) if self.esa.paired_response else probes
+        q = np.asarray(q_fn(points), dtype=np.float64)
+        reference = q[n:] if self.esa.paired_response else None
+        self.batch.report(q[:n], q_references=reference, defer=True)
+        self._stats.add_step(a, applied, policy_std, self._clip)
         if self._calls % self._improvement_every == 0:
-            both = np.asarray(q_fn(np.concatenate([sampled, improved])), dtype=np.float64)
-            n = len(sampled)
-            self._improvement_sum += (both[n:] - both[:n]).mean()
-            self._improvement_count += 1
+            both = np.asarray(q_fn(np.concatenate([a, applied])), dtype=np.float64)
+            self._stats.add_improvement(float((both[n:] - both[:n]).mean()))
         self._calls += 1
-        return improved
+        return applied
 
     def record(self, logger: object) -> None:
         """Writes the mean stats since the last call to an SB3 logger and resets them."""
-        if self._count == 0:
-            return
-        shift, probe_q = self._sums / self._count
-        logger.record("esa/mean_abs_shift", shift)  # type: ignore[attr-defined]
-        logger.record("esa/mean_probe_q", probe_q)  # type: ignore[attr-defined]
-        if self._improvement_count:
-            improvement = self._improvement_sum / self._improvement_count
-            logger.record("esa/improvement", improvement)  # type: ignore[attr-defined]
-        self._sums[:] = 0.0
-        self._count = self._improvement_count = 0
-        self._improvement_sum = 0.0
+        for key, value in self._stats.means().items():
+            logger.record(f"esa/{key}", value)  # type: ignore[attr-defined]
+        self._stats = _Stats()
 
     def close(self) -> None:
         """Closes the sessions and the client (stopping a spawned server)."""
@@ -109,3 +115,38 @@ class EsaRuntime:
         with contextlib.suppress(EsaError):
             self.batch.close()
         self.client.close()
+
+
+class _Stats:
+    """Running sums of what ESA did to the actions since the last log record."""
+
+    def __init__(self) -> None:
+        self.sums: dict[str, float] = {}
+        self.counts: dict[str, int] = {}
+
+    def _add(self, key: str, value: float) -> None:
+        self.sums[key] = self.sums.get(key, 0.0) + value
+        self.counts[key] = self.counts.get(key, 0) + 1
+
+    def add_step(
+        self,
+        sampled: np.ndarray,
+        applied: np.ndarray,
+        policy_std: np.ndarray | None,
+        clip: tuple[np.ndarray, np.ndarray],
+    ) -> None:
+        shift = applied - sampled
+        self._add("mean_abs_shift", float(np.abs(shift).mean()))
+        clipped = (applied < clip[0]) | (applied > clip[1])
+        self._add("clipped_fraction", float(np.any(clipped, axis=1).mean()))
+        if policy_std is not None:
+            z = shift / np.asarray(policy_std, dtype=np.float64)
+            self._add("shift_over_std", float(np.abs(z).mean()))
+            # KL(behaviour || pi) of N(mu + v, s^2) against N(mu, s^2), per dimension.
+            self._add("kl_per_dim", float((0.5 * z**2).mean()))
+
+    def add_improvement(self, value: float) -> None:
+        self._add("improvement", value)
+
+    def means(self) -> dict[str, float]:
+        return {key: self.sums[key] / self.counts[key] for key in self.sums}
