@@ -85,7 +85,7 @@ def test_esa_config_maps_open_box_bounds_to_finite_ones():
 def test_esa_config_dt_overrides_and_nyquist_is_explained():
     assert EsaConfig(dt=0.01).session_config(1, dt=0.5).dt == 0.01
     with pytest.raises(ValueError, match="Nyquist"):
-        EsaConfig().session_config(1, dt=0.2)
+        EsaConfig(frequency=10 * math.pi).session_config(1, dt=0.2)
 
 
 @pytest.mark.parametrize(

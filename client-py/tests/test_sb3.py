@@ -144,9 +144,11 @@ class CheckStorage(BaseCallback):
         n_steps = buffer.buffer_size
         if len(self.calls["sampled"]) < n_steps:
             return  # ESA was not active during this rollout
-        sampled = np.stack(self.calls["sampled"][-n_steps:])
-        applied = np.stack(self.calls["applied"][-n_steps:])
-        np.testing.assert_allclose(buffer.actions, applied, atol=1e-6)
+        # ESAPPO talks to the server in Box units scaled to [-1, 1].
+        center, half_width = self.model._esa_scaling()
+        sampled = np.stack(self.calls["sampled"][-n_steps:]) * half_width + center
+        applied = np.stack(self.calls["applied"][-n_steps:]) * half_width + center
+        np.testing.assert_allclose(buffer.actions, applied, atol=1e-5)
         obs = th.as_tensor(buffer.observations.reshape(-1, buffer.obs_shape[0]))
         with th.no_grad():
             distribution = self.model.policy.get_distribution(obs)
@@ -175,12 +177,14 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
 
     applied, sampled = np.stack(esa_calls["applied"]), np.stack(esa_calls["sampled"])
     assert applied.shape == (2 * 256, N_ENVS, 1)  # ESA starts once the head was fitted
-    assert_envs_executed(env, applied, -3.0, 3.0)
+    assert_envs_executed(env, applied, -1.0, 1.0, scale=3.0)  # [-1, 1] units of the [-3, 3] Box
     assert check.checked == 2 and max(check.max_error) < 1e-4
     shift = applied - sampled
     assert np.abs(shift).max() > 1e-3
-    stds = np.stack(esa_calls["scales"])
-    assert np.all(np.abs(shift) <= 1.0 * stds + 1e-9), "the trust region bounds |v| by sigma"
+    stds = np.stack(esa_calls["scales"]).astype(np.float64)
+    # v(t) was bounded when step t - 1 was reported, with that step's sigma (kappa = 1).
+    assert np.all(shift[0] == 0.0)
+    assert np.all(np.abs(shift[1:]) <= stds[:-1] + 1e-9), "the trust region bounds |v| by sigma"
     columns = logged_columns(tmp_path)
     for key in (*ESA_STATS, "esa/head_loss", "esa/active", "esa/gate_correlation"):
         assert columns[key] and np.all(np.isfinite(columns[key])), key

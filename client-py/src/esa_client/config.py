@@ -263,7 +263,10 @@ class EsaConfig:
         frequency: Perturbation frequency w in rad/s. A scalar is spread over
             ``[w / 2, w]`` across action dimensions so every dimension has its own
             frequency (otherwise demodulation cannot tell the dimensions apart);
-            a sequence gives the per-dimension frequencies exactly.
+            a sequence gives the per-dimension frequencies exactly. None (the default)
+            takes ``nyquist_fraction`` of the env's Nyquist frequency ``pi / dt``: the
+            probe then has the same period in steps on every env.
+        nyquist_fraction: With ``frequency=None``, w as a fraction of ``pi / dt``, in (0, 1).
         learning_rate: ESA learning rate alpha (Eq. 5). With ``normalize_response`` it is
             in units of the action scale per step; without, it multiplies Q itself.
         highpass_cutoff: Washout cutoff in rad/s; None = ``min(frequency) / 10``.
@@ -293,7 +296,8 @@ class EsaConfig:
     """
 
     amplitude: float | Sequence[float] = 0.2
-    frequency: float | Sequence[float] = 10 * math.pi
+    frequency: float | Sequence[float] | None = None
+    nyquist_fraction: float = 0.5
     learning_rate: float | Sequence[float] = 0.02
     highpass_cutoff: float | None = None
     disable_highpass: bool = False
@@ -318,6 +322,11 @@ class EsaConfig:
         """
         for name in ("paired_response", "use_policy_std", "normalize_response"):
             _check(isinstance(getattr(self, name), bool), f"{name} a bool", getattr(self, name))
+        _check(
+            isinstance(self.nyquist_fraction, (int, float)) and 0 < self.nyquist_fraction < 1,
+            "nyquist_fraction in (0, 1)",
+            self.nyquist_fraction,
+        )
         if self.gate is not None:
             _check(
                 isinstance(self.gate, (int, float))
@@ -335,7 +344,7 @@ class EsaConfig:
         # The session rules, with as many dimensions as the vector fields name and (unless dt
         # is set) a time step so fine that only the environment's own dt can break Nyquist.
         vectors = (self.amplitude, self.frequency, self.learning_rate)
-        dims = max([int(np.size(v)) for v in vectors if np.ndim(v) > 0] or [1])
+        dims = max([int(np.size(v)) for v in vectors if v is not None and np.ndim(v) > 0] or [1])
         self.session_config(max(dims, 1), 1e-9)
 
     @classmethod
@@ -362,10 +371,14 @@ class EsaConfig:
         values.update(overrides)
         return cls(**values)  # type: ignore[arg-type]
 
-    def frequencies(self, action_dim: int) -> tuple[float, ...]:
-        """Returns the per-dimension frequencies for ``action_dim`` dimensions."""
-        if np.ndim(self.frequency) == 0:
-            w = float(self.frequency)  # type: ignore[arg-type]
+    def frequencies(self, action_dim: int, dt: float) -> tuple[float, ...]:
+        """Returns the per-dimension frequencies for ``action_dim`` dimensions and step ``dt``."""
+        if self.frequency is None or np.ndim(self.frequency) == 0:
+            w = (
+                self.nyquist_fraction * math.pi / dt
+                if self.frequency is None
+                else float(self.frequency)  # type: ignore[arg-type]
+            )
             return (
                 tuple(float(x) for x in np.linspace(w, w / 2, action_dim))
                 if action_dim > 1
@@ -394,11 +407,12 @@ class EsaConfig:
         Raises:
             ValueError: If a hyperparameter is invalid for this action space and time step.
         """
+        dt = self.dt if self.dt is not None else dt
         return SessionConfig(
             action_dim=action_dim,
-            dt=self.dt if self.dt is not None else dt,
+            dt=dt,
             amplitude=self.amplitude,
-            frequency=self.frequencies(action_dim),
+            frequency=self.frequencies(action_dim, dt),
             learning_rate=self.learning_rate,
             highpass_cutoff=self.highpass_cutoff,
             disable_highpass=self.disable_highpass,

@@ -1,7 +1,8 @@
-"""Hyperparameter files: ``experiments/configs/algorithms.toml`` and ``esa.toml``.
+"""The hyperparameter file ``experiments/configs/algorithms.toml``.
 
-Both are layered: a base table overridden by a per-env table. Resolved values
-are plain dicts so they can be stored in run sidecars and fingerprinted.
+It is layered: a base table overridden by a per-env table. Resolved values are
+plain dicts so they can be stored in run sidecars and fingerprinted. ESA has no
+file: its presets are ``esa_client``'s own (see :mod:`esa_experiments.algorithms`).
 :func:`lookup` resolves the names of the in-code tables (methods, tasks).
 """
 
@@ -57,9 +58,3 @@ def algorithm_hyperparams(family: str, env: str, path: Path | None = None) -> di
         raise ValueError(f"expected a [{family}] table in algorithms.toml, got {sorted(table)}")
     base = {k: v for k, v in table[family].items() if k != "env"}
     return {**base, **table[family].get("env", {}).get(env, {})}
-
-
-def esa_hyperparams(env: str, path: Path | None = None) -> dict[str, Any]:
-    """ESA hyperparameters (fields of ``esa_client.EsaConfig``) for ``env``."""
-    table = _load(path or CONFIG_DIR / "esa.toml")
-    return {**table.get("default", {}), **table.get("env", {}).get(env, {})}

@@ -29,7 +29,8 @@ class Panel:
     methods: Sequence[str]
 
 
-def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: object) -> None:
+def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: object) -> str:
+    """Draws the mean with a +- SE band; returns the line's colour."""
     line = ax.plot(stats[x], stats["mean"], label=label, **style)[0]
     ax.fill_between(
         stats[x],
@@ -39,6 +40,7 @@ def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: object) ->
         alpha=0.2,
         linewidth=0,
     )
+    return str(line.get_color())
 
 
 def learning_curves(
@@ -49,6 +51,7 @@ def learning_curves(
     *,
     suptitle: str = "",
     ncols: int = 2,
+    per_seed: bool = False,
 ) -> Path:
     """Evaluation return vs environment steps, one subplot per panel.
 
@@ -59,6 +62,7 @@ def learning_curves(
         path: output PNG.
         suptitle: figure title.
         ncols: subplots per row.
+        per_seed: also draw each seed's curve, thin, in the method's colour.
     """
     ncols = min(ncols, len(panels))
     nrows = math.ceil(len(panels) / ncols)
@@ -71,7 +75,11 @@ def learning_curves(
                 continue
             stats = over_seeds(runs, "step", "return_mean")
             seeds = runs.seed.nunique()
-            _band(ax, stats, "step", f"{labels.get(method, method)} (n={seeds})")
+            line = _band(ax, stats, "step", f"{labels.get(method, method)} (n={seeds})")
+            if per_seed:
+                for _, run in runs.groupby("seed"):
+                    run = run.sort_values("step")
+                    ax.plot(run.step, run.return_mean, color=line, alpha=0.25, linewidth=0.7)
         ax.set_title(panel.title)
         ax.set_xlabel("environment steps")
         ax.set_ylabel("eval return (deterministic)")

@@ -13,14 +13,12 @@ import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from esa_experiments.algorithms import BASELINE_OF, METHODS
+from esa_experiments.algorithms import BASELINE_OF, LABELS
 from esa_experiments.plotting import Panel, learning_curves
 from esa_experiments.runs import RunStore, atomic_write_text
 from esa_experiments.tables import exploration_stats, summary, to_markdown
 from esa_experiments.tasks import TASKS
 from esa_experiments.training import StepBudget
-
-LABELS = {name: method.label for name, method in METHODS.items()}
 
 
 def budget_table(budgets: Mapping[str, StepBudget]) -> str:
@@ -48,6 +46,7 @@ def rl_section(
     figure_name: str = "learning_curves.png",
     suptitle: str = "",
     ncols: int = 2,
+    per_seed: bool = False,
 ) -> str:
     """Writes a study's learning-curve PNG and summary table; returns its Markdown.
 
@@ -61,11 +60,18 @@ def rl_section(
         figure_name: PNG file name in the study folder.
         suptitle: figure title.
         ncols: subplots per row.
+        per_seed: also draw every seed's curve (thin lines).
     """
     labels = {**LABELS, **(labels or {})}
     frame = store.load()
     figure = learning_curves(
-        frame, panels, labels, store.artifact(figure_name), suptitle=suptitle, ncols=ncols
+        frame,
+        panels,
+        labels,
+        store.artifact(figure_name),
+        suptitle=suptitle,
+        ncols=ncols,
+        per_seed=per_seed,
     )
     thresholds = {env: TASKS[env].threshold for env in envs}
     table = to_markdown(summary(frame, envs, methods, labels, thresholds, baselines or BASELINE_OF))

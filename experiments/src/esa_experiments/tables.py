@@ -38,7 +38,8 @@ def _trapezoid(y: np.ndarray, x: np.ndarray) -> float:
     return float(np.sum((y[1:] + y[:-1]) / 2 * np.diff(x)))
 
 
-def _per_seed(runs: pd.DataFrame, threshold: float) -> pd.DataFrame:
+def per_seed(runs: pd.DataFrame, threshold: float) -> pd.DataFrame:
+    """One row per seed: final return, AUC, steps to ``threshold``, training times."""
     rows = []
     for seed, run in runs.groupby("seed"):
         run = run.sort_values("step")
@@ -75,7 +76,7 @@ def summary(
         for method in methods:
             runs = frame[(frame.env == env) & (frame.method == method)]
             if not runs.empty:
-                seeds = _per_seed(runs, thresholds.get(env, np.nan))
+                seeds = per_seed(runs, thresholds.get(env, np.nan))
                 per_method[env, method] = seeds
                 train_time[env, method] = (
                     float(seeds.train_seconds.mean()),
@@ -112,8 +113,13 @@ def summary(
 
 
 EXPLORATION_STATS = {
-    "esa/mean_abs_shift": "mean abs(improved - sampled action)",
-    "esa/improvement": "mean Q(improved) - Q(sampled)",
+    "esa/mean_abs_shift": "mean abs(applied - sampled action)",
+    "esa/shift_over_std": "mean abs(v) / sigma",
+    "esa/kl_per_dim": "KL(behaviour || pi) per dim",
+    "esa/clipped_fraction": "fraction of steps clipped",
+    "esa/active": "ESA active (gate open)",
+    "esa/gate_correlation": "gate: critic rank correlation",
+    "esa/improvement": "critic's Q(applied) - Q(sampled)",
     "param_noise/sigma": "param-noise sigma",
     "param_noise/distance": "param-noise action distance",
 }

@@ -1,17 +1,27 @@
-"""ESAPPO's critic for ESA: an advantage head on PPO's detached value latent, and its gate.
+"""ESAPPO's critic for ESA: an advantage head linear in the policy-normalized action, and its gate.
 
-PPO has no action-value network to probe. ``AdvantageHead`` is a small MLP
-``A(latent_vf(s), a)`` regressed onto the rollout's normalized GAE advantages. It is
-unit-scale whatever the reward scale, it has no state level ``V(s)`` in it (that is PPO's
-value net), and its input is PPO's value latent, detached: the head does not change what
-PPO learns, and costs one small MLP, not a second critic.
+PPO has no action-value network to probe. ``AdvantageHead`` models the advantage of an
+action as ``A(s, a) = w(s) . z`` with ``z = (a - mu(s)) / sigma(s)``: the direction in
+which deviating from the policy's mean pays, per state. ``w`` is a small MLP of its own
+on the observation, regressed onto normalized GAE advantages of the last few rollouts
+(each stored with the ``z`` of the policy that collected it). The form is the policy
+gradient's own (compatible features of a Gaussian policy), so the head is unit-scale
+whatever the reward scale, has no state level ``V(s)`` in it, and does not change what
+PPO learns.
 
-The gate asks whether the head knows anything about actions before ESA trusts it: the rank
-correlation, on a rollout the head has not been trained on, between its
-``A(s, a) - A(s, mu(s))`` and the GAE advantage of the action taken.
+Measured before choosing it (out-of-sample rank correlation with GAE advantages during
+plain PPO, InvertedPendulum-v5 and Hopper-v5): heads on PPO's detached value latent with
+the raw action, trained on one rollout, reached 0.02 on average; this form 0.06-0.09,
+0.11-0.18 in the first third of training. Advantage is mostly about the state, not the
+action, so even a good head correlates weakly; the gate asks whether it is good enough.
+
+The gate: the rank correlation, on a rollout the head has not been trained on, between
+its ``A(s, a) - A(s, mu(s)) = w(s) . z`` and the GAE advantage of the action taken.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import torch as th
@@ -20,24 +30,37 @@ from torch.nn import functional as F
 
 
 class AdvantageHead(nn.Module):
-    """``A(latent, a) -> R``: one tanh hidden layer, smooth in the action (ESA probes it).
+    """``A(s, a) = w(s) . (a - mu) / sigma``, ``w`` a tanh MLP of the observation features.
 
     Args:
-        latent_dim: Size of PPO's value latent.
+        features_dim: Size of the (flattened) observation features.
         action_dim: Action dimension.
-        hidden: Hidden units.
+        hidden: Hidden units of each of the two layers.
     """
 
-    def __init__(self, latent_dim: int, action_dim: int, hidden: int = 64) -> None:
+    def __init__(self, features_dim: int, action_dim: int, hidden: int = 64) -> None:
         """Builds the network."""
         super().__init__()
-        self.net = nn.Sequential(
-            nn.Linear(latent_dim + action_dim, hidden), nn.Tanh(), nn.Linear(hidden, 1)
+        self.w = nn.Sequential(
+            nn.Linear(features_dim, hidden),
+            nn.Tanh(),
+            nn.Linear(hidden, hidden),
+            nn.Tanh(),
+            nn.Linear(hidden, action_dim),
         )
 
-    def forward(self, latent: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        """Returns A, shape ``(batch,)``."""
-        return self.net(th.cat([latent, actions], dim=1)).squeeze(1)
+    def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
+        """Returns A for policy-normalized actions ``z``, shape ``(batch,)``."""
+        return (self.w(features) * z).sum(dim=1)
+
+
+@dataclass
+class Rollout:
+    """What the head learns from one rollout: features, z, normalized advantages."""
+
+    features: th.Tensor
+    z: th.Tensor
+    target: th.Tensor
 
 
 def normalized(advantages: th.Tensor) -> th.Tensor:
@@ -48,26 +71,25 @@ def normalized(advantages: th.Tensor) -> th.Tensor:
 def fit(
     head: AdvantageHead,
     optimizer: th.optim.Optimizer,
-    latent: th.Tensor,
-    actions: th.Tensor,
-    advantages: th.Tensor,
+    rollouts: list[Rollout],
     *,
     epochs: int,
     batch_size: int,
     rng: np.random.Generator,
 ) -> float:
-    """Regresses the head onto the normalized advantages; returns the mean loss.
+    """Regresses the head onto the rollouts' normalized advantages; returns the mean loss.
 
     Minibatches are drawn from ``rng``, not numpy's global generator, so that fitting
     the head leaves PPO's own minibatch order untouched.
     """
-    target = normalized(advantages)
-    n = len(target)
+    features = th.cat([r.features for r in rollouts])
+    z = th.cat([r.z for r in rollouts])
+    target = th.cat([r.target for r in rollouts])
     losses = []
     for _ in range(epochs):
-        order = th.as_tensor(rng.permutation(n))
+        order = th.as_tensor(rng.permutation(len(target)))
         for idx in order.split(batch_size):
-            loss = F.mse_loss(head(latent[idx], actions[idx]), target[idx])
+            loss = F.mse_loss(head(features[idx], z[idx]), target[idx])
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
@@ -77,24 +99,17 @@ def fit(
 
 def rank_correlation(x: np.ndarray, y: np.ndarray) -> float:
     """Spearman's rank correlation of two samples (0 when either is constant)."""
+    if np.ptp(x) == 0 or np.ptp(y) == 0:
+        return 0.0
     rx = np.argsort(np.argsort(x)).astype(np.float64)
     ry = np.argsort(np.argsort(y)).astype(np.float64)
     rx -= rx.mean()
     ry -= ry.mean()
-    denominator = np.sqrt((rx**2).sum() * (ry**2).sum())
-    if denominator == 0 or np.ptp(x) == 0 or np.ptp(y) == 0:
-        return 0.0
-    return float((rx * ry).sum() / denominator)
+    return float((rx * ry).sum() / np.sqrt((rx**2).sum() * (ry**2).sum()))
 
 
-def critic_quality(
-    head: AdvantageHead,
-    latent: th.Tensor,
-    actions: th.Tensor,
-    means: th.Tensor,
-    advantages: th.Tensor,
-) -> float:
-    """Rank correlation of ``A(s, a) - A(s, mu)`` with the GAE advantages of ``a``."""
+def critic_quality(head: AdvantageHead, rollout: Rollout, advantages: th.Tensor) -> float:
+    """Rank correlation of ``A(s, a) - A(s, mu) = w(s) . z`` with the GAE advantages of ``a``."""
     with th.no_grad():
-        predicted = head(latent, actions) - head(latent, means)
+        predicted = head(rollout.features, rollout.z)
     return rank_correlation(predicted.cpu().numpy(), advantages.cpu().numpy())

@@ -8,13 +8,15 @@ from typing import Any
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.vec_env import VecEnv
 
 from ..config import EsaConfig
-from .advantage_head import AdvantageHead, critic_quality, fit
+from .advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from .mixin import EsaMixin, tile_obs
 
 
@@ -31,20 +33,24 @@ class ESAPPO(EsaMixin, PPO):
     The policy's standard deviation is the action scale, so the trust region bounds the
     shift in units of it.
 
-    The critic ESA probes is an advantage head on PPO's detached value latent
-    (:mod:`esa_client.sb3.advantage_head`), fitted on each rollout's normalized GAE
-    advantages. ESA intervenes only while the head passes ``EsaConfig.gate``: the rank
-    correlation of its ``A(s, a) - A(s, mu)`` with the GAE advantages of a rollout it was
-    not trained on (logged as ``esa/gate_correlation`` and ``esa/active``).
+    The critic ESA probes is an advantage head ``A(s, a) = w(s) . (a - mu) / sigma``
+    (:mod:`esa_client.sb3.advantage_head`), fitted on the normalized GAE advantages of
+    the last ``esa_head_rollouts`` rollouts. ESA intervenes only while the head passes
+    ``EsaConfig.gate``: the rank correlation of its ``A(s, a) - A(s, mu)`` with the GAE
+    advantages of a rollout it was not trained on (logged as ``esa/gate_correlation``
+    and ``esa/active``).
 
     With ``EsaConfig(learning_rate=0)`` the shift stays 0 and training is bit for bit
     plain PPO with the same seed: the executed and stored actions, their log-probabilities
     and every random draw are PPO's (the head is initialized on a forked torch generator
     and draws its minibatches from its own numpy generator).
 
-    ESA works in the policy's action space (PPO's Gaussian is unbounded; the env clips).
-    ``squash_output`` policies are refused: shifting a squashed sample has no density
-    under the squashed policy. ``predict`` is unchanged: evaluation uses the plain policy.
+    ESA works in the policy's action space scaled to [-1, 1] by the Box bounds (the same
+    units as SAC's), so one ``EsaConfig`` means the same on every env; it is not clipped
+    there (PPO's Gaussian is unbounded, SB3 stores its samples unclipped and the env
+    clips). ``squash_output`` policies are refused: shifting a squashed sample has no
+    density under the squashed policy. ``predict`` is unchanged: evaluation uses the
+    plain policy.
 
     Example::
 
@@ -57,10 +63,11 @@ class ESAPPO(EsaMixin, PPO):
         esa: The ESA hyperparameters (default ``EsaConfig()``).
         esa_address: An esa-server address (``host:port`` or ``unix:/path``); None
             spawns a private server that stops with the model (or ``esa_close()``).
-        esa_head_hidden: Hidden units of the advantage head.
+        esa_head_hidden: Hidden units of each of the advantage head's two layers.
         esa_head_learning_rate: Adam learning rate of the advantage head.
-        esa_head_epochs: Passes over each rollout when fitting the head.
+        esa_head_epochs: Passes over its data each time the head is fitted.
         esa_head_batch_size: Minibatch size when fitting the head.
+        esa_head_rollouts: How many of the latest rollouts the head is fitted on.
         **kwargs: Any other PPO argument.
 
     Raises:
@@ -77,16 +84,29 @@ class ESAPPO(EsaMixin, PPO):
         esa_address: str | None = None,
         esa_head_hidden: int = 64,
         esa_head_learning_rate: float = 1e-3,
-        esa_head_epochs: int = 10,
+        esa_head_epochs: int = 5,
         esa_head_batch_size: int = 256,
+        esa_head_rollouts: int = 4,
         **kwargs: Any,
     ) -> None:
         """Creates the PPO model and the advantage head."""
+        for name, value in (
+            ("esa_head_hidden", esa_head_hidden),
+            ("esa_head_epochs", esa_head_epochs),
+            ("esa_head_batch_size", esa_head_batch_size),
+            ("esa_head_rollouts", esa_head_rollouts),
+        ):
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"expected {name} an integer >= 1, got {value!r}")
+        if not esa_head_learning_rate > 0:
+            raise ValueError(f"expected esa_head_learning_rate > 0, got {esa_head_learning_rate}")
         # Set before the SB3 constructor: its _setup_model builds the head from them.
         self.esa_head_hidden = esa_head_hidden
         self.esa_head_learning_rate = esa_head_learning_rate
         self.esa_head_epochs = esa_head_epochs
         self.esa_head_batch_size = esa_head_batch_size
+        self.esa_head_rollouts = esa_head_rollouts
+        self._esa_head_data: list[Rollout] = []
         self._esa_head_fitted = False
         self._esa_active = False
         super().__init__(policy, env, *args, esa=esa, esa_address=esa_address, **kwargs)
@@ -98,11 +118,11 @@ class ESAPPO(EsaMixin, PPO):
                 "expected a policy without squash_output for ESAPPO (the shifted sample "
                 "must have a density under the policy), got squash_output=True"
             )
-        latent_dim = self.policy.mlp_extractor.latent_dim_vf
+        features_dim = spaces.flatdim(self.observation_space)
         action_dim = int(np.prod(self.action_space.shape))
         # A forked generator: building the head must not move PPO's random stream.
         with th.random.fork_rng(devices=[]):
-            self.esa_head = AdvantageHead(latent_dim, action_dim, self.esa_head_hidden)
+            self.esa_head = AdvantageHead(features_dim, action_dim, self.esa_head_hidden)
         self.esa_head.to(self.device)
         self.esa_head_optimizer = th.optim.Adam(
             self.esa_head.parameters(), lr=self.esa_head_learning_rate
@@ -113,23 +133,46 @@ class ESAPPO(EsaMixin, PPO):
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "esa_head", "esa_head_optimizer"], variables
 
+    def _excluded_save_params(self) -> list[str]:
+        # The head's training data are rebuilt from the next rollouts.
+        return [*super()._excluded_save_params(), "_esa_head_data"]
+
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
         return None, None
 
-    def _value_latent(self, obs: th.Tensor | dict[str, th.Tensor]) -> th.Tensor:
-        policy = self.policy
-        # Without a shared extractor SB3 returns (pi_features, vf_features).
-        features = policy.extract_features(obs)
-        vf_features = features if policy.share_features_extractor else features[1]
-        return policy.mlp_extractor.forward_critic(vf_features)
+    def _esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        low, high = super()._esa_env_bounds()
+        return self._to_esa_units(low), self._to_esa_units(high)
 
-    def _esa_q_at(self, latent: th.Tensor) -> Any:
+    def _esa_scaling(self) -> tuple[np.ndarray, np.ndarray]:
+        """Center and half-width mapping the Box to [-1, 1] (0 and 1 where a side is open)."""
+        low, high = self.action_space.low.reshape(-1), self.action_space.high.reshape(-1)
+        bounded = np.isfinite(low) & np.isfinite(high)
+        return np.where(bounded, (high + low) / 2, 0.0), np.where(bounded, (high - low) / 2, 1.0)
+
+    def _to_esa_units(self, actions: np.ndarray) -> np.ndarray:
+        center, half_width = self._esa_scaling()
+        return (actions - center) / half_width
+
+    def _head_features(self, obs: th.Tensor | dict[str, th.Tensor]) -> th.Tensor:
+        """The observation as the head sees it: preprocessed as SB3 does, flattened."""
+        pre = preprocess_obs(obs, self.observation_space, self.policy.normalize_images)
+        if isinstance(pre, dict):
+            return th.cat([pre[key].flatten(1).float() for key in sorted(pre)], dim=1)
+        return pre.flatten(1).float()
+
+    def _esa_q_at(self, features: th.Tensor, mean: th.Tensor, std: th.Tensor) -> Any:
+        """The head at the current observations, for actions in ESA units."""
+        center, half_width = self._esa_scaling()
+
         def q_fn(actions: np.ndarray) -> np.ndarray:
-            reps = len(actions) // len(latent)
+            reps = len(actions) // len(features)
+            raw = actions * half_width + center
             with th.no_grad():
-                action_tensor = th.as_tensor(actions, dtype=th.float32, device=self.device)
-                return self.esa_head(tile_obs(latent, reps), action_tensor).cpu().numpy()
+                a = th.as_tensor(raw, dtype=th.float32, device=self.device)
+                z = (a - mean.repeat(reps, 1)) / std.repeat(reps, 1)
+                return self.esa_head(tile_obs(features, reps), z).cpu().numpy()
 
         return q_fn
 
@@ -158,13 +201,20 @@ class ESAPPO(EsaMixin, PPO):
             log_prob = distribution.log_prob(actions)
             if self._esa_active and not deterministic:
                 n = len(actions)
+                sampled = actions.reshape(n, -1).cpu().numpy().astype(np.float64)
+                mean = distribution.distribution.mean.reshape(n, -1)
+                std = distribution.distribution.stddev.reshape(n, -1)
+                scaled = self._to_esa_units(sampled)
+                half_width = self._esa_scaling()[1]
                 applied = self._esa_runtime().step(
-                    actions.reshape(n, -1).cpu().numpy(),
+                    scaled,
                     np.asarray(self._last_episode_starts, dtype=bool),
-                    self._esa_q_at(latent_vf),
-                    distribution.distribution.stddev.reshape(n, -1).cpu().numpy(),
+                    self._esa_q_at(self._head_features(obs), mean, std),
+                    std.cpu().numpy() / half_width,
                 )
-                actions = th.as_tensor(applied, dtype=actions.dtype, device=actions.device)
+                # a_t plus the shift in raw units: exactly a_t when v = 0.
+                shifted = sampled + (applied - scaled) * half_width
+                actions = th.as_tensor(shifted, dtype=actions.dtype, device=actions.device)
             return actions.reshape((-1, *self.action_space.shape)), values, log_prob
 
         policy.forward = forward  # type: ignore[method-assign]
@@ -195,19 +245,21 @@ class ESAPPO(EsaMixin, PPO):
         actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
         advantages = buffer.to_torch(buffer.advantages.reshape(-1))
         with th.no_grad():
-            latent = self._value_latent(obs)
-            means = self.policy.get_distribution(obs).distribution.mean.reshape(len(obs), -1)
+            # The policy that collected this rollout: train() has not updated it yet.
+            distribution = self.policy.get_distribution(obs).distribution
+            mean = distribution.mean.reshape(len(obs), -1)
+            std = distribution.stddev.reshape(len(obs), -1)
+        rollout = Rollout(self._head_features(obs), (actions - mean) / std, normalized(advantages))
         gate = self.esa.gate
         if self._esa_head_fitted:
-            quality = critic_quality(self.esa_head, latent, actions, means, advantages)
+            quality = critic_quality(self.esa_head, rollout, advantages)
             self.logger.record("esa/gate_correlation", quality)
             self._esa_active = gate is None or quality >= gate
+        self._esa_head_data = [*self._esa_head_data, rollout][-self.esa_head_rollouts :]
         loss = fit(
             self.esa_head,
             self.esa_head_optimizer,
-            latent,
-            actions,
-            advantages,
+            self._esa_head_data,
             epochs=self.esa_head_epochs,
             batch_size=self.esa_head_batch_size,
             rng=self._esa_rng,

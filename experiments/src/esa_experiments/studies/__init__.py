@@ -22,7 +22,7 @@ from typing import Any, Protocol
 from esa_experiments.evaluation import ProgressFn
 from esa_experiments.runs import RunResult, RunSpec, RunStore
 
-STUDY_NAMES = ("example1", "mujoco", "ablation", "quadrotor")
+STUDY_NAMES = ("example1", "mujoco", "ablation", "quadrotor", "campaign")
 
 
 class Study(Protocol):

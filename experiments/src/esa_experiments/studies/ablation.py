@@ -5,10 +5,11 @@
 (c) decay of ESA: per-episode learning-rate decay (0.99, 0.97) and the number
 of episodes ESA intervenes in (``max_episodes`` 50, 200) against no decay.
 
-The ``default`` variant (K = 0.2, w = 10 pi, no decay, unlimited episodes,
-the paper's best setting and ``configs/esa.toml``) is shared by the three
+The ``default`` variant (K = 0.2, w = 10 pi, no decay, unlimited episodes: the
+paper's law and best setting, ``EsaConfig.paper()``) is shared by the three
 panels, and plain PPO is drawn as the reference. Every other hyperparameter
 is that of the ``mujoco`` study; the step budget is smaller (see ``BUDGETS``).
+The shipped default (CONTRACT.md section 1b law) was chosen by ``default_search``.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "E50": {"max_episodes": 50},
     "E200": {"max_episodes": 200},
 }
-"""Variant name -> ESA fields replacing ``configs/esa.toml`` (all run PPO+ESA)."""
+"""Variant name -> ESA fields replacing the paper preset (all run PPO+ESA, paper law)."""
 
 METHODS = ("ppo", *VARIANTS)
 LABELS = {
@@ -95,7 +96,7 @@ def specs(
         else rl_spec(
             NAME,
             ENV,
-            "ppo_esa",
+            "ppo_esa_paper",
             seed,
             budget,
             args.budget,

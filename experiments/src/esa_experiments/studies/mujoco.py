@@ -2,7 +2,7 @@
 
 PPO, PPO+ESA, PPO+ParamNoise, SAC, SAC+ESA, SAC+ParamNoise and DDPG+OU on
 InvertedPendulum-v5, Hopper-v5, Walker2d-v5 and the quadrotor tracking a
-circle. Hyperparameters: ``configs/algorithms.toml`` and ``configs/esa.toml``.
+circle. Hyperparameters: ``configs/algorithms.toml``; ESA: the shipped ``EsaConfig()``.
 
 Budgets are far below the paper's (millions of steps): the full budget was
 sized to fit about 1.5 CPU-hours for this study on a 2-core machine, with
