@@ -2,13 +2,20 @@
 
 Reads ``bench/results/``: ``server.json`` (esa-bench), ``python.json``
 (client_latency.py), ``training.json`` (training_overhead.py), ``run.json``
-(machine, load and commands, written by run.sh) and criterion's estimates of
-the core pair bench under ``target/criterion``. Every issue-7 target is listed
-with its measured figure and PASS or MISS.
+(machine, load and commands, written by run.sh) and ``core.json``, the medians
+of the core pair bench that run.sh copies out of criterion's estimates (read
+from ``target/criterion`` when ``core.json`` is missing). Every issue-7 target
+is listed with its measured figure and PASS or MISS.
+
+CONTRACT.md section 1b has its own section, from ``section_1b.json``
+(client_latency.py ``--parts 1b``). ``bench/run.sh --section-1b`` measures only
+that section, with its own ``section_1b_core.json`` and ``section_1b_run.json``;
+after a full run it shares ``core.json`` and ``run.json`` with the rest.
 
 Usage::
 
     python bench/report.py [--results bench/results] [--out BENCHMARKS.md]
+    python bench/report.py --snapshot-core bench/results/core.json   # criterion -> JSON
 """
 
 from __future__ import annotations
@@ -47,14 +54,55 @@ def load(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def criterion_medians(root: Path) -> dict[tuple[str, int], float]:
-    """Median ns per pair of the core bench: ``{(clock, D): ns}`` with clock wall or cpu."""
+# Criterion group of each law in the core pair bench (``core/benches/pair.rs``).
+CORE_GROUPS = {"1": "probe_report_pair", "1b": "probe_report_pair_1b"}
+
+Medians = dict[tuple[str, int], float]
+"""Median ns per pair of one law of the core bench: ``{(clock, D): ns}``, clock wall or cpu."""
+
+
+def criterion_medians(root: Path, group: str = CORE_GROUPS["1"]) -> Medians:
+    """The medians of one criterion group of the core bench, from its estimates."""
     out = {}
     for clock in ("wall", "cpu"):
-        for estimates in sorted(root.glob(f"probe_report_pair_{clock}/*/new/estimates.json")):
+        for estimates in sorted(root.glob(f"{group}_{clock}/*/new/estimates.json")):
             dim = int(estimates.parent.parent.name)
             out[(clock, dim)] = json.loads(estimates.read_text())["median"]["point_estimate"]
     return out
+
+
+def snapshot_core(criterion: Path, path: Path) -> None:
+    """Writes both laws' medians from criterion's estimates to ``path`` (JSON)."""
+    medians = {
+        law: {
+            clock: {
+                str(dim): ns
+                for (c, dim), ns in criterion_medians(criterion, group).items()
+                if c == clock
+            }
+            for clock in ("wall", "cpu")
+        }
+        for law, group in CORE_GROUPS.items()
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(
+        json.dumps({"unit": "ns per pair (criterion median)", "medians": medians}, indent=2)
+    )
+    print(f"wrote {path}")
+
+
+def core_medians(snapshot: dict | None, criterion: Path) -> dict[str, Medians]:
+    """``{law: medians}`` from a ``core.json`` snapshot, else from criterion's estimates."""
+    if snapshot is None:
+        return {law: criterion_medians(criterion, group) for law, group in CORE_GROUPS.items()}
+    return {
+        law: {
+            (clock, int(dim)): ns
+            for clock, by_dim in snapshot["medians"].get(law, {}).items()
+            for dim, ns in by_dim.items()
+        }
+        for law in CORE_GROUPS
+    }
 
 
 def table(header: list[str], rows: list[list[str]]) -> str:
@@ -459,33 +507,46 @@ def training_section(training: dict) -> list[str]:
     return lines
 
 
-def core_section(core: dict) -> list[str]:
+def core_table(laws: dict[str, Medians]) -> str:
+    """One row per D: wall and on-CPU ns of section 1's law, and of 1b's where measured."""
+    with_1b = bool(laws.get("1b"))
+    header = ["D", "wall ns", "on-CPU ns"]
+    if with_1b:
+        header = ["D", "section 1 wall ns", "1b wall ns", "section 1 on-CPU ns", "1b on-CPU ns"]
+    rows = []
+    for d in sorted({d for medians in laws.values() for _, d in medians}):
+
+        def cell(law: str, clock: str, d: int = d) -> str:
+            value = laws.get(law, {}).get((clock, d))
+            return fmt(value) if value is not None else "-"
+
+        if with_1b:
+            rows.append(
+                [str(d), cell("1", "wall"), cell("1b", "wall"), cell("1", "cpu"), cell("1b", "cpu")]
+            )
+        else:
+            rows.append([str(d), cell("1", "wall"), cell("1", "cpu")])
+    return table(header, rows)
+
+
+def core_section(laws: dict[str, Medians]) -> list[str]:
     """Markdown for the criterion core bench."""
-    rows = [
-        [
-            str(d),
-            fmt(core[("wall", d)]) if ("wall", d) in core else "-",
-            fmt(core[("cpu", d)]) if ("cpu", d) in core else "-",
-        ]
-        for d in sorted({d for _, d in core})
-    ]
-    return [
+    lines = [
         "## Core (`cargo bench -p esa-core --bench pair`)",
         "",
         "One probe + report through `esa_core::Session` (criterion median per pair).",
-        "",
-        table(["D", "wall ns", "on-CPU ns"], rows),
     ]
+    if laws.get("1b"):
+        lines[-1] += (
+            " `1b` = every CONTRACT.md section 1b field on (see the section 1b part below)."
+        )
+    return lines + ["", core_table(laws)]
 
 
-def machine_section(run: dict | None) -> list[str]:
-    """Markdown for the machine, the load and the commands."""
-    if not run:
-        return ["## Machine", "", "(run.json missing: run `bench/run.sh`)"]
+def machine_lines(run: dict) -> list[str]:
+    """The machine, the run's time and commit, its load and CPU-time shares."""
     load = run["loadavg"]
     lines = [
-        "## Machine and run",
-        "",
         f"- CPU: {run['cpu_model']}, {run['cores']} cores; RAM {run['ram_gib']:.1f} GiB; "
         f"{run['kernel']}",
         f"- Run: {run['started']} to {run['finished']} (UTC), commit `{run['commit']}`",
@@ -503,6 +564,14 @@ def machine_section(run: dict | None) -> list[str]:
             f"while this one wanted to run); user {share['user']:.0f} %, "
             f"system {share['system']:.0f} %, idle {share['idle']:.0f} %"
         )
+    return lines
+
+
+def machine_section(run: dict | None) -> list[str]:
+    """Markdown for the machine, the load and the commands."""
+    if not run:
+        return ["## Machine", "", "(run.json missing: run `bench/run.sh`)"]
+    lines = ["## Machine and run", "", *machine_lines(run)]
     lines += [
         "",
         "Commands (`bench/run.sh`, what `make bench` runs):",
@@ -514,18 +583,163 @@ def machine_section(run: dict | None) -> list[str]:
     return lines
 
 
+def ratio_text(value: float, base: float) -> str:
+    """``value / base`` as ``1.23x``."""
+    return f"{value / base:.2f}x"
+
+
+def section_1b_section(
+    python: dict,
+    laws: dict[str, Medians],
+    run: dict | None,
+    own_run: bool,
+    main_run: dict | None = None,
+) -> list[str]:
+    """Markdown for CONTRACT.md section 1b: the core pair and the Python step, 1b against 1."""
+    args = python["args"]
+    lines = [
+        "## CONTRACT.md section 1b: the cost of the additions, and the pipelined step",
+        "",
+        "Section 1b's law with every field on (`normalize_response`, `shift_leak = 0.005`, "
+        "`trust_region = 1`, as `EsaConfig()` sets them), an action scale sent with every "
+        "probe and a `q_reference` with every report, against section 1's law in the same "
+        "run.",
+        "",
+    ]
+    if own_run and run:
+        lines += [
+            "Measured in a run of its own (`bench/run.sh --section-1b`), not in the run of "
+            "the sections above:",
+            "",
+        ]
+        if main_run and main_run.get("cpu_model") != run.get("cpu_model"):
+            lines[-2] = lines[-2].removesuffix(":") + (
+                f", and on another CPU ({run.get('cpu_model')} here, "
+                f"{main_run.get('cpu_model')} there): compare figures within this section only."
+            )
+        lines += [
+            *machine_lines(run),
+            "",
+            "Commands:",
+            "",
+            "```",
+            *run["commands"],
+            "```",
+            "",
+        ]
+    if laws.get("1b"):
+        lines += [
+            "### Core pair",
+            "",
+            "One probe + report through `esa_core::Session` (criterion median per pair). "
+            "The 1b pair also reads Algorithm 1's applied action after the probe (as the "
+            "server does for every `ProbeResponse`) and reports Q there as the reference.",
+            "",
+            core_table(laws),
+            "",
+        ]
+        extra = [
+            f"D = {d}: +{fmt(laws['1b'][('cpu', d)] - laws['1'][('cpu', d)])} ns on-CPU "
+            f"({ratio_text(laws['1b'][('cpu', d)], laws['1'][('cpu', d)])})"
+            for d in sorted({d for _, d in laws["1b"]})
+            if ("cpu", d) in laws["1"] and ("cpu", d) in laws["1b"]
+        ]
+        if extra:
+            lines += ["Section 1b over section 1: " + "; ".join(extra) + ".", ""]
+    lines += [
+        "### Python `SessionBatch`",
+        "",
+        f"D = {args['dim']}, {args['warmup']:g} s warm-up, then at most {args['window']:g} s "
+        f"or {args['max_pairs']:,} steps per row. `law 1, pair` = `probe` + `-|probe|^2` + "
+        "`report` (the table of the Python client section). `law 1b, pair` = "
+        "`probe_applied(actions, action_scales=0.3)` + the critic at the probes and the "
+        "applied actions in one batch + `report(q, q_references=...)`: two round trips. "
+        "`law 1b, pipelined` = the same with `report(..., defer=True)`: the report is sent "
+        "with the next step's probe, one round trip per step on the StepStream. `batch` = "
+        "ProbeBatch/ReportBatch calls, where pipelining would still be two round trips "
+        "(not measured); `reference` = in-process. Time is per env step of all N envs.",
+        "",
+    ]
+    rows = python["rows"]
+    body = []
+    for r in rows:
+        base = find(
+            rows,
+            server=r["server"],
+            socket=r["socket"],
+            api=r["api"],
+            envs=r["envs"],
+            law="1",
+            mode="pair",
+        )
+        body.append(
+            [
+                r["server"],
+                r["socket"],
+                r["api"],
+                str(r["envs"]),
+                r["law"],
+                r["mode"],
+                fmt(r["p50_us"]),
+                fmt(r["p99_us"]),
+                fmt(r["session_steps_per_s"], 0),
+                ratio_text(r["p50_us"], base["p50_us"]) if base else "-",
+            ]
+        )
+    header = ["server", "socket", "api", "envs", "law", "mode", "p50 us", "p99 us"]
+    header += ["session-steps/s", "p50 vs law 1 pair"]
+    lines.append(table(header, body))
+    summary = []
+    for r in rows:
+        if r["mode"] != "pipelined" or r["server"] != "esa-server":
+            continue
+        pair = find(
+            rows,
+            server=r["server"],
+            socket=r["socket"],
+            api=r["api"],
+            envs=r["envs"],
+            law="1b",
+            mode="pair",
+        )
+        if pair:
+            summary.append(
+                f"- {r['socket']}/{r['api']}, N = {r['envs']}: pipelined step p50 "
+                f"{fmt(r['p50_us'])} us against {fmt(pair['p50_us'])} us for the 1b pair "
+                f"({ratio_text(r['p50_us'], pair['p50_us'])})"
+            )
+    if summary:
+        lines += ["", "Pipelined step against the sequential pair (both section 1b):", ""]
+        lines += summary
+    return lines
+
+
 def main() -> None:
     """Reads the results and writes BENCHMARKS.md and the PNG."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--results", type=Path, default=REPO_ROOT / "bench/results")
     parser.add_argument("--criterion", type=Path, default=REPO_ROOT / "target/criterion")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "BENCHMARKS.md")
+    parser.add_argument(
+        "--snapshot-core",
+        type=Path,
+        metavar="PATH",
+        help="only write the core bench medians from --criterion to PATH (JSON)",
+    )
     args = parser.parse_args()
+    if args.snapshot_core:
+        snapshot_core(args.criterion, args.snapshot_core)
+        return
     server = load(args.results / "server.json")
     python = load(args.results / "python.json")
     training = load(args.results / "training.json")
     run = load(args.results / "run.json")
-    core = criterion_medians(args.criterion)
+    laws = core_medians(load(args.results / "core.json"), args.criterion)
+    core = laws["1"]
+    section_1b = load(args.results / "section_1b.json")
+    # A section 1b run of its own brings its own core medians and run record.
+    own_core = load(args.results / "section_1b_core.json")
+    own_run = load(args.results / "section_1b_run.json")
     plot(server, python, args.results / PLOT_NAME)
     notes = args.results.parent / "NOTES.md"
 
@@ -552,13 +766,17 @@ def main() -> None:
         lines += [notes.read_text().strip(), ""]
     lines += machine_section(run) + [""]
     if core:
-        lines += core_section(core) + [""]
+        lines += core_section(laws) + [""]
     if server:
         lines += server_sections(server) + [""]
     if python:
         lines += python_section(python) + [""]
     if training:
         lines += training_section(training) + [""]
+    if section_1b:
+        laws_1b = core_medians(own_core, args.criterion) if own_core else laws
+        own = own_run is not None
+        lines += section_1b_section(section_1b, laws_1b, own_run or run, own, run) + [""]
     args.out.write_text("\n".join(lines))
     print(f"wrote {args.out} and {args.results / PLOT_NAME}")
 

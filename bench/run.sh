@@ -4,10 +4,24 @@
 # the training-overhead bench, then bench/report.py writes BENCHMARKS.md and
 # bench/results/latency_vs_batch.png. Everything stays on loopback.
 #
-# Usage: bench/run.sh [--quick]   (--quick: short windows for a smoke test; the
-# results still go to bench/results/, so do not commit a quick run)
+# Usage: bench/run.sh [--quick] [--section-1b]
+#   --quick: short windows for a smoke test; the results still go to bench/results/,
+#     so do not commit a quick run.
+#   --section-1b: only what CONTRACT.md section 1b changed: the core pair bench (both
+#     laws) and the Python section 1b rows, with their own core medians and run record
+#     (section_1b_core.json, section_1b_run.json); the other results stay as they are.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+QUICK=false
+SECTION_1B=false
+for arg in "$@"; do
+  case $arg in
+    --quick) QUICK=true ;;
+    --section-1b) SECTION_1B=true ;;
+    *) echo "usage: bench/run.sh [--quick] [--section-1b]" >&2; exit 2 ;;
+  esac
+done
 
 PY=${PY:-.venv/bin/python}
 CARGO=${CARGO:-cargo}
@@ -16,7 +30,7 @@ LOAD_INTERVAL=5
 export ESA_SERVER_BIN=${ESA_SERVER_BIN:-$PWD/target/release/esa-server}
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 
-if [[ ${1:-} == --quick ]]; then
+if $QUICK; then
   CRITERION_ARGS=(--warm-up-time 0.5 --measurement-time 1)
   BENCH_ARGS=(--warmup 0.1 --window 0.3 --rss-sessions 20000)
   PY_ARGS=(--warmup 0.1 --window 0.3)
@@ -29,6 +43,15 @@ else
 fi
 
 mkdir -p "$RESULTS"
+if $SECTION_1B; then
+  CORE_JSON=$RESULTS/section_1b_core.json
+  RUN_JSON=$RESULTS/section_1b_run.json
+else
+  CORE_JSON=$RESULTS/core.json
+  RUN_JSON=$RESULTS/run.json
+  # A full run measures section 1b too: its own-run records would be stale.
+  rm -f "$RESULTS/section_1b_core.json" "$RESULTS/section_1b_run.json"
+fi
 started=$(date -u +%FT%TZ)
 loadavg_start=$(cat /proc/loadavg)
 # On a VM the hypervisor's steal time slows every figure; its share is reported.
@@ -50,33 +73,44 @@ run() {
   "$@"
 }
 
-run "$CARGO" build --release -p esa-server -p esa-bench
+if $SECTION_1B; then
+  run "$CARGO" build --release -p esa-server
+else
+  run "$CARGO" build --release -p esa-server -p esa-bench
+fi
 run "$CARGO" bench -p esa-core --bench pair -- --noplot "${CRITERION_ARGS[@]}"
+run "$PY" bench/report.py --snapshot-core "$CORE_JSON"
 
-# The Python baseline on a free loopback port, for the load generator's comparison.
-coproc BASELINE { exec "$PY" bench/python/baseline_server.py --listen 127.0.0.1:0; }
-baseline_pid=$BASELINE_PID
-read -r -u "${BASELINE[0]}" line
-baseline_addr=${line##* }
-commands+=("$PY bench/python/baseline_server.py --listen 127.0.0.1:0  # -> $baseline_addr")
-run target/release/esa-bench --server "$ESA_SERVER_BIN" --json "$RESULTS/server.json" \
-  --baseline "$baseline_addr" "${BENCH_ARGS[@]}"
-kill "$baseline_pid"
-wait "$baseline_pid" 2>/dev/null || true
-baseline_pid=
+if $SECTION_1B; then
+  run "$PY" bench/python/client_latency.py --parts 1b \
+    --section-1b-out "$RESULTS/section_1b.json" "${PY_ARGS[@]}"
+else
+  # The Python baseline on a free loopback port, for the load generator's comparison.
+  coproc BASELINE { exec "$PY" bench/python/baseline_server.py --listen 127.0.0.1:0; }
+  baseline_pid=$BASELINE_PID
+  read -r -u "${BASELINE[0]}" line
+  baseline_addr=${line##* }
+  commands+=("$PY bench/python/baseline_server.py --listen 127.0.0.1:0  # -> $baseline_addr")
+  run target/release/esa-bench --server "$ESA_SERVER_BIN" --json "$RESULTS/server.json" \
+    --baseline "$baseline_addr" "${BENCH_ARGS[@]}"
+  kill "$baseline_pid"
+  wait "$baseline_pid" 2>/dev/null || true
+  baseline_pid=
 
-run "$PY" bench/python/client_latency.py --out "$RESULTS/python.json" "${PY_ARGS[@]}"
-run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TRAIN_ARGS[@]}"
+  run "$PY" bench/python/client_latency.py --out "$RESULTS/python.json" \
+    --section-1b-out "$RESULTS/section_1b.json" "${PY_ARGS[@]}"
+  run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TRAIN_ARGS[@]}"
+fi
 
 finished=$(date -u +%FT%TZ)
 loadavg_end=$(cat /proc/loadavg)
 cpu_end=$(grep '^cpu ' /proc/stat)
 kill "$sampler" 2>/dev/null || true
 commands+=("$PY bench/report.py")
-"$PY" - "$RESULTS" "$started" "$finished" "$loadavg_start" "$loadavg_end" "$LOAD_INTERVAL" \
-  "$cpu_start" "$cpu_end" "${commands[@]}" <<'PYEOF'
+"$PY" - "$RESULTS" "$RUN_JSON" "$started" "$finished" "$loadavg_start" "$loadavg_end" \
+  "$LOAD_INTERVAL" "$cpu_start" "$cpu_end" "${commands[@]}" <<'PYEOF'
 import json, os, platform, subprocess, sys
-results, started, finished, load_start, load_end, interval, cpu_start, cpu_end, *commands = sys.argv[1:]
+results, run_json, started, finished, load_start, load_end, interval, cpu_start, cpu_end, *commands = sys.argv[1:]
 # /proc/stat "cpu" fields: user nice system idle iowait irq softirq steal (jiffies).
 fields = ["user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal"]
 spent = [int(b) - int(a) for a, b in zip(cpu_start.split()[1:9], cpu_end.split()[1:9])]
@@ -109,7 +143,7 @@ run = {
     "cpu_time_percent": cpu_share,
     "commands": commands,
 }
-open(f"{results}/run.json", "w").write(json.dumps(run, indent=2))
+open(run_json, "w").write(json.dumps(run, indent=2))
 PYEOF
 rm -f "$RESULTS/loadavg.tmp.txt"
 "$PY" bench/report.py

@@ -12,9 +12,22 @@ N = 1, 8, 64 envs of D = 6 against:
 - ``esa_client.reference`` in-process (no server, no network);
 - ``baseline_server.py``, a plain Python grpcio server, through the same client.
 
+Section 1b of CONTRACT.md (``--parts 1b``, written to ``--section-1b-out``): the
+SessionBatch step at N = ``--section-1b-envs`` with every section 1b field on
+against section 1's, on esa-server (TCP and Unix socket, batch calls and the
+StepStream) and in-process. Each step of the section 1b rows sends the policy's
+standard deviation (``action_scales``) and reports ``q_references``, the critic at
+the applied actions, scored in the same critic batch as the probes. Two ways:
+
+- ``pair``: ``probe_applied`` + the critic + ``report``: two round trips per step;
+- ``pipelined``: ``probe_applied`` + the critic + ``report(defer=True)``: the
+  report rides with the next step's probe, one round trip per step on the
+  StepStream (two messages written before either answer is read).
+
 Usage::
 
     python bench/python/client_latency.py [--window 2.0] [--out bench/results/python.json]
+    python bench/python/client_latency.py --parts 1b   # only the section 1b rows
 """
 
 from __future__ import annotations
@@ -48,6 +61,10 @@ class Args:
     window: float = 2.0
     max_pairs: int = 20_000
     out: str = "bench/results/python.json"
+    # Which measurements: "main" (the table of every transport) and/or "1b".
+    parts: str = "main,1b"
+    section_1b_envs: str = "8"
+    section_1b_out: str = "bench/results/section_1b.json"
 
 
 def session_config(dim: int) -> SessionConfig:
@@ -63,16 +80,53 @@ def session_config(dim: int) -> SessionConfig:
     )
 
 
-def measure(batch, args: Args) -> dict:
-    """Runs pairs on ``batch`` for the warm-up, then times each pair; returns the summary."""
+def section_1b_config(dim: int) -> SessionConfig:
+    """``session_config`` with every section 1b field on, as ``EsaConfig()`` sets them."""
+    return dataclasses.replace(
+        session_config(dim), normalize_response=True, shift_leak=0.005, trust_region=1.0
+    )
+
+
+def section_1_step(batch, actions: np.ndarray) -> Callable[[], None]:
+    """Section 1's pair: probe, the critic at the probes, report."""
+
+    def step() -> None:
+        probes = batch.probe(actions)
+        batch.report(-np.sum(probes**2, axis=1))
+
+    return step
+
+
+def section_1b_step(batch, actions: np.ndarray, *, defer: bool) -> Callable[[], None]:
+    """Algorithm 1's step with the section 1b inputs; ``defer`` pipelines the report."""
+    scales = np.full(actions.shape, 0.3)
+
+    def step() -> None:
+        probes, applied = batch.probe_applied(actions, action_scales=scales)
+        # One critic batch scores the probes and the applied actions (the references).
+        q = -np.sum(np.concatenate([probes, applied]) ** 2, axis=1)
+        batch.report(q[: batch.n], q_references=q[batch.n :], defer=defer)
+
+    return step
+
+
+def measure(batch, args: Args, law: str = "1", mode: str = "pair") -> dict:
+    """Runs steps on ``batch`` for the warm-up, then times each step; returns the summary.
+
+    ``law`` "1" is section 1's pair; "1b" is Algorithm 1's step with the section 1b
+    inputs, ``mode`` "pair" (two round trips) or "pipelined" (deferred report).
+    """
     rng = np.random.default_rng(0)
     actions = rng.uniform(-0.5, 0.5, size=(batch.n, batch.action_dim))
+    if law == "1":
+        one_step = section_1_step(batch, actions)
+    else:
+        one_step = section_1b_step(batch, actions, defer=mode == "pipelined")
 
     def pair(step: int) -> None:
         if step % EPISODE_STEPS == 0:
             batch.reset()
-        probes = batch.probe(actions)
-        batch.report(-np.sum(probes**2, axis=1))
+        one_step()
 
     step = 0
     end = time.perf_counter() + args.warmup
@@ -86,6 +140,8 @@ def measure(batch, args: Args) -> dict:
         pair(step)
         times.append(time.perf_counter_ns() - start)
         step += 1
+    if hasattr(batch, "flush"):
+        batch.flush()
     us = np.asarray(times) / 1e3
     return {
         "pairs": len(times),
@@ -129,9 +185,24 @@ def targets() -> list[Target]:
     return out
 
 
-def main() -> None:
-    """Measures every target for every N and writes the JSON results."""
-    args = parse_dataclass(Args, __doc__.splitlines()[0])
+def section_1b_targets() -> list[Target]:
+    """The transports of the section 1b rows: esa-server (TCP, Unix socket) and in-process."""
+    out: list[Target] = []
+    for api in ("batch", "stream"):
+        out.append(("esa-server", "tcp", api, lambda: client_at(esa_server_tcp())))
+        out.append(
+            ("esa-server", "uds", api, lambda: EsaClient.spawn(server_binary(), timeout=30.0))
+        )
+    out.append(("reference", "in-process", "-", lambda: nullcontext(ReferenceClient())))
+    return out
+
+
+# (law, mode) of each section 1b row; pipelining only changes anything on the StepStream.
+SECTION_1B_ROWS = [("1", "pair"), ("1b", "pair"), ("1b", "pipelined")]
+
+
+def main_rows(args: Args) -> list[dict]:
+    """Section 1's pair on every target for every N."""
     envs = [int(n) for n in args.envs.split(",")]
     rows = []
     for server, socket, api, connect in targets():
@@ -147,10 +218,61 @@ def main() -> None:
                     f"  p99 {row['p99_us']:8.1f} us  {row['session_steps_per_s']:10.0f} steps/s",
                     flush=True,
                 )
-    out = Path(args.out)
+    return rows
+
+
+def section_1b_rows(args: Args) -> list[dict]:
+    """Section 1's pair against section 1b's pair and pipelined step, same process and time."""
+    envs = [int(n) for n in args.section_1b_envs.split(",")]
+    rows = []
+    for server, socket, api, connect in section_1b_targets():
+        with connect() as client:
+            for n in envs:
+                for law, mode in SECTION_1B_ROWS:
+                    if mode == "pipelined" and api == "batch":
+                        continue  # two unary round trips: the same as the pair
+                    config = session_config(args.dim) if law == "1" else section_1b_config(args.dim)
+                    batch = client.create_batch(config, n, use_stream=api == "stream")
+                    result = measure(batch, args, law, mode)
+                    batch.close()
+                    row = {
+                        "server": server,
+                        "socket": socket,
+                        "api": api,
+                        "envs": n,
+                        "law": law,
+                        "mode": mode,
+                        **result,
+                    }
+                    rows.append(row)
+                    print(
+                        f"{server:<14} {socket:<10} {api:<6} N={n:<3} law {law:<2} {mode:<9} "
+                        f"p50 {row['p50_us']:8.1f} us  p99 {row['p99_us']:8.1f} us  "
+                        f"{row['session_steps_per_s']:10.0f} steps/s",
+                        flush=True,
+                    )
+    return rows
+
+
+def write(path: str, args: Args, rows: list[dict]) -> None:
+    """Writes the arguments and rows as JSON to ``path``."""
+    out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"args": dataclasses.asdict(args), "rows": rows}, indent=2))
     print(f"wrote {out}")
+
+
+def main() -> None:
+    """Measures the requested parts and writes their JSON results."""
+    args = parse_dataclass(Args, __doc__.splitlines()[0])
+    parts = set(args.parts.split(","))
+    unknown = parts - {"main", "1b"}
+    if unknown:
+        raise SystemExit(f"--parts: expected main and/or 1b, got {sorted(unknown)}")
+    if "main" in parts:
+        write(args.out, args, main_rows(args))
+    if "1b" in parts:
+        write(args.section_1b_out, args, section_1b_rows(args))
 
 
 if __name__ == "__main__":

@@ -1,5 +1,11 @@
 //! One probe + report pair through the core (issue 7, deliverable 2; target <= 100 ns at D = 6).
 //!
+//! Two laws, each its own group: `probe_report_pair` is section 1's law as before (no section 1b field),
+//! `probe_report_pair_1b` has every field of CONTRACT.md section 1b on (`normalize_response`,
+//! `shift_leak`, `trust_region`, an action scale sent with each probe, a `q_reference` with each
+//! report) and also reads Algorithm 1's applied action after each probe, which the server does for
+//! every `ProbeResponse` and which the reference is evaluated at.
+//!
 //! Each D is measured twice: in wall time (criterion's default) and in the benchmark thread's on-CPU
 //! time. The box is shared by 2 cores and several engineers' jobs; wall time also counts the slices in
 //! which other processes hold the CPU, on-CPU time is what the pair itself costs.
@@ -14,19 +20,43 @@ use esa_core::{Session, SessionConfig};
 /// Steps per episode, as in the MuJoCo tasks: keeps `t` (and so the sine arguments) realistic.
 const EPISODE_STEPS: u64 = 1000;
 
-fn pair<M: Measurement>(c: &mut Criterion<M>, group: &str) {
+/// Which law a group measures.
+#[derive(Clone, Copy)]
+enum Law {
+    /// Section 1: no section 1b field, no action scale, no reference.
+    Section1,
+    /// Every section 1b field on, an action scale per probe and a reference per report.
+    Section1b,
+}
+
+fn pair<M: Measurement>(c: &mut Criterion<M>, group: &str, law: Law) {
     let mut group = c.benchmark_group(group);
     for dim in [1usize, 6, 17] {
         let frequency: Vec<f64> = (0..dim).map(|i| 40.0 + 5.0 * i as f64).collect();
-        let config = SessionConfig {
+        let section_1 = SessionConfig {
             action_low: vec![-1.0],
             action_high: vec![1.0],
             shift_limit: Some(0.5),
             ..SessionConfig::new(dim as u32, 0.01, vec![0.1], frequency, vec![0.25])
         };
+        let config = match law {
+            Law::Section1 => section_1,
+            Law::Section1b => SessionConfig {
+                normalize_response: true,
+                shift_leak: Some(0.005),
+                trust_region: Some(1.0),
+                ..section_1
+            },
+        };
         let mut session = Session::new(config).expect("bench config is valid");
         let action: Vec<f64> = (0..dim).map(|i| 0.1 * i as f64 - 0.3).collect();
+        // The policy's standard deviation, one per dimension (section 1b only).
+        let scale: Vec<f64> = match law {
+            Law::Section1 => Vec::new(),
+            Law::Section1b => (0..dim).map(|i| 0.2 + 0.01 * i as f64).collect(),
+        };
         let mut probe = Vec::with_capacity(dim);
+        let mut applied = Vec::with_capacity(dim);
         let mut improved = Vec::with_capacity(dim);
         group.throughput(Throughput::Elements(1));
         group.bench_function(BenchmarkId::from_parameter(dim), |b| {
@@ -37,12 +67,20 @@ fn pair<M: Measurement>(c: &mut Criterion<M>, group: &str) {
                 let t = session.step();
                 probe.clear();
                 session
-                    .probe(t, black_box(&action), &[], false, &mut probe)
+                    .probe(t, black_box(&action), black_box(&scale), false, &mut probe)
                     .expect("probe");
                 let q = -probe.iter().map(|p| p * p).sum::<f64>();
+                let q_reference = match law {
+                    Law::Section1 => None,
+                    Law::Section1b => {
+                        applied.clear();
+                        session.applied_action(&mut applied);
+                        Some(-applied.iter().map(|a| a * a).sum::<f64>())
+                    }
+                };
                 improved.clear();
                 session
-                    .report(t, black_box(q), None, &mut improved)
+                    .report(t, black_box(q), black_box(q_reference), &mut improved)
                     .expect("report");
                 black_box(&improved);
             })
@@ -98,11 +136,13 @@ impl Measurement for ThreadCpuTime {
 }
 
 fn pair_wall_time(c: &mut Criterion) {
-    pair(c, "probe_report_pair/wall");
+    pair(c, "probe_report_pair/wall", Law::Section1);
+    pair(c, "probe_report_pair_1b/wall", Law::Section1b);
 }
 
 fn pair_cpu_time(c: &mut Criterion<ThreadCpuTime>) {
-    pair(c, "probe_report_pair/cpu");
+    pair(c, "probe_report_pair/cpu", Law::Section1);
+    pair(c, "probe_report_pair_1b/cpu", Law::Section1b);
 }
 
 criterion_group!(wall, pair_wall_time);
