@@ -250,3 +250,34 @@ def test_sharded_batches_split_and_merge_scales_references_and_applied_actions(
             np.testing.assert_allclose(a, b, **TOL)
         assert_same_states(batch.states(), reference.states())
         batch.close()
+
+
+@pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
+def test_a_failed_deferred_report_before_an_episode_start_of_every_session_can_be_replaced(
+    client, use_stream
+):
+    config = SessionConfig(action_dim=1, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.1)
+    batch = client.create_batch(config, n=2, use_stream=use_stream)
+    batch.probe_applied(np.zeros((2, 1)), [True, True])
+    batch.report([np.nan, 1.0], defer=True)
+    with pytest.raises(InvalidArgument, match="q_value"):
+        batch.probe_applied(np.zeros((2, 1)), [True, True])
+    states = [client.session_state(i) for i in batch.ids]
+    assert [(s.step, s.episodes_completed) for s in states] == [(0, 0), (0, 0)], "nothing applied"
+    batch.report([2.0, 1.0], defer=True)
+    batch.probe_applied(np.zeros((2, 1)), [True, True])
+    assert [s.episodes_completed for s in batch.states()] == [1, 1]
+    batch.close()
+
+
+def test_the_applied_action_keeps_the_trust_region_of_its_own_probe(client):
+    config = good_config(trust_region=1.0, disable_highpass=True)
+    session = client.create_session(config)
+    reference = ReferenceSession(config)
+    for t, (scale, q) in enumerate([(1.0, 1e9), (1.0, -1e9), (0.01, 0.0)]):
+        for side in (session, reference):
+            _, applied = side.probe_applied([0.0, 0.0], episode_start=t == 0, action_scale=scale)
+            assert np.all(np.abs(applied) <= scale), (t, applied)
+            side.report(q)
+    np.testing.assert_allclose(session.state().shift, reference.state().shift, **TOL)
+    session.close()

@@ -311,11 +311,16 @@ impl Lanes {
     /// Keeps v inside this report's bound without a step, and appends the improved action: the report
     /// whose normalization failed (see `Session::report`).
     pub fn skip_update(&mut self, rule: StepRule, out: &mut Vec<f64>) {
+        self.clamp_shift(rule);
+        self.push_action(false, out);
+    }
+
+    /// Clamps v into `min(L, kappa sigma)` with the held sigma (a no-op for the section 1 law).
+    pub fn clamp_shift(&mut self, rule: StepRule) {
         let c = self.split_mut();
         for (v, &sigma) in c.shift.iter_mut().zip(c.scale.iter()) {
             *v = v.clamp(-rule.bound(sigma), rule.bound(sigma));
         }
-        self.push_action(false, out);
     }
 
     /// Appends the improved action for the held `a` and current v: `clip(a + v)`, or `clip(a)` when

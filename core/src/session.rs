@@ -209,9 +209,10 @@ impl Session {
 
     /// Probes step `t` with the sampled action `a_t`; appends the D probe values to `out`.
     ///
-    /// `probe = clip(a_t + v + K sin(w tau), lo, hi)`. `action_scale` is sigma for the report that answers
-    /// this probe (empty = 1, else length 1 or D, finite and > 0). Probing the same step again replaces the
-    /// pending action and scale. With `episode_start` and `t > 0` or a pending probe, the episode is ended
+    /// `probe = clip(a_t + v + K sin(w tau), lo, hi)`. `action_scale` is sigma (empty = 1, else length 1 or
+    /// D, finite and > 0): v is first clamped into `min(L, kappa sigma)`, so the applied action
+    /// `a_t + v(t)` keeps the trust region of this step's sigma, and the report that answers this probe
+    /// uses it too. Probing the same step again replaces the pending action and scale. With `episode_start` and `t > 0` or a pending probe, the episode is ended
     /// first (like [`end_episode`](Self::end_episode)) and `step` must be 0. Algorithm 1's applied action
     /// for this step is then [`applied_action`](Self::applied_action).
     pub fn probe(
@@ -229,9 +230,12 @@ impl Session {
         if self.is_pass_through() {
             self.lanes.hold(action, out);
         } else {
+            // This probe's sigma bounds v already for the applied action a_t + v(t): with a
+            // shrinking sigma, the bound of the last report would be too loose.
+            self.lanes.set_scale(action_scale);
+            self.lanes.clamp_shift(self.step_rule());
             let tau = self.step as f64 * self.settings.dt;
             self.lanes.probe(action, tau, out);
-            self.lanes.set_scale(action_scale);
         }
         self.probe_pending = true;
         self.report_replayable = false;
@@ -345,13 +349,8 @@ impl Session {
     /// Moves v (and m) for the filtered response `h`; appends the improved action. False when the update
     /// was skipped because v or m would have become non-finite.
     fn update(&mut self, h: f64, out: &mut Vec<f64>) -> bool {
+        let rule = self.step_rule();
         let s = &self.settings;
-        let rule = StepRule {
-            scaled: s.normalize_response,
-            keep: s.shift_leak.map_or(1.0, |lambda| 1.0 - lambda),
-            limit: self.shift_limit,
-            trust: s.trust_region.unwrap_or(f64::INFINITY),
-        };
         if !s.normalize_response {
             return self.lanes.update(h, rule, out);
         }
@@ -376,6 +375,16 @@ impl Session {
             self.mean_square = mean_square;
         }
         updated
+    }
+
+    fn step_rule(&self) -> StepRule {
+        let s = &self.settings;
+        StepRule {
+            scaled: s.normalize_response,
+            keep: s.shift_leak.map_or(1.0, |lambda| 1.0 - lambda),
+            limit: self.shift_limit,
+            trust: s.trust_region.unwrap_or(f64::INFINITY),
+        }
     }
 
     fn check_action_scale(&self, scale: &[f64]) -> Result<(), CoreError> {

@@ -270,6 +270,14 @@ proptest! {
                         session.applied_action(&mut applied);
                         assert_valid_output(&config, &applied)?;
                         pending_scale = (0..action.len()).map(|i| bound(scale, i, 1.0)).collect();
+                        if !session.is_pass_through() {
+                            // The probe's sigma bounds v from now on (Algorithm 1's action uses it).
+                            bound_scale.clone_from(&pending_scale);
+                            for (&v, &sigma) in session.shift().iter().zip(&bound_scale) {
+                                let b = limit.min(trust * sigma);
+                                prop_assert!(-b <= v && v <= b, "v = {} outside +-{} after a probe", v, b);
+                            }
+                        }
                         last_report = None;
                     }
                     result.is_ok()

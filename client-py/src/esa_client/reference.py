@@ -193,10 +193,13 @@ class ReferenceBatch:
         self._end(ends)
         self._next_starts[:] = False
         passthrough = self._passthrough()[:, None]
+        self._scale = np.where(passthrough, self._scale, scale)
+        # This probe's sigma bounds v at once, so a_t + v(t) keeps this step's trust region.
+        bound = np.minimum(self._limit, self._trust * self._scale)
+        self._v = np.where(passthrough, self._v, np.clip(self._v, -bound, bound))
         perturbed = np.where(passthrough, a, a + (self._v + self._k * self._phase()))
         applied = np.where(passthrough, a, a + self._v)
         self._action = a
-        self._scale = np.where(passthrough, self._scale, scale)
         self._pending[:] = True
         self._retryable[:] = False
         return (

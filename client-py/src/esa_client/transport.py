@@ -91,7 +91,14 @@ class StepMessages:
     def report_then_probe(
         self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
     ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
-        """Sends the ReportBatch and the ProbeBatch as two messages; raises the first error."""
+        """Sends the ReportBatch and the ProbeBatch as two messages; raises the first error.
+
+        A probe that starts a new episode for every session would succeed even after its
+        report failed, leaving the report unrecoverable: that pair goes one message at a
+        time, so a failed report stops the probe (once per episode end, not per step).
+        """
+        if probe.episode_starts and all(probe.episode_starts):
+            return self.report_batch(report), self.probe_batch(probe)
         first, second = self._exchange_pair(
             esa_pb2.StepStreamRequest(report_batch=report),
             esa_pb2.StepStreamRequest(probe_batch=probe),

@@ -945,3 +945,21 @@ fn config_round_trips_the_section_1b_fields() {
     };
     assert_eq!(session(config.clone()).config(), config);
 }
+
+#[test]
+fn a_probe_clamps_v_into_its_own_trust_region() {
+    let mut s = session(SessionConfig {
+        trust_region: Some(1.0),
+        ..raw(base())
+    });
+    probe_scaled(&mut s, 0, &[0.0, 0.0], &[1.0]);
+    report(&mut s, 0, 1e12);
+    probe_scaled(&mut s, 1, &[0.0, 0.0], &[1.0]);
+    report(&mut s, 1, -1e12);
+    assert!(s.shift().iter().any(|v| v.abs() > 0.5), "{:?}", s.shift());
+    // sigma shrank: the applied action of this step must stay within kappa * 0.01.
+    probe_scaled(&mut s, 2, &[0.0, 0.0], &[0.01]);
+    for &a in &applied(&s) {
+        assert!(a.abs() <= 0.01, "applied {a}");
+    }
+}
