@@ -22,7 +22,15 @@ from typing import Any, Protocol
 from esa_experiments.evaluation import ProgressFn
 from esa_experiments.runs import RunResult, RunSpec, RunStore
 
-STUDY_NAMES = ("example1", "mujoco", "ablation", "quadrotor", "campaign")
+STUDY_NAMES = (
+    "example1",
+    "mujoco",
+    "ablation",
+    "quadrotor",
+    "campaign",
+    "default_search",
+    "ground_truth",
+)
 
 
 class Study(Protocol):
