@@ -6,6 +6,7 @@ the figures and the tables exist and are sane, and that a second ``run`` is a
 no-op (resumability).
 """
 
+import json
 import os
 from pathlib import Path
 
@@ -51,6 +52,19 @@ def check_rl_run(frame: pd.DataFrame, total_steps: int) -> None:
     assert (frame.length_mean >= 1).all()
 
 
+def check_ground_truth_run(frame: pd.DataFrame, states: int) -> None:
+    assert list(frame.columns) == [
+        "state",
+        "return_sampled",
+        "return_shifted",
+        "delta",
+        "predicted",
+        "shift_over_std",
+    ]
+    assert len(frame) == states and np.isfinite(frame.to_numpy(float)).all()
+    np.testing.assert_allclose(frame.delta, frame.return_shifted - frame.return_sampled)
+
+
 def check_example1_run(frame: pd.DataFrame, total_steps: int, env: str, method: str) -> None:
     assert list(frame.columns) == ["t", "J", "J_probe"] and len(frame) == total_steps
     assert np.isfinite(frame.to_numpy(float)).all()
@@ -67,13 +81,21 @@ def test_smoke_budget(name, root, capsys):
         == 0
     )
     study = load_study(name)
-    specs = study.specs(study.BUDGETS["smoke"], "smoke", [0], study.ENVS, study.METHODS)
     store = RunStore(name, "smoke", root)
+    if hasattr(study, "drive"):
+        check_driven_study(study, store, root)
+        return
+    specs = study.specs(study.BUDGETS["smoke"], "smoke", [0], study.ENVS, study.METHODS)
     for spec in specs:
         assert store.status(spec) == "done", spec.label
         frame = pd.read_csv(store.csv_path(spec))
         if name == "example1":
             check_example1_run(frame, spec.config["total_steps"], spec.env, spec.method)
+        elif name == "ground_truth":
+            check_ground_truth_run(frame, spec.config["states"])
+            check_rl_run(
+                pd.read_csv(store.table_path(spec, "training")), spec.config["total_steps"]
+            )
         else:
             check_rl_run(frame, spec.config["total_steps"])
 
@@ -103,3 +125,22 @@ def test_quadrotor_smoke_flights(root):
     assert np.isfinite(
         flights[["x", "y", "z", "target_x", "target_y", "target_z"]].to_numpy()
     ).all()
+
+
+def check_driven_study(study, store: RunStore, root: Path) -> None:
+    """The search: every trial recorded with its runs, a winner, a table row per trial."""
+    args = study.BUDGETS["smoke"]
+    trials = study.load_trials(store)
+    assert [t["number"] for t in trials] == list(range(args.trials))
+    winner = json.loads((store.dir / "winner.json").read_text())
+    assert winner["winner"]["number"] in {t["number"] for t in trials}
+    specs = study.specs(args, "smoke", [0], study.ENVS, study.METHODS, base=root)
+    assert all(store.status(spec) == "done" for spec in specs)
+    assert main(["--root", str(root), "plot", study.NAME, "--budget", "smoke"]) == 0
+    table = (store.dir / "table.md").read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| ")][1:]
+    assert len(rows) == args.trials
+    # Resumable: a second run replays the record and runs nothing.
+    mtimes = {p: p.stat().st_mtime_ns for p in store.runs_dir.iterdir()}
+    assert main(["--root", str(root), "run", study.NAME, "--budget", "smoke", "--seeds", "0"]) == 0
+    assert {p: p.stat().st_mtime_ns for p in store.runs_dir.iterdir()} == mtimes

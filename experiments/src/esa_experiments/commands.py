@@ -65,12 +65,6 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--methods", nargs="+", help="subset of the study's methods")
     run.add_argument("--envs", nargs="+", help="subset of the study's envs")
     run.add_argument("--dry-run", action="store_true", help="only show what would run")
-    search = sub.add_parser(
-        "search", help="run or resume the search for the shipped ESA default (default_search)"
-    )
-    search.add_argument("--budget", default="smoke", help=f"one of {', '.join(BUDGETS)}")
-    search.add_argument("--seeds", help="tuning seeds (default: 100-102, not the campaign's)")
-    search.add_argument("--jobs", type=int, default=1, help="parallel worker processes")
     return parser
 
 
@@ -97,6 +91,14 @@ def _run(options: argparse.Namespace, console: Console) -> int:
         raise CliError(f"--seeds: {err}") from None
     if options.jobs < 1:
         raise CliError(f"--jobs: expected an integer >= 1, got {options.jobs}")
+    drive = getattr(study, "drive", None)
+    if drive is not None:
+        # A study that decides its runs as it goes (a search); it is resumable itself.
+        drive(options.budget, seeds, options.jobs, options.root, console)
+        console.print(
+            f"Next: python -m esa_experiments plot {study.NAME} --budget {options.budget}"
+        )
+        return 0
     envs = _selection("envs", options.envs, study.ENVS)
     methods = _selection("methods", options.methods, study.METHODS)
     specs = study.specs(study.BUDGETS[options.budget], options.budget, seeds, envs, methods)
@@ -121,21 +123,6 @@ def _run(options: argparse.Namespace, console: Console) -> int:
         f"Next: python -m esa_experiments plot {study.NAME} --budget {options.budget}"
     )
     return 1 if failed else 0
-
-
-def _search(options: argparse.Namespace, console: Console) -> int:
-    from esa_experiments.search import search
-    from esa_experiments.studies import default_search
-
-    try:
-        seeds = parse_seeds(options.seeds or default_search.DEFAULT_SEEDS)
-    except ValueError as err:
-        raise CliError(f"--seeds: {err}") from None
-    if options.jobs < 1:
-        raise CliError(f"--jobs: expected an integer >= 1, got {options.jobs}")
-    search(options.budget, seeds, options.jobs, options.root, console)
-    console.print(f"Next: python -m esa_experiments plot default_search --budget {options.budget}")
-    return 0
 
 
 def _plot(options: argparse.Namespace, console: Console) -> int:
@@ -163,8 +150,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if options.command == "list":
             _list(options.root, console)
             return 0
-        if options.command == "search":
-            return _search(options, console)
         return _run(options, console) if options.command == "run" else _plot(options, console)
     except CliError as err:
         console.print(f"[red]error:[/] {err}", highlight=False)

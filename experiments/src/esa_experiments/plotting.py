@@ -29,7 +29,7 @@ class Panel:
     methods: Sequence[str]
 
 
-def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: object) -> str:
+def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: object) -> object:
     """Draws the mean with a +- SE band; returns the line's colour."""
     line = ax.plot(stats[x], stats["mean"], label=label, **style)[0]
     ax.fill_between(
@@ -40,7 +40,7 @@ def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: object) ->
         alpha=0.2,
         linewidth=0,
     )
-    return str(line.get_color())
+    return line.get_color()
 
 
 def learning_curves(

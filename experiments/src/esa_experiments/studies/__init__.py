@@ -10,6 +10,10 @@ Every study module defines:
 * ``run(spec, progress) -> RunResult``: one run, in a worker process;
 * ``report(store, args) -> str``: writes the study's PNGs and Markdown table
   from the finished runs and returns the Markdown section for RESULTS.md.
+
+A study that decides its runs as it goes (``default_search``) also defines
+``drive(budget, seeds, jobs, root, console)``, which ``run`` calls instead of
+executing ``specs``.
 """
 
 from __future__ import annotations

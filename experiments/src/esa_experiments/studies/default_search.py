@@ -14,9 +14,10 @@ rate, the trust region kappa, the leak lambda and the gate. Fixed: the normalize
 paired response and the policy's std as the action scale (what the audit found to work
 at every Q scale), and everything PPO does (``configs/algorithms.toml``).
 
-``python -m esa_experiments search`` runs or resumes it (every run is a normal, resumable
-run of this study; the trials are kept in ``results/default_search/trials.jsonl``);
-``python -m esa_experiments plot default_search`` writes the table and the figure.
+``python -m esa_experiments run default_search --budget full --jobs 2`` runs or resumes it
+(every run is a normal, resumable run of this study; the trials are kept in
+``results/default_search/trials.jsonl``, the finalists and the winner in ``winner.json``);
+``python -m esa_experiments plot default_search --budget full`` writes the table and figure.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
+from rich.console import Console
 
 from esa_experiments.runs import RunSpec, RunStore, atomic_write_text
 from esa_experiments.studies import campaign
@@ -113,16 +115,27 @@ def load_trials(store: RunStore) -> list[dict[str, Any]]:
 
 
 def specs(
-    args: Args, budget: str, seeds: list[int], envs: tuple[str, ...], methods: tuple[str, ...]
+    args: Args,
+    budget: str,
+    seeds: list[int],
+    envs: tuple[str, ...],
+    methods: tuple[str, ...],
+    base: Path | None = None,
 ) -> list[RunSpec]:
-    """Every recorded trial's runs; ``run default_search`` re-runs them to check reproducibility."""
-    store = RunStore(NAME, budget)
+    """The plain-PPO runs of ``seeds`` and every recorded trial's runs (under ``base``)."""
     out = [baseline_spec(args, budget, seed) for seed in seeds]
-    for trial in load_trials(store):
+    for trial in load_trials(RunStore(NAME, budget, base)):
         out += [
             trial_spec(args, budget, trial["number"], trial["params"], s) for s in trial["seeds"]
         ]
     return out
+
+
+def drive(budget: str, seeds: list[int], jobs: int, root: Path, console: Console) -> None:
+    """Runs or resumes the search (what ``run default_search`` does)."""
+    from esa_experiments.search import search
+
+    search(budget, seeds, jobs, root, console)
 
 
 run = run_training
