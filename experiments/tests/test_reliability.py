@@ -1,0 +1,62 @@
+"""The rliable statistics and the verdicts RESULTS.md states per env."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from esa_experiments.reliability import probability_of_improvement, statistics, verdict
+
+
+def runs(method: str, env: str, aucs: list[float]) -> pd.DataFrame:
+    """One flat evaluation curve per seed, so each run's AUC is the given value."""
+    rows = []
+    for seed, auc in enumerate(aucs):
+        for step in (0, 1000, 2000):
+            rows.append(
+                {
+                    "env": env,
+                    "method": method,
+                    "seed": seed,
+                    "step": step,
+                    "return_mean": auc,
+                    "train_seconds": 1.0,
+                    "train_cpu_seconds": 1.0,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+@pytest.mark.parametrize(
+    "low, high, expected", [(0.6, 0.9, "better"), (0.1, 0.4, "worse"), (0.3, 0.7, "equal")]
+)
+def test_verdict_needs_the_ci_to_exclude_one_half(low, high, expected):
+    assert verdict(low, high) == expected
+
+
+def test_probability_of_improvement_of_separated_samples():
+    better = np.arange(10.0, 20.0)
+    worse = np.arange(0.0, 10.0)
+    p, low, high = probability_of_improvement(better, worse)
+    assert p == 1.0 and low == 1.0 and high == 1.0
+    p, low, high = probability_of_improvement(worse, better)
+    assert p == 0.0 and high == 0.0
+    same = probability_of_improvement(better, better)
+    assert same[0] == pytest.approx(0.5) and same[1] < 0.5 < same[2]
+
+
+def test_statistics_table_compares_each_arm_with_its_baseline():
+    frame = pd.concat(
+        [
+            runs("ppo", "E", [100, 110, 120, 130, 140]),
+            runs("ppo_esa", "E", [200, 210, 220, 230, 240]),
+            runs("ppo_esa_null", "E", [100, 110, 120, 130, 140]),
+        ]
+    )
+    table = statistics(frame, ["E"], ["ppo", "ppo_esa", "ppo_esa_null"]).set_index("method")
+    assert table.loc["PPO", "verdict"] == ""
+    assert table.loc["PPO+ESA", "verdict"].startswith("**better**")
+    assert table.loc["PPO+ESA (lr 0)", "verdict"].startswith("**equal**")
+    assert table.loc["PPO+ESA", "IQM AUC [95% CI]"].startswith("220.0")
+    # Reproducible: the bootstrap is seeded.
+    again = statistics(frame, ["E"], ["ppo", "ppo_esa", "ppo_esa_null"]).set_index("method")
+    pd.testing.assert_frame_equal(table, again)
