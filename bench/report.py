@@ -220,9 +220,10 @@ def targets(
         )
     )
     for row in training["rows"] if training else []:
+        envs = row.get("n_envs", training["args"].get("n_envs"))
         out.append(
             Target(
-                f"{row['esa']} / {row['plain']} wall-clock ({row['steps']} steps, 8 envs)",
+                f"{row['esa']} / {row['plain']} wall-clock ({row['steps']} steps, {envs} env(s))",
                 "<= 1.25" if row["plain"] == "PPO" else NO_TARGET,
                 f"{row['ratio_median']:.2f}",
                 row["ratio_median"] <= 1.25 if row["plain"] == "PPO" else None,
@@ -461,10 +462,13 @@ def training_section(training: dict) -> list[str]:
     lines = [
         "## Training overhead",
         "",
-        f"{args['env_id']}, {args['n_envs']} envs (DummyVecEnv), seed {args['seed']}, torch on "
-        f"one thread, SB3 defaults except PPO `n_steps={args['ppo_n_steps']}`, `batch_size=64` "
-        f"and SAC `learning_starts={args['sac_learning_starts']}`; ESA agents with "
-        "`EsaConfig()` defaults and a private esa-server (Unix socket, StepStream). Wall-clock "
+        f"{args['env_id']}, {args['n_envs']} env(s) (DummyVecEnv; 1 is SB3's default), seed "
+        f"{args['seed']}, torch on one thread, SB3 defaults except PPO "
+        f"`n_steps={args['ppo_n_steps']}`, `batch_size=64` and SAC "
+        f"`learning_starts={args['sac_learning_starts']}`; ESA agents with the shipped "
+        "`EsaConfig()` (its gate keeps ESA off while the critic is poor) and with "
+        "`EsaConfig(gate=None)` (ESA at every step once a critic exists), each with a private "
+        "esa-server (Unix socket, StepStream, one pipelined round trip per step). Wall-clock "
         f"of `learn()`, {args['repeats']} alternating repeats; ratio = median of the "
         "per-repeat ratios.",
         "",
@@ -481,6 +485,7 @@ def training_section(training: dict) -> list[str]:
         rows.append(
             [
                 f"{r['esa']} / {r['plain']}",
+                str(r.get("n_envs", args["n_envs"])),
                 f"{r['steps']:,}",
                 ", ".join(fmt(s, 2) for s in r["plain_seconds"]),
                 ", ".join(fmt(s, 2) for s in r["esa_seconds"]),
@@ -491,18 +496,18 @@ def training_section(training: dict) -> list[str]:
                 f"{(esa_mean - mean('round_trips')) / plain_mean:.2f}",
             ]
         )
-    header = ["pair", "steps", "plain s", "ESA s", "ratio", "round trips s", "ESA step s"]
-    header += ["critic fit s", "ratio without round trips"]
+    header = ["pair", "envs", "steps", "plain s", "ESA s", "ratio", "round trips s"]
+    header += ["ESA step s", "critic fit s", "ratio without round trips"]
     lines += [
         table(header, rows),
         "",
         "Split of the ESA agents' time (mean over repeats): `round trips` = inside "
-        "`SessionBatch.probe`/`.report` (client, network, server); `ESA step` = the whole "
-        "`EsaRuntime.improve` (round trips, the critic at the probes, and on one step in "
-        "eight the critic at the sampled and improved actions for the `esa/improvement` "
-        "statistic); `critic fit` = ESAPPO's auxiliary-critic training. `ratio without round "
-        "trips` = (ESA s - round trips s) / plain s: what the agent would cost with a free "
-        "service.",
+        "`SessionBatch.probe_applied` (which carries the previous step's deferred report) and "
+        "`.flush` (client, network, server); `ESA step` = the whole `EsaRuntime.step` (round "
+        "trips, the critic at the probes and applied actions, and on one step in eight at the "
+        "sampled actions for the `esa/improvement` statistic); `critic fit` = ESAPPO's "
+        "advantage-head fit and gate check. `ratio without round trips` = (ESA s - round trips "
+        "s) / plain s: what the agent would cost with a free service.",
     ]
     return lines
 

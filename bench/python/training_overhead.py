@@ -1,15 +1,20 @@
 """Training wall-clock with and without ESA: PPO vs ESAPPO and SAC vs ESASAC.
 
-Each pair trains for the same number of steps on InvertedPendulum-v5 with 8 envs
-(``DummyVecEnv``), the same seed and hyperparameters, torch on one thread. Only
-``learn()`` is timed; for the ESA agents that includes spawning their private
-esa-server (Unix socket, StepStream), the round trips and ESAPPO's auxiliary critic.
+Each pair trains for the same number of steps on InvertedPendulum-v5, the same seed
+and hyperparameters, torch on one thread, once with one env (SB3's default, how most
+users run it) and once with 8 envs (``DummyVecEnv``). Only ``learn()`` is timed; for
+the ESA agents that includes spawning their private esa-server (Unix socket,
+StepStream), the round trips, the critic evaluations and ESAPPO's advantage head.
 The pairs run alternately ``repeats`` times so background load hits both alike.
 
+The ESA agents run the shipped ``EsaConfig()`` and, to price ESA when it is on at every
+step, ``EsaConfig(gate=None)``: the gate keeps ESA off while the critic is poor, so the
+default's cost depends on the run.
+
 To tell the service's share from the algorithm's, the ESA agents' time is also split
-by wrapping three methods with timers: the round trips (``SessionBatch.probe`` and
-``.report``), the whole ESA step (``EsaRuntime.improve``: round trips plus critic
-evaluations) and ESAPPO's auxiliary-critic fit.
+by wrapping methods with timers: the round trips (``SessionBatch.probe_applied``, which
+carries the deferred report too, and ``.flush``), the whole ESA step (``EsaRuntime.step``:
+round trips plus critic evaluations) and ESAPPO's advantage-head fit and gate.
 
 Usage::
 
@@ -45,7 +50,7 @@ class Args:
     """Benchmark settings (all overridable on the command line)."""
 
     env_id: str = "InvertedPendulum-v5"
-    n_envs: int = 8
+    n_envs: str = "1,8"
     ppo_steps: int = 12_288
     ppo_n_steps: int = 256
     sac_steps: int = 8_000
@@ -57,11 +62,19 @@ class Args:
 
 # (class, method, bucket): where the ESA agents' extra time goes.
 TIMED = [
-    (SessionBatch, "probe", "round_trips"),
-    (SessionBatch, "report", "round_trips"),
-    (EsaRuntime, "improve", "esa_step"),
-    (ESAPPO, "_fit_esa_critic", "critic_fit"),
+    (SessionBatch, "probe_applied", "round_trips"),
+    (SessionBatch, "flush", "round_trips"),
+    (EsaRuntime, "step", "esa_step"),
+    (ESAPPO, "_update_esa_head", "critic_fit"),
 ]
+
+AGENTS = {
+    "ESAPPO": ("PPO", EsaConfig()),
+    "ESAPPO ungated": ("PPO", EsaConfig(gate=None)),
+    "ESASAC": ("SAC", EsaConfig()),
+    "ESASAC ungated": ("SAC", EsaConfig(gate=None)),
+}
+"""ESA agent -> (its plain algorithm, its ESA settings)."""
 
 
 @contextmanager
@@ -89,28 +102,29 @@ def timed_methods() -> Iterator[dict[str, float]]:
             setattr(cls, name, method)
 
 
-def train_seconds(name: str, args: Args) -> tuple[float, dict[str, float]]:
-    """Builds agent ``name`` on fresh envs and times ``learn()``.
+def train_seconds(name: str, n_envs: int, args: Args) -> tuple[float, dict[str, float]]:
+    """Builds agent ``name`` (``PPO``, ``SAC`` or a key of ``AGENTS``) and times ``learn()``.
 
     Returns:
         The wall-clock seconds and the seconds spent in each ``TIMED`` bucket.
     """
-    env = make_vec_env(args.env_id, n_envs=args.n_envs, seed=args.seed)
+    env = make_vec_env(args.env_id, n_envs=n_envs, seed=args.seed)
     common = dict(seed=args.seed, device="cpu", verbose=0)
-    if name in ("PPO", "ESAPPO"):
+    family, esa = AGENTS.get(name, (name, None))
+    if family == "PPO":
         kwargs = dict(n_steps=args.ppo_n_steps, batch_size=64, **common)
         model = (
-            ESAPPO("MlpPolicy", env, esa=EsaConfig(), **kwargs)
-            if name == "ESAPPO"
-            else (PPO("MlpPolicy", env, **kwargs))
+            PPO("MlpPolicy", env, **kwargs)
+            if esa is None
+            else ESAPPO("MlpPolicy", env, esa=esa, **kwargs)
         )
         steps = args.ppo_steps
     else:
         kwargs = dict(learning_starts=args.sac_learning_starts, **common)
         model = (
-            ESASAC("MlpPolicy", env, esa=EsaConfig(), **kwargs)
-            if name == "ESASAC"
-            else (SAC("MlpPolicy", env, **kwargs))
+            SAC("MlpPolicy", env, **kwargs)
+            if esa is None
+            else ESASAC("MlpPolicy", env, esa=esa, **kwargs)
         )
         steps = args.sac_steps
     with timed_methods() as buckets:
@@ -124,38 +138,39 @@ def train_seconds(name: str, args: Args) -> tuple[float, dict[str, float]]:
 
 
 def main() -> None:
-    """Times every agent ``repeats`` times, alternating, and writes the ratios."""
+    """Times every agent ``repeats`` times per env count, alternating, and writes the ratios."""
     args = parse_dataclass(Args, __doc__.splitlines()[0])
     th.set_num_threads(1)
     # Without it every spawn would first ask cargo whether the binary is up to date.
     os.environ["ESA_SERVER_BIN"] = server_binary()
-    pairs = {"PPO": "ESAPPO", "SAC": "ESASAC"}
-    seconds: dict[str, list[float]] = {name: [] for pair in pairs.items() for name in pair}
-    buckets: dict[str, list[dict[str, float]]] = {name: [] for name in seconds}
-    for _ in range(args.repeats):
-        for plain, esa in pairs.items():
-            for name in (plain, esa):
-                wall, split = train_seconds(name, args)
+    rows = []
+    for n_envs in (int(n) for n in args.n_envs.split(",")):
+        names = ["PPO", "SAC", *AGENTS]
+        seconds: dict[str, list[float]] = {name: [] for name in names}
+        buckets: dict[str, list[dict[str, float]]] = {name: [] for name in names}
+        for _ in range(args.repeats):
+            for name in names:
+                wall, split = train_seconds(name, n_envs, args)
                 seconds[name].append(wall)
                 buckets[name].append(split)
                 parts = ", ".join(f"{k} {v:.2f} s" for k, v in split.items())
-                print(f"{name:<7} {wall:7.2f} s  {parts}", flush=True)
-    rows = []
-    for plain, esa in pairs.items():
-        ratios = np.asarray(seconds[esa]) / np.asarray(seconds[plain])
-        rows.append(
-            {
-                "plain": plain,
-                "esa": esa,
-                "steps": args.ppo_steps if plain == "PPO" else args.sac_steps,
-                "plain_seconds": seconds[plain],
-                "esa_seconds": seconds[esa],
-                "ratio_median": float(np.median(ratios)),
-                "ratios": ratios.tolist(),
-                "esa_buckets": buckets[esa],
-            }
-        )
-        print(f"{esa}/{plain} wall-clock ratio: {np.median(ratios):.3f} ({ratios.round(3)})")
+                print(f"{n_envs} env(s) {name:<15} {wall:7.2f} s  {parts}", flush=True)
+        for esa, (plain, _) in AGENTS.items():
+            ratios = np.asarray(seconds[esa]) / np.asarray(seconds[plain])
+            rows.append(
+                {
+                    "plain": plain,
+                    "esa": esa,
+                    "n_envs": n_envs,
+                    "steps": args.ppo_steps if plain == "PPO" else args.sac_steps,
+                    "plain_seconds": seconds[plain],
+                    "esa_seconds": seconds[esa],
+                    "ratio_median": float(np.median(ratios)),
+                    "ratios": ratios.tolist(),
+                    "esa_buckets": buckets[esa],
+                }
+            )
+            print(f"{n_envs} env(s) {esa}/{plain} ratio: {np.median(ratios):.3f} {ratios.round(3)}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"args": dataclasses.asdict(args), "rows": rows}, indent=2))
