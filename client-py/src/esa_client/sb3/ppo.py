@@ -19,9 +19,6 @@ from ..config import EsaConfig
 from .advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from .mixin import EsaMixin, tile_obs
 
-ESA_WEIGHT_LIMIT = 2.0
-"""Truncation of the behaviour importance weights (V-trace's rho-bar)."""
-
 
 class ESAPPO(EsaMixin, PPO):
     """PPO with Extremum-Seeking Action selection; a drop-in for ``stable_baselines3.PPO``.
@@ -30,12 +27,9 @@ class ESAPPO(EsaMixin, PPO):
     of CONTRACT.md section 1b: the policy samples ``a_t``, ESA probes a critic around it,
     and the env executes ``a_t + v(t)``, the shift *before* this step's update. Because
     ``v(t)`` does not depend on ``a_t``, the behaviour density of the executed action is
-    the policy's, translated by ``v(t)``, and its log-density at the executed action is
-    exactly ``log pi_old(a_t)``. The rollout stores the executed action unclipped (as SB3
-    stores its samples) and PPO's update is decoupled (Hilton et al. 2021): the clipped
-    ratio is taken against ``pi_old`` and each advantage is weighted by the behaviour's
-    importance weight ``pi_old(x) / b(x)`` (truncated at ``ESA_WEIGHT_LIMIT``), a correct
-    off-policy correction that does not discard the shifted samples' gradients.
+    the policy's, translated by ``v(t)``, so the rollout stores the executed action
+    unclipped (as SB3 stores its samples) with ``log pi_old(a_t)``, its exact behaviour
+    log-probability: PPO's ratio ``pi_new(x) / b(x)`` is then a correct importance ratio.
     The policy's standard deviation is the action scale, so the trust region bounds the
     shift in units of it.
 
@@ -134,18 +128,14 @@ class ESAPPO(EsaMixin, PPO):
             self.esa_head.parameters(), lr=self.esa_head_learning_rate
         )
         self._esa_rng = np.random.default_rng(self.seed)
-        # log b(x) of the rollout slots whose action ESA shifted (elsewhere b is pi_old).
-        self._esa_behaviour_log_prob = np.zeros((self.n_steps, self.n_envs), dtype=np.float32)
-        self._esa_shifted = np.zeros((self.n_steps, self.n_envs), dtype=bool)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "esa_head", "esa_head_optimizer"], variables
 
     def _excluded_save_params(self) -> list[str]:
-        # Per-rollout data, rebuilt by the next rollouts.
-        excluded = ["_esa_head_data", "_esa_behaviour_log_prob", "_esa_shifted"]
-        return [*super()._excluded_save_params(), *excluded]
+        # The head's training data are rebuilt from the next rollouts.
+        return [*super()._excluded_save_params(), "_esa_head_data"]
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
@@ -224,13 +214,7 @@ class ESAPPO(EsaMixin, PPO):
                 )
                 # a_t plus the shift in raw units: exactly a_t when v = 0.
                 shifted = sampled + (applied - scaled) * half_width
-                behaviour = log_prob
                 actions = th.as_tensor(shifted, dtype=actions.dtype, device=actions.device)
-                log_prob = distribution.log_prob(actions)
-                # log b(x) = log pi_old(a_t): v(t) does not depend on a_t.
-                slot = self.rollout_buffer.pos
-                self._esa_behaviour_log_prob[slot] = behaviour.cpu().numpy()
-                self._esa_shifted[slot] = True
             return actions.reshape((-1, *self.action_space.shape)), values, log_prob
 
         policy.forward = forward  # type: ignore[method-assign]
@@ -251,31 +235,9 @@ class ESAPPO(EsaMixin, PPO):
             return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
 
     def train(self) -> None:
-        """Gate check and head fit on the rollout, the off-policy correction, then PPO's update."""
+        """Checks the gate and fits the advantage head on the rollout, then runs PPO's update."""
         self._update_esa_head()
-        self._weight_advantages()
         super().train()
-
-    def _weight_advantages(self) -> None:
-        """Decoupled PPO: the behaviour's importance weight ``pi_old(x) / b(x)`` on each advantage.
-
-        The rollout stores ``log pi_old(x)`` for the executed ``x = a_t + v(t)``, so PPO's
-        clipped ratio ``pi(x) / pi_old(x)`` starts at 1 for every sample, and the shift
-        away from the policy is corrected by weighting the advantage with
-        ``pi_old(x) / b(x)``, ``b(x) = pi_old(a_t)`` (Hilton et al. 2021, truncated at
-        ``ESA_WEIGHT_LIMIT`` as in V-trace). Clipping the ratio against the behaviour
-        instead would discard most shifted samples' gradients. Without a shift the
-        weight is exactly 1.
-        """
-        buffer = self.rollout_buffer
-        log_weight = np.where(
-            self._esa_shifted, buffer.log_probs - self._esa_behaviour_log_prob, 0.0
-        )
-        weight = np.minimum(np.exp(log_weight), ESA_WEIGHT_LIMIT)
-        buffer.advantages *= weight.astype(buffer.advantages.dtype)
-        if self._esa_shifted.any():
-            self.logger.record("esa/importance_weight", float(weight[self._esa_shifted].mean()))
-        self._esa_shifted[:] = False
 
     def _update_esa_head(self) -> None:
         buffer = self.rollout_buffer
