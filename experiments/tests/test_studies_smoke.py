@@ -57,12 +57,17 @@ def check_ground_truth_run(frame: pd.DataFrame, states: int) -> None:
         "state",
         "return_sampled",
         "return_shifted",
+        "return_wide",
         "delta",
+        "delta_wide",
         "predicted",
+        "predicted_wide",
         "shift_over_std",
+        "wide_shift_over_std",
     ]
     assert len(frame) == states and np.isfinite(frame.to_numpy(float)).all()
     np.testing.assert_allclose(frame.delta, frame.return_shifted - frame.return_sampled)
+    np.testing.assert_allclose(frame.delta_wide, frame.return_wide - frame.return_sampled)
 
 
 def check_example1_run(frame: pd.DataFrame, total_steps: int, env: str, method: str) -> None:

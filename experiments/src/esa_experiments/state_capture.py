@@ -1,19 +1,25 @@
 """Saved MuJoCo states with the sampled action and ESA's shifted action (ground-truth check).
 
-Runs a trained ``ESAPPO`` on one env with ESA switched on whatever its gate says: one
-session on the model's server, the model's own advantage head as the critic, the same
-paired and normalized law the model trains with. Every ``save_every``-th step (after the
-first 10 of an episode, so that v has had time to move) it keeps the simulator state,
-``a_t`` and ``a_t + v(t)``.
+Runs a trained ``ESAPPO`` on one env with ESA switched on whatever its gate says: a
+session on the model's server with the model's own settings, the model's advantage head
+as the critic. A second session, probed with the same samples, has a trust region of
+``WIDE_TRUST_REGION`` policy standard deviations: the shift ESA would take if it were
+allowed to, which shows ESA's direction even where the shipped bound keeps it small. The
+env executes the first session's action. Every ``save_every``-th step (after the first 10
+of an episode, so that v has had time to move) it keeps the simulator state, ``a_t`` and
+both shifted actions.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
 import torch as th
+
+WIDE_TRUST_REGION = 1.0
 
 
 @dataclass(frozen=True)
@@ -24,17 +30,23 @@ class SavedState:
         qpos: MuJoCo positions.
         qvel: MuJoCo velocities.
         sampled: the policy's sample a_t (env units, unclipped).
-        shifted: ESA's action a_t + v(t) (env units, unclipped).
-        predicted: the head's A(s, a_t + v(t)) - A(s, a_t).
-        shift_over_std: mean |v| / sigma over the action dimensions.
+        shifted: ESA's action a_t + v(t) with the model's settings (env units, unclipped).
+        wide: ESA's action with a trust region of ``WIDE_TRUST_REGION``.
+        predicted: the head's A(s, shifted) - A(s, a_t).
+        predicted_wide: the head's A(s, wide) - A(s, a_t).
+        shift_over_std: mean |v| / sigma over the action dimensions (model's settings).
+        wide_shift_over_std: the same for ``wide``.
     """
 
     qpos: np.ndarray
     qvel: np.ndarray
     sampled: np.ndarray
     shifted: np.ndarray
+    wide: np.ndarray
     predicted: float
+    predicted_wide: float
     shift_over_std: float
+    wide_shift_over_std: float
 
 
 def capture_states(
@@ -43,10 +55,13 @@ def capture_states(
     """Runs ``model`` (a trained ESAPPO) with ESA on ``env`` until ``states`` are saved."""
     m: object = model
     config = m._esa_session_config()  # type: ignore[attr-defined]
-    session = m._esa_runtime().client.create_session(config)  # type: ignore[attr-defined]
+    wide_config = dataclasses.replace(config, trust_region=WIDE_TRUST_REGION)
+    client = m._esa_runtime().client  # type: ignore[attr-defined]
+    sessions = [client.create_session(config), client.create_session(wide_config)]
     center, half_width = m._esa_scaling()  # type: ignore[attr-defined]
     paired = m.esa.paired_response  # type: ignore[attr-defined]
     generator = th.Generator().manual_seed(seed)
+    low, high = env.action_space.low, env.action_space.high
     saved: list[SavedState] = []
     episode = 0
     try:
@@ -59,32 +74,39 @@ def capture_states(
                     obs_t = th.as_tensor(obs, dtype=th.float32)[None]
                     dist = m.policy.get_distribution(obs_t).distribution  # type: ignore[attr-defined]
                     mean, std = dist.mean, dist.stddev
-                    sampled = (mean + std * th.randn(mean.shape, generator=generator)).numpy()
+                    sampled = (mean + std * th.randn(mean.shape, generator=generator)).numpy()[0]
                 scaled = (sampled - center) / half_width
-                sigma = std.numpy() / half_width
-                probe, applied = session.probe_applied(
-                    scaled[0], episode_start=t == 0, action_scale=sigma[0]
-                )
+                sigma = std.numpy()[0] / half_width
                 q_fn = m._esa_q_at(m._head_features(obs_t), mean, std)  # type: ignore[attr-defined]
-                q = q_fn(np.stack([probe, applied, scaled[0]]))
-                session.report(q[0], q_reference=q[1] if paired else None)
-                shifted = sampled[0] + (applied - scaled[0]) * half_width
+                shifts, gains = [], []
+                for session in sessions:
+                    probe, applied = session.probe_applied(
+                        scaled, episode_start=t == 0, action_scale=sigma
+                    )
+                    q = q_fn(np.stack([probe, applied, scaled]))
+                    session.report(q[0], q_reference=q[1] if paired else None)
+                    shifts.append(applied - scaled)
+                    gains.append(float(q[1] - q[2]))
+                actions = [sampled + shift * half_width for shift in shifts]
                 if t >= 10 and t % save_every == 0:
                     data = env.unwrapped.data  # type: ignore[attr-defined]
                     saved.append(
                         SavedState(
                             qpos=data.qpos.copy(),
                             qvel=data.qvel.copy(),
-                            sampled=sampled[0].copy(),
-                            shifted=shifted,
-                            predicted=float(q[1] - q[2]),
-                            shift_over_std=float(np.mean(np.abs(applied - scaled[0]) / sigma[0])),
+                            sampled=sampled.copy(),
+                            shifted=actions[0],
+                            wide=actions[1],
+                            predicted=gains[0],
+                            predicted_wide=gains[1],
+                            shift_over_std=float(np.mean(np.abs(shifts[0]) / sigma)),
+                            wide_shift_over_std=float(np.mean(np.abs(shifts[1]) / sigma)),
                         )
                     )
-                low, high = env.action_space.low, env.action_space.high
-                obs, _, terminated, truncated, _ = env.step(np.clip(shifted, low, high))
+                obs, _, terminated, truncated, _ = env.step(np.clip(actions[0], low, high))
                 done = terminated or truncated
                 t += 1
     finally:
-        session.close()
+        for session in sessions:
+            session.close()
     return saved

@@ -2,13 +2,15 @@
 
 For each env: train PPO+ESA (the shipped default) for half the campaign's budget, then
 run the trained policy with ESA switched on (gate ignored, so the shift is what ESA would
-do) and save ``STATES`` MuJoCo states (``qpos``/``qvel``) with the sampled action ``a_t``
-and ESA's action ``a_t + v(t)``. From every saved state, execute each of the two actions
-and then follow the stochastic policy for ``HORIZON`` steps, ``ROLLOUTS`` times with
-common random numbers for both branches, and compare the discounted Monte-Carlo returns.
-A positive mean difference means ESA's shifts improved the actions by the environment's
-own measure; the rank correlation of the head's predicted ``A(s, a + v) - A(s, a)`` with
-the measured difference says how much of it the critic knew.
+do) and save ``states`` MuJoCo states (``qpos``/``qvel``) with the sampled action ``a_t``,
+ESA's action ``a_t + v(t)`` and the action ESA would take with a trust region of one
+policy standard deviation (``wide``: ESA's direction, where the shipped bound keeps the
+shift small; see :mod:`esa_experiments.state_capture`). From every saved state, execute
+each action and then follow the stochastic policy for ``horizon`` steps, ``rollouts``
+times with common random numbers for every branch, and compare the discounted
+Monte-Carlo returns. A positive mean difference means ESA's shifts improved the actions
+by the environment's own measure; the rank correlation of the head's predicted
+``A(s, a + v) - A(s, a)`` with the measured difference says how much of it the critic knew.
 """
 
 from __future__ import annotations
@@ -95,18 +97,22 @@ def run(spec: RunSpec, progress: ProgressFn) -> RunResult:
             )
             rows = []
             for i, state in enumerate(saved):
-                returns = [
+                sampled, shifted, wide = (
                     _mc_return(model, env, state, action, args, seed=1000 * i)
-                    for action in (state.sampled, state.shifted)
-                ]
+                    for action in (state.sampled, state.shifted, state.wide)
+                )
                 rows.append(
                     {
                         "state": i,
-                        "return_sampled": returns[0],
-                        "return_shifted": returns[1],
-                        "delta": returns[1] - returns[0],
+                        "return_sampled": sampled,
+                        "return_shifted": shifted,
+                        "return_wide": wide,
+                        "delta": shifted - sampled,
+                        "delta_wide": wide - sampled,
                         "predicted": state.predicted,
+                        "predicted_wide": state.predicted_wide,
                         "shift_over_std": state.shift_over_std,
+                        "wide_shift_over_std": state.wide_shift_over_std,
                     }
                 )
         finally:
@@ -141,6 +147,13 @@ def _mc_return(
     return total / args["rollouts"]
 
 
+BRANCHES = (
+    ("shipped bound", "delta", "predicted", "shift_over_std"),
+    ("1 std bound", "delta_wide", "predicted_wide", "wide_shift_over_std"),
+)
+"""(label, return difference, critic's prediction, shift size) per compared action."""
+
+
 def _bootstrap_ci(values: np.ndarray, reps: int = 2000, seed: int = 0) -> tuple[float, float]:
     rng = np.random.default_rng(seed)
     means = rng.choice(values, size=(reps, len(values))).mean(axis=1)
@@ -154,22 +167,26 @@ def report(store: RunStore, args: Args) -> str:
     frame = store.load()
     rows = []
     for env, runs in frame.groupby("env", sort=False):
-        delta = runs.delta.to_numpy(float)
-        low, high = _bootstrap_ci(delta)
-        interval = f"{delta.mean():+.3f} [{low:+.3f}, {high:+.3f}]"
-        rows.append(
-            {
-                "env": env,
-                "states": len(runs),
-                "return(a + v) - return(a) [95% CI]": interval,
-                "share of states improved": f"{np.mean(delta > 0):.2f}",
-                "mean return(a)": f"{runs.return_sampled.mean():.2f}",
-                "mean abs(v) / sigma": f"{runs.shift_over_std.mean():.3f}",
-                "rank corr. (critic's prediction, measured)": (
-                    f"{rank_correlation(runs.predicted.to_numpy(), delta):+.2f}"
-                ),
-            }
-        )
+        for label, delta_key, predicted_key, shift_key in BRANCHES:
+            delta = runs[delta_key].to_numpy(float)
+            low, high = _bootstrap_ci(delta)
+            predicted = runs[predicted_key].to_numpy(float)
+            rows.append(
+                {
+                    "env": env,
+                    "shift": label,
+                    "states": len(runs),
+                    "return(a + v) - return(a) [95% CI]": (
+                        f"{delta.mean():+.3f} [{low:+.3f}, {high:+.3f}]"
+                    ),
+                    "share of states improved": f"{np.mean(delta > 0):.2f}",
+                    "mean return(a)": f"{runs.return_sampled.mean():.2f}",
+                    "mean abs(v) / sigma": f"{runs[shift_key].mean():.3f}",
+                    "rank corr. (critic's prediction, measured)": (
+                        f"{rank_correlation(predicted, delta):+.2f}"
+                    ),
+                }
+            )
     table = to_markdown(pd.DataFrame(rows))
     atomic_write_text(store.artifact("table.md"), table + "\n")
     return (
