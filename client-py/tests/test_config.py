@@ -143,3 +143,15 @@ def test_the_default_is_the_bounded_scale_free_law():
     config = EsaConfig().session_config(2, dt=0.01)
     assert config.normalize_response
     assert config.trust_region is not None and config.shift_leak is not None
+
+
+def test_a_config_is_rebuilt_from_its_own_fields():
+    import dataclasses
+
+    unbounded = SessionConfig(**BASE)
+    changed = dataclasses.replace(unbounded, trust_region=1.0)
+    assert changed.action_low == () and changed.trust_region == 1.0
+    bounded = SessionConfig(**BASE, action_low=-1.0, action_high=[1.0, 2.0])
+    assert dataclasses.replace(bounded) == bounded
+    with pytest.raises(ValueError, match="amplitude to be set"):
+        dataclasses.replace(unbounded, amplitude=())

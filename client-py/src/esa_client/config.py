@@ -25,10 +25,16 @@ MAX_ACTION_DIM = 4096
 
 
 def _as_tuple(name: str, value: Vector | None, action_dim: int) -> tuple[float, ...]:
-    """Returns ``value`` as a tuple of floats of length 0, 1 or ``action_dim``."""
+    """Returns ``value`` as a tuple of floats of length 0, 1 or ``action_dim``.
+
+    None and an empty sequence (the stored form of an unset field) both mean unset, so a
+    validated config can be rebuilt from its own fields (``dataclasses.replace``).
+    """
     if value is None:
         return ()
     array = np.asarray(value, dtype=np.float64)
+    if array.size == 0:
+        return ()
     if array.ndim > 1:
         raise ValueError(f"expected {name} to be a scalar or 1-D sequence, got shape {array.shape}")
     flat = tuple(float(x) for x in array.reshape(-1))
