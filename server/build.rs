@@ -1,5 +1,6 @@
 //! Compiles proto/esa/v1/esa.proto with the pure-Rust `protox` compiler (no
-//! system protoc) and generates the tonic client and server from it. The
+//! system protoc) and generates the tonic client and server from it, with
+//! the server's own codec (`src/codec.rs`). The
 //! encoded descriptor set is also written to OUT_DIR for server reflection.
 
 use std::path::PathBuf;
@@ -22,6 +23,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     tonic_prost_build::configure()
         .build_client(true)
         .build_server(true)
+        // Bounds what a batch decodes to and answers undecodable bytes with INVALID_ARGUMENT.
+        .codec_path("crate::codec::BoundedCodec")
         .compile_fds(descriptors)?;
     Ok(())
 }

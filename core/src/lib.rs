@@ -41,6 +41,7 @@
 
 mod config;
 mod error;
+pub mod footprint;
 mod highpass;
 mod lanes;
 mod session;

@@ -25,9 +25,15 @@ pub enum Error {
     /// A request field is malformed; the message names the field.
     #[error("{0}")]
     InvalidArgument(String),
-    /// The server's session limit is reached.
+    /// A server limit (sessions, session memory, request size or request memory) is reached.
     #[error("{0}")]
     ResourceExhausted(String),
+    /// The server requires a token and the request carried none, or another one.
+    #[error("{0}")]
+    Unauthenticated(String),
+    /// A request message was begun but not completed in time.
+    #[error("{0}")]
+    DeadlineExceeded(String),
     /// A session with this id exists with a different config.
     #[error(
         "session {0:?} already exists with a different config; \
@@ -78,6 +84,8 @@ impl Error {
             Error::NotFound(_) => Code::NotFound,
             Error::InvalidArgument(_) => Code::InvalidArgument,
             Error::ResourceExhausted(_) => Code::ResourceExhausted,
+            Error::Unauthenticated(_) => Code::Unauthenticated,
+            Error::DeadlineExceeded(_) => Code::DeadlineExceeded,
             Error::AlreadyExists(_) => Code::AlreadyExists,
             Error::Transport(_) | Error::Io(_) | Error::Zenoh(_) => Code::Unavailable,
             Error::Reflection(_) => Code::Internal,

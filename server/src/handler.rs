@@ -4,35 +4,68 @@
 //! Zenoh), so every transport behaves identically. Share it as
 //! `Arc<EsaHandler>`; all methods take `&self`.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use esa_core::Session;
 use prost::Message;
+use subtle::ConstantTimeEq as _;
 
+use crate::codec::{self, WireLimits, MAX_BATCH_ITEMS, MAX_BATCH_VALUES};
 use crate::convert::{config_from_proto, config_to_proto};
 use crate::error::Error;
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, StoreGauges};
 use crate::pb;
 use crate::pb::step_stream_request::Kind as StreamRequest;
 use crate::pb::step_stream_response::Kind as StreamResponse;
 use crate::rpc::Rpc;
 use crate::store::SessionStore;
-
-/// Most items a batch may carry.
-pub const MAX_BATCH_ITEMS: usize = 65_536;
+use crate::throttle::{Throttle, WARNING_PERIOD};
 
 /// Handles the RPCs of `esa.v1.EsaService` against one session store.
 pub struct EsaHandler {
     store: SessionStore,
-    metrics: Metrics,
+    metrics: Arc<Metrics>,
+    token: Option<Box<[u8]>>,
+    nonfinite_warnings: Throttle,
 }
 
 impl EsaHandler {
-    /// A handler serving the sessions of `store`.
+    /// A handler serving the sessions of `store` to anyone who can reach it.
     pub fn new(store: SessionStore) -> Self {
         Self {
             store,
-            metrics: Metrics::default(),
+            metrics: Arc::default(),
+            token: None,
+            nonfinite_warnings: Throttle::new(WARNING_PERIOD),
+        }
+    }
+
+    /// Requires every request to present `token` (see [`EsaHandler::authorize`]).
+    pub fn with_auth_token(mut self, token: impl Into<Box<[u8]>>) -> Self {
+        self.token = Some(token.into());
+        self
+    }
+
+    /// Checks the token a request presented: Ok when the server requires none or `presented`
+    /// equals it (compared in constant time), else UNAUTHENTICATED. Transports call it before
+    /// handling a request: gRPC with the `authorization: Bearer <token>` header, Zenoh with the
+    /// query's attachment.
+    pub fn authorize(&self, presented: Option<&[u8]>) -> Result<(), Error> {
+        let Some(token) = &self.token else {
+            return Ok(());
+        };
+        match presented {
+            Some(presented) if bool::from(presented.ct_eq(token)) => Ok(()),
+            Some(_) => Err(Error::Unauthenticated(
+                "the auth token does not match the server's (--auth-token-file)".into(),
+            )),
+            None => Err(Error::Unauthenticated(
+                "this server requires an auth token (--auth-token-file): send it as \
+                 `authorization: Bearer <token>` metadata over gRPC, or as the query \
+                 attachment over Zenoh"
+                    .into(),
+            )),
         }
     }
 
@@ -41,10 +74,31 @@ impl EsaHandler {
         &self.store
     }
 
+    /// The counters that transports add to (connections).
+    pub fn metrics(&self) -> Arc<Metrics> {
+        Arc::clone(&self.metrics)
+    }
+
     /// The Prometheus text exposition of this handler's metrics.
     pub fn render_metrics(&self) -> String {
-        self.metrics
-            .render(self.store.live(), self.store.expired_total())
+        self.metrics.render(&StoreGauges {
+            sessions_live: self.store.live(),
+            sessions_expired: self.store.expired_total(),
+            session_memory_bytes: self.store.memory(),
+        })
+    }
+
+    /// Logs what throttled warnings held back, once their period has passed (called
+    /// periodically by the server).
+    pub fn log_suppressed_warnings(&self) {
+        if let Some(skipped) = self.nonfinite_warnings.summary() {
+            tracing::warn!(
+                skipped,
+                period = ?WARNING_PERIOD,
+                "more shift updates would have been non-finite and were skipped since the last \
+                 warning (esa_nonfinite_updates_skipped_total counts them all)"
+            );
+        }
     }
 
     /// Creates a session (a UUID id when none is given), or returns the
@@ -200,7 +254,7 @@ impl EsaHandler {
                 .chain(std::iter::repeat(false))
         };
         self.store.with_batch(&req.session_ids, |sessions| {
-            let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
+            let total = check_batch_values(sessions.iter().map(|s| s.action_dim()).sum())?;
             check_concatenated("actions", req.actions.len(), total, n)?;
             if !req.action_scales.is_empty() {
                 check_concatenated("action_scales", req.action_scales.len(), total, n)?;
@@ -275,7 +329,7 @@ impl EsaHandler {
                     .check_report(step, q, reference)
                     .map_err(|err| Error::item(index, err))?;
             }
-            let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
+            let total = check_batch_values(sessions.iter().map(|s| s.action_dim()).sum())?;
             let mut actions = Vec::with_capacity(total);
             for (index, ((((session, &step), &q), reference), id)) in sessions
                 .iter_mut()
@@ -310,26 +364,28 @@ impl EsaHandler {
     }
 
     fn note_nonfinite(&self, skipped: bool, session_id: &str) {
-        if skipped {
-            self.metrics.add_nonfinite_skipped(1);
+        if !skipped {
+            return;
+        }
+        self.metrics.add_nonfinite_skipped(1);
+        // One client can make every report non-finite: log once per period, count the rest.
+        if let Some(suppressed) = self.nonfinite_warnings.admit() {
             tracing::warn!(
                 session_id,
-                "shift update would be non-finite; kept the previous shift"
+                suppressed,
+                period = ?WARNING_PERIOD,
+                "shift update would be non-finite; kept the previous shift (this warning is \
+                 logged at most once per period, with the number suppressed since the last)"
             );
         }
     }
 }
 
-fn encoded<Req: Message + Default, Resp: Message>(
+fn encoded<Req: Message + Default + WireLimits, Resp: Message>(
     payload: &[u8],
     handle: impl FnOnce(Req) -> Result<Resp, Error>,
 ) -> Result<Vec<u8>, Error> {
-    let req = Req::decode(payload).map_err(|err| {
-        Error::InvalidArgument(format!(
-            "payload: expected an encoded request message: {err}"
-        ))
-    })?;
-    handle(req).map(|resp| resp.encode_to_vec())
+    handle(codec::decode(payload)?).map(|resp| resp.encode_to_vec())
 }
 
 fn check_batch_len(n: usize) -> Result<usize, Error> {
@@ -339,6 +395,18 @@ fn check_batch_len(n: usize) -> Result<usize, Error> {
         )));
     }
     Ok(n)
+}
+
+/// The action values of a batch (the dimensions of its sessions added up) are bounded too, so
+/// that the largest legal request has a size (`codec::MAX_REQUEST_BYTES`).
+fn check_batch_values(total: usize) -> Result<usize, Error> {
+    if total > MAX_BATCH_VALUES {
+        return Err(Error::InvalidArgument(format!(
+            "session_ids: the sessions' action_dim add up to {total}, expected at most \
+             {MAX_BATCH_VALUES} action values per batch; split the batch"
+        )));
+    }
+    Ok(total)
 }
 
 fn check_field_len(field: &str, len: usize, n: usize) -> Result<(), Error> {

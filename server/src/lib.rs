@@ -6,14 +6,19 @@
 //! and runs them against the [`store::SessionStore`] of `esa_core::Session`s.
 //! [`server::EsaServer`] assembles the gRPC server.
 
+pub mod codec;
+pub mod connections;
 pub mod convert;
 pub mod error;
 pub mod grpc;
+pub mod guard;
 pub mod handler;
 pub mod metrics;
+pub mod resources;
 pub mod rpc;
 pub mod server;
 pub mod store;
+pub mod throttle;
 pub mod zenoh_transport;
 
 pub use error::Error;

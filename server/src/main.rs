@@ -1,13 +1,17 @@
 //! The `esa-server` binary: parses flags, sets up logging, serves until
-//! SIGINT/SIGTERM.
+//! SIGINT/SIGTERM/SIGHUP or until its launcher dies (`--parent-pid`).
 
 mod cli;
 
 use std::io::{IsTerminal as _, Write as _};
+use std::os::unix::fs::PermissionsExt as _;
+use std::path::Path;
 use std::process::ExitCode;
+use std::time::Duration;
 
 use clap::Parser;
 use esa_server::metrics::serve_metrics;
+use esa_server::resources;
 use esa_server::server::io_context;
 use esa_server::zenoh_transport::ZenohService;
 use esa_server::{Error, Listener};
@@ -19,7 +23,16 @@ use crate::cli::{Cli, LogFormat};
 async fn main() -> ExitCode {
     let cli = Cli::parse();
     init_tracing(cli.log_format);
-    match run(cli).await {
+    let result = run(&cli).await;
+    // Also after a failed start: a launcher that handed over its directory may be gone.
+    if let Ok(Some(dir)) = cli.owned_dir() {
+        match std::fs::remove_dir_all(dir) {
+            Ok(()) => {}
+            Err(err) if err.kind() == std::io::ErrorKind::NotFound => {}
+            Err(err) => tracing::warn!(dir = %dir.display(), %err, "cannot remove the directory"),
+        }
+    }
+    match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
             tracing::error!(%err, "esa-server failed");
@@ -28,10 +41,20 @@ async fn main() -> ExitCode {
     }
 }
 
-async fn run(cli: Cli) -> Result<(), Error> {
-    let server = cli.server_builder().build();
+async fn run(cli: &Cli) -> Result<(), Error> {
+    cli.owned_dir()?;
+    // Before the defaults that derive from it (the connection limit) are computed.
+    match resources::raise_open_files_limit() {
+        Ok(files) => tracing::debug!(files, "open-files limit"),
+        Err(err) => tracing::warn!(%err, "cannot raise the open-files limit"),
+    }
+    let token = cli.auth_token_file.as_deref().map(read_token).transpose()?;
+    for warning in cli.exposure_warnings(token.is_some()) {
+        tracing::warn!("{warning}");
+    }
+    let server = cli.server_builder(token).build();
     let listener = match &cli.uds {
-        Some(path) => Listener::unix(path)?,
+        Some(path) => Listener::unix_with_mode(path, cli.uds_mode)?,
         None => Listener::tcp(cli.listen).await?,
     };
     if let Some(addr) = cli.metrics_listen {
@@ -57,7 +80,7 @@ async fn run(cli: Cli) -> Result<(), Error> {
         }
         None => None,
     };
-    let shutdown = shutdown_signal()?;
+    let shutdown = shutdown_signal(cli.parent_pid)?;
     // The line launchers (tests, the Python client) wait for; it comes after
     // binding, so connecting as soon as it is read succeeds.
     announce(&format!("listening on {}", listener.address()?));
@@ -90,17 +113,56 @@ fn init_tracing(format: LogFormat) {
     }
 }
 
-/// Installs SIGINT and SIGTERM handlers now (so a signal that arrives right
-/// after the `listening on` line is not lost) and returns a future that
-/// completes on the first of them.
-fn shutdown_signal() -> Result<impl std::future::Future<Output = ()>, Error> {
+/// The token in `path`, without surrounding whitespace (a trailing newline).
+fn read_token(path: &Path) -> Result<Vec<u8>, Error> {
+    let context = || format!("cannot read the auth token from {}", path.display());
+    let text = std::fs::read(path).map_err(|err| io_context(err, context()))?;
+    let token = text.trim_ascii();
+    if token.is_empty() {
+        return Err(Error::InvalidArgument(format!(
+            "--auth-token-file: expected a token in {}, got an empty file",
+            path.display()
+        )));
+    }
+    let mode = std::fs::metadata(path).map_err(|err| io_context(err, context()))?;
+    if mode.permissions().mode() & 0o077 != 0 {
+        tracing::warn!(
+            path = %path.display(),
+            "the auth token file is readable by other users; chmod 600 it"
+        );
+    }
+    Ok(token.to_vec())
+}
+
+/// How often the server checks that its launcher (`--parent-pid`) is alive.
+const PARENT_CHECK: Duration = Duration::from_millis(200);
+
+/// Installs SIGINT, SIGTERM and SIGHUP handlers now (so a signal that
+/// arrives right after the `listening on` line is not lost) and returns a
+/// future that completes on the first of them, or once this process is no
+/// longer the child of `parent` (it died, whatever killed it: the kernel
+/// hands orphans to another process).
+fn shutdown_signal(parent: Option<u32>) -> Result<impl std::future::Future<Output = ()>, Error> {
     use tokio::signal::unix::{signal, SignalKind};
     let mut interrupt = signal(SignalKind::interrupt())?;
     let mut terminate = signal(SignalKind::terminate())?;
+    let mut hangup = signal(SignalKind::hangup())?;
     Ok(async move {
+        let orphaned = async {
+            let Some(parent) = parent else {
+                return std::future::pending().await;
+            };
+            let mut ticks = tokio::time::interval(PARENT_CHECK);
+            while std::os::unix::process::parent_id() == parent {
+                ticks.tick().await;
+            }
+            tracing::info!(parent, "the parent process is gone");
+        };
         tokio::select! {
             _ = interrupt.recv() => {}
             _ = terminate.recv() => {}
+            _ = hangup.recv() => {}
+            () = orphaned => {}
         }
     })
 }

@@ -48,6 +48,16 @@ pub struct Metrics {
     requests: [[AtomicU64; CODE_NAMES.len()]; Rpc::ALL.len()],
     latency: [Histogram; Rpc::ALL.len()],
     nonfinite_skipped: AtomicU64,
+    connections_open: AtomicU64,
+    connections_evicted: AtomicU64,
+    connections_refused: AtomicU64,
+}
+
+/// The store's figures at the time of rendering.
+pub struct StoreGauges {
+    pub sessions_live: usize,
+    pub sessions_expired: u64,
+    pub session_memory_bytes: usize,
 }
 
 #[derive(Default)]
@@ -63,6 +73,9 @@ impl Default for Metrics {
             requests: std::array::from_fn(|_| std::array::from_fn(|_| AtomicU64::new(0))),
             latency: std::array::from_fn(|_| Histogram::default()),
             nonfinite_skipped: AtomicU64::new(0),
+            connections_open: AtomicU64::new(0),
+            connections_evicted: AtomicU64::new(0),
+            connections_refused: AtomicU64::new(0),
         }
     }
 }
@@ -87,32 +100,46 @@ impl Metrics {
         self.nonfinite_skipped.fetch_add(n, Ordering::Relaxed);
     }
 
+    pub fn connection_opened(&self) {
+        self.connections_open.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub fn connection_closed(&self) {
+        self.connections_open.fetch_sub(1, Ordering::Relaxed);
+    }
+
+    /// Records an idle connection closed to make room for a new one.
+    pub fn connection_evicted(&self) {
+        self.connections_evicted.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Records a connection refused because every held one had a call in flight.
+    pub fn connection_refused(&self) {
+        self.connections_refused.fetch_add(1, Ordering::Relaxed);
+    }
+
     /// The Prometheus text exposition of all metrics.
-    pub fn render(&self, sessions_live: usize, sessions_expired: u64) -> String {
+    pub fn render(&self, store: &StoreGauges) -> String {
         let mut out = String::with_capacity(4096);
         // Writing to a String cannot fail.
-        let _ = self.write_to(&mut out, sessions_live, sessions_expired);
+        let _ = self.write_to(&mut out, store);
         out
     }
 
-    fn write_to(
-        &self,
-        out: &mut String,
-        sessions_live: usize,
-        sessions_expired: u64,
-    ) -> std::fmt::Result {
-        writeln!(
-            out,
-            "# HELP esa_sessions_live Sessions currently held by the server."
-        )?;
-        writeln!(out, "# TYPE esa_sessions_live gauge")?;
-        writeln!(out, "esa_sessions_live {sessions_live}")?;
-        writeln!(
-            out,
-            "# HELP esa_sessions_expired_total Sessions removed after being idle longer than the TTL."
-        )?;
-        writeln!(out, "# TYPE esa_sessions_expired_total counter")?;
-        writeln!(out, "esa_sessions_expired_total {sessions_expired}")?;
+    fn write_to(&self, out: &mut String, store: &StoreGauges) -> std::fmt::Result {
+        let gauges = [
+            ("esa_sessions_live", "gauge", "Sessions currently held by the server.", store.sessions_live as u64),
+            ("esa_sessions_expired_total", "counter", "Sessions removed after being idle longer than the TTL.", store.sessions_expired),
+            ("esa_session_memory_bytes", "gauge", "Bytes the live sessions cost, as charged to --max-session-memory.", store.session_memory_bytes as u64),
+            ("esa_connections_open", "gauge", "gRPC connections currently held.", self.connections_open.load(Ordering::Relaxed)),
+            ("esa_connections_evicted_total", "counter", "Idle gRPC connections closed to make room for new ones at --max-connections.", self.connections_evicted.load(Ordering::Relaxed)),
+            ("esa_connections_refused_total", "counter", "gRPC connections refused at --max-connections because every held one had a call in flight.", self.connections_refused.load(Ordering::Relaxed)),
+        ];
+        for (name, kind, help, value) in gauges {
+            writeln!(out, "# HELP {name} {help}")?;
+            writeln!(out, "# TYPE {name} {kind}")?;
+            writeln!(out, "{name} {value}")?;
+        }
         writeln!(
             out,
             "# HELP esa_nonfinite_updates_skipped_total Reports whose shift update would have been non-finite and was skipped."
@@ -221,9 +248,16 @@ mod tests {
         metrics.observe(Rpc::Probe, Code::Ok, Duration::from_micros(3));
         metrics.observe(Rpc::Probe, Code::Ok, Duration::from_millis(2));
         metrics.observe(Rpc::Probe, Code::NotFound, Duration::from_secs(5));
-        let text = metrics.render(4, 1);
+        metrics.connection_opened();
+        let text = metrics.render(&StoreGauges {
+            sessions_live: 4,
+            sessions_expired: 1,
+            session_memory_bytes: 3000,
+        });
         assert!(text.contains("esa_sessions_live 4\n"));
         assert!(text.contains("esa_sessions_expired_total 1\n"));
+        assert!(text.contains("esa_session_memory_bytes 3000\n"));
+        assert!(text.contains("# TYPE esa_connections_open gauge\nesa_connections_open 1\n"));
         assert!(text.contains("esa_requests_total{rpc=\"Probe\",code=\"OK\"} 2\n"));
         assert!(text.contains("esa_requests_total{rpc=\"Probe\",code=\"NOT_FOUND\"} 1\n"));
         assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"5e-6\"} 1\n"));

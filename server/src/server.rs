@@ -4,7 +4,7 @@
 use std::future::Future;
 use std::io;
 use std::net::SocketAddr;
-use std::os::unix::fs::FileTypeExt;
+use std::os::unix::fs::{FileTypeExt, PermissionsExt};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -13,17 +13,21 @@ use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::{TcpListener, UnixListener};
 use tokio::sync::watch;
-use tokio_stream::wrappers::UnixListenerStream;
 use tokio_stream::Stream;
-use tonic::transport::server::{Connected, Router, TcpIncoming};
+use tonic::transport::server::{Connected, Router};
 use tonic_health::server::HealthReporter;
 
+use crate::codec::MAX_REQUEST_BYTES;
+use crate::connections::{ConnectionLimits, Incoming, Registry};
 use crate::error::Error;
 use crate::grpc::{stopped, GrpcService};
+use crate::guard::{GuardLayer, RequestLimits};
 use crate::handler::EsaHandler;
 use crate::pb;
 use crate::pb::esa_service_server::EsaServiceServer;
+use crate::resources;
 use crate::store::SessionStore;
+use crate::throttle::WARNING_PERIOD;
 
 /// Options of an [`EsaServer`]; defaults match the binary's flag defaults.
 #[derive(Clone, Debug)]
@@ -31,7 +35,14 @@ pub struct ServerBuilder {
     session_ttl: Option<Duration>,
     sweep_interval: Option<Duration>,
     max_sessions: usize,
+    max_session_memory: usize,
     max_message_bytes: usize,
+    max_request_memory: Option<usize>,
+    request_timeout: Duration,
+    connections: ConnectionLimits,
+    max_streams_per_connection: u32,
+    keepalive: Option<(Duration, Duration)>,
+    auth_token: Option<Vec<u8>>,
     shutdown_grace: Duration,
 }
 
@@ -41,7 +52,17 @@ impl Default for ServerBuilder {
             session_ttl: Some(Duration::from_secs(600)),
             sweep_interval: None,
             max_sessions: 100_000,
-            max_message_bytes: 64 << 20,
+            max_session_memory: resources::default_session_memory(),
+            max_message_bytes: MAX_REQUEST_BYTES,
+            max_request_memory: None,
+            request_timeout: Duration::from_secs(30),
+            connections: ConnectionLimits {
+                max: resources::default_max_connections(),
+                handshake_timeout: Duration::from_secs(10),
+            },
+            max_streams_per_connection: 128,
+            keepalive: Some((Duration::from_secs(30), Duration::from_secs(10))),
+            auth_token: None,
             shutdown_grace: Duration::from_secs(5),
         }
     }
@@ -68,10 +89,68 @@ impl ServerBuilder {
         self
     }
 
-    /// Largest gRPC message accepted, in bytes (large batches need more than
-    /// gRPC's usual 4 MiB).
+    /// Bytes the sessions held at once may cost (`store::session_cost`);
+    /// creating one that does not fit is RESOURCE_EXHAUSTED. Default: half
+    /// of the memory this process may use (`resources::memory_limit`).
+    pub fn max_session_memory(mut self, bytes: usize) -> Self {
+        self.max_session_memory = bytes;
+        self
+    }
+
+    /// Largest gRPC request message accepted, in bytes (default: the largest
+    /// legal request, `codec::MAX_REQUEST_BYTES`); a bigger one is
+    /// RESOURCE_EXHAUSTED from its header on, before it is buffered.
     pub fn max_message_bytes(mut self, bytes: usize) -> Self {
         self.max_message_bytes = bytes;
+        self
+    }
+
+    /// Bytes of request messages held at once over all calls (default: four
+    /// largest messages); a message that does not fit is RESOURCE_EXHAUSTED.
+    pub fn max_request_memory(mut self, bytes: usize) -> Self {
+        self.max_request_memory = Some(bytes);
+        self
+    }
+
+    /// How long a unary call, or one message of a stream once begun, may
+    /// take to arrive and be answered (default 30 s).
+    pub fn request_timeout(mut self, timeout: Duration) -> Self {
+        self.request_timeout = timeout;
+        self
+    }
+
+    /// Most connections held at once (default: what the open-files limit
+    /// allows, at most 4096); see `connections` for what happens at the limit.
+    pub fn max_connections(mut self, n: usize) -> Self {
+        self.connections.max = n;
+        self
+    }
+
+    /// How long a new connection may take to send the HTTP/2 preface (default 10 s).
+    pub fn handshake_timeout(mut self, timeout: Duration) -> Self {
+        self.connections.handshake_timeout = timeout;
+        self
+    }
+
+    /// Most concurrent calls (HTTP/2 streams) per connection (default 128).
+    pub fn max_streams_per_connection(mut self, n: u32) -> Self {
+        self.max_streams_per_connection = n;
+        self
+    }
+
+    /// HTTP/2 pings every `interval` on each connection; one not answered
+    /// within `timeout` closes the connection (default 30 s and 10 s; `None`
+    /// sends none).
+    pub fn keepalive(mut self, interval_and_timeout: Option<(Duration, Duration)>) -> Self {
+        self.keepalive = interval_and_timeout;
+        self
+    }
+
+    /// Requires every request to present `token` (gRPC metadata
+    /// `authorization: Bearer <token>`, or the Zenoh query attachment);
+    /// health checks are exempt.
+    pub fn auth_token(mut self, token: impl Into<Vec<u8>>) -> Self {
+        self.auth_token = Some(token.into());
         self
     }
 
@@ -88,13 +167,24 @@ impl ServerBuilder {
                 (ttl / 4).clamp(Duration::from_millis(100), Duration::from_secs(60))
             })
         });
+        let store = SessionStore::new(self.session_ttl, self.max_sessions, self.max_session_memory);
+        let handler = match self.auth_token {
+            Some(token) => EsaHandler::new(store).with_auth_token(token),
+            None => EsaHandler::new(store),
+        };
         EsaServer {
-            handler: Arc::new(EsaHandler::new(SessionStore::new(
-                self.session_ttl,
-                self.max_sessions,
-            ))),
+            handler: Arc::new(handler),
             sweep_interval,
-            max_message_bytes: self.max_message_bytes,
+            requests: RequestLimits {
+                max_message_bytes: self.max_message_bytes,
+                max_request_memory: self
+                    .max_request_memory
+                    .unwrap_or(self.max_message_bytes.saturating_mul(4)),
+                message_timeout: self.request_timeout,
+            },
+            connections: self.connections,
+            max_streams_per_connection: self.max_streams_per_connection,
+            keepalive: self.keepalive,
             shutdown_grace: self.shutdown_grace,
         }
     }
@@ -104,7 +194,10 @@ impl ServerBuilder {
 pub struct EsaServer {
     handler: Arc<EsaHandler>,
     sweep_interval: Option<Duration>,
-    max_message_bytes: usize,
+    requests: RequestLimits,
+    connections: ConnectionLimits,
+    max_streams_per_connection: u32,
+    keepalive: Option<(Duration, Duration)>,
     shutdown_grace: Duration,
 }
 
@@ -124,10 +217,17 @@ impl Listener {
         Ok(Listener::Tcp(listener))
     }
 
-    /// Binds a Unix domain socket at `path`. A socket file left behind by a
-    /// server that died is replaced; a live socket or any other file is an
-    /// error (and never deleted).
+    /// Binds a Unix domain socket at `path` that only this user can connect
+    /// to (mode 0600). A socket file left behind by a server that died is
+    /// replaced; a live socket or any other file is an error (and never
+    /// deleted).
     pub fn unix(path: &Path) -> Result<Self, Error> {
+        Self::unix_with_mode(path, 0o600)
+    }
+
+    /// [`Listener::unix`] with the socket file's permission bits `mode`
+    /// (connecting needs write permission, so 0660 lets the file's group in).
+    pub fn unix_with_mode(path: &Path, mode: u32) -> Result<Self, Error> {
         let context = || format!("cannot listen on unix:{}", path.display());
         if let Ok(meta) = std::fs::symlink_metadata(path) {
             let is_socket = meta.file_type().is_socket();
@@ -145,6 +245,9 @@ impl Listener {
             std::fs::remove_file(path).map_err(|err| io_context(err, context()))?;
         }
         let listener = UnixListener::bind(path).map_err(|err| io_context(err, context()))?;
+        // Until this runs the file has the umask's mode; the serve loop only starts after it.
+        std::fs::set_permissions(path, std::fs::Permissions::from_mode(mode))
+            .map_err(|err| io_context(err, context()))?;
         Ok(Listener::Unix(listener, path.to_path_buf()))
     }
 
@@ -179,25 +282,33 @@ impl EsaServer {
         let _sweeper = self
             .sweep_interval
             .map(|every| AbortOnDrop(spawn_sweeper(self.handler(), every)));
+        let _summaries = AbortOnDrop(spawn_warning_summaries(self.handler()));
 
         let (stop_tx, stop_rx) = watch::channel(false);
         let (health, health_service) = tonic_health::server::health_reporter();
         health.set_serving::<EsaServiceServer<GrpcService>>().await;
         let esa = EsaServiceServer::new(GrpcService::new(self.handler(), stop_rx))
-            .max_decoding_message_size(self.max_message_bytes);
+            .max_decoding_message_size(self.requests.max_message_bytes);
+        let (keepalive_interval, keepalive_timeout) = self.keepalive.unzip();
         let router = tonic::transport::Server::builder()
+            .timeout(self.requests.message_timeout)
+            .max_concurrent_streams(self.max_streams_per_connection)
+            .http2_keepalive_interval(keepalive_interval)
+            .http2_keepalive_timeout(keepalive_timeout)
+            .layer(GuardLayer::new(self.handler(), self.requests))
             .add_service(health_service)
             .add_service(reflection().build_v1()?)
             .add_service(reflection().build_v1alpha()?)
             .add_service(esa);
+        let registry = Registry::new(self.connections, self.handler.metrics());
         match listener {
             Listener::Tcp(listener) => {
-                let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+                let incoming = Incoming::new(listener, registry);
                 self.run(router, incoming, shutdown, health, stop_tx).await
             }
             Listener::Unix(listener, path) => {
                 let _remove_socket = RemoveOnDrop(path);
-                let incoming = UnixListenerStream::new(listener);
+                let incoming = Incoming::new(listener, registry);
                 self.run(router, incoming, shutdown, health, stop_tx).await
             }
         }
@@ -205,7 +316,7 @@ impl EsaServer {
 
     async fn run<I, IO, IE>(
         &self,
-        router: Router,
+        router: Router<tower::layer::util::Stack<GuardLayer, tower::layer::util::Identity>>,
         incoming: I,
         shutdown: impl Future<Output = ()>,
         health: HealthReporter,
@@ -264,6 +375,17 @@ fn spawn_sweeper(handler: Arc<EsaHandler>, every: Duration) -> tokio::task::Join
                     "expired idle sessions"
                 );
             }
+        }
+    })
+}
+
+/// Logs, once per period, what throttled warnings held back.
+fn spawn_warning_summaries(handler: Arc<EsaHandler>) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
+        let mut ticks = tokio::time::interval(WARNING_PERIOD);
+        loop {
+            ticks.tick().await;
+            handler.log_suppressed_warnings();
         }
     })
 }

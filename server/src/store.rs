@@ -5,6 +5,11 @@
 //! Idle sessions expire after the TTL. Expiry is checked on every lookup (so
 //! an expired session is NOT_FOUND exactly when its TTL has passed), and a
 //! periodic sweep frees the memory of sessions nobody asks for again.
+//!
+//! Two limits bound what the store holds: a count of sessions and a budget of
+//! bytes, since a D = 4096 session costs 400 times a D = 6 one. Both are
+//! checked before a session is stored, so reaching either is a
+//! RESOURCE_EXHAUSTED answer rather than an allocation failure.
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -12,13 +17,11 @@ use std::time::{Duration, Instant};
 
 use dashmap::mapref::entry::Entry as MapEntry;
 use dashmap::DashMap;
-use esa_core::Session;
+use esa_core::{footprint, Session};
 use parking_lot::{Mutex, MutexGuard};
 
+use crate::codec::MAX_ID_BYTES;
 use crate::error::Error;
-
-/// Longest accepted session id, in bytes.
-pub const MAX_ID_BYTES: usize = 128;
 
 /// One stored session. parking_lot's mutex does not poison, so a panic in one
 /// request could never make a session unusable for the next.
@@ -26,6 +29,22 @@ struct Slot {
     session: Mutex<Session>,
     /// Nanoseconds since the store's epoch of the last request that used it.
     last_used: AtomicU64,
+    /// Bytes charged to the memory budget for this session ([`session_cost`]).
+    cost: usize,
+}
+
+/// The bytes one stored session costs: the session ([`footprint::session_bytes`]),
+/// the rest of its slot with the `Arc`'s two counters, its id, its map entry
+/// (counted twice: a hash table that has just grown holds as much slack as
+/// entries), and an allocator header for each of its three allocations (slot,
+/// state matrix, id).
+pub fn session_cost(id: &str, action_dim: usize) -> usize {
+    const ALLOCATOR_HEADER: usize = 16;
+    footprint::session_bytes(action_dim) + size_of::<Slot>() - size_of::<Session>()
+        + 2 * size_of::<usize>()
+        + id.len()
+        + 2 * (size_of::<(String, Arc<Slot>)>() + 1)
+        + 3 * ALLOCATOR_HEADER
 }
 
 /// All live sessions of one server, shared by every transport.
@@ -34,22 +53,27 @@ pub struct SessionStore {
     // per process.
     sessions: DashMap<String, Arc<Slot>, foldhash::fast::RandomState>,
     live: AtomicUsize,
+    memory: AtomicUsize,
     expired_total: AtomicU64,
     ttl_nanos: Option<u64>,
     max_sessions: usize,
+    max_memory: usize,
     epoch: Instant,
 }
 
 impl SessionStore {
     /// A store whose sessions expire after `ttl` without use (`None` = never)
-    /// and which refuses to hold more than `max_sessions` at once.
-    pub fn new(ttl: Option<Duration>, max_sessions: usize) -> Self {
+    /// and which refuses to hold more than `max_sessions` at once, or sessions
+    /// costing more than `max_memory` bytes together ([`session_cost`]).
+    pub fn new(ttl: Option<Duration>, max_sessions: usize, max_memory: usize) -> Self {
         Self {
             sessions: DashMap::default(),
             live: AtomicUsize::new(0),
+            memory: AtomicUsize::new(0),
             expired_total: AtomicU64::new(0),
             ttl_nanos: ttl.map(duration_nanos),
             max_sessions,
+            max_memory,
             epoch: Instant::now(),
         }
     }
@@ -58,6 +82,16 @@ impl SessionStore {
     /// looked up or swept).
     pub fn live(&self) -> usize {
         self.live.load(Ordering::Relaxed)
+    }
+
+    /// Bytes the sessions currently held cost, by [`session_cost`].
+    pub fn memory(&self) -> usize {
+        self.memory.load(Ordering::Relaxed)
+    }
+
+    /// The session memory budget in bytes.
+    pub fn max_memory(&self) -> usize {
+        self.max_memory
     }
 
     /// Number of sessions removed because their TTL passed.
@@ -77,20 +111,22 @@ impl SessionStore {
             id
         };
         let now = self.now();
-        let existing = match self.sessions.entry(id.clone()) {
-            MapEntry::Vacant(vacant) => {
-                self.reserve()?;
-                vacant.insert(Slot::new(session, now));
-                return Ok(id);
-            }
-            MapEntry::Occupied(mut occupied) => {
-                if self.is_expired(occupied.get(), now) {
-                    // Same id as an expired session: a new session that takes its place.
-                    occupied.insert(Slot::new(session, now));
-                    self.expired_total.fetch_add(1, Ordering::Relaxed);
+        let cost = session_cost(&id, session.action_dim());
+        let existing = loop {
+            match self.sessions.entry(id.clone()) {
+                MapEntry::Vacant(vacant) => {
+                    self.reserve(cost)?;
+                    vacant.insert(Slot::new(session, now, cost));
                     return Ok(id);
                 }
-                Arc::clone(occupied.get())
+                MapEntry::Occupied(occupied) if self.is_expired(occupied.get(), now) => {
+                    // Same id as an expired session: it goes, and the new one is
+                    // charged like any other (its config, and so its cost, may differ).
+                    let (_, slot) = occupied.remove_entry();
+                    self.release(&slot);
+                    self.expired_total.fetch_add(1, Ordering::Relaxed);
+                }
+                MapEntry::Occupied(occupied) => break Arc::clone(occupied.get()),
             }
         };
         // Compared after releasing the shard lock so that a long batch holding
@@ -171,7 +207,7 @@ impl SessionStore {
             .sessions
             .remove(id)
             .ok_or_else(|| Error::NotFound(id.to_owned()))?;
-        self.live.fetch_sub(1, Ordering::Relaxed);
+        self.release(&slot);
         if self.is_expired(&slot, self.now()) {
             self.expired_total.fetch_add(1, Ordering::Relaxed);
             return Err(Error::NotFound(id.to_owned()));
@@ -185,10 +221,12 @@ impl SessionStore {
         let mut removed = 0;
         self.sessions.retain(|_, slot| {
             let keep = !self.is_expired(slot, now);
-            removed += usize::from(!keep);
+            if !keep {
+                self.release(slot);
+                removed += 1;
+            }
             keep
         });
-        self.live.fetch_sub(removed, Ordering::Relaxed);
         self.expired_total
             .fetch_add(removed as u64, Ordering::Relaxed);
         removed
@@ -212,30 +250,50 @@ impl SessionStore {
             }
             Some(_) => {}
         }
-        if self
+        if let Some((_, slot)) = self
             .sessions
             .remove_if(id, |_, slot| self.is_expired(slot, now))
-            .is_some()
         {
-            self.live.fetch_sub(1, Ordering::Relaxed);
+            self.release(&slot);
             self.expired_total.fetch_add(1, Ordering::Relaxed);
         }
         Err(Error::NotFound(id.to_owned()))
     }
 
-    fn reserve(&self) -> Result<(), Error> {
+    /// Counts one more session costing `cost` bytes, or says which limit it would pass.
+    fn reserve(&self, cost: usize) -> Result<(), Error> {
         self.live
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
                 (n < self.max_sessions).then_some(n + 1)
             })
-            .map(drop)
             .map_err(|n| {
                 Error::ResourceExhausted(format!(
                     "session limit reached: the server holds {n} live sessions \
                      (--max-sessions {}); close finished sessions or raise the limit",
                     self.max_sessions
                 ))
+            })?;
+        self.memory
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |used| {
+                used.checked_add(cost)
+                    .filter(|&total| total <= self.max_memory)
             })
+            .map(drop)
+            .map_err(|used| {
+                self.live.fetch_sub(1, Ordering::AcqRel);
+                Error::ResourceExhausted(format!(
+                    "session memory budget reached: the server's sessions take {used} bytes \
+                     and this one needs {cost} more (--max-session-memory {}); close finished \
+                     sessions, use fewer action dimensions or raise the budget",
+                    self.max_memory
+                ))
+            })
+    }
+
+    /// Uncounts a session that left the map.
+    fn release(&self, slot: &Slot) {
+        self.live.fetch_sub(1, Ordering::AcqRel);
+        self.memory.fetch_sub(slot.cost, Ordering::AcqRel);
     }
 
     fn is_expired(&self, slot: &Slot, now: u64) -> bool {
@@ -249,10 +307,11 @@ impl SessionStore {
 }
 
 impl Slot {
-    fn new(session: Session, now: u64) -> Arc<Self> {
+    fn new(session: Session, now: u64, cost: usize) -> Arc<Self> {
         Arc::new(Slot {
             session: Mutex::new(session),
             last_used: AtomicU64::new(now),
+            cost,
         })
     }
 
@@ -293,7 +352,7 @@ mod tests {
     }
 
     fn store_with(ids: &[&str]) -> SessionStore {
-        let store = SessionStore::new(None, 100);
+        let store = SessionStore::new(None, 100, usize::MAX);
         for id in ids {
             store.create((*id).to_owned(), session()).unwrap();
         }
@@ -354,15 +413,32 @@ mod tests {
     }
 
     #[test]
+    fn the_memory_budget_refuses_what_does_not_fit_and_frees_what_closes() {
+        let cost = session_cost("a", 1);
+        let store = SessionStore::new(Some(Duration::from_secs(60)), 100, 2 * cost);
+        store.create("a".into(), session()).unwrap();
+        store.create("b".into(), session()).unwrap();
+        let err = store.create("c".into(), session()).unwrap_err();
+        assert_eq!(err.code(), tonic::Code::ResourceExhausted);
+        assert!(err.to_string().contains("--max-session-memory"), "{err}");
+        assert_eq!((store.live(), store.memory()), (2, 2 * cost));
+        store.close("a").unwrap();
+        store.create("c".into(), session()).unwrap();
+        assert_eq!((store.live(), store.memory()), (2, 2 * cost));
+    }
+
+    #[test]
     fn an_expired_id_is_replaced_and_counted_once() {
-        let store = SessionStore::new(Some(Duration::ZERO), 1);
+        let store = SessionStore::new(Some(Duration::ZERO), 1, usize::MAX);
         store.create("x".into(), session()).unwrap();
         std::thread::sleep(Duration::from_millis(2));
         // At the limit, but the expired session's slot is reused.
         store.create("x".into(), session()).unwrap();
         assert_eq!((store.live(), store.expired_total()), (1, 1));
+        assert_eq!(store.memory(), session_cost("x", 1));
         std::thread::sleep(Duration::from_millis(2));
         assert_eq!(store.sweep(), 1);
         assert_eq!((store.live(), store.expired_total()), (0, 2));
+        assert_eq!(store.memory(), 0);
     }
 }

@@ -5,7 +5,8 @@
 //!
 //! A thin adapter: every query goes to the same [`EsaHandler`] the gRPC
 //! service uses, so a session created over one transport is usable over the
-//! other.
+//! other. When the server requires an auth token, a query carries it as its
+//! attachment.
 
 use std::sync::Arc;
 
@@ -144,8 +145,11 @@ impl ZenohService {
             let runtime = runtime.clone();
             // Zenoh calls back on its own threads; answering on the Tokio
             // runtime lets queries (and big batches) run concurrently.
+            // Complete: this server alone answers its keys, so a querier that targets complete
+            // queryables (and routers doing the same) never mixes in another peer's reply.
             let queryable = session
                 .declare_queryable(key.as_str())
+                .complete(true)
                 .callback(move |query| {
                     runtime.spawn(answer(Arc::clone(&handler), rpc, query));
                 })
@@ -202,7 +206,11 @@ fn check_prefix(prefix: &str) -> Result<(), Error> {
 
 async fn answer(handler: Arc<EsaHandler>, rpc: Rpc, query: Query) {
     let request = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
-    let sent = match handler.handle_encoded(rpc, &request) {
+    let token = query.attachment().map(|a| a.to_bytes());
+    let answer = handler
+        .authorize(token.as_deref())
+        .and_then(|()| handler.handle_encoded(rpc, &request));
+    let sent = match answer {
         Ok(response) => {
             query
                 .reply(query.key_expr().clone(), response)

@@ -1,64 +1,13 @@
 //! The `esa-server` executable: flags, the `listening on` line, the metrics
 //! flag, and clean shutdown on SIGTERM/SIGINT.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, ChildStdout, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
-use crate::common::{config, create, get, Client};
-
-const BIN: &str = env!("CARGO_BIN_EXE_esa-server");
-
-fn launch(args: &[&str]) -> (Child, BufReader<ChildStdout>) {
-    let mut child = Command::new(BIN)
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start esa-server");
-    let stdout = BufReader::new(child.stdout.take().expect("piped stdout"));
-    (child, stdout)
-}
-
-/// Reads stdout lines until one starts with `prefix`; returns the rest.
-fn read_line_after(stdout: &mut BufReader<ChildStdout>, prefix: &str) -> String {
-    let mut line = String::new();
-    loop {
-        line.clear();
-        let n = stdout.read_line(&mut line).expect("read stdout");
-        assert!(n > 0, "esa-server closed stdout before printing {prefix:?}");
-        if let Some(rest) = line.trim_end().strip_prefix(prefix) {
-            return rest.to_string();
-        }
-    }
-}
-
-fn signal(child: &Child, name: &str) {
-    let status = Command::new("kill")
-        .args([&format!("-{name}"), &child.id().to_string()])
-        .status()
-        .expect("run kill");
-    assert!(status.success());
-}
-
-/// Waits for the child to exit and returns whether it succeeded. The servers
-/// run with a shutdown grace far beyond this deadline, so exiting in time
-/// means shutdown did not hang on connections. The wait is async so that
-/// this runtime's client connections keep answering the server's goodbye.
-async fn wait_exit(child: &mut Child) -> bool {
-    let deadline = Instant::now() + Duration::from_secs(30);
-    loop {
-        if let Some(status) = child.try_wait().expect("wait") {
-            return status.success();
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("esa-server did not exit after the signal");
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-}
+use crate::common::{
+    config, create, eventually, exited, get, launch, read_line_after, signal, signal_pid,
+    wait_exit, Client, BIN,
+};
 
 #[test]
 fn help_documents_every_flag() {
@@ -70,8 +19,20 @@ fn help_documents_every_flag() {
         "--uds",
         "--session-ttl",
         "--max-sessions",
+        "--max-session-memory",
         "--metrics-listen",
         "--max-message-bytes",
+        "--max-request-memory",
+        "--request-timeout",
+        "--max-connections",
+        "--handshake-timeout",
+        "--max-streams-per-connection",
+        "--keepalive-interval",
+        "--keepalive-timeout",
+        "--auth-token-file",
+        "--uds-mode",
+        "--parent-pid",
+        "--remove-dir-on-exit",
         "--shutdown-grace",
         "--log-format",
         "--zenoh",
@@ -101,6 +62,10 @@ fn bad_flags_are_rejected_with_a_message() {
         &["--shard", "0/2"],
         &["--zenoh", "--shard", "2/2"],
         &["--zenoh", "--shard", "two"],
+        &["--max-session-memory", "lots"],
+        &["--request-timeout", "0"],
+        &["--uds-mode", "999", "--uds", "/tmp/x.sock"],
+        &["--remove-dir-on-exit", "/tmp"],
     ] {
         let output = Command::new(BIN).args(args).output().unwrap();
         assert_eq!(output.status.code(), Some(2), "{args:?}");
@@ -233,4 +198,61 @@ fn a_bad_zenoh_config_stops_the_server_with_a_message() {
     assert_eq!(output.status.code(), Some(1));
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("/nonexistent.json5"), "{stderr}");
+}
+
+/// A launcher (here a shell) passes `--parent-pid $$`: whatever kills the
+/// launcher, the server notices it is orphaned, shuts down and removes its
+/// directory (issue 14, finding 5).
+#[tokio::test]
+async fn the_server_exits_with_its_parent_whatever_kills_it() {
+    for signal_name in ["KILL", "TERM", "HUP"] {
+        let dir = tempfile::tempdir().unwrap();
+        let script = r#""$0" --uds "$1/esa.sock" --remove-dir-on-exit "$1" --parent-pid $$ \
+            >/dev/null 2>&1 </dev/null & echo $!; wait"#;
+        let mut parent = Command::new("bash")
+            .args(["-c", script, BIN, dir.path().to_str().unwrap()])
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut pid = String::new();
+        std::io::BufRead::read_line(
+            &mut std::io::BufReader::new(parent.stdout.take().unwrap()),
+            &mut pid,
+        )
+        .unwrap();
+        let server: u32 = pid.trim().parse().unwrap();
+        let socket = dir.path().join("esa.sock");
+        assert!(
+            eventually(Duration::from_secs(10), || socket.exists()).await,
+            "the server did not start"
+        );
+        signal(&parent, signal_name);
+        parent.wait().unwrap();
+        let gone = eventually(Duration::from_secs(5), || exited(server)).await;
+        if !gone {
+            signal_pid(server, "KILL");
+        }
+        assert!(gone, "the server outlived its parent's SIG{signal_name}");
+        assert!(
+            !dir.path().exists(),
+            "SIG{signal_name}: directory left behind"
+        );
+    }
+}
+
+#[test]
+fn an_auth_token_file_must_hold_a_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty");
+    std::fs::write(&empty, "\n").unwrap();
+    for path in [empty.as_path(), &dir.path().join("missing")] {
+        let output = Command::new(BIN)
+            .args(["--listen", "127.0.0.1:0", "--auth-token-file"])
+            .arg(path)
+            .output()
+            .unwrap();
+        assert_eq!(output.status.code(), Some(1));
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains(path.to_str().unwrap()), "{stderr}");
+    }
 }

@@ -1,7 +1,11 @@
-//! Starting servers and building requests for the tests.
+//! Starting servers (in this process, or the `esa-server` executable) and
+//! building requests for the tests.
 
+use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
+use std::process::{Child, ChildStdout, Command, Stdio};
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use esa_server::pb;
 use esa_server::pb::esa_service_client::EsaServiceClient;
@@ -193,4 +197,188 @@ pub fn q_of(probe: &[f64]) -> f64 {
         .enumerate()
         .map(|(i, u)| (u - 0.1 * (i as f64 + 1.0)).powi(2))
         .sum::<f64>()
+}
+
+pub const BIN: &str = env!("CARGO_BIN_EXE_esa-server");
+
+/// Starts the executable with `args`; stdout is piped for [`read_line_after`].
+pub fn launch(args: &[&str]) -> (Child, BufReader<ChildStdout>) {
+    launch_limited("", args)
+}
+
+/// [`launch`] under a bash `ulimit` prefix such as `ulimit -n 128` (empty:
+/// none), so that the server starts with those resource limits.
+pub fn launch_limited(ulimits: &str, args: &[&str]) -> (Child, BufReader<ChildStdout>) {
+    let script = format!("{ulimits}\nexec \"$0\" \"$@\"");
+    let mut child = Command::new("bash")
+        .arg("-c")
+        .arg(script)
+        .arg(BIN)
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start esa-server");
+    let stdout = BufReader::new(child.stdout.take().expect("piped stdout"));
+    (child, stdout)
+}
+
+/// Reads stdout lines until one starts with `prefix`; returns the rest.
+pub fn read_line_after(stdout: &mut BufReader<ChildStdout>, prefix: &str) -> String {
+    let mut line = String::new();
+    loop {
+        line.clear();
+        let n = stdout.read_line(&mut line).expect("read stdout");
+        assert!(n > 0, "esa-server closed stdout before printing {prefix:?}");
+        if let Some(rest) = line.trim_end().strip_prefix(prefix) {
+            return rest.to_string();
+        }
+    }
+}
+
+/// Starts the executable on `127.0.0.1:0` with `args` (after `ulimits`, as
+/// for [`launch_limited`]) and connects a client.
+pub async fn launch_tcp(ulimits: &str, args: &[&str]) -> (Child, String) {
+    let (child, mut stdout) =
+        launch_limited(ulimits, &[&["--listen", "127.0.0.1:0"], args].concat());
+    let addr = read_line_after(&mut stdout, "listening on ");
+    (child, format!("http://{addr}"))
+}
+
+pub fn signal(child: &Child, name: &str) {
+    signal_pid(child.id(), name);
+}
+
+pub fn signal_pid(pid: u32, name: &str) {
+    let status = Command::new("kill")
+        .args([&format!("-{name}"), &pid.to_string()])
+        .status()
+        .expect("run kill");
+    assert!(status.success());
+}
+
+/// Waits for the child to exit and returns whether it succeeded. The servers
+/// run with a shutdown grace far beyond this deadline, so exiting in time
+/// means shutdown did not hang on connections. The wait is async so that
+/// this runtime's client connections keep answering the server's goodbye.
+pub async fn wait_exit(child: &mut Child) -> bool {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        if let Some(status) = child.try_wait().expect("wait") {
+            return status.success();
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("esa-server did not exit after the signal");
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// A field of `/proc/<pid>/status` in bytes (`VmRSS`, `VmHWM`, ...).
+pub fn proc_status_bytes(pid: u32, field: &str) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("proc status");
+    let kib: u64 = status
+        .lines()
+        .find_map(|line| line.strip_prefix(field)?.strip_prefix(':'))
+        .and_then(|rest| rest.trim().trim_end_matches(" kB").parse().ok())
+        .expect("a kB field");
+    kib * 1024
+}
+
+/// CPU time (user + system) the process has used so far.
+pub fn cpu_time(pid: u32) -> Duration {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).expect("proc stat");
+    // Fields after the parenthesized command name; utime and stime are the 12th and 13th.
+    let fields: Vec<&str> = stat
+        .rsplit_once(')')
+        .expect("comm")
+        .1
+        .split_whitespace()
+        .collect();
+    let ticks: u64 = fields[11].parse::<u64>().unwrap() + fields[12].parse::<u64>().unwrap();
+    // USER_HZ is 100 on every Linux configuration that matters here.
+    Duration::from_millis(ticks * 10)
+}
+
+/// Whether `pid` has exited (a zombie nobody reaped counts as exited).
+pub fn exited(pid: u32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Err(_) => true,
+        Ok(stat) => stat
+            .rsplit_once(')')
+            .is_some_and(|(_, rest)| rest.trim_start().starts_with('Z')),
+    }
+}
+
+/// Polls `done` every 20 ms for at most `limit`; returns whether it came true.
+pub async fn eventually(limit: Duration, mut done: impl FnMut() -> bool) -> bool {
+    let deadline = Instant::now() + limit;
+    while Instant::now() < deadline {
+        if done() {
+            return true;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    done()
+}
+
+/// Passes request bytes through unencoded, so tests can send malformed or hostile messages.
+#[derive(Clone, Copy, Default)]
+pub struct RawCodec;
+
+impl tonic::codec::Codec for RawCodec {
+    type Encode = Vec<u8>;
+    type Decode = Vec<u8>;
+    type Encoder = RawCodec;
+    type Decoder = RawCodec;
+
+    fn encoder(&mut self) -> RawCodec {
+        RawCodec
+    }
+
+    fn decoder(&mut self) -> RawCodec {
+        RawCodec
+    }
+}
+
+impl tonic::codec::Encoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+
+    fn encode(
+        &mut self,
+        item: Vec<u8>,
+        buf: &mut tonic::codec::EncodeBuf<'_>,
+    ) -> Result<(), Status> {
+        bytes::BufMut::put_slice(buf, &item);
+        Ok(())
+    }
+}
+
+impl tonic::codec::Decoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+
+    fn decode(&mut self, buf: &mut tonic::codec::DecodeBuf<'_>) -> Result<Option<Vec<u8>>, Status> {
+        use bytes::Buf as _;
+        Ok(Some(buf.copy_to_bytes(buf.remaining()).to_vec()))
+    }
+}
+
+/// Calls `method` of esa.v1.EsaService at `url` with `bytes` as the request message.
+pub async fn call_raw(url: &str, method: &str, bytes: Vec<u8>) -> Result<Vec<u8>, Status> {
+    let channel = tonic::transport::Endpoint::from_shared(url.to_string())
+        .expect("url")
+        .connect()
+        .await
+        .expect("connect");
+    let mut grpc = tonic::client::Grpc::new(channel);
+    grpc.ready().await.expect("ready");
+    let path =
+        http::uri::PathAndQuery::try_from(format!("/esa.v1.EsaService/{method}")).expect("path");
+    grpc.unary(tonic::Request::new(bytes), path, RawCodec)
+        .await
+        .map(tonic::Response::into_inner)
 }

@@ -2,16 +2,20 @@
 //! (or a Unix socket) and calls it through the generated gRPC client, except
 //! `binary`, which runs the `esa-server` executable itself.
 
+mod auth;
 mod batch;
 mod binary;
 mod common;
 mod errors;
+mod hygiene;
 mod lifecycle;
 mod limits;
+mod memory;
 mod robustness;
 mod section_1b;
 mod stream;
 mod transport;
 mod ttl;
 mod update_law;
+mod warnings;
 mod zenoh_transport;

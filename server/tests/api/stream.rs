@@ -13,7 +13,7 @@ use crate::common::{config, create, get, start, start_with, Client};
 
 pub(crate) struct Stream {
     requests: mpsc::Sender<pb::StepStreamRequest>,
-    responses: Streaming<pb::StepStreamResponse>,
+    pub(crate) responses: Streaming<pb::StepStreamResponse>,
 }
 
 impl Stream {

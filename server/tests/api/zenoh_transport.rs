@@ -266,3 +266,31 @@ async fn wildcard_prefixes_are_refused() {
     let refused = ZenohService::start(handler, config, "esa/*").await;
     assert!(refused.is_err_and(|err| err.code() == Code::InvalidArgument));
 }
+
+/// Complete queryables: a query that only wants answers from servers
+/// holding the whole key space (as routers and careful clients ask) still
+/// reaches this one (issue 14, finding 3).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn queryables_are_declared_complete() {
+    let both = start_both("complete/esa/v1").await;
+    let request = pb::GetSessionRequest {
+        session_id: "none".into(),
+    };
+    let replies = both
+        .peer
+        .get("complete/esa/v1/GetSession")
+        .payload(request.encode_to_vec())
+        .target(zenoh::query::QueryTarget::AllComplete)
+        .timeout(Duration::from_secs(5))
+        .await
+        .unwrap();
+    let reply = replies
+        .recv_async()
+        .await
+        .expect("a complete queryable answers");
+    let error =
+        pb::StreamError::decode(&*reply.result().expect_err("unknown id").payload().to_bytes())
+            .unwrap();
+    assert_eq!(error.code, Code::NotFound as i32);
+    both.stop().await;
+}
