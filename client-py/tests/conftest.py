@@ -78,5 +78,5 @@ def zenoh_client(server_bin):
 @pytest.fixture(scope="session")
 def zenoh_grpc_client(zenoh_client):
     """A gRPC client of the same server as ``zenoh_client``: same sessions, other transport."""
-    with EsaClient(zenoh_client.server.address) as c:
+    with EsaClient(zenoh_client.server.address, token=zenoh_client.server.token) as c:
         yield c

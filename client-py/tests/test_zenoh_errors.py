@@ -20,10 +20,12 @@ from esa_client import (
     SessionConfig,
     SessionNotFound,
     StepMismatch,
+    Unauthenticated,
     ZenohEsaClient,
 )
 from esa_client._proto.esa.v1 import esa_pb2
-from esa_client.zenoh_transport import peer_config
+from esa_client.sidecar import ServerProcess
+from esa_client.zenoh_transport import TwoServersAnswered, peer_config
 
 CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
 
@@ -96,12 +98,44 @@ def test_batch_errors_name_the_item_and_change_nothing(zenoh_client, use_stream)
 
 
 def test_garbage_bytes_get_a_stream_error_payload(zenoh_client):
-    """The wire format itself: a reply error whose payload is a StreamError message."""
+    """The wire format itself: a reply error whose payload is a StreamError message.
+
+    The spawned server requires its token as the query's attachment; without it, even
+    garbage gets UNAUTHENTICATED.
+    """
+    expected = {
+        None: grpc.StatusCode.UNAUTHENTICATED,
+        zenoh_client.server.token: grpc.StatusCode.INVALID_ARGUMENT,
+    }
     with zenoh.open(peer_config(zenoh_client.address.split(","), 5.0)) as session:
-        replies = list(session.get("esa/v1/Probe", payload=b"\xff\xff\xff", timeout=5.0))
-    assert len(replies) == 1 and replies[0].err is not None
-    error = esa_pb2.StreamError.FromString(replies[0].err.payload.to_bytes())
-    assert error.code == grpc.StatusCode.INVALID_ARGUMENT.value[0] and error.message
+        for token, code in expected.items():
+            replies = list(
+                session.get("esa/v1/Probe", payload=b"\xff\xff\xff", attachment=token, timeout=5.0)
+            )
+            assert len(replies) == 1 and replies[0].err is not None
+            error = esa_pb2.StreamError.FromString(replies[0].err.payload.to_bytes())
+            assert error.code == code.value[0] and error.message
+
+
+def test_without_the_token_calls_are_unauthenticated(zenoh_client):
+    with ZenohEsaClient(zenoh_client.address, timeout=5.0, wait_ready=False) as stranger:
+        with pytest.raises(Unauthenticated):
+            stranger.create_session(CONFIG)
+
+
+def test_a_second_server_on_the_same_keys_is_detected(server_bin, zenoh_client):
+    """Two servers answering one key (here a second real one; on an open network it
+    could be an impostor): the client trusts neither answer."""
+    token = zenoh_client.server.token
+    impostor = ServerProcess(server_bin, token=token, extra_args=["--zenoh"])
+    try:
+        locators = impostor.announced("zenoh listening on ", 30.0)
+        endpoints = [*zenoh_client.address.split(","), *locators]
+        with ZenohEsaClient(endpoints, timeout=5.0, token=token) as confused:
+            with pytest.raises(TwoServersAnswered, match="answered 2 times"):
+                confused.create_session(CONFIG)
+    finally:
+        impostor.stop()
 
 
 def test_no_server_on_the_prefix_is_unavailable_at_once(zenoh_client):

@@ -106,7 +106,8 @@ def test_health_and_readiness(zenoh_client):
 def test_a_second_client_connects_to_the_announced_locator(zenoh_client, own_config):
     endpoints = zenoh_client.address.split(",")
     config = peer_config(endpoints, 2.0) if own_config else None
-    with ZenohEsaClient(endpoints, timeout=2.0, config=config) as other:
+    token = zenoh_client.server.token
+    with ZenohEsaClient(endpoints, timeout=2.0, config=config, token=token) as other:
         session = other.create_session(CONFIG)
         assert zenoh_client.session_state(session.id).step == 0
         session.close()

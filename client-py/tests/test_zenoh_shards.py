@@ -43,7 +43,7 @@ def sharded(server_bin):
 @pytest.fixture(scope="module")
 def shard_grpc(sharded):
     """A gRPC client per shard process, to see which process holds which session."""
-    clients = [EsaClient(server.address) for server in sharded.servers]
+    clients = [EsaClient(server.address, token=server.token) for server in sharded.servers]
     yield clients
     for client in clients:
         client.close()

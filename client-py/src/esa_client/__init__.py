@@ -27,6 +27,7 @@ from .errors import (
     SessionAlreadyExists,
     SessionNotFound,
     StepMismatch,
+    Unauthenticated,
 )
 from .session import Session, SessionBatch, SessionState
 
@@ -59,6 +60,7 @@ __all__ = [
     "SessionState",
     "ShardedEsaClient",
     "StepMismatch",
+    "Unauthenticated",
     "ZenohEsaClient",
 ]
 

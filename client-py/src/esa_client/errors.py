@@ -40,7 +40,20 @@ class StepMismatch(EsaError):
 
 
 class ResourceExhausted(EsaError):
-    """The server holds its maximum number of live sessions (``RESOURCE_EXHAUSTED``)."""
+    """A server limit is reached (``RESOURCE_EXHAUSTED``).
+
+    The message names the limit: live sessions (``--max-sessions``), session memory
+    (``--max-session-memory``), the size of one request (``--max-message-bytes``) or the
+    request memory of all calls in flight (``--max-request-memory``).
+    """
+
+
+class Unauthenticated(EsaError, PermissionError):
+    """The server requires an auth token and none, or another one, was sent (``UNAUTHENTICATED``).
+
+    Give the client the server's token: ``EsaClient(..., token=...)``, ``token_file=...`` or
+    the ``ESA_AUTH_TOKEN`` environment variable.
+    """
 
 
 class SessionAlreadyExists(EsaError):
@@ -61,6 +74,7 @@ _BY_CODE: dict[grpc.StatusCode, type[EsaError]] = {
     grpc.StatusCode.FAILED_PRECONDITION: StepMismatch,
     grpc.StatusCode.RESOURCE_EXHAUSTED: ResourceExhausted,
     grpc.StatusCode.ALREADY_EXISTS: SessionAlreadyExists,
+    grpc.StatusCode.UNAUTHENTICATED: Unauthenticated,
     grpc.StatusCode.UNAVAILABLE: ServerUnavailable,
     grpc.StatusCode.DEADLINE_EXCEEDED: DeadlineExceeded,
 }

@@ -1,15 +1,20 @@
 """Finding, starting and stopping a private ``esa-server`` process (used by ``EsaClient.spawn``).
 
-The server listens on a Unix socket in a fresh temporary directory, so nothing
-else can reach it and nothing is left behind: :meth:`ServerProcess.stop` sends
-SIGTERM (then SIGKILL after a grace period) and removes the directory, and a
+The server listens on a Unix socket (mode 0600) in a fresh temporary directory, so
+no other user can reach it and nothing is left behind: :meth:`ServerProcess.stop`
+sends SIGTERM (then SIGKILL after a grace period) and removes the directory, and a
 ``weakref.finalize`` hook does the same at interpreter exit or garbage collection.
+If this process dies without running either (SIGKILL, or a signal Python does not
+handle such as SIGTERM or SIGHUP), the server notices that its parent is gone
+(``--parent-pid``), shuts down and removes the directory itself
+(``--remove-dir-on-exit``).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import numbers
 import os
 import shutil
 import signal
@@ -86,6 +91,17 @@ def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
     )
 
 
+def _limit_args(name: str, value: float | None, minimum: int, *, integral: bool) -> list[str]:
+    """``--name value`` for an optional server limit; none when ``value`` is None."""
+    if value is None:
+        return []
+    kind = numbers.Integral if integral else numbers.Real
+    if isinstance(value, bool) or not isinstance(value, kind) or not value >= minimum:
+        what = "an integer" if integral else "a number"
+        raise ValueError(f"expected {name} to be {what} >= {minimum} or None, got {value!r}")
+    return [f"--{name.replace('_', '-')}", str(value)]
+
+
 def _terminate(process: subprocess.Popen[bytes], workdir: Path, grace: float) -> None:
     if process.poll() is None:
         process.send_signal(signal.SIGTERM)
@@ -104,6 +120,7 @@ class ServerProcess:
         binary: The executable that was started.
         address: The gRPC target, ``unix:/tmp/esa-.../esa.sock``.
         socket_path: The Unix socket path.
+        token: The auth token the server requires, or None.
     """
 
     def __init__(
@@ -112,6 +129,8 @@ class ServerProcess:
         *,
         session_ttl: float | None = None,
         max_sessions: int | None = None,
+        max_session_memory: int | None = None,
+        token: str | None = None,
         extra_args: Sequence[str] = (),
         stop_grace: float = 5.0,
     ) -> None:
@@ -119,21 +138,48 @@ class ServerProcess:
 
         Args:
             binary: Path of the executable; None searches for it.
-            session_ttl: ``--session-ttl`` in seconds; None = the server's default.
-            max_sessions: ``--max-sessions``; None = the server's default.
+            session_ttl: ``--session-ttl`` in seconds (0 = never); None = the server's
+                default (600).
+            max_sessions: ``--max-sessions``; None = the server's default (100,000).
+            max_session_memory: ``--max-session-memory`` in bytes; None = the server's
+                default (half of the memory the process may use).
+            token: An auth token the server will require (``--auth-token-file``, written
+                to a file only this user can read); None = no token.
             extra_args: More command-line arguments, appended as given.
             stop_grace: Seconds to wait after SIGTERM before SIGKILL.
+
+        Raises:
+            ValueError: If a limit is not a number at least its minimum, or the token is empty.
         """
+        limits = [
+            *_limit_args("session_ttl", session_ttl, 0, integral=False),
+            *_limit_args("max_sessions", max_sessions, 1, integral=True),
+            *_limit_args("max_session_memory", max_session_memory, 1, integral=True),
+        ]
+        if token is not None and not token.strip():
+            raise ValueError(f"expected a non-empty token or None, got {token!r}")
         self.binary = find_server_binary(binary)
+        self.token = token
         self._workdir = Path(tempfile.mkdtemp(prefix="esa-server-"))
         self.socket_path = self._workdir / "esa.sock"
         self.address = f"unix:{self.socket_path}"
         self._log_path = self._workdir / "server.log"
-        args = [str(self.binary), "--uds", str(self.socket_path)]
-        if session_ttl is not None:
-            args += ["--session-ttl", str(session_ttl)]
-        if max_sessions is not None:
-            args += ["--max-sessions", str(max_sessions)]
+        args = [
+            str(self.binary),
+            "--uds",
+            str(self.socket_path),
+            # Whatever ends this process, the server follows and cleans up after itself.
+            "--parent-pid",
+            str(os.getpid()),
+            "--remove-dir-on-exit",
+            str(self._workdir),
+            *limits,
+        ]
+        if token is not None:
+            token_path = self._workdir / "token"
+            token_path.touch(mode=0o600)
+            token_path.write_text(token)
+            args += ["--auth-token-file", str(token_path)]
         args += list(extra_args)
         with open(self._log_path, "wb") as log:
             try:

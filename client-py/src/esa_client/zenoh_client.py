@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import grpc
 import zenoh
 
-from .client import EsaClient, connect_spawned
+from .client import EsaClient, connect_spawned, resolve_token
 from .errors import ServerUnavailable
 from .sharding import BatchTransport, ShardedBatchTransport, ShardedStub, shard_of, shard_prefix
 from .sidecar import ServerProcess
@@ -44,14 +45,16 @@ def _endpoints(connect: str | Sequence[str]) -> tuple[str, ...]:
 def _spawn_zenoh_server(
     binary: str | os.PathLike[str] | None,
     args: Sequence[str],
-    session_ttl: float | None,
-    max_sessions: int | None,
+    limits: dict[str, float | None],
+    token: str,
     startup_timeout: float,
 ) -> tuple[ServerProcess, list[str]]:
-    """Starts ``esa-server --zenoh`` (Zenoh on loopback, gRPC on a private socket)."""
-    server = ServerProcess(
-        binary, session_ttl=session_ttl, max_sessions=max_sessions, extra_args=["--zenoh", *args]
-    )
+    """Starts ``esa-server --zenoh`` (Zenoh on loopback, gRPC on a private socket).
+
+    Zenoh listens on a loopback TCP port that every local user can reach, so the server
+    requires ``token`` on every query (and gRPC call).
+    """
+    server = ServerProcess(binary, **limits, token=token, extra_args=["--zenoh", *args])
     try:
         locators = server.announced(_LOCATOR_LINE, startup_timeout)
     except BaseException:
@@ -88,6 +91,9 @@ class ZenohEsaClient(EsaClient):
         config: A complete Zenoh config to use instead of the peer config built
             from ``connect``.
         wait_ready: Wait (up to ``timeout``) until the server answers before returning.
+        token: The auth token of servers started with ``--auth-token-file``, sent as
+            every query's attachment.
+        token_file: A file holding the token instead; with neither, ``ESA_AUTH_TOKEN``.
 
     Attributes:
         address: The endpoints, comma-separated (for messages).
@@ -104,6 +110,8 @@ class ZenohEsaClient(EsaClient):
         timeout: float = 5.0,
         config: zenoh.Config | None = None,
         wait_ready: bool = True,
+        token: str | None = None,
+        token_file: str | os.PathLike[str] | None = None,
     ) -> None:
         """Opens the Zenoh session and declares the queriers."""
         if not timeout > 0:
@@ -112,7 +120,9 @@ class ZenohEsaClient(EsaClient):
         self.address = ",".join(endpoints)
         self.prefix = check_prefix(prefix)
         self.timeout = float(timeout)
+        self._token = resolve_token(token, token_file)
         self.server: ServerProcess | None = None
+        self.sessions_restored = 0
         self._closed = False
         config = config if config is not None else peer_config(endpoints, self.timeout)
         self._zenoh = open_session(config, self.address)
@@ -125,7 +135,7 @@ class ZenohEsaClient(EsaClient):
             raise
 
     def _make_stub(self) -> ZenohStub | ShardedStub:
-        return ZenohStub(self._zenoh, self.prefix, self.timeout)
+        return ZenohStub(self._zenoh, self.prefix, self.timeout, self._token)
 
     def _stubs(self) -> tuple[ZenohStub, ...]:
         return (self.stub,)  # type: ignore[return-value]
@@ -137,6 +147,7 @@ class ZenohEsaClient(EsaClient):
         *,
         session_ttl: float | None = None,
         max_sessions: int | None = None,
+        max_session_memory: int | None = None,
         extra_args: Sequence[str] = (),
         timeout: float = 5.0,
         startup_timeout: float = 30.0,
@@ -145,12 +156,16 @@ class ZenohEsaClient(EsaClient):
         """Starts ``esa-server --zenoh`` on loopback and connects to its announced locator.
 
         The server also serves gRPC on a private Unix socket (``client.server.address``),
-        on the same sessions. It is stopped by :meth:`close`.
+        on the same sessions. It requires a fresh random token (``client.server.token``)
+        on both, since its Zenoh port is open to every local user. It is stopped by
+        :meth:`close`, or stops by itself if this process dies first.
 
         Args:
             binary: Path of the esa-server executable; None searches for it.
-            session_ttl: Idle-session expiry in seconds; None = the server's default.
+            session_ttl: Idle-session expiry in seconds (0 = never); None = the server's
+                default (600).
             max_sessions: Live-session limit; None = the server's default.
+            max_session_memory: Session memory budget in bytes; None = the server's default.
             extra_args: Further server arguments.
             timeout: Per-call deadline of the returned client.
             startup_timeout: Seconds to wait for the server to answer.
@@ -160,12 +175,12 @@ class ZenohEsaClient(EsaClient):
             ServerUnavailable: If the server exits or does not answer in time.
         """
         args = ["--zenoh-prefix", prefix, *extra_args]
-        server, locators = _spawn_zenoh_server(
-            binary, args, session_ttl, max_sessions, startup_timeout
-        )
+        limits = _limits(session_ttl, max_sessions, max_session_memory)
+        token = secrets.token_urlsafe(32)
+        server, locators = _spawn_zenoh_server(binary, args, limits, token, startup_timeout)
         return connect_spawned(
             server,
-            lambda: cls(locators, prefix=prefix, timeout=timeout, wait_ready=False),
+            lambda: cls(locators, prefix=prefix, timeout=timeout, wait_ready=False, token=token),
             startup_timeout,
         )
 
@@ -204,6 +219,16 @@ class ZenohEsaClient(EsaClient):
         return f"{type(self).__name__}({self.address!r}, prefix={self.prefix!r})"
 
 
+def _limits(
+    session_ttl: float | None, max_sessions: int | None, max_session_memory: int | None
+) -> dict[str, float | None]:
+    return {
+        "session_ttl": session_ttl,
+        "max_sessions": max_sessions,
+        "max_session_memory": max_session_memory,
+    }
+
+
 def _shard_transport(stub: ZenohStub, timeout: float, use_stream: bool) -> BatchTransport:
     return StepQueryTransport(stub) if use_stream else UnaryTransport(stub, timeout)  # type: ignore[arg-type]
 
@@ -224,6 +249,8 @@ class ShardedEsaClient(ZenohEsaClient):
         timeout: Deadline in seconds for every call (and for connecting).
         config: A complete Zenoh config instead of the peer config built from ``connect``.
         wait_ready: Wait (up to ``timeout``) until every shard answers before returning.
+        token: The servers' auth token (sent as every query's attachment).
+        token_file: A file holding the token instead; with neither, ``ESA_AUTH_TOKEN``.
 
     Attributes:
         shards: N.
@@ -239,6 +266,8 @@ class ShardedEsaClient(ZenohEsaClient):
         timeout: float = 5.0,
         config: zenoh.Config | None = None,
         wait_ready: bool = True,
+        token: str | None = None,
+        token_file: str | os.PathLike[str] | None = None,
     ) -> None:
         """Opens one Zenoh session and declares the queriers of every shard."""
         if shards < 1:
@@ -248,7 +277,13 @@ class ShardedEsaClient(ZenohEsaClient):
         self._executor = ThreadPoolExecutor(max_workers=shards, thread_name_prefix="esa-shard")
         try:
             super().__init__(
-                connect, prefix=prefix, timeout=timeout, config=config, wait_ready=wait_ready
+                connect,
+                prefix=prefix,
+                timeout=timeout,
+                config=config,
+                wait_ready=wait_ready,
+                token=token,
+                token_file=token_file,
             )
         except BaseException:
             self._executor.shutdown()
@@ -256,7 +291,7 @@ class ShardedEsaClient(ZenohEsaClient):
 
     def _make_stub(self) -> ShardedStub:
         prefixes = [shard_prefix(self.prefix, i) for i in range(self.shards)]
-        return ShardedStub([ZenohStub(self._zenoh, p, self.timeout) for p in prefixes])
+        return ShardedStub([ZenohStub(self._zenoh, p, self.timeout, self._token) for p in prefixes])
 
     def _stubs(self) -> tuple[ZenohStub, ...]:
         return self.stub.shards  # type: ignore[union-attr]
@@ -273,6 +308,7 @@ class ShardedEsaClient(ZenohEsaClient):
         shards: int = 2,
         session_ttl: float | None = None,
         max_sessions: int | None = None,
+        max_session_memory: int | None = None,
         extra_args: Sequence[str] = (),
         timeout: float = 5.0,
         startup_timeout: float = 30.0,
@@ -280,13 +316,16 @@ class ShardedEsaClient(ZenohEsaClient):
     ) -> ShardedEsaClient:
         """Starts N local ``esa-server --zenoh --shard i/N`` processes and connects to all.
 
-        Each also serves gRPC on its own private Unix socket (``client.servers[i].address``).
+        Each also serves gRPC on its own private Unix socket (``client.servers[i].address``);
+        all require one fresh random token (``client.servers[i].token``).
 
         Args:
             binary: Path of the esa-server executable; None searches for it.
             shards: N, the number of server processes.
             session_ttl: Idle-session expiry in seconds; None = the server's default.
             max_sessions: Live-session limit per shard; None = the server's default.
+            max_session_memory: Session memory budget per shard in bytes; None = the
+                server's default.
             extra_args: Further arguments for every server.
             timeout: Per-call deadline of the returned client.
             startup_timeout: Seconds to wait for each server to answer.
@@ -296,15 +335,24 @@ class ShardedEsaClient(ZenohEsaClient):
             raise ValueError(f"expected shards >= 1, got {shards}")
         servers: list[ServerProcess] = []
         locators: list[str] = []
+        limits = _limits(session_ttl, max_sessions, max_session_memory)
+        token = secrets.token_urlsafe(32)
         try:
             for i in range(shards):
                 args = ["--zenoh-prefix", prefix, "--shard", f"{i}/{shards}", *extra_args]
                 server, announced = _spawn_zenoh_server(
-                    binary, args, session_ttl, max_sessions, startup_timeout
+                    binary, args, limits, token, startup_timeout
                 )
                 servers.append(server)
                 locators += announced
-            client = cls(locators, shards=shards, prefix=prefix, timeout=timeout, wait_ready=False)
+            client = cls(
+                locators,
+                shards=shards,
+                prefix=prefix,
+                timeout=timeout,
+                wait_ready=False,
+                token=token,
+            )
             client.servers = servers
             for i, server in enumerate(servers):
                 client._wait_shard(i, server, startup_timeout)

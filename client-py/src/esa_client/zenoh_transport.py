@@ -2,9 +2,16 @@
 
 Each RPC is a queryable at ``<prefix>/<RpcName>`` (default prefix ``esa/v1``): the
 query payload is the protobuf request, a reply is the protobuf response, and a
-reply error carries a ``StreamError`` (gRPC code number plus message).
+reply error carries a ``StreamError`` (gRPC code number plus message). A server
+started with ``--auth-token-file`` wants the token as each query's attachment.
 :class:`ZenohStub` mirrors the generated ``EsaServiceStub`` (one callable per RPC,
 ``stub.Probe(request, timeout=...)``), so sessions and batches run unchanged over it.
+
+Exactly one server serves a key, so a query that gets two replies means another
+process answers for it too (a misconfigured deployment, or an impostor on an open
+network): the call fails with :class:`TwoServersAnswered` instead of trusting either
+answer. Queries go to every matching queryable, so an impostor cannot hide behind
+being nearer than the real server.
 """
 
 from __future__ import annotations
@@ -25,6 +32,11 @@ from .transport import StepMessages
 DEFAULT_PREFIX = "esa/v1"
 
 Response = TypeVar("Response", bound=Message)
+
+
+class TwoServersAnswered(EsaError):
+    """More than one Zenoh peer answered one query, so neither answer can be trusted."""
+
 
 # Response type of each RPC; StepStream answers one StepStreamRequest per query.
 _RESPONSES: dict[str, type[Message]] = {
@@ -84,16 +96,31 @@ class ZenohRpc(Generic[Response]):
     """One RPC of the contract as a Zenoh querier: ``rpc(request, timeout=...) -> response``."""
 
     def __init__(
-        self, session: zenoh.Session, key: str, response: type[Response], timeout: float
+        self,
+        session: zenoh.Session,
+        key: str,
+        response: type[Response],
+        timeout: float,
+        token: str | None = None,
     ) -> None:
-        """Declares the querier for ``key``; every query waits at most ``timeout`` seconds."""
+        """Declares the querier for ``key``; every query waits at most ``timeout`` seconds.
+
+        Args:
+            session: The Zenoh session.
+            key: The RPC's key, e.g. ``esa/v1/Probe``.
+            response: The response message type.
+            timeout: Deadline of every query in seconds.
+            token: The server's auth token, sent as each query's attachment.
+        """
         self.key = key
         self._response = response
         self._timeout = timeout
-        # Exactly one server answers a key; NONE hands its reply over at once instead
-        # of holding it until the query is finalized.
+        self._token = token
+        # ALL: every queryable of the key gets the query, so a second answerer shows.
+        # NONE: no consolidation, which would merge (and so hide) a second reply.
         self._querier = session.declare_querier(
             key,
+            target=zenoh.QueryTarget.ALL,
             consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
             timeout=timeout,
         )
@@ -123,19 +150,33 @@ class ZenohRpc(Generic[Response]):
 
         Raises:
             EsaError: The server's error as its typed exception; ``ServerUnavailable``
-                when no server serves the key; ``DeadlineExceeded`` when none answered in time.
+                when no server serves the key; ``DeadlineExceeded`` when none answered in
+                time; :class:`TwoServersAnswered` when more than one peer answered.
         """
         if not self.matched:
             raise self._unavailable()
         replies = self._querier.get(
-            payload=request.SerializeToString(), encoding=zenoh.Encoding.APPLICATION_PROTOBUF
+            payload=request.SerializeToString(),
+            encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
+            attachment=self._token,
         )
-        for reply in replies:
-            if reply.ok is not None:
-                return self._decode(self._response, reply.ok.payload.to_bytes())
-            raise self._error(reply.err)
-        # The query ended without a reply: the server went away while it was pending.
-        raise self._unavailable()
+        # The query ends once every queryable of the key has answered: with one server,
+        # right after its reply.
+        answers = list(replies)
+        if len(answers) > 1:
+            repliers = ", ".join(str(reply.replier_id) for reply in answers)
+            raise TwoServersAnswered(
+                f"{self.key} was answered {len(answers)} times (by zenoh ids {repliers}): "
+                "another process serves this key, so no answer is trusted; check the "
+                "deployment's prefixes and access control (deploy/README.md)"
+            )
+        if not answers:
+            # The query ended without a reply: the server went away while it was pending.
+            raise self._unavailable()
+        reply = answers[0]
+        if reply.ok is not None:
+            return self._decode(self._response, reply.ok.payload.to_bytes())
+        raise self._error(reply.err)
 
     def _unavailable(self) -> ServerUnavailable:
         return ServerUnavailable(
@@ -190,11 +231,13 @@ class ZenohStub:
     ReportBatch: ZenohRpc[esa_pb2.ReportBatchResponse]
     StepStream: ZenohRpc[esa_pb2.StepStreamResponse]
 
-    def __init__(self, session: zenoh.Session, prefix: str, timeout: float) -> None:
-        """Declares one querier per RPC under ``prefix`` on ``session``."""
+    def __init__(
+        self, session: zenoh.Session, prefix: str, timeout: float, token: str | None = None
+    ) -> None:
+        """Declares one querier per RPC under ``prefix`` on ``session``, sending ``token``."""
         self.prefix = check_prefix(prefix)
         self._rpcs = {
-            name: ZenohRpc(session, f"{prefix}/{name}", response, timeout)
+            name: ZenohRpc(session, f"{prefix}/{name}", response, timeout, token)
             for name, response in _RESPONSES.items()
         }
         for name, rpc in self._rpcs.items():
