@@ -17,7 +17,7 @@ PY_PACKAGES := client-py experiments tests
 PY_LINT := $(PY_PACKAGES) bench
 PY_EXTRAS := -e "client-py[sb3,zenoh,dev]" -e "experiments[dev]"
 
-.PHONY: help setup build venv demo test test-rust test-python lint fmt bench clean
+.PHONY: help setup build venv demo test test-rust test-python lint fmt bench soak clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -61,6 +61,9 @@ fmt: venv ## apply rustfmt and ruff format
 
 bench: setup ## run every benchmark (core, server, Python client, training) -> BENCHMARKS.md
 	PY=$(PY) CARGO=$(CARGO) bash bench/run.sh
+
+soak: setup ## a few minutes of load with floods and faults -> the soak section of BENCHMARKS.md
+	PY=$(PY) CARGO=$(CARGO) bash bench/soak.sh
 
 clean: ## remove build outputs and the venv
 	$(CARGO) clean

@@ -31,6 +31,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from soak_report import soak_section  # noqa: E402
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PLOT_NAME = "latency_vs_batch.png"
 # The goal of a figure issue 7 asks to report without a number to meet.
@@ -782,6 +784,9 @@ def main() -> None:
         laws_1b = core_medians(own_core, args.criterion) if own_core else laws
         own = own_run is not None
         lines += section_1b_section(section_1b, laws_1b, own_run or run, own, run) + [""]
+    soak = load(args.results / "soak.json")
+    if soak:
+        lines += soak_section(soak) + [""]
     args.out.write_text("\n".join(lines))
     print(f"wrote {args.out} and {args.results / PLOT_NAME}")
 

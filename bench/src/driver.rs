@@ -241,6 +241,13 @@ impl Stepper {
         })
     }
 
+    /// Makes the first pair start a new episode, for sessions stepped
+    /// before (by an earlier stepper that failed halfway, say).
+    pub fn starting_episode(mut self) -> Self {
+        self.step = EPISODE_STEPS;
+        self
+    }
+
     /// One probe + report round trip for every session; a new episode
     /// starts every [`EPISODE_STEPS`] steps.
     pub async fn pair(&mut self) -> Result<()> {

@@ -13,13 +13,6 @@
 //! grpcio baseline) with the same throughput loop. Every loop is bounded in
 //! pairs and time; everything stays on loopback. Results go to `--json`.
 
-mod driver;
-mod error;
-mod measure;
-mod memory;
-mod server_process;
-mod zenoh_client;
-
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -27,11 +20,11 @@ use std::time::Duration;
 use clap::Parser;
 use serde::Serialize;
 
-use crate::driver::{connect, create_sessions, Api, Stepper};
-use crate::error::Result;
-use crate::measure::{Bounds, Latency, Throughput, Workload};
-use crate::memory::Rss;
-use crate::server_process::{Address, ServerProcess, Socket};
+use esa_bench::driver::{connect, create_sessions, Api, Stepper};
+use esa_bench::error::Result;
+use esa_bench::measure::{self, Bounds, Latency, Throughput, Workload};
+use esa_bench::memory::{self, Rss};
+use esa_bench::server_process::{Address, ServerProcess, Socket};
 
 /// Measures esa-server latency, throughput and memory; writes JSON.
 #[derive(Debug, Parser)]

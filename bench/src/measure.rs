@@ -76,15 +76,22 @@ pub async fn latency(stepper: &mut Stepper, bounds: Bounds) -> Result<Latency> {
         stepper.pair().await?;
         histogram.record(start.elapsed().as_nanos().max(1) as u64)?;
     }
-    let us = |ns: u64| ns as f64 / 1e3;
-    Ok(Latency {
-        pairs: histogram.len(),
-        p50_us: us(histogram.value_at_quantile(0.50)),
-        p90_us: us(histogram.value_at_quantile(0.90)),
-        p99_us: us(histogram.value_at_quantile(0.99)),
-        mean_us: histogram.mean() / 1e3,
-        max_us: us(histogram.max()),
-    })
+    Ok(Latency::of(&histogram))
+}
+
+impl Latency {
+    /// The summary of a histogram of pair times in nanoseconds.
+    pub fn of(histogram: &Histogram<u64>) -> Self {
+        let us = |ns: u64| ns as f64 / 1e3;
+        Latency {
+            pairs: histogram.len(),
+            p50_us: us(histogram.value_at_quantile(0.50)),
+            p90_us: us(histogram.value_at_quantile(0.90)),
+            p99_us: us(histogram.value_at_quantile(0.99)),
+            mean_us: histogram.mean() / 1e3,
+            max_us: us(histogram.max()),
+        }
+    }
 }
 
 /// Runs pairs until `duration` has passed or `max_pairs` are done; returns

@@ -44,6 +44,7 @@ pub enum Socket {
 pub struct ServerProcess {
     child: Child,
     address: Address,
+    metrics: Option<String>,
     // Holds the Unix socket's directory until the server is gone.
     _dir: Option<TempDir>,
 }
@@ -55,12 +56,7 @@ impl ServerProcess {
         let mut command = Command::new(binary);
         command
             .args(["--session-ttl", "0", "--max-sessions"])
-            .arg(max_sessions.to_string())
-            // Per-request logging would be measured too; keep only problems.
-            .env("RUST_LOG", "warn")
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit());
+            .arg(max_sessions.to_string());
         let dir = match socket {
             Socket::Tcp => {
                 command.args(["--listen", "127.0.0.1:0"]);
@@ -76,11 +72,39 @@ impl ServerProcess {
                 Some(dir)
             }
         };
+        Self::spawn(command, binary, socket, dir)
+    }
+
+    /// Starts `binary` with `args` (which choose a TCP `--listen` address)
+    /// under an open-files limit of `open_files`, as on a machine with that
+    /// limit: the server cannot raise it, and its defaults derive from it.
+    pub fn start_tcp_limited(binary: &Path, args: &[String], open_files: u64) -> Result<Self> {
+        let mut command = Command::new("bash");
+        command
+            .arg("-c")
+            .arg(format!("ulimit -n {open_files} && exec \"$0\" \"$@\""))
+            .arg(binary)
+            .args(args);
+        Self::spawn(command, binary, Socket::Tcp, None)
+    }
+
+    fn spawn(
+        mut command: Command,
+        binary: &Path,
+        socket: Socket,
+        dir: Option<TempDir>,
+    ) -> Result<Self> {
+        command
+            // Per-request logging would be measured too; keep only problems.
+            .env("RUST_LOG", "warn")
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit());
         let mut child = command
             .spawn()
             .map_err(|err| Error::Server(format!("cannot run {}: {err}", binary.display())))?;
-        let address = match child.stdout.take().map(|out| wait_for_address(out, socket)) {
-            Some(Ok(address)) => address,
+        let announced = match child.stdout.take().map(|out| wait_for_address(out, socket)) {
+            Some(Ok(announced)) => announced,
             Some(Err(err)) => {
                 let _ = child.kill();
                 let _ = child.wait();
@@ -90,7 +114,8 @@ impl ServerProcess {
         };
         Ok(Self {
             child,
-            address,
+            address: announced.address,
+            metrics: announced.metrics,
             _dir: dir,
         })
     }
@@ -100,15 +125,30 @@ impl ServerProcess {
         &self.address
     }
 
+    /// The metrics URL the server announced (with `--metrics-listen`).
+    pub fn metrics(&self) -> Option<&str> {
+        self.metrics.as_deref()
+    }
+
+    /// The server's process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     /// The server's resident set size in KiB (`VmRSS` of /proc/PID/status).
     pub fn rss_kib(&self) -> Result<u64> {
-        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id()))?;
-        status
-            .lines()
-            .find_map(|line| line.strip_prefix("VmRSS:"))
-            .and_then(|rest| rest.trim().trim_end_matches("kB").trim().parse().ok())
-            .ok_or_else(|| Error::Server("no VmRSS line in /proc/PID/status".into()))
+        rss_kib(self.pid())
     }
+}
+
+/// The resident set size of process `pid` in KiB (`VmRSS` of /proc/PID/status).
+pub fn rss_kib(pid: u32) -> Result<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))?;
+    status
+        .lines()
+        .find_map(|line| line.strip_prefix("VmRSS:"))
+        .and_then(|rest| rest.trim().trim_end_matches("kB").trim().parse().ok())
+        .ok_or_else(|| Error::Server("no VmRSS line in /proc/PID/status".into()))
 }
 
 impl Drop for ServerProcess {
@@ -118,14 +158,21 @@ impl Drop for ServerProcess {
     }
 }
 
+/// What a starting server printed.
+struct Announced {
+    address: Address,
+    metrics: Option<String>,
+}
+
 /// Reads the child's stdout until `listening on ADDR` (which comes after any
-/// `zenoh listening on LOCATOR` lines), then keeps draining it in the
-/// background so the child never blocks on a full pipe. For
-/// [`Socket::Zenoh`] the address is the announced locators.
-fn wait_for_address(stdout: std::process::ChildStdout, socket: Socket) -> Result<Address> {
+/// `metrics on URL` and `zenoh listening on LOCATOR` lines), then keeps
+/// draining it in the background so the child never blocks on a full pipe.
+/// For [`Socket::Zenoh`] the address is the announced locators.
+fn wait_for_address(stdout: std::process::ChildStdout, socket: Socket) -> Result<Announced> {
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
         let mut locators = Vec::new();
+        let mut metrics = None;
         let mut sent = false;
         for line in BufReader::new(stdout).lines().map_while(|line| line.ok()) {
             if sent {
@@ -133,27 +180,34 @@ fn wait_for_address(stdout: std::process::ChildStdout, socket: Socket) -> Result
             }
             if let Some(locator) = line.strip_prefix("zenoh listening on ") {
                 locators.push(locator.to_owned());
+            } else if let Some(url) = line.strip_prefix("metrics on ") {
+                metrics = Some(url.to_owned());
             } else if let Some(address) = line.strip_prefix("listening on ") {
-                let announced = (address.to_owned(), std::mem::take(&mut locators));
+                let announced = (
+                    address.to_owned(),
+                    std::mem::take(&mut locators),
+                    metrics.take(),
+                );
                 sent = tx.send(announced).is_ok();
             }
         }
     });
-    let (line, locators) = rx
+    let (line, locators, metrics) = rx
         .recv_timeout(STARTUP_TIMEOUT)
         .map_err(|_| Error::Server("no `listening on` line (did it exit?)".into()))?;
-    if socket == Socket::Zenoh {
-        return if locators.is_empty() {
-            Err(Error::Server("no `zenoh listening on` line".into()))
-        } else {
-            Ok(Address::Zenoh(locators))
-        };
-    }
-    match line.strip_prefix("unix:") {
-        Some(path) => Ok(Address::Unix(PathBuf::from(path))),
-        None => line
-            .parse()
-            .map(Address::Tcp)
-            .map_err(|_| Error::Server(format!("cannot parse address {line:?}"))),
-    }
+    let address = if socket == Socket::Zenoh {
+        if locators.is_empty() {
+            return Err(Error::Server("no `zenoh listening on` line".into()));
+        }
+        Address::Zenoh(locators)
+    } else {
+        match line.strip_prefix("unix:") {
+            Some(path) => Address::Unix(PathBuf::from(path)),
+            None => line
+                .parse()
+                .map(Address::Tcp)
+                .map_err(|_| Error::Server(format!("cannot parse address {line:?}")))?,
+        }
+    };
+    Ok(Announced { address, metrics })
 }

@@ -1,0 +1,12 @@
+//! Load generation against the real `esa-server` binary, shared by two
+//! programs: `esa-bench` (latency, throughput and memory per session, issue
+//! 7) and `esa-soak` (minutes of load with floods and faults, issue 14).
+//! Everything stays on loopback.
+
+pub mod driver;
+pub mod error;
+pub mod measure;
+pub mod memory;
+pub mod server_process;
+pub mod soak;
+pub mod zenoh_client;
