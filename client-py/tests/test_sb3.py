@@ -9,6 +9,7 @@ round-trips.
 
 import csv
 import math
+import time
 
 import gymnasium as gym
 import numpy as np
@@ -314,3 +315,52 @@ def test_runtime_rejects_a_non_positive_improvement_stride(every):
         EsaRuntime(
             EsaConfig(), None, None, None, None, np.zeros(1), np.ones(1), improvement_every=every
         )
+
+
+class Pause(BaseCallback):
+    """Sleeps at each rollout end: a trainer whose rollouts are far apart."""
+
+    def __init__(self, seconds):
+        super().__init__()
+        self.seconds = seconds
+
+    def _on_step(self):
+        return True
+
+    def _on_rollout_end(self):
+        time.sleep(self.seconds)
+
+
+def test_sessions_lost_to_the_ttl_are_restored_and_counted(server_bin, monkeypatch, tmp_path):
+    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+    model = ESAPPO(
+        "MlpPolicy",
+        make_vec_env("InvertedPendulum-v5", n_envs=2, seed=0),
+        esa=UNGATED,
+        esa_spawn={"session_ttl": 0.5},
+        n_steps=64,
+        batch_size=64,
+        n_epochs=1,
+        policy_kwargs=dict(net_arch=[16]),
+        seed=0,
+    )
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(4 * 64 * 2, callback=Pause(1.0))
+    restored = logged_columns(tmp_path)["esa/sessions_restored"]
+    assert sum(restored) >= 2, "every rollout after a pause finds its sessions expired"
+    assert model._esa.client.sessions_restored == sum(restored)
+    model.esa_close()
+
+
+def test_esa_spawn_arguments_are_checked_when_the_server_starts(server_bin, monkeypatch):
+    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+    model = ESAPPO(
+        "MlpPolicy",
+        make_vec_env("InvertedPendulum-v5", n_envs=1, seed=0),
+        esa=UNGATED,
+        esa_spawn={"session_ttl": -1},
+        n_steps=64,
+        batch_size=64,
+    )
+    with pytest.raises(ValueError, match="session_ttl"):
+        model.learn(3 * 64)

@@ -420,6 +420,23 @@ class SessionBatch:
             self._transport.report_batch(self._deferred)
             self._deferred = None
 
+    def restore(self) -> int:
+        """Recreates the sessions the server lost, and starts a new episode in every session.
+
+        For a :class:`SessionNotFound` after a server restart or a TTL expiry (see
+        :meth:`EsaClient.restore_sessions`: the shift of the running episode, the episode
+        count and the response's mean square of a lost session are gone). A deferred
+        report is dropped; the next probe starts step 0 everywhere.
+
+        Returns:
+            How many sessions were recreated.
+        """
+        self._deferred = None
+        restored = self._client.restore_sessions(self.ids, self.configs)
+        self._steps[:] = 0
+        self._next_starts[:] = True
+        return restored
+
     def end_episode(self, indices: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
         """Ends the episodes of the given sessions now (one call each; default: all).
 

@@ -39,6 +39,7 @@ class EsaMixin:
         *args: Any,
         esa: EsaConfig | None = None,
         esa_address: str | None = None,
+        esa_spawn: dict[str, Any] | None = None,
         **kwargs: Any,
     ) -> None:
         """Creates the SB3 model; the ESA sessions are created when training starts.
@@ -49,6 +50,8 @@ class EsaMixin:
             *args: Further positional arguments of the SB3 algorithm.
             esa: The ESA hyperparameters (default ``EsaConfig()``).
             esa_address: An esa-server address; None spawns a private server.
+            esa_spawn: Arguments of :meth:`EsaClient.spawn` for that private server, e.g.
+                ``{"session_ttl": 3600}`` when rollouts are far apart.
             **kwargs: Any other argument of the SB3 algorithm.
 
         Raises:
@@ -61,6 +64,7 @@ class EsaMixin:
         if not isinstance(self.esa, EsaConfig):
             raise ValueError(f"expected esa to be an EsaConfig, got {self.esa!r}")
         self.esa_address = esa_address
+        self.esa_spawn = dict(esa_spawn or {})
         self._esa = None
         super().__init__(policy, env, *args, **kwargs)  # type: ignore[call-arg]
         space = self.action_space  # type: ignore[attr-defined]
@@ -90,11 +94,12 @@ class EsaMixin:
             self._esa = EsaRuntime(
                 self.esa,
                 self.esa_address,
-                self.env,
+                self.env,  # type: ignore[attr-defined]
                 low,
                 high,
                 clip_low,
-                clip_high,  # type: ignore[attr-defined]
+                clip_high,
+                spawn=self.esa_spawn,
             )
         return self._esa
 

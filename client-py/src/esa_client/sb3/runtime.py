@@ -10,7 +10,7 @@ import numpy as np
 from ..client import EsaClient
 from ..config import EsaConfig
 from ..env_dt import env_dt
-from ..errors import EsaError
+from ..errors import EsaError, SessionNotFound
 
 QFunction = Callable[[np.ndarray], np.ndarray]
 """Maps ``(k N, D)`` actions to ``(k N,)`` values at the N current observations tiled k times."""
@@ -25,6 +25,10 @@ class EsaRuntime:
     the report is deferred and rides with the next step's probe on the StepStream, so a
     step costs one round trip.
 
+    Sessions the server loses (a restart, a TTL expiry during a long pause) are
+    recreated and restarted at the next step, and counted (``esa/sessions_restored``):
+    what is lost is the shift of the episodes then running.
+
     Args:
         esa: The ESA hyperparameters.
         address: Server address, or None to spawn a private server for this learner.
@@ -37,6 +41,8 @@ class EsaRuntime:
         improvement_every: Measure ``esa/improvement`` (the critic's Q at the applied
             minus at the sampled actions) on one step in this many. It costs a critic
             evaluation that training does not need, so it is sampled, not paid per step.
+        spawn: Arguments of :meth:`EsaClient.spawn` for a private server (``session_ttl``,
+            ``max_sessions``, ``max_session_memory``, ``extra_args``, ...).
     """
 
     def __init__(
@@ -50,6 +56,7 @@ class EsaRuntime:
         clip_high: np.ndarray,
         *,
         improvement_every: int = 8,
+        spawn: dict[str, object] | None = None,
     ) -> None:
         """Connects (or spawns the server) and creates one session per env."""
         if improvement_every < 1:
@@ -57,7 +64,9 @@ class EsaRuntime:
         n_envs = vec_env.num_envs  # type: ignore[attr-defined]
         self.esa = esa
         config = esa.session_config(clip_low.size, env_dt(vec_env, esa.dt), low, high)
-        self.client = EsaClient.spawn() if address is None else EsaClient(address)
+        self.client = (
+            EsaClient.spawn(**(spawn or {})) if address is None else EsaClient(address)  # type: ignore[arg-type]
+        )
         try:
             self.batch = self.client.create_batch(config, n_envs, use_stream=True)
         except BaseException:
@@ -90,7 +99,11 @@ class EsaRuntime:
         """
         a = np.asarray(sampled, dtype=np.float64)
         scale = policy_std if self.esa.use_policy_std else None
-        probes, applied = self.batch.probe_applied(a, episode_starts, action_scales=scale)
+        try:
+            probes, applied = self.batch.probe_applied(a, episode_starts, action_scales=scale)
+        except SessionNotFound:
+            self._stats.add_restored(self.batch.restore())
+            probes, applied = self.batch.probe_applied(a, action_scales=scale)
         n = len(a)
         points = np.concatenate([probes, applied]) if self.esa.paired_response else probes
         q = np.asarray(q_fn(points), dtype=np.float64)
@@ -147,6 +160,11 @@ class _Stats:
 
     def add_improvement(self, value: float) -> None:
         self._add("improvement", value)
+
+    def add_restored(self, sessions: int) -> None:
+        # A count since the last record, not a mean.
+        self.sums["sessions_restored"] = self.sums.get("sessions_restored", 0.0) + sessions
+        self.counts["sessions_restored"] = 1
 
     def means(self) -> dict[str, float]:
         return {key: self.sums[key] / self.counts[key] for key in self.sums}
