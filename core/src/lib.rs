@@ -39,6 +39,7 @@
 //! Every method validates before it changes anything: a request that returns an error leaves the
 //! session exactly as it was, and outputs are always finite.
 
+pub mod batch;
 mod config;
 mod error;
 pub mod footprint;
