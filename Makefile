@@ -65,6 +65,18 @@ bench: setup ## run every benchmark (core, server, Python client, training) -> B
 soak: setup ## a few minutes of load with floods and faults -> the soak section of BENCHMARKS.md
 	PY=$(PY) CARGO=$(CARGO) bash bench/soak.sh
 
+.PHONY: wheel
+# The wheel carries esa_client, its extension esa_client._native and an esa-server built with the
+# size-optimised cargo profile `dist`, copied into the package only while the wheel is built.
+wheel: ## build dist/esa_client-<version>-<platform>.whl (extension + bundled esa-server)
+	$(CARGO) build --profile dist -p esa-server
+	rm -rf client-py/src/esa_client/_bin dist/esa_client-*.whl
+	install -D -m 755 $(or $(CARGO_TARGET_DIR),target)/dist/esa-server \
+		client-py/src/esa_client/_bin/esa-server
+	$(PYTHON) -m pip wheel --no-deps --wheel-dir dist ./client-py; status=$$?; \
+		rm -rf client-py/src/esa_client/_bin; exit $$status
+	@ls -l dist/esa_client-*.whl
+
 clean: ## remove build outputs and the venv
 	$(CARGO) clean
 	rm -rf $(VENV)

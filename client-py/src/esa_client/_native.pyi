@@ -1,0 +1,186 @@
+"""esa-core in-process (the Rust extension built from client-py/native).
+
+An :class:`Engine` holds sessions by id, like an esa-server, and runs the server's all-or-nothing
+batches over numpy arrays without a process or a socket in between. Validation and error codes
+are the server's (docs/CONTRACT.md section 2): a refused call raises :class:`EngineError` with the
+gRPC status code number the server answers the same case with, and changes nothing.
+"""
+
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+INVALID_ARGUMENT: int
+"""3: bad config, wrong length, NaN/inf, malformed id, empty or too large batch, repeated id."""
+NOT_FOUND: int
+"""5: unknown or closed session."""
+ALREADY_EXISTS: int
+"""6: the id exists with a different config."""
+RESOURCE_EXHAUSTED: int
+"""8: creating one more session would pass ``max_sessions``."""
+FAILED_PRECONDITION: int
+"""9: step mismatch, or a report without a pending probe."""
+MAX_BATCH_ITEMS: int
+"""65,536: most sessions in one batch."""
+MAX_BATCH_VALUES: int
+"""2^20: most action values (the sessions' dimensions added up) in one batch."""
+MAX_ID_BYTES: int
+"""128: longest session id, in UTF-8 bytes."""
+DETACH_VALUES: int
+"""Default ``Engine(detach_values=...)``: larger batches release the GIL while they run."""
+
+class EngineError(Exception):
+    """A refused call; nothing changed.
+
+    Attributes:
+        code: The gRPC status code number (``INVALID_ARGUMENT``, ``NOT_FOUND``, ...).
+        message: What to fix, as the server words it (``str(error)`` is the same).
+        index: The failing batch item (``item {index}: ...`` in the message), or None.
+    """
+
+    code: int
+    message: str
+    index: int | None
+
+class BatchHandle:
+    """Session ids resolved once by :meth:`Engine.resolve`, for batch calls without hashing.
+
+    It names the sessions by id: a session closed after resolving is ``NOT_FOUND`` for its
+    item, and one created again under the same id is found again.
+    """
+
+    @property
+    def ids(self) -> list[str]:
+        """The session ids, in item order."""
+
+    def __len__(self) -> int:
+        """N, the number of items."""
+
+class Engine:
+    """Sessions by id, each stepped by esa-core (the server's law, bit for bit).
+
+    Thread-safe: calls from several Python threads run one at a time; batches of more than
+    ``detach_values`` action values release the GIL while they run (their inputs are copied
+    first).
+
+    Args:
+        max_sessions: Most live sessions (the server's default ``--max-sessions``).
+        detach_values: Batches whose sessions' dimensions add up to more than this release the
+            GIL.
+    """
+
+    def __init__(self, max_sessions: int = 100_000, detach_values: int = ...) -> None: ...
+    @property
+    def max_sessions(self) -> int:
+        """The live-session limit."""
+
+    @property
+    def detach_values(self) -> int:
+        """Batches of more action values than this release the GIL."""
+
+    def __len__(self) -> int:
+        """The number of live sessions."""
+
+    def __contains__(self, session_id: str) -> bool:
+        """Whether ``session_id`` names a live session."""
+
+    def create_session(self, session_id: str | None, config: bytes) -> str:
+        """Creates a session (CreateSession) and returns its id.
+
+        Args:
+            session_id: 1 to 128 UTF-8 bytes; None or "" generates a UUID.
+            config: An encoded ``esa.v1.SessionConfig`` (``SessionConfig.to_proto()
+                .SerializeToString()``).
+
+        Returns:
+            The id. An existing id with an identical config returns that session.
+
+        Raises:
+            EngineError: INVALID_ARGUMENT (undecodable or invalid config, malformed id),
+                ALREADY_EXISTS (same id, different config), RESOURCE_EXHAUSTED (limit).
+        """
+
+    def get_session(self, session_id: str) -> bytes:
+        """An encoded ``esa.v1.GetSessionResponse`` snapshot of the session.
+
+        Raises:
+            EngineError: INVALID_ARGUMENT (malformed id), NOT_FOUND.
+        """
+
+    def close_session(self, session_id: str) -> None:
+        """Closes the session; its id is NOT_FOUND afterwards.
+
+        Raises:
+            EngineError: INVALID_ARGUMENT (malformed id), NOT_FOUND.
+        """
+
+    def end_episode(self, session_id: str) -> int:
+        """Ends the session's episode (EndEpisode); returns its completed episodes.
+
+        Raises:
+            EngineError: INVALID_ARGUMENT (malformed id), NOT_FOUND.
+        """
+
+    def resolve(self, session_ids: Sequence[str]) -> BatchHandle:
+        """Resolves session ids (item order) into a handle for :meth:`probe` and :meth:`report`.
+
+        Raises:
+            EngineError: INVALID_ARGUMENT (no ids, more than MAX_BATCH_ITEMS, a malformed id,
+                an id twice), NOT_FOUND (an unknown id); errors of one id name its item.
+        """
+
+    def probe(
+        self,
+        handle: BatchHandle,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None = None,
+        action_scales: npt.ArrayLike | None = None,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """ProbeBatch: probes every session of the handle at once; all-or-nothing.
+
+        Arrays are read in C order whatever their shape; uint64, float64 and bool C-contiguous
+        arrays are read without a copy, anything else is converted by numpy.
+
+        Args:
+            handle: The N sessions.
+            steps: uint64[N], each session's current step (0 with an episode start).
+            actions: float64[N, D] (or the N actions concatenated), the sampled actions.
+            episode_starts: bool[N], or None for all False.
+            action_scales: float64[N, D] like ``actions`` (each > 0), or None for all 1.
+
+        Returns:
+            ``(probes, applied)``: the probes and Algorithm 1's applied actions
+            ``clip(a_t + v(t))``, float64[N, D] (flat when the sessions' D differ).
+
+        Raises:
+            EngineError: As ProbeBatch: INVALID_ARGUMENT, FAILED_PRECONDITION, NOT_FOUND (a
+                session closed since resolving); ``index`` names the failing item.
+            ValueError: ``steps`` holds negative integers, or an array cannot be converted.
+            TypeError: ``steps`` is not integers.
+        """
+
+    def report(
+        self,
+        handle: BatchHandle,
+        steps: npt.ArrayLike,
+        q_values: npt.ArrayLike,
+        q_references: npt.ArrayLike | None = None,
+    ) -> npt.NDArray[np.float64]:
+        """ReportBatch: reports Q to every session of the handle at once; all-or-nothing.
+
+        Args:
+            handle: The N sessions.
+            steps: uint64[N], the steps probed (or the step just applied: a replay).
+            q_values: float64[N], Q at each probe.
+            q_references: float64[N], Q at each applied action, or None.
+
+        Returns:
+            The improved actions ``clip(a_t + v(t + 1))``, float64[N, D] (flat when the
+            sessions' D differ).
+
+        Raises:
+            EngineError: As ReportBatch: INVALID_ARGUMENT, FAILED_PRECONDITION, NOT_FOUND;
+                ``index`` names the failing item.
+        """
