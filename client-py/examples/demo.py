@@ -1,8 +1,8 @@
 """PPO vs ESAPPO on InvertedPendulum-v5: learning curves, a PNG and a small table.
 
 This is what ``make demo`` runs. Both agents get identical PPO hyperparameters and
-seeds; ESAPPO differs only by ``esa=EsaConfig(...)`` (and a private esa-server it
-starts and stops by itself). Every ``eval_every`` steps the deterministic policy is
+seeds; ESAPPO adds ESA with the shipped default ``EsaConfig()`` (and a private
+esa-server it starts and stops by itself). Every ``eval_every`` steps the deterministic policy is
 evaluated on separate envs.
 
 Usage::
@@ -46,8 +46,6 @@ class Args:
     eval_episodes: int = 5
     threshold: float = 950.0
     seed: int = 0
-    esa_amplitude: float = 0.2
-    esa_learning_rate: float = 0.05
     out_dir: str = "demo-results"
 
 
@@ -94,8 +92,7 @@ def train(name: str, args: Args) -> dict:
     evaluation = Evaluate(eval_env, args.eval_every, args.eval_episodes)
     common = dict(n_steps=args.n_steps, batch_size=64, seed=args.seed, device="cpu", verbose=0)
     if name == "ESAPPO":
-        esa = EsaConfig(amplitude=args.esa_amplitude, learning_rate=args.esa_learning_rate)
-        model = ESAPPO("MlpPolicy", env, esa=esa, **common)
+        model = ESAPPO("MlpPolicy", env, esa=EsaConfig(), **common)
     else:
         model = PPO("MlpPolicy", env, **common)
     print(f"training {name} for {args.total_timesteps} steps on {args.env_id}")
