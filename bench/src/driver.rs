@@ -3,11 +3,11 @@
 //! the three ways the contract offers (Probe/Report, ProbeBatch/ReportBatch,
 //! or StepStream messages).
 
-use esa_server::pb;
-use esa_server::pb::esa_service_client::EsaServiceClient;
-use esa_server::pb::step_stream_request::Kind as Req;
-use esa_server::pb::step_stream_response::Kind as Resp;
-use esa_server::Rpc;
+use esa_proto::v1 as pb;
+use esa_proto::v1::esa_service_client::EsaServiceClient;
+use esa_proto::v1::step_stream_request::Kind as Req;
+use esa_proto::v1::step_stream_response::Kind as Resp;
+use esa_proto::Rpc;
 use hyper_util::rt::TokioIo;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;

@@ -54,7 +54,7 @@ struct Cli {
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     // The floods hold thousands of sockets on this side too.
-    if let Err(err) = esa_server::resources::raise_open_files_limit() {
+    if let Err(err) = rlimit::increase_nofile_limit(u64::MAX) {
         eprintln!("esa-soak: cannot raise the open-files limit: {err}");
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()

@@ -7,9 +7,9 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
 
-use esa_server::pb;
-use esa_server::zenoh_transport::{loopback_config, DEFAULT_PREFIX};
-use esa_server::Rpc;
+use esa_proto::v1 as pb;
+use esa_proto::Rpc;
+use esa_proto::DEFAULT_ZENOH_PREFIX;
 use prost::Message;
 use zenoh::bytes::Encoding;
 use zenoh::query::{ConsolidationMode, Querier};
@@ -40,11 +40,12 @@ impl ZenohClient {
     pub async fn connect(locators: &[String]) -> Result<Self> {
         let zenoh_err =
             |what: &str, err: &dyn std::fmt::Display| Error::Zenoh(format!("{what}: {err}"));
-        let mut config =
-            loopback_config(&[], locators).map_err(|err| zenoh_err("peer config", &err))?;
-        config
-            .insert_json5("listen/endpoints", "[]")
-            .map_err(|err| zenoh_err("peer config", &err))?;
+        let endpoints = serde_json::to_string(locators)?;
+        let config = zenoh::Config::from_json5(&format!(
+            "{{mode: 'peer', connect: {{endpoints: {endpoints}}}, listen: {{endpoints: []}}, \
+             scouting: {{multicast: {{enabled: false}}, gossip: {{enabled: false}}}}}}"
+        ))
+        .map_err(|err| zenoh_err("peer config", &err))?;
         // Opening waits for the server's declarations, so its queryables are
         // known before the first query.
         let session = zenoh::open(config)
@@ -52,7 +53,7 @@ impl ZenohClient {
             .map_err(|err| zenoh_err("cannot open a session", &err))?;
         let mut queriers = HashMap::with_capacity(Rpc::ALL.len());
         for rpc in Rpc::ALL {
-            let key = format!("{DEFAULT_PREFIX}/{}", rpc.name());
+            let key = format!("{DEFAULT_ZENOH_PREFIX}/{}", rpc.name());
             let querier = session
                 .declare_querier(key.clone())
                 // One server answers each key: hand its reply over at once

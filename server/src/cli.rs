@@ -8,7 +8,7 @@ use clap::{Parser, ValueEnum};
 
 use esa_server::codec::MAX_REQUEST_BYTES;
 use esa_server::zenoh_transport::{loopback_config, Shard, DEFAULT_PREFIX};
-use esa_server::{Error, ServerBuilder};
+use esa_server::{ServerBuilder, StartError};
 
 /// Extremum-Seeking Action selection (ESA) as a gRPC service: keeps the
 /// per-episode extremum-seeking state of many RL environments (sessions) and
@@ -211,13 +211,13 @@ impl Cli {
     }
 
     /// The directory to remove on exit, checked to be the --uds socket's own.
-    pub fn owned_dir(&self) -> Result<Option<&PathBuf>, Error> {
+    pub fn owned_dir(&self) -> Result<Option<&PathBuf>, StartError> {
         let Some(dir) = &self.remove_dir_on_exit else {
             return Ok(None);
         };
         let socket_dir = self.uds.as_deref().and_then(std::path::Path::parent);
         if socket_dir != Some(dir.as_path()) {
-            return Err(Error::InvalidArgument(format!(
+            return Err(StartError::Config(format!(
                 "--remove-dir-on-exit: expected the directory of the --uds socket, got {}",
                 dir.display()
             )));
@@ -255,13 +255,13 @@ impl Cli {
     }
 
     /// The Zenoh config and key prefix these flags ask for; None without `--zenoh`.
-    pub fn zenoh(&self) -> Result<Option<(zenoh::Config, String)>, Error> {
+    pub fn zenoh(&self) -> Result<Option<(zenoh::Config, String)>, StartError> {
         if !self.zenoh {
             return Ok(None);
         }
         let config = match &self.zenoh_config {
             Some(path) => zenoh::Config::from_file(path).map_err(|err| {
-                Error::Zenoh(format!("cannot load config {}: {err}", path.display()))
+                StartError::Zenoh(format!("cannot load config {}: {err}", path.display()))
             })?,
             None => loopback_config(&self.zenoh_listen, &self.zenoh_connect)?,
         };
@@ -291,7 +291,7 @@ fn is_loopback_endpoint(endpoint: &str) -> bool {
 }
 
 fn parse_shard(text: &str) -> Result<Shard, String> {
-    text.parse().map_err(|err: Error| err.to_string())
+    text.parse().map_err(|err: StartError| err.to_string())
 }
 
 /// A finite, non-negative number of seconds that fits a `Duration`.

@@ -304,27 +304,19 @@ impl WireLimits for pb::StepStreamRequest {
     }
 }
 
-/// Messages without repeated strings or varints decode to about their wire size.
+/// Requests without repeated strings or varints decode to about their wire size. (Only requests
+/// are decoded here: the server's generated code is the only user of [`BoundedCodec`].)
 macro_rules! no_wire_limits {
     ($($message:ty),* $(,)?) => { $(impl WireLimits for $message {})* };
 }
 
 no_wire_limits!(
     pb::CreateSessionRequest,
-    pb::CreateSessionResponse,
     pb::ProbeRequest,
-    pb::ProbeResponse,
     pb::ReportRequest,
-    pb::ReportResponse,
     pb::EndEpisodeRequest,
-    pb::EndEpisodeResponse,
     pb::CloseSessionRequest,
-    pb::CloseSessionResponse,
     pb::GetSessionRequest,
-    pb::GetSessionResponse,
-    pb::ProbeBatchResponse,
-    pb::ReportBatchResponse,
-    pb::StepStreamResponse,
 );
 
 #[cfg(test)]

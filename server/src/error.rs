@@ -1,8 +1,12 @@
-//! The one error type of the server and its single mapping to gRPC status.
+//! The server's two error types.
 //!
-//! Every transport (gRPC unary, the in-band `StreamError` of StepStream, and
-//! other adapters over [`crate::handler::EsaHandler`]) reports failures through
-//! [`Error::code`], so a case has the same code everywhere.
+//! [`Error`] is what a request fails with, and its single mapping to a gRPC
+//! status: every transport (gRPC unary, the in-band `StreamError` of
+//! StepStream, and other adapters over [`crate::handler::EsaHandler`]) reports
+//! failures through [`Error::code`], so a case has the same code everywhere,
+//! and an error about one batch item carries the item's index as data
+//! ([`esa_proto::details`]). [`StartError`] is why the server could not start
+//! or keep serving: never a request's fault, never sent to a client.
 
 use esa_core::CoreError;
 use tonic::{Code, Status};
@@ -40,18 +44,6 @@ pub enum Error {
          close it first, or create it with another id"
     )]
     AlreadyExists(String),
-    /// The server could not start or keep serving (never a request's fault).
-    #[error("transport: {0}")]
-    Transport(#[from] tonic::transport::Error),
-    /// Binding or using a listener failed.
-    #[error("{0}")]
-    Io(#[from] std::io::Error),
-    /// The reflection service could not be built from the descriptors.
-    #[error("reflection: {0}")]
-    Reflection(#[from] tonic_reflection::server::Error),
-    /// The Zenoh session could not be opened, declared on or closed.
-    #[error("zenoh: {0}")]
-    Zenoh(String),
     /// One item of a batch failed; nothing in the batch was applied.
     #[error("item {index}: {source}")]
     Item {
@@ -87,24 +79,62 @@ impl Error {
             Error::Unauthenticated(_) => Code::Unauthenticated,
             Error::DeadlineExceeded(_) => Code::DeadlineExceeded,
             Error::AlreadyExists(_) => Code::AlreadyExists,
-            Error::Transport(_) | Error::Io(_) | Error::Zenoh(_) => Code::Unavailable,
-            Error::Reflection(_) => Code::Internal,
             Error::Item { source, .. } => source.code(),
+        }
+    }
+
+    /// The batch item this error is about, if it is about one.
+    pub fn item_index(&self) -> Option<u32> {
+        match self {
+            // A batch holds at most `codec::MAX_BATCH_ITEMS` items, so the index fits.
+            Error::Item { index, .. } => u32::try_from(*index).ok(),
+            _ => None,
         }
     }
 }
 
+/// The status answering a failed unary call; an error about one batch item
+/// carries the item in the status details (`grpc-status-details-bin`).
 impl From<Error> for Status {
     fn from(err: Error) -> Self {
-        Status::new(err.code(), err.to_string())
+        let (code, message) = (err.code(), err.to_string());
+        match err.item_index() {
+            Some(index) => {
+                let details = esa_proto::details::status_details(code as i32, &message, index);
+                Status::with_details(code, message, details)
+            }
+            None => Status::new(code, message),
+        }
     }
 }
 
+/// The in-band error of StepStream and the reply error of Zenoh.
 impl From<Error> for pb::StreamError {
     fn from(err: Error) -> Self {
         pb::StreamError {
             code: err.code() as i32,
+            item: err.item_index().map(|index| pb::BatchItem { index }),
             message: err.to_string(),
         }
     }
+}
+
+/// Why the server could not start or keep serving.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// A flag or setting is unusable; the message names it.
+    #[error("{0}")]
+    Config(String),
+    /// The gRPC server failed.
+    #[error("transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+    /// Binding or using a listener (or reading a file) failed.
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+    /// The reflection service could not be built from the descriptors.
+    #[error("reflection: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
+    /// The Zenoh session could not be opened, declared on or closed.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
 }

@@ -18,9 +18,9 @@ use crate::metrics::{Metrics, StoreGauges};
 use crate::pb;
 use crate::pb::step_stream_request::Kind as StreamRequest;
 use crate::pb::step_stream_response::Kind as StreamResponse;
-use crate::rpc::Rpc;
 use crate::store::SessionStore;
 use crate::throttle::{Throttle, WARNING_PERIOD};
+use esa_proto::Rpc;
 
 /// Handles the RPCs of `esa.v1.EsaService` against one session store.
 pub struct EsaHandler {

@@ -1,10 +1,12 @@
 //! esa-server: Extremum-Seeking Action selection as a service.
 //!
 //! Layers, each a thin wrapper over the next: transports ([`grpc`],
-//! [`zenoh_transport`], and any other adapter) call the
-//! transport-independent [`handler::EsaHandler`], which validates requests
-//! and runs them against the [`store::SessionStore`] of `esa_core::Session`s.
-//! [`server::EsaServer`] assembles the gRPC server.
+//! [`zenoh_transport`], and any other adapter) and the HTTP metrics endpoint
+//! ([`metrics_endpoint`]) call the transport-independent
+//! [`handler::EsaHandler`], which validates requests and runs them against the
+//! [`store::SessionStore`] of `esa_core::Session`s, counting them in
+//! [`metrics::Metrics`]. [`server::EsaServer`] assembles the gRPC server. The
+//! wire types come from the esa-proto crate ([`pb`]).
 
 pub mod codec;
 pub mod connections;
@@ -14,23 +16,23 @@ pub mod grpc;
 pub mod guard;
 pub mod handler;
 pub mod metrics;
+pub mod metrics_endpoint;
 pub mod resources;
-pub mod rpc;
 pub mod server;
 pub mod store;
 pub mod throttle;
 pub mod zenoh_transport;
 
-pub use error::Error;
+pub use error::{Error, StartError};
+pub use esa_proto::Rpc;
 pub use handler::EsaHandler;
-pub use rpc::Rpc;
 pub use server::{EsaServer, Listener, ServerBuilder};
 
-/// Types generated from `proto/esa/v1/esa.proto`.
+/// The esa.v1 types: esa-proto's messages, client and descriptor set, and the
+/// server side of the service generated here with the bounded codec.
 #[allow(missing_docs, clippy::all)]
 pub mod pb {
-    tonic::include_proto!("esa.v1");
+    pub use esa_proto::v1::*;
 
-    /// Encoded descriptors of esa.v1, served by reflection.
-    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("esa_descriptor");
+    tonic::include_proto!("esa.v1");
 }

@@ -10,11 +10,11 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::Parser;
-use esa_server::metrics::serve_metrics;
+use esa_server::metrics_endpoint::serve_metrics;
 use esa_server::resources;
 use esa_server::server::io_context;
 use esa_server::zenoh_transport::ZenohService;
-use esa_server::{Error, Listener};
+use esa_server::{Listener, StartError};
 use tracing_subscriber::EnvFilter;
 
 use crate::cli::{Cli, LogFormat};
@@ -41,7 +41,7 @@ async fn main() -> ExitCode {
     }
 }
 
-async fn run(cli: &Cli) -> Result<(), Error> {
+async fn run(cli: &Cli) -> Result<(), StartError> {
     cli.owned_dir()?;
     // Before the defaults that derive from it (the connection limit) are computed.
     match resources::raise_open_files_limit() {
@@ -114,12 +114,12 @@ fn init_tracing(format: LogFormat) {
 }
 
 /// The token in `path`, without surrounding whitespace (a trailing newline).
-fn read_token(path: &Path) -> Result<Vec<u8>, Error> {
+fn read_token(path: &Path) -> Result<Vec<u8>, StartError> {
     let context = || format!("cannot read the auth token from {}", path.display());
     let text = std::fs::read(path).map_err(|err| io_context(err, context()))?;
     let token = text.trim_ascii();
     if token.is_empty() {
-        return Err(Error::InvalidArgument(format!(
+        return Err(StartError::Config(format!(
             "--auth-token-file: expected a token in {}, got an empty file",
             path.display()
         )));
@@ -142,7 +142,9 @@ const PARENT_CHECK: Duration = Duration::from_millis(200);
 /// future that completes on the first of them, or once this process is no
 /// longer the child of `parent` (it died, whatever killed it: the kernel
 /// hands orphans to another process).
-fn shutdown_signal(parent: Option<u32>) -> Result<impl std::future::Future<Output = ()>, Error> {
+fn shutdown_signal(
+    parent: Option<u32>,
+) -> Result<impl std::future::Future<Output = ()>, StartError> {
     use tokio::signal::unix::{signal, SignalKind};
     let mut interrupt = signal(SignalKind::interrupt())?;
     let mut terminate = signal(SignalKind::terminate())?;

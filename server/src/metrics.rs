@@ -1,20 +1,12 @@
-//! Request metrics kept in lock-free counters and served on an opt-in HTTP
-//! endpoint (`GET /metrics`) in the Prometheus text exposition format.
+//! Request metrics kept in lock-free counters, rendered in the Prometheus text
+//! exposition format (served by [`crate::metrics_endpoint`]).
 
 use std::fmt::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
 use std::time::Duration;
 
-use axum::extract::State;
-use axum::http::header;
-use axum::response::IntoResponse;
-use axum::routing::get;
-use axum::Router;
+use esa_proto::Rpc;
 use tonic::Code;
-
-use crate::handler::EsaHandler;
-use crate::rpc::Rpc;
 
 /// Upper bounds of the latency histogram buckets, in seconds. Handler time of
 /// one step is microseconds; large batches reach milliseconds.
@@ -215,27 +207,6 @@ impl Histogram {
         self.sum_nanos.fetch_add(nanos, Ordering::Relaxed);
         self.count.fetch_add(1, Ordering::Relaxed);
     }
-}
-
-/// Serves `GET /metrics` on `listener` until the task is dropped.
-pub async fn serve_metrics(
-    listener: tokio::net::TcpListener,
-    handler: Arc<EsaHandler>,
-) -> std::io::Result<()> {
-    let app = Router::new()
-        .route("/metrics", get(metrics_page))
-        .with_state(handler);
-    axum::serve(listener, app).await
-}
-
-async fn metrics_page(State(handler): State<Arc<EsaHandler>>) -> impl IntoResponse {
-    (
-        [(
-            header::CONTENT_TYPE,
-            "text/plain; version=0.0.4; charset=utf-8",
-        )],
-        handler.render_metrics(),
-    )
 }
 
 #[cfg(test)]

@@ -19,7 +19,7 @@ use tonic_health::server::HealthReporter;
 
 use crate::codec::MAX_REQUEST_BYTES;
 use crate::connections::{ConnectionLimits, Incoming, Registry};
-use crate::error::Error;
+use crate::error::StartError;
 use crate::grpc::{stopped, GrpcService};
 use crate::guard::{GuardLayer, RequestLimits};
 use crate::handler::EsaHandler;
@@ -210,7 +210,7 @@ pub enum Listener {
 
 impl Listener {
     /// Binds a TCP listener (port 0 picks a free port).
-    pub async fn tcp(addr: SocketAddr) -> Result<Self, Error> {
+    pub async fn tcp(addr: SocketAddr) -> Result<Self, StartError> {
         let listener = TcpListener::bind(addr)
             .await
             .map_err(|err| io_context(err, format!("cannot listen on {addr}")))?;
@@ -221,13 +221,13 @@ impl Listener {
     /// to (mode 0600). A socket file left behind by a server that died is
     /// replaced; a live socket or any other file is an error (and never
     /// deleted).
-    pub fn unix(path: &Path) -> Result<Self, Error> {
+    pub fn unix(path: &Path) -> Result<Self, StartError> {
         Self::unix_with_mode(path, 0o600)
     }
 
     /// [`Listener::unix`] with the socket file's permission bits `mode`
     /// (connecting needs write permission, so 0660 lets the file's group in).
-    pub fn unix_with_mode(path: &Path, mode: u32) -> Result<Self, Error> {
+    pub fn unix_with_mode(path: &Path, mode: u32) -> Result<Self, StartError> {
         let context = || format!("cannot listen on unix:{}", path.display());
         if let Ok(meta) = std::fs::symlink_metadata(path) {
             let is_socket = meta.file_type().is_socket();
@@ -237,7 +237,7 @@ impl Listener {
                 } else {
                     "the path exists and is not a socket"
                 };
-                return Err(Error::Io(io::Error::new(
+                return Err(StartError::Io(io::Error::new(
                     io::ErrorKind::AddrInUse,
                     format!("{}: {why}", context()),
                 )));
@@ -252,7 +252,7 @@ impl Listener {
     }
 
     /// The bound address: `127.0.0.1:50051`, or `unix:/path` for a socket.
-    pub fn address(&self) -> Result<String, Error> {
+    pub fn address(&self) -> Result<String, StartError> {
         Ok(match self {
             Listener::Tcp(listener) => listener.local_addr()?.to_string(),
             Listener::Unix(_, path) => format!("unix:{}", path.display()),
@@ -278,7 +278,7 @@ impl EsaServer {
         self,
         listener: Listener,
         shutdown: impl Future<Output = ()>,
-    ) -> Result<(), Error> {
+    ) -> Result<(), StartError> {
         let _sweeper = self
             .sweep_interval
             .map(|every| AbortOnDrop(spawn_sweeper(self.handler(), every)));
@@ -321,7 +321,7 @@ impl EsaServer {
         shutdown: impl Future<Output = ()>,
         health: HealthReporter,
         stop_tx: watch::Sender<bool>,
-    ) -> Result<(), Error>
+    ) -> Result<(), StartError>
     where
         I: Stream<Item = Result<IO, IE>>,
         IO: AsyncRead + AsyncWrite + Connected + Unpin + Send + 'static,

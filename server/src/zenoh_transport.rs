@@ -16,13 +16,13 @@ use zenoh::bytes::Encoding;
 use zenoh::query::{Query, Queryable};
 use zenoh::{Config, Session};
 
-use crate::error::Error;
+use crate::error::StartError;
 use crate::handler::EsaHandler;
 use crate::pb;
-use crate::rpc::Rpc;
+use esa_proto::Rpc;
 
 /// The key prefix of the contract when none is given.
-pub const DEFAULT_PREFIX: &str = "esa/v1";
+pub const DEFAULT_PREFIX: &str = esa_proto::DEFAULT_ZENOH_PREFIX;
 
 /// Where the default config listens: loopback, a free port.
 pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:0";
@@ -40,9 +40,9 @@ pub struct Shard {
 
 impl Shard {
     /// Shard `index` of `count`; `index < count` is required.
-    pub fn new(index: u32, count: u32) -> Result<Self, Error> {
+    pub fn new(index: u32, count: u32) -> Result<Self, StartError> {
         if index >= count {
-            return Err(Error::InvalidArgument(format!(
+            return Err(StartError::Config(format!(
                 "shard: expected i/N with 0 <= i < N, got {index}/{count}"
             )));
         }
@@ -66,12 +66,12 @@ impl Shard {
 }
 
 impl std::str::FromStr for Shard {
-    type Err = Error;
+    type Err = StartError;
 
     /// Parses `i/N`, e.g. `0/2`.
-    fn from_str(text: &str) -> Result<Self, Error> {
+    fn from_str(text: &str) -> Result<Self, StartError> {
         let bad = || {
-            Error::InvalidArgument(format!(
+            StartError::Config(format!(
                 "shard: expected i/N with 0 <= i < N (e.g. 0/2), got {text:?}"
             ))
         };
@@ -86,7 +86,7 @@ impl std::str::FromStr for Shard {
 /// told otherwise), connects to `connect`, and never discovers or announces
 /// anything by itself (multicast scouting and gossip off), so no traffic
 /// leaves the endpoints named here.
-pub fn loopback_config(listen: &[String], connect: &[String]) -> Result<Config, Error> {
+pub fn loopback_config(listen: &[String], connect: &[String]) -> Result<Config, StartError> {
     let listen = if listen.is_empty() {
         vec![DEFAULT_LISTEN.to_string()]
     } else {
@@ -102,7 +102,7 @@ pub fn loopback_config(listen: &[String], connect: &[String]) -> Result<Config, 
     ] {
         config
             .insert_json5(key, &value)
-            .map_err(|err| Error::Zenoh(format!("config {key} = {value}: {err}")))?;
+            .map_err(|err| StartError::Zenoh(format!("config {key} = {value}: {err}")))?;
     }
     Ok(config)
 }
@@ -132,11 +132,11 @@ impl ZenohService {
         handler: Arc<EsaHandler>,
         config: Config,
         prefix: &str,
-    ) -> Result<Self, Error> {
+    ) -> Result<Self, StartError> {
         check_prefix(prefix)?;
         let session = zenoh::open(config)
             .await
-            .map_err(|err| Error::Zenoh(format!("cannot open a session: {err}")))?;
+            .map_err(|err| StartError::Zenoh(format!("cannot open a session: {err}")))?;
         let runtime = Handle::current();
         let mut queryables = Vec::with_capacity(Rpc::ALL.len());
         for rpc in Rpc::ALL {
@@ -154,7 +154,9 @@ impl ZenohService {
                     runtime.spawn(answer(Arc::clone(&handler), rpc, query));
                 })
                 .await
-                .map_err(|err| Error::Zenoh(format!("cannot declare queryable {key}: {err}")))?;
+                .map_err(|err| {
+                    StartError::Zenoh(format!("cannot declare queryable {key}: {err}"))
+                })?;
             queryables.push(queryable);
         }
         tracing::info!(prefix, "zenoh queryables declared");
@@ -178,17 +180,17 @@ impl ZenohService {
     }
 
     /// Undeclares the queryables and closes the session.
-    pub async fn close(self) -> Result<(), Error> {
+    pub async fn close(self) -> Result<(), StartError> {
         self.session
             .close()
             .await
-            .map_err(|err| Error::Zenoh(format!("cannot close the session: {err}")))
+            .map_err(|err| StartError::Zenoh(format!("cannot close the session: {err}")))
     }
 }
 
 /// A prefix is a literal key expression: wildcards would make the server
 /// answer for keys of other deployments.
-fn check_prefix(prefix: &str) -> Result<(), Error> {
+fn check_prefix(prefix: &str) -> Result<(), StartError> {
     let literal = !prefix.is_empty()
         && !prefix.starts_with('/')
         && !prefix.ends_with('/')
@@ -197,7 +199,7 @@ fn check_prefix(prefix: &str) -> Result<(), Error> {
     if literal {
         Ok(())
     } else {
-        Err(Error::InvalidArgument(format!(
+        Err(StartError::Config(format!(
             "zenoh prefix: expected a key expression without wildcards or empty \
              chunks (e.g. esa/v1), got {prefix:?}"
         )))

@@ -278,6 +278,51 @@ async fn a_session_may_appear_only_once_per_batch() {
 }
 
 #[tokio::test]
+async fn the_failing_item_travels_as_data_in_the_status_details() {
+    let server = start().await;
+    let mut client = server.client().await;
+    let ids = batch_ids("d");
+    create_all(&mut client, &ids).await;
+    let mut actions = actions_at(0);
+    actions[1] = f64::NAN; // item 1's first value
+    let status = client
+        .probe_batch(pb::ProbeBatchRequest {
+            session_ids: ids.clone(),
+            steps: vec![0; 3],
+            actions,
+            ..Default::default()
+        })
+        .await
+        .expect_err("a NaN action");
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert_eq!(esa_proto::details::batch_item(status.details()), Some(1));
+    let status = client
+        .report_batch(pb::ReportBatchRequest {
+            session_ids: ids.clone(),
+            steps: vec![0; 3],
+            q_values: vec![1.0; 3],
+            ..Default::default()
+        })
+        .await
+        .expect_err("nothing was probed");
+    assert_eq!(status.code(), Code::FailedPrecondition);
+    assert_eq!(esa_proto::details::batch_item(status.details()), Some(0));
+    // An error of the whole request names no item.
+    let status = client
+        .report_batch(pb::ReportBatchRequest {
+            session_ids: ids.clone(),
+            steps: vec![0; 2],
+            q_values: vec![1.0; 3],
+            ..Default::default()
+        })
+        .await
+        .expect_err("one step too few");
+    assert_eq!(status.code(), Code::InvalidArgument);
+    assert_eq!(esa_proto::details::batch_item(status.details()), None);
+    server.stop().await;
+}
+
+#[tokio::test]
 async fn report_batch_retry_replays_the_same_actions() {
     let server = start().await;
     let mut client = server.client().await;

@@ -23,7 +23,7 @@ pub struct TestServer {
     pub addr: SocketAddr,
     pub handler: Arc<EsaHandler>,
     stop: oneshot::Sender<()>,
-    task: JoinHandle<Result<(), esa_server::Error>>,
+    task: JoinHandle<Result<(), esa_server::StartError>>,
 }
 
 pub async fn start() -> TestServer {
@@ -55,7 +55,7 @@ pub fn spawn(
 ) -> (
     Arc<EsaHandler>,
     oneshot::Sender<()>,
-    JoinHandle<Result<(), esa_server::Error>>,
+    JoinHandle<Result<(), esa_server::StartError>>,
 ) {
     let server = builder.build();
     let handler = server.handler();

@@ -106,6 +106,7 @@ async fn stream_matches_the_batch_rpcs_and_survives_errors() {
         };
         assert_eq!(error.code, Code::FailedPrecondition as i32);
         assert!(error.message.contains("item 1"), "{}", error.message);
+        assert_eq!(error.item, Some(pb::BatchItem { index: 1 }));
         assert!(get(&mut client, "s1").await.unwrap().probe_pending);
 
         stream

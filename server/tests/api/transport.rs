@@ -4,7 +4,7 @@
 
 use std::net::SocketAddr;
 
-use esa_server::metrics::serve_metrics;
+use esa_server::metrics_endpoint::serve_metrics;
 use esa_server::pb;
 use esa_server::{EsaServer, Listener, Rpc};
 use hyper_util::rt::TokioIo;

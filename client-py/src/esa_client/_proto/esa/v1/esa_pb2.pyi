@@ -205,9 +205,17 @@ class StepStreamResponse(_message.Message):
     def __init__(self, probe_batch: _Optional[_Union[ProbeBatchResponse, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchResponse, _Mapping]] = ..., error: _Optional[_Union[StreamError, _Mapping]] = ...) -> None: ...
 
 class StreamError(_message.Message):
-    __slots__ = ("code", "message")
+    __slots__ = ("code", "message", "item")
     CODE_FIELD_NUMBER: _ClassVar[int]
     MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    ITEM_FIELD_NUMBER: _ClassVar[int]
     code: int
     message: str
-    def __init__(self, code: _Optional[int] = ..., message: _Optional[str] = ...) -> None: ...
+    item: BatchItem
+    def __init__(self, code: _Optional[int] = ..., message: _Optional[str] = ..., item: _Optional[_Union[BatchItem, _Mapping]] = ...) -> None: ...
+
+class BatchItem(_message.Message):
+    __slots__ = ("index",)
+    INDEX_FIELD_NUMBER: _ClassVar[int]
+    index: int
+    def __init__(self, index: _Optional[int] = ...) -> None: ...

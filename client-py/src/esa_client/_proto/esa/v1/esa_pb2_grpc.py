@@ -133,14 +133,16 @@ class EsaServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def ProbeBatch(self, request, context):
-        """Probe for N sessions in one call; all-or-nothing.
+        """Probe for N sessions in one call; all-or-nothing. An error about one
+        item names it (BatchItem in the status details).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
     def ReportBatch(self, request, context):
-        """Report for N sessions in one call; all-or-nothing.
+        """Report for N sessions in one call; all-or-nothing. An error about one
+        item names it (BatchItem in the status details).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
