@@ -19,7 +19,7 @@ from esa_client import (
 )
 from esa_client._proto.esa.v1 import esa_pb2
 from esa_client.errors import esa_error
-from esa_client.transport import call
+from esa_client.stub_transport import call
 
 CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
 
@@ -140,6 +140,27 @@ def test_batch_garbage(client, use_stream):
         good.probe(np.zeros((2, 2)))
 
 
+@pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
+def test_the_failing_item_travels_as_data(client, use_stream):
+    batch = client.create_batch(CONFIG, 3, use_stream=use_stream)
+    actions = np.zeros((3, 2))
+    actions[2, 0] = np.nan
+    with pytest.raises(InvalidArgument) as info:
+        batch.probe(actions, [True, True, True])
+    assert info.value.index == 2
+    batch.probe(np.zeros((3, 2)), [True, True, True])
+    with pytest.raises(StepMismatch) as info:
+        batch.report([1.0, 2.0, 3.0], steps=[0, 5, 0])
+    assert info.value.index == 1
+    with pytest.raises(InvalidArgument) as info:  # the whole request, no item
+        call(client.stub.ProbeBatch, esa_pb2.ProbeBatchRequest(), client.timeout)
+    assert info.value.index is None
+    with pytest.raises(SessionNotFound) as info:
+        client.get_session(unique("missing"))
+    assert info.value.index is None
+    batch.close()
+
+
 def test_raw_batch_requests_with_wrong_lengths(client):
     batch = client.create_batch(CONFIG, 2)
     requests = [
@@ -174,3 +195,10 @@ def test_stream_error_codes_map_like_status_codes():
     assert "step 3 expected" in str(error)
     unknown = esa_error(esa_pb2.StreamError(code=13, message="boom"))
     assert type(unknown) is EsaError and unknown.code == grpc.StatusCode.INTERNAL
+
+
+def test_stream_errors_carry_the_item():
+    item = esa_pb2.BatchItem(index=2)
+    error = esa_error(esa_pb2.StreamError(code=3, message="item 2: bad", item=item))
+    assert isinstance(error, InvalidArgument) and error.index == 2
+    assert esa_error(esa_pb2.StreamError(code=3, message="bad")).index is None

@@ -88,8 +88,9 @@ def test_batch_errors_name_the_item_and_change_nothing(zenoh_client, use_stream)
     batch = zenoh_client.create_batch(CONFIG, 3, use_stream=use_stream)
     actions = np.zeros((3, 2))
     actions[2, 1] = math.inf
-    with pytest.raises(InvalidArgument, match="item 2"):
+    with pytest.raises(InvalidArgument, match="item 2") as info:
         batch.probe(actions, [True, True, True])
+    assert info.value.index == 2
     assert not any(s.probe_pending for s in batch.states())
     with pytest.raises(StepMismatch):
         batch.report([1.0, 2.0, 3.0])  # nothing was probed

@@ -98,8 +98,9 @@ def test_batch_errors_name_the_item_of_the_whole_batch(sharded):
     batch = sharded.create_batch(CONFIG, 6, ids=ids)
     actions = np.zeros((6, 2))
     actions[4, 0] = np.nan
-    with pytest.raises(InvalidArgument, match=r"^item 4: .*\(shard \d\)"):
+    with pytest.raises(InvalidArgument, match=r"^item 4: .*\(shard \d\)") as info:
         batch.probe(actions, [True] * 6)
+    assert info.value.index == 4
     batch.probe(np.zeros((6, 2)), [True] * 6)
     assert batch.report(np.arange(6.0)).shape == (6, 2)
 

@@ -13,6 +13,7 @@ import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 
@@ -143,11 +144,11 @@ class SessionConfig:
         for name in ("amplitude", "frequency", "learning_rate"):
             _check(len(getattr(self, name)) > 0, f"{name} to be set", getattr(self, name))
             _check(_all_finite(getattr(self, name)), f"{name} finite", getattr(self, name))
-        _check(min(self.amplitude) >= 0, "amplitude >= 0", self.amplitude)
-        _check(min(self.frequency) > 0, "frequency > 0", self.frequency)
-        _check(min(self.learning_rate) >= 0, "learning_rate >= 0", self.learning_rate)
+        _check(min(self._values("amplitude")) >= 0, "amplitude >= 0", self.amplitude)
+        _check(min(self._values("frequency")) > 0, "frequency > 0", self.frequency)
+        _check(min(self._values("learning_rate")) >= 0, "learning_rate >= 0", self.learning_rate)
         _check(
-            max(self.frequency) * self.dt < math.pi,
+            max(self._values("frequency")) * self.dt < math.pi,
             f"frequency * dt < pi (Nyquist), i.e. frequency < {math.pi / self.dt:.6g} rad/s "
             f"for dt={self.dt}",
             self.frequency,
@@ -198,25 +199,30 @@ class SessionConfig:
         )
         object.__setattr__(self, "max_episodes", int(self.max_episodes))
 
+    def _values(self, name: str) -> tuple[float, ...]:
+        """A vector field as stored: a tuple, since ``__post_init__`` normalized every one."""
+        values: tuple[float, ...] = getattr(self, name)
+        return values
+
     def vector(self, name: str) -> np.ndarray:
         """Returns a vector field broadcast to shape ``(action_dim,)`` (empty bounds give +-inf)."""
-        values = getattr(self, name)
+        values = self._values(name)
         if not values:
             fill = -np.inf if name == "action_low" else np.inf
             return np.full(self.action_dim, fill)
-        return np.broadcast_to(np.asarray(values, dtype=np.float64), (self.action_dim,)).copy()
+        return np.array(np.broadcast_to(np.asarray(values, dtype=np.float64), (self.action_dim,)))
 
     def to_proto(self) -> esa_pb2.SessionConfig:
         """Returns the ``esa.v1.SessionConfig`` message for this config."""
         message = esa_pb2.SessionConfig(
             action_dim=self.action_dim,
             dt=self.dt,
-            amplitude=self.amplitude,
-            frequency=self.frequency,
-            learning_rate=self.learning_rate,
+            amplitude=self._values("amplitude"),
+            frequency=self._values("frequency"),
+            learning_rate=self._values("learning_rate"),
             disable_highpass=self.disable_highpass,
-            action_low=self.action_low,
-            action_high=self.action_high,
+            action_low=self._values("action_low"),
+            action_high=self._values("action_high"),
             max_episodes=self.max_episodes,
             normalize_response=self.normalize_response,
         )
@@ -228,7 +234,8 @@ class SessionConfig:
     @classmethod
     def from_proto(cls, message: esa_pb2.SessionConfig) -> SessionConfig:
         """Builds (and validates) a config from an ``esa.v1.SessionConfig`` message."""
-        values = {}
+        # Field name -> value, checked by __post_init__ like any constructor argument.
+        values: dict[str, Any] = {}
         for field in fields(cls):
             if field.name in _OPTIONAL_SCALARS:
                 values[field.name] = (
@@ -356,7 +363,7 @@ class EsaConfig:
         self.session_config(max(dims, 1), 1e-9)
 
     @classmethod
-    def paper(cls, **overrides: object) -> EsaConfig:
+    def paper(cls, **overrides: Any) -> EsaConfig:
         """The paper's law and settings: Eq. 5 on the raw Q, K = 0.2, w = 10 pi, no bounds.
 
         CONTRACT.md section 1 without any section 1b field: the step scales with Q's
@@ -365,7 +372,8 @@ class EsaConfig:
         Args:
             **overrides: Fields to change, e.g. ``amplitude=0.1``.
         """
-        values: dict[str, object] = dict(
+        # Checked by __post_init__ like any constructor argument.
+        values: dict[str, Any] = dict(
             amplitude=0.2,
             frequency=10 * math.pi,
             learning_rate=0.05,
@@ -377,7 +385,7 @@ class EsaConfig:
             gate=None,
         )
         values.update(overrides)
-        return cls(**values)  # type: ignore[arg-type]
+        return cls(**values)
 
     def frequencies(self, action_dim: int, dt: float) -> tuple[float, ...]:
         """Returns the per-dimension frequencies for ``action_dim`` dimensions and step ``dt``."""
@@ -385,7 +393,7 @@ class EsaConfig:
             w = (
                 self.nyquist_fraction * math.pi / dt
                 if self.frequency is None
-                else float(self.frequency)  # type: ignore[arg-type]
+                else float(np.asarray(self.frequency, dtype=np.float64))
             )
             return (
                 tuple(float(x) for x in np.linspace(w, w / 2, action_dim))

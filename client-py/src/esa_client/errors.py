@@ -1,15 +1,20 @@
 """Typed exceptions for everything the esa server (or the connection to it) can report.
 
 Every failure surfaces as an :class:`EsaError` subclass carrying the gRPC status
-``code`` and the server's ``message``; :func:`esa_error` is the single place that
-maps a ``grpc.RpcError`` or a ``StreamError`` onto these types.
+``code``, the server's ``message`` and, for an error about one item of a batch, the
+item's ``index``. Every transport builds them through :func:`error_for`; :func:`esa_error`
+maps a ``grpc.RpcError`` or a ``StreamError`` message onto them, reading the failing item
+from the error's structured details (never from its message).
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import cast
 
 import grpc
+from grpc_status import rpc_status
+
+from ._proto.esa.v1 import esa_pb2
 
 
 class EsaError(Exception):
@@ -18,13 +23,22 @@ class EsaError(Exception):
     Attributes:
         code: The gRPC status code the server (or the transport) reported.
         message: The human-readable message, naming what to fix.
+        index: The failing item of a batch (its position in the batch), when the error is
+            about one item; None otherwise.
     """
 
-    def __init__(self, message: str, code: grpc.StatusCode = grpc.StatusCode.UNKNOWN) -> None:
-        """Creates the error from the server's message and status code."""
+    def __init__(
+        self,
+        message: str,
+        code: grpc.StatusCode = grpc.StatusCode.UNKNOWN,
+        *,
+        index: int | None = None,
+    ) -> None:
+        """Creates the error from the server's message, status code and failing item."""
         super().__init__(f"{message} [{code.name}]")
         self.code = code
         self.message = message
+        self.index = index
 
 
 class SessionNotFound(EsaError, LookupError):
@@ -81,27 +95,53 @@ _BY_CODE: dict[grpc.StatusCode, type[EsaError]] = {
 _BY_NUMBER: dict[int, grpc.StatusCode] = {code.value[0]: code for code in grpc.StatusCode}
 
 
-class StreamErrorLike(Protocol):
-    """Anything shaped like the ``esa.v1.StreamError`` message."""
+def error_for(code: grpc.StatusCode | int, message: str, index: int | None = None) -> EsaError:
+    """The typed exception for a failure, whichever transport reported it.
 
-    code: int
-    message: str
+    Args:
+        code: The gRPC status code, or its number (as ``StreamError.code`` and the
+            in-process engine's errors carry it).
+        message: What went wrong; empty gives the code's name.
+        index: The failing batch item, or None.
+
+    Returns:
+        The matching :class:`EsaError` subclass; unknown codes give a plain :class:`EsaError`.
+    """
+    if not isinstance(code, grpc.StatusCode):
+        code = _BY_NUMBER.get(code, grpc.StatusCode.UNKNOWN)
+    return _BY_CODE.get(code, EsaError)(message or code.name.lower(), code, index=index)
 
 
-def esa_error(source: grpc.RpcError | StreamErrorLike) -> EsaError:
+def esa_error(source: grpc.RpcError | esa_pb2.StreamError) -> EsaError:
     """Maps a failed gRPC call or a ``StreamError`` to the matching :class:`EsaError` subclass.
 
     Args:
         source: A ``grpc.RpcError`` raised by a call (it also implements ``grpc.Call``),
-            or a ``StreamError`` message (gRPC code number plus message).
+            or a ``StreamError`` message (gRPC code number, message and failing item).
 
     Returns:
         The typed exception, ready to raise; unknown codes give a plain :class:`EsaError`.
     """
     if isinstance(source, grpc.RpcError):
-        code = source.code() if hasattr(source, "code") else grpc.StatusCode.UNKNOWN
-        message = source.details() if hasattr(source, "details") else str(source)
-    else:
-        code = _BY_NUMBER.get(source.code, grpc.StatusCode.UNKNOWN)
-        message = source.message
-    return _BY_CODE.get(code, EsaError)(message or code.name.lower(), code)
+        if not (hasattr(source, "code") and hasattr(source, "details")):
+            return EsaError(str(source) or "unknown gRPC error")
+        # A failed call raises an RpcError that is also its grpc.Call (stubs cannot say both).
+        call = cast(grpc.Call, source)
+        return error_for(call.code(), call.details() or "", _batch_item(call))
+    index = source.item.index if source.HasField("item") else None
+    return error_for(source.code, source.message, index)
+
+
+def _batch_item(call: grpc.Call) -> int | None:
+    """The failing item named in a status's details (``esa.v1.BatchItem``), if any."""
+    try:
+        status = rpc_status.from_call(call)
+    except ValueError:  # details that contradict the status: not the server's
+        return None
+    if status is None:
+        return None
+    item = esa_pb2.BatchItem()
+    for detail in status.details:
+        if detail.Unpack(item):
+            return item.index
+    return None

@@ -17,7 +17,7 @@ import numpy as np
 
 from .config import SessionConfig
 from .errors import InvalidArgument, SessionNotFound, StepMismatch
-from .session import SessionState, as_batch_configs, check_array, check_indices
+from .state import SessionState, as_batch_configs, check_array, check_indices
 
 
 def _invalid(message: str) -> InvalidArgument:
@@ -54,7 +54,9 @@ class ReferenceBatch:
         dt = np.array([c.dt for c in self.configs])
         cutoff = np.array(
             [
-                c.highpass_cutoff if c.highpass_cutoff is not None else min(c.frequency) / 10
+                c.highpass_cutoff
+                if c.highpass_cutoff is not None
+                else min(c.vector("frequency")) / 10
                 for c in self.configs
             ]
         )
@@ -103,7 +105,8 @@ class ReferenceBatch:
     @property
     def steps(self) -> np.ndarray:
         """The current step t of every session, shape ``(N,)``."""
-        return self._t.copy()
+        steps: np.ndarray = self._t.copy()
+        return steps
 
     def _check_open(self) -> None:
         if self._closed:
@@ -131,7 +134,8 @@ class ReferenceBatch:
         return (self._max_episodes > 0) & (self._episodes >= self._max_episodes)
 
     def _phase(self) -> np.ndarray:
-        return np.sin(self._w * (self._t[:, None] * self._dt))
+        phase: np.ndarray = np.sin(self._w * (self._t[:, None] * self._dt))
+        return phase
 
     def probe(
         self,
@@ -300,7 +304,8 @@ class ReferenceBatch:
         mask[idx] = True
         self._end(mask)
         self._next_starts &= ~mask
-        return self._episodes[idx].copy()
+        counts: np.ndarray = self._episodes[idx].copy()
+        return counts
 
     def reset(self, indices: Sequence[int] | np.ndarray | None = None) -> None:
         """Marks the given sessions (default: all) so their next probe starts a new episode."""
@@ -399,7 +404,8 @@ class ReferenceSession:
             [q_value], q_references=references, steps=None if step is None else [step]
         )
         assert improved is not None
-        return improved[0]
+        action: np.ndarray = improved[0]
+        return action
 
     def end_episode(self) -> int:
         """Ends the episode; returns the number of completed episodes."""

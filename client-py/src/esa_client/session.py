@@ -11,133 +11,69 @@ Algorithm 1's step (CONTRACT.md section 1b) needs one round trip: ``probe_applie
 returns the probe and the action to apply, ``clip(a_t + v(t))``; the report of that
 step can then be deferred (``report(..., defer=True)``) and rides with the next
 probe, pipelined on a StepStream.
+
+Both are written against :class:`~esa_client.transport.Transport` only: the same code
+runs over gRPC, Zenoh, N shards or an in-process engine.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
-from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
-from .transport import call
+from .errors import SessionNotFound
+from .state import (
+    F64Array,
+    I64Array,
+    SessionState,
+    as_batch_configs,
+    check_array,
+    check_indices,
+)
+from .transport import BatchProbe, BatchReport, Transport
 
-if TYPE_CHECKING:
-    from .client import EsaClient
+__all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
 
 
-@dataclass(frozen=True)
-class SessionState:
-    """A snapshot of one session (``GetSession``).
+def restore_sessions(
+    transport: Transport,
+    ids: Sequence[str],
+    configs: SessionConfig | Sequence[SessionConfig],
+) -> int:
+    """Recreates, under the same ids and configs, those sessions ``transport`` no longer has.
 
-    Attributes:
-        config: The config as given at creation.
-        step: Current step t inside the episode.
-        episodes_completed: Number of completed episodes e.
-        shift: Current shift v, shape ``(action_dim,)``.
-        probe_pending: True between a probe and its report.
-        response_mean_square: The running mean square m of the filtered response
-            (``normalize_response``); None until the first non-zero response seeds it.
+    See :meth:`esa_client.EsaClient.restore_sessions`.
+
+    Returns:
+        How many sessions were recreated.
     """
-
-    config: SessionConfig
-    step: int
-    episodes_completed: int
-    shift: np.ndarray
-    probe_pending: bool
-    response_mean_square: float | None = None
-
-    @classmethod
-    def from_proto(cls, message: esa_pb2.GetSessionResponse) -> SessionState:
-        """Builds the snapshot from a ``GetSessionResponse``."""
-        return cls(
-            config=SessionConfig.from_proto(message.config),
-            step=message.step,
-            episodes_completed=message.episodes_completed,
-            shift=np.array(message.shift, dtype=np.float64),
-            probe_pending=message.probe_pending,
-            response_mean_square=(
-                message.response_mean_square if message.HasField("response_mean_square") else None
-            ),
-        )
-
-
-def as_batch_configs(
-    configs: SessionConfig | Sequence[SessionConfig], n: int | None
-) -> tuple[SessionConfig, ...]:
-    """Returns one config per session, checking they share one action dimension.
-
-    Args:
-        configs: One config for all sessions, or one per session.
-        n: Number of sessions; required with a single config, else must match.
-    """
-    if isinstance(configs, SessionConfig):
-        if n is None or n < 1:
-            raise ValueError(f"expected n >= 1 sessions for a single config, got {n}")
-        return (configs,) * n
-    out = tuple(configs)
-    if not out or (n is not None and n != len(out)):
-        raise ValueError(f"expected {n if n is not None else '>= 1'} configs, got {len(out)}")
-    dims = {c.action_dim for c in out}
-    if len(dims) != 1:
-        raise ValueError(f"expected one action_dim across the batch, got {sorted(dims)}")
-    return out
-
-
-def check_array(
-    values: np.ndarray | Sequence[float] | Sequence[bool],
-    shape: tuple[int, ...],
-    name: str,
-    *,
-    dtype: type = np.float64,
-    finite: bool = False,
-    error: Callable[[str], Exception] = ValueError,
-) -> np.ndarray:
-    """Returns ``values`` as a ``dtype`` array, checking its shape (and finiteness).
-
-    Args:
-        values: A batch argument, e.g. the actions.
-        shape: The shape it must have.
-        name: The argument's name, for the message.
-        dtype: The array's dtype.
-        finite: Also require every value to be finite.
-        error: Builds the exception from the message (``ValueError`` by default).
-
-    Raises:
-        Exception: Built by ``error``, if the shape is wrong or a value is not finite.
-    """
-    out = np.asarray(values, dtype=dtype)
-    if out.shape != shape:
-        raise error(f"expected {name} of shape {shape}, got {out.shape}")
-    if finite and not np.all(np.isfinite(out)):
-        raise error(f"expected finite {name}, got {out!r}")
-    return out
-
-
-def check_indices(indices: Sequence[int] | np.ndarray | None, n: int) -> np.ndarray:
-    """Returns ``indices`` (default: all N) as an int array, checking the range."""
-    if indices is None:
-        return np.arange(n)
-    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
-    if idx.size and (idx.min() < 0 or idx.max() >= n):
-        raise ValueError(f"expected indices in [0, {n}), got {idx.tolist()}")
-    return idx
+    per_session = as_batch_configs(configs, len(ids))
+    restored = 0
+    for session_id, config in zip(ids, per_session, strict=True):
+        try:
+            transport.get_session(session_id)
+        except SessionNotFound:
+            transport.create_session(session_id, config.to_proto())
+            restored += 1
+    return restored
 
 
 class Session:
-    """One ESA session on the server; created by :meth:`EsaClient.create_session`.
+    """One ESA session; created by :meth:`EsaClient.create_session`.
 
     Attributes:
         id: The session id.
         config: The session config.
     """
 
-    def __init__(self, client: EsaClient, session_id: str, config: SessionConfig, step: int = 0):
-        """Binds to an existing server session (use the client's factory methods)."""
-        self._client = client
+    def __init__(
+        self, transport: Transport, session_id: str, config: SessionConfig, step: int = 0
+    ) -> None:
+        """Binds to an existing session (use the client's factory methods)."""
+        self._transport = transport
         self.id = session_id
         self.config = config
         self._step = step
@@ -149,12 +85,12 @@ class Session:
 
     def probe(
         self,
-        action: np.ndarray | Sequence[float],
+        action: npt.ArrayLike,
         *,
         episode_start: bool = False,
         step: int | None = None,
-        action_scale: float | Sequence[float] | np.ndarray | None = None,
-    ) -> np.ndarray:
+        action_scale: npt.ArrayLike | None = None,
+    ) -> F64Array:
         """Sends the sampled action and returns the probe at which to evaluate Q.
 
         Args:
@@ -173,12 +109,12 @@ class Session:
 
     def probe_applied(
         self,
-        action: np.ndarray | Sequence[float],
+        action: npt.ArrayLike,
         *,
         episode_start: bool = False,
         step: int | None = None,
-        action_scale: float | Sequence[float] | np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
+        action_scale: npt.ArrayLike | None = None,
+    ) -> tuple[F64Array, F64Array]:
         """Like :meth:`probe`, and also returns Algorithm 1's action to apply to the env.
 
         Returns:
@@ -187,23 +123,19 @@ class Session:
         """
         if step is None:
             step = 0 if episode_start else self._step
-        request = esa_pb2.ProbeRequest(
-            session_id=self.id,
-            step=step,
-            action=np.asarray(action, dtype=np.float64).reshape(-1).tolist(),
-            episode_start=episode_start,
-            action_scale=[] if action_scale is None else np.ravel(action_scale).tolist(),
+        answer = self._transport.probe(
+            self.id,
+            step,
+            np.asarray(action, dtype=np.float64).reshape(-1),
+            episode_start,
+            None if action_scale is None else np.ravel(np.asarray(action_scale, np.float64)),
         )
-        response = call(self._client.stub.Probe, request, self._client.timeout)
         self._step = step
-        return (
-            np.array(response.probe, dtype=np.float64),
-            np.array(response.action, dtype=np.float64),
-        )
+        return answer
 
     def report(
         self, q_value: float, *, q_reference: float | None = None, step: int | None = None
-    ) -> np.ndarray:
+    ) -> F64Array:
         """Sends ``Q(s_t, probe)`` and returns the improved action ``clip(a_t + v(t + 1))``.
 
         Args:
@@ -216,28 +148,24 @@ class Session:
             The improved action, shape ``(action_dim,)``.
         """
         step = self._step if step is None else step
-        request = esa_pb2.ReportRequest(session_id=self.id, step=step, q_value=float(q_value))
-        if q_reference is not None:
-            request.q_reference = float(q_reference)
-        response = call(self._client.stub.Report, request, self._client.timeout)
+        reference = None if q_reference is None else float(q_reference)
+        improved = self._transport.report(self.id, step, float(q_value), reference)
         self._step = step + 1
-        return np.array(response.action, dtype=np.float64)
+        return improved
 
     def end_episode(self) -> int:
         """Ends the current episode; returns the number of completed episodes."""
-        request = esa_pb2.EndEpisodeRequest(session_id=self.id)
-        response = call(self._client.stub.EndEpisode, request, self._client.timeout)
+        completed = self._transport.end_episode(self.id)
         self._step = 0
-        return response.episodes_completed
+        return completed
 
     def state(self) -> SessionState:
         """Returns a snapshot of the session (``GetSession``)."""
-        return self._client.session_state(self.id)
+        return self._transport.get_session(self.id)
 
     def close(self) -> None:
         """Closes the session on the server; later calls raise ``SessionNotFound``."""
-        request = esa_pb2.CloseSessionRequest(session_id=self.id)
-        call(self._client.stub.CloseSession, request, self._client.timeout)
+        self._transport.close_session(self.id)
 
     def __enter__(self) -> Session:
         """Returns self."""
@@ -263,36 +191,46 @@ class SessionBatch:
 
     def __init__(
         self,
-        client: EsaClient,
+        transport: Transport,
         ids: Sequence[str],
         configs: Sequence[SessionConfig],
         *,
         use_stream: bool = False,
+        on_restore: Callable[[int], None] | None = None,
     ) -> None:
-        """Binds to existing server sessions (use :meth:`EsaClient.create_batch`)."""
-        self._client = client
+        """Binds to existing sessions (use :meth:`EsaClient.create_batch`).
+
+        Args:
+            transport: What the batch's calls go through.
+            ids: The session ids.
+            configs: Their configs (one action dimension).
+            use_stream: Ask the transport for one persistent stream for the round trips.
+            on_restore: Told how many sessions each :meth:`restore` recreated.
+        """
+        self._transport = transport
         self.ids = tuple(ids)
         self.configs = tuple(configs)
         self.n, self.action_dim = len(self.ids), self.configs[0].action_dim
-        self._transport = client.batch_transport(self.ids, self.action_dim, use_stream=use_stream)
-        self._steps = np.zeros(self.n, dtype=np.int64)
+        self._batch = transport.open_batch(self.ids, self.action_dim, use_stream=use_stream)
+        self._on_restore = on_restore
+        self._steps: I64Array = np.zeros(self.n, dtype=np.int64)
         self._next_starts = np.zeros(self.n, dtype=bool)
         # A report sent with the next probe (``report(..., defer=True)``).
-        self._deferred: esa_pb2.ReportBatchRequest | None = None
+        self._deferred: BatchReport | None = None
 
     @property
-    def steps(self) -> np.ndarray:
+    def steps(self) -> I64Array:
         """The step each session's next probe (or pending report) carries, shape ``(N,)``."""
-        return self._steps.copy()
+        return np.array(self._steps, dtype=np.int64)
 
     def probe(
         self,
-        actions: np.ndarray,
-        episode_starts: np.ndarray | Sequence[bool] | None = None,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None = None,
         *,
-        steps: np.ndarray | Sequence[int] | None = None,
-        action_scales: np.ndarray | float | None = None,
-    ) -> np.ndarray:
+        steps: npt.ArrayLike | None = None,
+        action_scales: npt.ArrayLike | None = None,
+    ) -> F64Array:
         """Sends the N sampled actions and returns the N probes.
 
         Args:
@@ -313,12 +251,12 @@ class SessionBatch:
 
     def probe_applied(
         self,
-        actions: np.ndarray,
-        episode_starts: np.ndarray | Sequence[bool] | None = None,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None = None,
         *,
-        steps: np.ndarray | Sequence[int] | None = None,
-        action_scales: np.ndarray | float | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
+        steps: npt.ArrayLike | None = None,
+        action_scales: npt.ArrayLike | None = None,
+    ) -> tuple[F64Array, F64Array]:
         """Like :meth:`probe`, and also returns Algorithm 1's actions to apply to the envs.
 
         A report deferred with ``report(..., defer=True)`` is sent first, in the same
@@ -329,43 +267,33 @@ class SessionBatch:
             ``(probes, applied)``, both shape ``(N, D)``: the probes, and
             ``clip(a_t + v(t))``, the shift before this step's report.
         """
-        a = check_array(actions, (self.n, self.action_dim), "actions")
+        shape = (self.n, self.action_dim)
+        a = check_array(actions, shape, "actions")
         starts = self._next_starts.copy()
         if episode_starts is not None:
             starts |= check_array(episode_starts, (self.n,), "episode_starts", dtype=bool)
         step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
-        scales: list[float] = []
+        scales = None
         if action_scales is not None:
-            shape = (self.n, self.action_dim)
-            scales = np.broadcast_to(np.asarray(action_scales, np.float64), shape).ravel().tolist()
-        request = esa_pb2.ProbeBatchRequest(
-            session_ids=self.ids,
-            steps=step.tolist(),
-            actions=a.ravel().tolist(),
-            episode_starts=starts.tolist(),
-            action_scales=scales,
-        )
+            scales = np.broadcast_to(np.asarray(action_scales, np.float64), shape)
+        request = BatchProbe(step, a, starts, scales)
         if self._deferred is None:
-            response = self._transport.probe_batch(request)
+            answer = self._batch.probe(request)
         else:
-            _, response = self._transport.report_then_probe(self._deferred, request)
+            answer = self._batch.report_then_probe(self._deferred, request)
             self._deferred = None
         self._steps = step
         self._next_starts[:] = False
-        shape = (self.n, self.action_dim)
-        return (
-            np.array(response.probes, dtype=np.float64).reshape(shape),
-            np.array(response.actions, dtype=np.float64).reshape(shape),
-        )
+        return answer
 
     def report(
         self,
-        q_values: np.ndarray | Sequence[float],
+        q_values: npt.ArrayLike,
         *,
-        q_references: np.ndarray | Sequence[float] | None = None,
-        steps: np.ndarray | Sequence[int] | None = None,
+        q_references: npt.ArrayLike | None = None,
+        steps: npt.ArrayLike | None = None,
         defer: bool = False,
-    ) -> np.ndarray | None:
+    ) -> F64Array | None:
         """Sends ``Q(s_t, probe)`` for the N sessions and returns the N improved actions.
 
         Args:
@@ -384,31 +312,27 @@ class SessionBatch:
         Returns:
             The improved actions ``clip(a_t + v(t + 1))``, shape ``(N, D)``; None if deferred.
         """
-        q = check_array(q_values, (self.n,), "q_values")
-        references: list[float] = []
+        # Copies: a deferred report must not change with the caller's arrays.
+        q = np.array(check_array(q_values, (self.n,), "q_values"))
+        references = None
         if q_references is not None:
-            references = check_array(q_references, (self.n,), "q_references").tolist()
+            references = np.array(check_array(q_references, (self.n,), "q_references"))
         if steps is not None:
             step = np.asarray(steps, np.int64)
         elif self._deferred is not None:
             # A report of the same steps replaces the deferred one (e.g. after it failed).
-            step = np.asarray(self._deferred.steps, np.int64)
+            step = self._deferred.steps
         else:
             step = self._steps
         self._deferred = None
-        request = esa_pb2.ReportBatchRequest(
-            session_ids=self.ids,
-            steps=step.tolist(),
-            q_values=q.tolist(),
-            q_references=references,
-        )
+        request = BatchReport(step, q, references)
         if defer:
             self._deferred = request
             self._steps = step + 1
             return None
-        response = self._transport.report_batch(request)
+        improved = self._batch.report(request)
         self._steps = step + 1
-        return np.array(response.actions, dtype=np.float64).reshape(self.n, self.action_dim)
+        return improved
 
     def flush(self) -> None:
         """Sends a deferred report now (nothing if none is pending).
@@ -417,7 +341,7 @@ class SessionBatch:
             EsaError: The report's error; it then stays pending.
         """
         if self._deferred is not None:
-            self._transport.report_batch(self._deferred)
+            self._batch.report(self._deferred)
             self._deferred = None
 
     def restore(self) -> int:
@@ -432,12 +356,14 @@ class SessionBatch:
             How many sessions were recreated.
         """
         self._deferred = None
-        restored = self._client.restore_sessions(self.ids, self.configs)
+        restored = restore_sessions(self._transport, self.ids, self.configs)
+        if self._on_restore is not None:
+            self._on_restore(restored)
         self._steps[:] = 0
         self._next_starts[:] = True
         return restored
 
-    def end_episode(self, indices: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
+    def end_episode(self, indices: npt.ArrayLike | None = None) -> I64Array:
         """Ends the episodes of the given sessions now (one call each; default: all).
 
         Returns:
@@ -445,15 +371,14 @@ class SessionBatch:
         """
         idx = check_indices(indices, self.n)
         self.flush()
-        counts = []
+        counts: list[int] = []
         for i in idx.tolist():
-            request = esa_pb2.EndEpisodeRequest(session_id=self.ids[i])
-            counts.append(call(self._client.stub.EndEpisode, request, self._client.timeout))
+            counts.append(self._transport.end_episode(self.ids[i]))
             self._steps[i] = 0
             self._next_starts[i] = False
-        return np.array([c.episodes_completed for c in counts], dtype=np.int64)
+        return np.array(counts, dtype=np.int64)
 
-    def reset(self, indices: Sequence[int] | np.ndarray | None = None) -> None:
+    def reset(self, indices: npt.ArrayLike | None = None) -> None:
         """Marks the given sessions (default: all) so their next probe starts a new episode.
 
         This costs no round trip: the flag rides on the next :meth:`probe`.
@@ -463,7 +388,7 @@ class SessionBatch:
     def states(self) -> list[SessionState]:
         """Returns a snapshot of every session (after sending a deferred report)."""
         self.flush()
-        return [self._client.session_state(i) for i in self.ids]
+        return [self._transport.get_session(i) for i in self.ids]
 
     def close(self) -> None:
         """Closes the stream (if any) and every session on the server.
@@ -471,10 +396,9 @@ class SessionBatch:
         A deferred report is dropped: it cannot change anything the caller still sees.
         """
         self._deferred = None
-        self._transport.close()
+        self._batch.close()
         for session_id in self.ids:
-            request = esa_pb2.CloseSessionRequest(session_id=session_id)
-            call(self._client.stub.CloseSession, request, self._client.timeout)
+            self._transport.close_session(session_id)
 
     def __enter__(self) -> SessionBatch:
         """Returns self."""

@@ -8,33 +8,34 @@ i.e. the first 8 bytes of the SHA-256 of the UTF-8 session id, read as a big-end
 unsigned 64-bit integer, modulo N. Shard ``i`` serves the keys ``<prefix>/shard/<i>/...``.
 
 A session lives on exactly one shard, so single-session calls are forwarded as
-they are. A batch is split into one sub-batch per shard, the sub-batches are sent
-concurrently and the answers merged back into request order. Each sub-batch is
-all-or-nothing on its shard; if one shard fails, the others may have applied
-their part, and repeating the whole call is safe because a server treats a
-repeated probe or report of the same step as a retry (CONTRACT.md).
+they are. :class:`ShardedTransport` is the :class:`~esa_client.transport.Transport`
+over one transport per shard: a batch is split into one sub-batch per shard, the
+sub-batches are sent concurrently and the answers merged back into request order.
+Each sub-batch is all-or-nothing on its shard; if one shard fails, the others may
+have applied their part, and repeating the whole call is safe because a server
+treats a repeated probe or report of the same step as a retry (CONTRACT.md). A
+shard's error names the failing item by its index in the whole batch.
 """
 
 from __future__ import annotations
 
 import hashlib
-import re
 import uuid
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor
-from typing import Protocol, TypeVar
+from concurrent.futures import ThreadPoolExecutor
+from typing import Generic, Protocol, TypeVar
 
 import grpc
 import numpy as np
-from google.protobuf.message import Message
 
 from ._proto.esa.v1 import esa_pb2
 from .errors import EsaError, InvalidArgument
-from .zenoh_transport import ZenohRpc, ZenohStub
+from .state import F64Array, I64Array, SessionState
+from .stub_transport import ServiceStub, UnaryRpc
+from .transport import BatchProbe, BatchReport, BatchTransport, Transport
 
 Answer = TypeVar("Answer")
-
-_ITEM = re.compile(r"^item (\d+): ")
+Response = TypeVar("Response")
 
 
 def shard_of(session_id: str, shards: int) -> int:
@@ -50,113 +51,230 @@ def shard_prefix(prefix: str, shard: int) -> str:
     return f"{prefix}/shard/{shard}"
 
 
-class BatchTransport(Protocol):
-    """What a :class:`~esa_client.SessionBatch` sends its round trips through."""
+class QueryStub(ServiceStub, Protocol):
+    """A stub whose ``StepStream`` is unary (one message in, one out), as over Zenoh."""
 
-    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
-        """One ProbeBatch round trip."""
+    @property
+    def StepStream(  # noqa: N802 (the RPC's name)
+        self,
+    ) -> UnaryRpc[esa_pb2.StepStreamRequest, esa_pb2.StepStreamResponse]:
+        """The ``StepStream`` RPC, one message per call."""
         ...
 
-    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
-        """One ReportBatch round trip."""
+
+class _ForSession(Protocol):
+    """A request naming one session."""
+
+    @property
+    def session_id(self) -> str:
+        """The session's id."""
         ...
 
-    def report_then_probe(
-        self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
-    ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
-        """A ReportBatch and the next ProbeBatch, pipelined where the transport can."""
-        ...
 
-    def close(self) -> None:
-        """Releases the transport."""
-        ...
+SessionRequest = TypeVar("SessionRequest", bound=_ForSession)
+BatchRequest = TypeVar("BatchRequest")
+
+
+class _ToOwner(Generic[SessionRequest, Response]):
+    """A single-session RPC, sent to the shard that owns the request's session."""
+
+    def __init__(
+        self,
+        shards: Sequence[QueryStub],
+        rpc: Callable[[QueryStub], UnaryRpc[SessionRequest, Response]],
+    ) -> None:
+        self._shards = shards
+        self._rpc = rpc
+
+    def __call__(self, request: SessionRequest, timeout: float | None = None) -> Response:
+        shard = shard_of(request.session_id, len(self._shards))
+        return self._rpc(self._shards[shard])(request, timeout)
+
+
+class _ToOneShard(Generic[BatchRequest, Response]):
+    """A raw batch RPC, sent to the one shard that owns all of its sessions."""
+
+    def __init__(
+        self,
+        shards: Sequence[QueryStub],
+        rpc: Callable[[QueryStub], UnaryRpc[BatchRequest, Response]],
+        ids: Callable[[BatchRequest], Sequence[str]],
+    ) -> None:
+        self._shards = shards
+        self._rpc = rpc
+        self._ids = ids
+
+    def __call__(self, request: BatchRequest, timeout: float | None = None) -> Response:
+        owners = {shard_of(i, len(self._shards)) for i in self._ids(request)}
+        if len(owners) > 1:
+            raise InvalidArgument(
+                f"expected the sessions of a raw batch on one shard, got shards "
+                f"{sorted(owners)}; use a SessionBatch (create_batch) to split batches "
+                "across shards",
+                grpc.StatusCode.INVALID_ARGUMENT,
+            )
+        return self._rpc(self._shards[owners.pop() if owners else 0])(request, timeout)
+
+
+def _step_ids(request: esa_pb2.StepStreamRequest) -> Sequence[str]:
+    if request.WhichOneof("kind") == "report_batch":
+        return request.report_batch.session_ids
+    return request.probe_batch.session_ids
 
 
 class ShardedStub:
     """The ``EsaServiceStub`` interface over N shards: each call goes to its session's shard.
 
+    The raw wire API of :class:`~esa_client.ShardedEsaClient` (``client.stub``).
     ``CreateSession`` without an id gets a client-generated UUID (the shard must be
     known before the session exists). ``ProbeBatch`` / ``ReportBatch`` /
     ``StepStream`` are forwarded when all their sessions live on one shard; a batch
     spanning shards needs the action dimension to be split, so it goes through
-    :class:`ShardedBatchTransport` (what ``SessionBatch`` uses).
+    :class:`ShardedTransport` (what ``SessionBatch`` uses).
     """
 
-    def __init__(self, shards: Sequence[ZenohStub]) -> None:
+    def __init__(self, shards: Sequence[QueryStub]) -> None:
         """Routes over ``shards``; ``shards[i]`` serves shard ``i``."""
         self.shards = tuple(shards)
-        self.CreateSession = self._by_id(lambda s: s.CreateSession, create=True)
-        for name in ("Probe", "Report", "EndEpisode", "CloseSession", "GetSession"):
-            setattr(self, name, self._by_id(lambda s, name=name: getattr(s, name)))
-        self.ProbeBatch = self._by_ids(lambda s: s.ProbeBatch, lambda r: r.session_ids)
-        self.ReportBatch = self._by_ids(lambda s: s.ReportBatch, lambda r: r.session_ids)
-        self.StepStream = self._by_ids(lambda s: s.StepStream, _step_ids)
+        self.Probe = _ToOwner(self.shards, lambda s: s.Probe)
+        self.Report = _ToOwner(self.shards, lambda s: s.Report)
+        self.EndEpisode = _ToOwner(self.shards, lambda s: s.EndEpisode)
+        self.CloseSession = _ToOwner(self.shards, lambda s: s.CloseSession)
+        self.GetSession = _ToOwner(self.shards, lambda s: s.GetSession)
+        self.ProbeBatch = _ToOneShard(self.shards, lambda s: s.ProbeBatch, lambda r: r.session_ids)
+        self.ReportBatch = _ToOneShard(
+            self.shards, lambda s: s.ReportBatch, lambda r: r.session_ids
+        )
+        self.StepStream = _ToOneShard(self.shards, lambda s: s.StepStream, _step_ids)
 
     def shard_of(self, session_id: str) -> int:
         """The shard that owns ``session_id``."""
         return shard_of(session_id, len(self.shards))
 
-    def _by_id(
-        self, rpc: Callable[[ZenohStub], ZenohRpc], *, create: bool = False
-    ) -> Callable[..., Message]:
-        def forward(request: Message, timeout: float | None = None) -> Message:
-            if create and not request.session_id:  # type: ignore[attr-defined]
-                request = type(request)(session_id=str(uuid.uuid4()), config=request.config)  # type: ignore[attr-defined]
-            shard = self.shard_of(request.session_id)  # type: ignore[attr-defined]
-            return rpc(self.shards[shard])(request, timeout)
-
-        return forward
-
-    def _by_ids(
-        self, rpc: Callable[[ZenohStub], ZenohRpc], ids: Callable[[Message], Sequence[str]]
-    ) -> Callable[..., Message]:
-        def forward(request: Message, timeout: float | None = None) -> Message:
-            owners = {self.shard_of(i) for i in ids(request)}
-            if len(owners) > 1:
-                raise InvalidArgument(
-                    f"expected the sessions of a raw batch on one shard, got shards "
-                    f"{sorted(owners)}; use a SessionBatch (create_batch) to split batches "
-                    "across shards",
-                    grpc.StatusCode.INVALID_ARGUMENT,
-                )
-            return rpc(self.shards[owners.pop() if owners else 0])(request, timeout)
-
-        return forward
+    def CreateSession(  # noqa: N802 (the RPC's name)
+        self, request: esa_pb2.CreateSessionRequest, timeout: float | None = None
+    ) -> esa_pb2.CreateSessionResponse:
+        """Creates the session on its shard (an empty id: a UUID made here)."""
+        if not request.session_id:
+            request = esa_pb2.CreateSessionRequest(
+                session_id=str(uuid.uuid4()), config=request.config
+            )
+        return self.shards[self.shard_of(request.session_id)].CreateSession(request, timeout)
 
 
-def _step_ids(request: esa_pb2.StepStreamRequest) -> Sequence[str]:
-    return getattr(request, request.WhichOneof("kind") or "probe_batch").session_ids
-
-
-class ShardedBatchTransport:
-    """Splits each batch per shard, sends the parts concurrently, merges answers in order.
+class ShardedTransport:
+    """The :class:`~esa_client.transport.Transport` over N shards, one transport each.
 
     Args:
-        parts: One transport per shard (``parts[i]`` talks to shard ``i``).
+        parts: ``parts[i]`` reaches shard ``i``; this transport owns and closes them.
+
+    Attributes:
+        parts: The per-shard transports.
+    """
+
+    def __init__(self, parts: Sequence[Transport]) -> None:
+        """Routes over ``parts``; batches run their per-shard parts on one thread each."""
+        if not parts:
+            raise ValueError("expected at least one shard transport, got none")
+        self.parts = tuple(parts)
+        self._executor = ThreadPoolExecutor(max_workers=len(parts), thread_name_prefix="esa-shard")
+
+    def shard_of(self, session_id: str) -> int:
+        """The shard that owns ``session_id``."""
+        return shard_of(session_id, len(self.parts))
+
+    def _owner(self, session_id: str) -> Transport:
+        return self.parts[self.shard_of(session_id)]
+
+    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
+        """Creates the session on its shard (an empty id: a UUID made here)."""
+        session_id = session_id or str(uuid.uuid4())
+        return self._owner(session_id).create_session(session_id, config)
+
+    def get_session(self, session_id: str) -> SessionState:
+        """Asks the session's shard."""
+        return self._owner(session_id).get_session(session_id)
+
+    def close_session(self, session_id: str) -> None:
+        """Asks the session's shard."""
+        self._owner(session_id).close_session(session_id)
+
+    def end_episode(self, session_id: str) -> int:
+        """Asks the session's shard."""
+        return self._owner(session_id).end_episode(session_id)
+
+    def probe(
+        self,
+        session_id: str,
+        step: int,
+        action: F64Array,
+        episode_start: bool,
+        action_scale: F64Array | None,
+    ) -> tuple[F64Array, F64Array]:
+        """Asks the session's shard."""
+        owner = self._owner(session_id)
+        return owner.probe(session_id, step, action, episode_start, action_scale)
+
+    def report(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None
+    ) -> F64Array:
+        """Asks the session's shard."""
+        return self._owner(session_id).report(session_id, step, q_value, q_reference)
+
+    def open_batch(
+        self, ids: Sequence[str], action_dim: int, *, use_stream: bool
+    ) -> BatchTransport:
+        """A :class:`ShardedBatch`: one sub-batch per shard that owns some of ``ids``."""
+        return ShardedBatch(self.parts, ids, action_dim, self._executor, use_stream=use_stream)
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
+        """True if every shard answers (each within ``timeout`` seconds)."""
+        return all(p.healthy(timeout, wait_for_ready=wait_for_ready) for p in self.parts)
+
+    def close(self) -> None:
+        """Stops the worker threads and closes every shard's transport."""
+        self._executor.shutdown()
+        for part in self.parts:
+            part.close()
+
+
+class ShardedBatch:
+    """Splits each batch call per shard, sends the parts concurrently, merges answers in order.
+
+    Args:
+        parts: One transport per shard (``parts[i]`` reaches shard ``i``).
         ids: The batch's session ids, in batch order.
         action_dim: The batch's shared action dimension.
         executor: Runs the per-shard round trips concurrently.
+        use_stream: Passed on to every shard's ``open_batch``.
     """
 
     def __init__(
         self,
-        parts: Sequence[BatchTransport],
+        parts: Sequence[Transport],
         ids: Sequence[str],
         action_dim: int,
-        executor: Executor,
+        executor: ThreadPoolExecutor,
+        *,
+        use_stream: bool,
     ) -> None:
-        """Precomputes which items each shard owns."""
-        self._parts = tuple(parts)
-        self._action_dim = action_dim
-        self._executor = executor
+        """Opens a sub-batch on every shard that owns some of ``ids``."""
         owner = np.array([shard_of(i, len(parts)) for i in ids], dtype=np.int64)
-        self._items = {s: np.flatnonzero(owner == s) for s in np.unique(owner).tolist()}
+        self._items: dict[int, I64Array] = {
+            s: np.flatnonzero(owner == s) for s in np.unique(owner).tolist()
+        }
+        self._batches = {
+            s: parts[s].open_batch([ids[i] for i in items], action_dim, use_stream=use_stream)
+            for s, items in self._items.items()
+        }
+        self._shape = (len(ids), action_dim)
+        self._executor = executor
 
-    def _scatter(self, send: Callable[[BatchTransport, np.ndarray], Answer]) -> dict[int, Answer]:
-        """Runs ``send(shard transport, its items)`` for every shard concurrently."""
+    def _scatter(self, send: Callable[[BatchTransport, I64Array], Answer]) -> dict[int, Answer]:
+        """Runs ``send(shard's batch, its items)`` for every shard concurrently."""
         futures = {
-            shard: self._executor.submit(send, self._parts[shard], items)
-            for shard, items in self._items.items()
+            shard: self._executor.submit(send, batch, self._items[shard])
+            for shard, batch in self._batches.items()
         }
         answers = {}
         for shard, future in futures.items():
@@ -166,100 +284,74 @@ class ShardedBatchTransport:
                 raise _renumbered(err, self._items[shard], shard) from None
         return answers
 
-    def _merged(self, n: int, parts: dict[int, Sequence[float]]) -> list[float]:
-        """The per-shard ``(k, D)`` values put back in request order, flattened."""
-        merged = np.empty((n, self._action_dim), dtype=np.float64)
+    def _merged(self, parts: dict[int, F64Array]) -> F64Array:
+        """The per-shard ``(k, D)`` values put back in batch order, ``(N, D)``."""
+        merged = np.empty(self._shape, dtype=np.float64)
         for shard, values in parts.items():
-            merged[self._items[shard]] = np.asarray(values, dtype=np.float64).reshape(
-                -1, self._action_dim
-            )
-        return merged.ravel().tolist()
+            merged[self._items[shard]] = values
+        return merged
 
-    def _probe_part(
-        self, request: esa_pb2.ProbeBatchRequest
-    ) -> Callable[[np.ndarray], esa_pb2.ProbeBatchRequest]:
-        actions = np.asarray(request.actions, dtype=np.float64).reshape(-1, self._action_dim)
-        scales = np.asarray(request.action_scales, dtype=np.float64).reshape(-1, self._action_dim)
-        starts = list(request.episode_starts)
+    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
+        """Sends the per-shard probes concurrently; answers come back in batch order."""
+        answers = self._scatter(lambda batch, items: batch.probe(_probe_part(request, items)))
+        return self._probe_answer(answers)
 
-        def part(items: np.ndarray) -> esa_pb2.ProbeBatchRequest:
-            return esa_pb2.ProbeBatchRequest(
-                session_ids=[request.session_ids[i] for i in items],
-                steps=[request.steps[i] for i in items],
-                actions=actions[items].ravel().tolist(),
-                episode_starts=[starts[i] for i in items] if starts else [],
-                action_scales=scales[items].ravel().tolist() if scales.size else [],
-            )
-
-        return part
-
-    @staticmethod
-    def _report_part(
-        request: esa_pb2.ReportBatchRequest,
-    ) -> Callable[[np.ndarray], esa_pb2.ReportBatchRequest]:
-        references = list(request.q_references)
-
-        def part(items: np.ndarray) -> esa_pb2.ReportBatchRequest:
-            return esa_pb2.ReportBatchRequest(
-                session_ids=[request.session_ids[i] for i in items],
-                steps=[request.steps[i] for i in items],
-                q_values=[request.q_values[i] for i in items],
-                q_references=[references[i] for i in items] if references else [],
-            )
-
-        return part
-
-    def _probe_answer(
-        self, n: int, answers: dict[int, esa_pb2.ProbeBatchResponse]
-    ) -> esa_pb2.ProbeBatchResponse:
-        return esa_pb2.ProbeBatchResponse(
-            probes=self._merged(n, {s: a.probes for s, a in answers.items()}),
-            actions=self._merged(n, {s: a.actions for s, a in answers.items()}),
-        )
-
-    def _report_answer(
-        self, n: int, answers: dict[int, esa_pb2.ReportBatchResponse]
-    ) -> esa_pb2.ReportBatchResponse:
-        return esa_pb2.ReportBatchResponse(
-            actions=self._merged(n, {s: a.actions for s, a in answers.items()})
-        )
-
-    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
-        """Sends the per-shard ProbeBatches concurrently; answers come back in request order."""
-        part = self._probe_part(request)
-        answers = self._scatter(lambda t, items: t.probe_batch(part(items)))
-        return self._probe_answer(len(request.session_ids), answers)
-
-    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
-        """Sends the per-shard ReportBatches concurrently; actions come back in request order."""
-        part = self._report_part(request)
-        answers = self._scatter(lambda t, items: t.report_batch(part(items)))
-        return self._report_answer(len(request.session_ids), answers)
+    def report(self, request: BatchReport) -> F64Array:
+        """Sends the per-shard reports concurrently; actions come back in batch order."""
+        answers = self._scatter(lambda batch, items: batch.report(_report_part(request, items)))
+        return self._merged(answers)
 
     def report_then_probe(
-        self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
-    ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
-        """Each shard gets its part of both, pipelined on its transport; shards run concurrently."""
-        report_part, probe_part = self._report_part(report), self._probe_part(probe)
-        pairs = self._scatter(
-            lambda t, items: t.report_then_probe(report_part(items), probe_part(items))
+        self, report: BatchReport, probe: BatchProbe
+    ) -> tuple[F64Array, F64Array]:
+        """Each shard gets its part of both, pipelined on its batch; shards run concurrently."""
+        answers = self._scatter(
+            lambda batch, items: batch.report_then_probe(
+                _report_part(report, items), _probe_part(probe, items)
+            )
         )
-        n = len(probe.session_ids)
-        return (
-            self._report_answer(n, {s: pair[0] for s, pair in pairs.items()}),
-            self._probe_answer(n, {s: pair[1] for s, pair in pairs.items()}),
-        )
+        return self._probe_answer(answers)
+
+    def _probe_answer(
+        self, answers: dict[int, tuple[F64Array, F64Array]]
+    ) -> tuple[F64Array, F64Array]:
+        probes = self._merged({s: a[0] for s, a in answers.items()})
+        return probes, self._merged({s: a[1] for s, a in answers.items()})
 
     def close(self) -> None:
-        """Closes every per-shard transport."""
-        for part in self._parts:
-            part.close()
+        """Closes every per-shard batch."""
+        for batch in self._batches.values():
+            batch.close()
 
 
-def _renumbered(err: EsaError, items: np.ndarray, shard: int) -> EsaError:
-    """The shard's error, its ``item k`` renumbered to the position in the whole batch."""
-    match = _ITEM.match(err.message)
-    message = err.message
-    if match and int(match.group(1)) < len(items):
-        message = f"item {items[int(match.group(1))]}: {message[match.end() :]}"
-    return type(err)(f"{message} (shard {shard})", err.code)
+def _probe_part(request: BatchProbe, items: I64Array) -> BatchProbe:
+    scales = request.action_scales
+    return BatchProbe(
+        request.steps[items],
+        request.actions[items],
+        request.episode_starts[items],
+        None if scales is None else scales[items],
+    )
+
+
+def _report_part(request: BatchReport, items: I64Array) -> BatchReport:
+    references = request.q_references
+    return BatchReport(
+        request.steps[items],
+        request.q_values[items],
+        None if references is None else references[items],
+    )
+
+
+def _renumbered(err: EsaError, items: I64Array, shard: int) -> EsaError:
+    """The shard's error about its item k, as the error about item ``items[k]`` of the batch.
+
+    The index comes from the error's data (``err.index``); the message, which the server
+    starts with ``item k: `` for that same k, gets the batch's number instead, and the
+    shard is named at the end.
+    """
+    message, index = err.message, None
+    if err.index is not None and 0 <= err.index < len(items):
+        index = int(items[err.index])
+        message = f"item {index}: {message.removeprefix(f'item {err.index}: ')}"
+    return type(err)(f"{message} (shard {shard})", err.code, index=index)

@@ -91,12 +91,12 @@ def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
     )
 
 
-def _limit_args(name: str, value: float | None, minimum: int, *, integral: bool) -> list[str]:
+def _limit_args(name: str, value: object, minimum: int, *, integral: bool) -> list[str]:
     """``--name value`` for an optional server limit; none when ``value`` is None."""
     if value is None:
         return []
     kind = numbers.Integral if integral else numbers.Real
-    if isinstance(value, bool) or not isinstance(value, kind) or not value >= minimum:
+    if isinstance(value, bool) or not isinstance(value, kind) or not float(value) >= minimum:
         what = "an integer" if integral else "a number"
         raise ValueError(f"expected {name} to be {what} >= {minimum} or None, got {value!r}")
     return [f"--{name.replace('_', '-')}", str(value)]

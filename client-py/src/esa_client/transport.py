@@ -1,203 +1,149 @@
-"""How requests reach the server: unary calls with deadlines, and a persistent StepStream.
+"""The transport protocol: what :class:`~esa_client.Session` and ``SessionBatch`` call.
 
-Both transports expose ``probe_batch`` / ``report_batch`` / ``report_then_probe`` so
-:class:`esa_client.SessionBatch` does not care which one carries its round trips. Every
-wait is bounded by the client's timeout and every failure becomes an
-:class:`esa_client.errors.EsaError`. ``report_then_probe`` is the pipelined step of
-CONTRACT.md section 1b: on the StepStream both messages go out before either answer is
-read, so a step costs one round trip.
+The client is split the way httpx splits its ``Client`` from its transports: sessions and
+batches are written once against :class:`Transport`, and each way of reaching the update
+law implements it:
+
+- gRPC, unary calls or one ``StepStream`` per batch (:mod:`esa_client.grpc_transport`);
+- Zenoh queries (:mod:`esa_client.zenoh_transport`);
+- N shards, each reached through its own transport (:mod:`esa_client.sharding`);
+- the in-process engine of ``esa_client._native``, which takes numpy arrays directly.
+
+``EsaClient``, ``ZenohEsaClient`` and ``ShardedEsaClient`` choose a transport and own its
+lifetime. The batch half (:class:`BatchTransport`) is array-based, not protobuf-based, so
+that an in-process implementation builds no messages; transports that send messages
+build them. Every failure a transport raises is an :class:`~esa_client.errors.EsaError`
+(built by :func:`~esa_client.errors.error_for`), with ``index`` set when one batch item
+caused it.
 """
 
 from __future__ import annotations
 
-import queue
-import threading
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Sequence
+from typing import NamedTuple, Protocol
 
-import grpc
-
-from ._proto.esa.v1 import esa_pb2, esa_pb2_grpc
-from .errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
-
-Response = TypeVar("Response")
+from ._proto.esa.v1 import esa_pb2
+from .state import BoolArray, F64Array, I64Array, SessionState
 
 
-def call(rpc: Callable[..., Response], request: Any, timeout: float) -> Response:
-    """Performs one unary call with a deadline, raising typed errors.
+class BatchProbe(NamedTuple):
+    """The probes of one step for the N sessions of a batch (``ProbeBatch``).
 
-    Args:
-        rpc: A unary-unary method of a generated stub.
-        request: The request message.
-        timeout: Deadline in seconds.
-
-    Returns:
-        The response message.
-
-    Raises:
-        EsaError: The matching subclass for any failure (see :func:`esa_error`).
-    """
-    try:
-        return rpc(request, timeout=timeout)
-    except grpc.RpcError as err:
-        raise esa_error(err) from None
-
-
-class UnaryTransport:
-    """Batch round trips over the ``ProbeBatch`` / ``ReportBatch`` unary RPCs."""
-
-    def __init__(self, stub: esa_pb2_grpc.EsaServiceStub, timeout: float) -> None:
-        """Wraps ``stub``; every call gets ``timeout`` seconds."""
-        self._stub = stub
-        self._timeout = timeout
-
-    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
-        """Sends one ProbeBatch."""
-        return call(self._stub.ProbeBatch, request, self._timeout)
-
-    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
-        """Sends one ReportBatch."""
-        return call(self._stub.ReportBatch, request, self._timeout)
-
-    def report_then_probe(
-        self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
-    ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
-        """Sends the ReportBatch, then the ProbeBatch (two unary round trips)."""
-        return self.report_batch(report), self.probe_batch(probe)
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-
-class StepMessages:
-    """Batch round trips as ``StepStream`` messages; subclasses carry one message each way.
-
-    A ``StepStreamResponse`` may carry an in-band ``error``, raised here as its typed
-    exception.
+    Attributes:
+        steps: Each session's step, shape ``(N,)``.
+        actions: The sampled actions, shape ``(N, D)``.
+        episode_starts: Episode-start flags, shape ``(N,)``.
+        action_scales: sigma per session and dimension, shape ``(N, D)``; None for all 1.
     """
 
-    def _exchange(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
-        raise NotImplementedError
+    steps: I64Array
+    actions: F64Array
+    episode_starts: BoolArray
+    action_scales: F64Array | None
 
-    def _exchange_pair(
-        self, first: esa_pb2.StepStreamRequest, second: esa_pb2.StepStreamRequest
-    ) -> tuple[esa_pb2.StepStreamResponse, esa_pb2.StepStreamResponse]:
-        """Both answers, in order; one after the other unless a subclass pipelines them."""
-        return self._exchange(first), self._exchange(second)
 
-    def _round_trip(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
-        return _checked(self._exchange(request))
+class BatchReport(NamedTuple):
+    """The reports of one step for the N sessions of a batch (``ReportBatch``).
+
+    Attributes:
+        steps: Each session's step (the probed one), shape ``(N,)``.
+        q_values: Q at each probe, shape ``(N,)``.
+        q_references: Q at each applied action, shape ``(N,)``; None for no reference.
+    """
+
+    steps: I64Array
+    q_values: F64Array
+    q_references: F64Array | None
+
+
+class BatchTransport(Protocol):
+    """The round trips of one batch of N sessions (all of one action dimension D).
+
+    Every call is all-or-nothing: on an error no session changed, and the error's
+    ``index`` names the failing item (its position in the batch) when one item caused it.
+    """
+
+    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
+        """``ProbeBatch``: returns the probes and the applied actions, each ``(N, D)``."""
+        ...
+
+    def report(self, request: BatchReport) -> F64Array:
+        """``ReportBatch``: returns the improved actions, ``(N, D)``."""
+        ...
 
     def report_then_probe(
-        self, report: esa_pb2.ReportBatchRequest, probe: esa_pb2.ProbeBatchRequest
-    ) -> tuple[esa_pb2.ReportBatchResponse, esa_pb2.ProbeBatchResponse]:
-        """Sends the ReportBatch and the ProbeBatch as two messages; raises the first error.
+        self, report: BatchReport, probe: BatchProbe
+    ) -> tuple[F64Array, F64Array]:
+        """The report of step t, then the probe of the next step, pipelined where possible.
 
-        A probe that starts a new episode for every session would succeed even after its
-        report failed, leaving the report unrecoverable: that pair goes one message at a
-        time, so a failed report stops the probe (once per episode end, not per step).
+        Returns the probe's answer (the report's improved actions are not needed: its
+        caller applies the probe's actions). If the report fails, its error is raised and
+        the probe changed nothing.
         """
-        if probe.episode_starts and all(probe.episode_starts):
-            return self.report_batch(report), self.probe_batch(probe)
-        first, second = self._exchange_pair(
-            esa_pb2.StepStreamRequest(report_batch=report),
-            esa_pb2.StepStreamRequest(probe_batch=probe),
-        )
-        return _checked(first).report_batch, _checked(second).probe_batch
-
-    def probe_batch(self, request: esa_pb2.ProbeBatchRequest) -> esa_pb2.ProbeBatchResponse:
-        """Sends one ProbeBatch as a StepStream message."""
-        return self._round_trip(esa_pb2.StepStreamRequest(probe_batch=request)).probe_batch
-
-    def report_batch(self, request: esa_pb2.ReportBatchRequest) -> esa_pb2.ReportBatchResponse:
-        """Sends one ReportBatch as a StepStream message."""
-        return self._round_trip(esa_pb2.StepStreamRequest(report_batch=request)).report_batch
-
-
-def _checked(response: esa_pb2.StepStreamResponse) -> esa_pb2.StepStreamResponse:
-    """The response, or its in-band ``error`` raised as the typed exception."""
-    if response.HasField("error"):
-        raise esa_error(response.error)
-    return response
-
-
-_END = object()
-
-
-class StreamTransport(StepMessages):
-    """Batch round trips over one long-lived ``StepStream``.
-
-    gRPC's blocking stream iterator has no per-message deadline, so a reader thread
-    moves responses into a queue that the caller waits on with the timeout. After a
-    timeout or a transport failure the stream is out of step with its requests, so
-    it is dropped and the next call opens a new one; that is safe because the
-    server accepts a repeated probe or report for the same step (CONTRACT.md).
-    """
-
-    def __init__(self, stub: esa_pb2_grpc.EsaServiceStub, timeout: float) -> None:
-        """Prepares the transport; the stream opens on first use."""
-        self._stub = stub
-        self._timeout = timeout
-        self._requests: queue.SimpleQueue[object] | None = None
-        self._responses: queue.SimpleQueue[object] = queue.SimpleQueue()
-        self._call: Any = None
-
-    def _open(self) -> None:
-        requests: queue.SimpleQueue[object] = queue.SimpleQueue()
-        responses: queue.SimpleQueue[object] = queue.SimpleQueue()
-        stream = self._stub.StepStream(iter(requests.get, _END))
-
-        def read() -> None:
-            try:
-                for response in stream:
-                    responses.put(response)
-                responses.put(ServerUnavailable("the server closed the StepStream"))
-            except grpc.RpcError as err:
-                responses.put(esa_error(err))
-
-        threading.Thread(target=read, name="esa-step-stream", daemon=True).start()
-        self._requests, self._responses, self._call = requests, responses, stream
-
-    def _drop(self) -> None:
-        if self._call is not None:
-            self._call.cancel()
-            # Unblocks gRPC's request-consuming thread, which waits on this queue.
-            self._requests.put(_END)  # type: ignore[union-attr]
-        self._requests, self._call = None, None
-
-    def _exchange(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
-        return self._exchange_all([request])[0]
-
-    def _exchange_pair(
-        self, first: esa_pb2.StepStreamRequest, second: esa_pb2.StepStreamRequest
-    ) -> tuple[esa_pb2.StepStreamResponse, esa_pb2.StepStreamResponse]:
-        """Writes both messages before reading: one round trip for the pair."""
-        a, b = self._exchange_all([first, second])
-        return a, b
-
-    def _exchange_all(
-        self, requests: list[esa_pb2.StepStreamRequest]
-    ) -> list[esa_pb2.StepStreamResponse]:
-        if self._call is None:
-            self._open()
-        for request in requests:
-            self._requests.put(request)  # type: ignore[union-attr]
-        answers = []
-        for _ in requests:
-            try:
-                item = self._responses.get(timeout=self._timeout)
-            except queue.Empty:
-                self._drop()
-                raise DeadlineExceeded(
-                    f"no StepStream response within {self._timeout} s",
-                    grpc.StatusCode.DEADLINE_EXCEEDED,
-                ) from None
-            if isinstance(item, EsaError):
-                self._drop()
-                raise item
-            answers.append(item)
-        return answers  # type: ignore[return-value]
+        ...
 
     def close(self) -> None:
-        """Ends the stream."""
-        self._drop()
+        """Releases what the batch holds (e.g. its stream); the sessions stay."""
+        ...
+
+
+class Transport(Protocol):
+    """One way of reaching esa sessions: the calls of ``esa.v1.EsaService``.
+
+    Session ids are 1 to 128 bytes of UTF-8. Every call has the transport's deadline and
+    raises :class:`~esa_client.errors.EsaError` subclasses only.
+    """
+
+    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
+        """Creates a session (an empty id: one is generated) and returns its id."""
+        ...
+
+    def get_session(self, session_id: str) -> SessionState:
+        """Returns a snapshot of the session."""
+        ...
+
+    def close_session(self, session_id: str) -> None:
+        """Closes the session; its id is unknown afterwards."""
+        ...
+
+    def end_episode(self, session_id: str) -> int:
+        """Ends the session's episode; returns its completed-episode count."""
+        ...
+
+    def probe(
+        self,
+        session_id: str,
+        step: int,
+        action: F64Array,
+        episode_start: bool,
+        action_scale: F64Array | None,
+    ) -> tuple[F64Array, F64Array]:
+        """``Probe`` of one session: returns the probe and the applied action, ``(D,)`` each."""
+        ...
+
+    def report(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None
+    ) -> F64Array:
+        """``Report`` of one session: returns the improved action, ``(D,)``."""
+        ...
+
+    def open_batch(
+        self, ids: Sequence[str], action_dim: int, *, use_stream: bool
+    ) -> BatchTransport:
+        """The round trips of a batch of these (existing) sessions.
+
+        Args:
+            ids: The N session ids, in batch order.
+            action_dim: D, shared by the N sessions.
+            use_stream: Prefer one persistent stream (gRPC ``StepStream``) where the
+                transport has one; others ignore it or use their message equivalent.
+        """
+        ...
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
+        """True if every server behind this transport answers within ``timeout`` seconds."""
+        ...
+
+    def close(self) -> None:
+        """Releases the transport (connections, threads). Idempotent."""
+        ...

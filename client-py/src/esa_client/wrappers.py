@@ -9,7 +9,7 @@ from typing import Any, SupportsFloat
 import gymnasium as gym
 import numpy as np
 
-from .client import EsaClient
+from .client import BaseClient, EsaClient
 from .config import EsaConfig
 from .env_dt import env_dt
 from .errors import EsaError
@@ -39,8 +39,8 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         q_fn: ``q_fn(observation, action) -> float``, evaluated once per step.
         esa_config: ESA hyperparameters (default ``EsaConfig()``); amplitudes are in
             the env's action units.
-        client: The client to create the session on; None spawns a private server
-            that is stopped by ``close()``.
+        client: The client to create the session on (``EsaClient``, ``ZenohEsaClient``,
+            ...); None spawns a private server that is stopped by ``close()``.
         action_scale: sigma for the trust region and the normalized step (the policy's
             standard deviation if the learner has one): a scalar, one value per action
             dimension, or ``f(observation)``; None = 1 action unit.
@@ -51,7 +51,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         env: gym.Env,
         q_fn: QFunction,
         esa_config: EsaConfig | None = None,
-        client: EsaClient | None = None,
+        client: BaseClient | None = None,
         action_scale: ActionScale | None = None,
     ) -> None:
         """Creates the ESA session for this env."""
@@ -71,7 +71,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
             space.high.reshape(-1),
         )
         self._owns_client = client is None
-        self._client = EsaClient.spawn() if client is None else client
+        self._client: BaseClient = EsaClient.spawn() if client is None else client
         try:
             self._session = self._client.create_session(config)
         except BaseException:

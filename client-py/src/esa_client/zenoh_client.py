@@ -1,7 +1,10 @@
 """Clients that reach esa servers over Zenoh: one server, or N shards of sessions.
 
 Both have the :class:`~esa_client.EsaClient` API (sessions, ``SessionBatch``,
-typed errors, a deadline on every call, ``spawn``); only the wire differs.
+typed errors, a deadline on every call, ``spawn``); only the transport differs:
+:class:`~esa_client.zenoh_transport.ZenohTransport` to one key prefix, or a
+:class:`~esa_client.sharding.ShardedTransport` over one per shard. Each client owns
+its Zenoh session and the servers it spawned.
 """
 
 from __future__ import annotations
@@ -10,20 +13,18 @@ import contextlib
 import os
 import secrets
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from typing import TypedDict
 
 import grpc
 import zenoh
 
-from .client import EsaClient, connect_spawned, resolve_token
+from .client import BaseClient, check_timeout, connect_spawned, resolve_token
 from .errors import ServerUnavailable
-from .sharding import BatchTransport, ShardedBatchTransport, ShardedStub, shard_of, shard_prefix
+from .sharding import ShardedStub, ShardedTransport, shard_of, shard_prefix
 from .sidecar import ServerProcess
-from .transport import UnaryTransport
 from .zenoh_transport import (
     DEFAULT_PREFIX,
-    StepQueryTransport,
-    ZenohStub,
+    ZenohTransport,
     check_prefix,
     open_session,
     peer_config,
@@ -42,10 +43,40 @@ def _endpoints(connect: str | Sequence[str]) -> tuple[str, ...]:
     return endpoints
 
 
+class _ZenohConnection:
+    """The checked arguments and the open Zenoh session both clients start from."""
+
+    def __init__(
+        self,
+        connect: str | Sequence[str],
+        prefix: str,
+        timeout: float,
+        config: zenoh.Config | None,
+        token: str | None,
+        token_file: str | os.PathLike[str] | None,
+    ) -> None:
+        self.timeout = check_timeout(timeout)
+        endpoints = _endpoints(connect)
+        self.address = ",".join(endpoints)
+        self.prefix = check_prefix(prefix)
+        self.token = resolve_token(token, token_file)
+        config = config if config is not None else peer_config(endpoints, self.timeout)
+        self.session = open_session(config, self.address)
+
+    def close(self) -> None:
+        """Closes the Zenoh session (already closed is fine)."""
+        with contextlib.suppress(zenoh.ZError):
+            self.session.close()
+
+    def transport(self, prefix: str) -> ZenohTransport:
+        """A transport to the servers serving ``prefix`` on this session."""
+        return ZenohTransport(self.session, prefix, self.timeout, self.token)
+
+
 def _spawn_zenoh_server(
     binary: str | os.PathLike[str] | None,
     args: Sequence[str],
-    limits: dict[str, float | None],
+    limits: _Limits,
     token: str,
     startup_timeout: float,
 ) -> tuple[ServerProcess, list[str]]:
@@ -69,7 +100,25 @@ def _spawn_zenoh_server(
     return server, locators
 
 
-class ZenohEsaClient(EsaClient):
+class _Limits(TypedDict):
+    """The server limits every spawned process gets (``ServerProcess`` arguments)."""
+
+    session_ttl: float | None
+    max_sessions: int | None
+    max_session_memory: int | None
+
+
+def _limits(
+    session_ttl: float | None, max_sessions: int | None, max_session_memory: int | None
+) -> _Limits:
+    return {
+        "session_ttl": session_ttl,
+        "max_sessions": max_sessions,
+        "max_session_memory": max_session_memory,
+    }
+
+
+class ZenohEsaClient(BaseClient):
     """A connection to an esa server over Zenoh, with the :class:`EsaClient` API.
 
     The client is a Zenoh peer that connects to ``connect`` only (no scouting, no
@@ -99,8 +148,11 @@ class ZenohEsaClient(EsaClient):
         address: The endpoints, comma-separated (for messages).
         prefix: The key prefix.
         stub: The :class:`~esa_client.zenoh_transport.ZenohStub`.
+        transport: The :class:`~esa_client.zenoh_transport.ZenohTransport`.
         server: The spawned :class:`~esa_client.sidecar.ServerProcess`, else None.
     """
+
+    transport: ZenohTransport
 
     def __init__(
         self,
@@ -114,31 +166,18 @@ class ZenohEsaClient(EsaClient):
         token_file: str | os.PathLike[str] | None = None,
     ) -> None:
         """Opens the Zenoh session and declares the queriers."""
-        if not timeout > 0:
-            raise ValueError(f"expected timeout > 0 seconds, got {timeout}")
-        endpoints = _endpoints(connect)
-        self.address = ",".join(endpoints)
-        self.prefix = check_prefix(prefix)
-        self.timeout = float(timeout)
-        self._token = resolve_token(token, token_file)
-        self.server: ServerProcess | None = None
-        self.sessions_restored = 0
-        self._closed = False
-        config = config if config is not None else peer_config(endpoints, self.timeout)
-        self._zenoh = open_session(config, self.address)
+        zenoh_link = _ZenohConnection(connect, prefix, timeout, config, token, token_file)
         try:
-            self.stub = self._make_stub()
+            transport = zenoh_link.transport(zenoh_link.prefix)
+            super().__init__(transport, address=zenoh_link.address, timeout=zenoh_link.timeout)
+            self.on_close(zenoh_link.close)
+            self.prefix = zenoh_link.prefix
+            self.stub = transport.stub
             if wait_ready:
                 self.wait_ready(self.timeout)
         except BaseException:
-            self._zenoh.close()
+            zenoh_link.close()
             raise
-
-    def _make_stub(self) -> ZenohStub | ShardedStub:
-        return ZenohStub(self._zenoh, self.prefix, self.timeout, self._token)
-
-    def _stubs(self) -> tuple[ZenohStub, ...]:
-        return (self.stub,)  # type: ignore[return-value]
 
     @classmethod
     def spawn(
@@ -184,56 +223,12 @@ class ZenohEsaClient(EsaClient):
             startup_timeout,
         )
 
-    def healthy(self, *, timeout: float | None = None, wait_for_ready: bool = False) -> bool:
-        """True if every server behind this client answers a query.
-
-        Args:
-            timeout: Bound per server in seconds (default: the client's timeout).
-            wait_for_ready: Wait (up to the bound) for the servers' queryables to become
-                reachable instead of failing at once when they are not.
-        """
-        bound = self.timeout if timeout is None else timeout
-        return all(s.healthy(bound, wait_for_ready=wait_for_ready) for s in self._stubs())
-
-    def batch_transport(
-        self, ids: Sequence[str], action_dim: int, *, use_stream: bool = False
-    ) -> BatchTransport:
-        """Batches over the ``ProbeBatch`` / ``ReportBatch`` keys, or the ``StepStream`` key."""
-        return _shard_transport(self.stub, self.timeout, use_stream)  # type: ignore[arg-type]
-
-    def close(self) -> None:
-        """Closes the Zenoh session and stops a spawned server. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        with contextlib.suppress(zenoh.ZError):
-            self._zenoh.close()
-        for server in self._servers():
-            server.stop()
-
-    def _servers(self) -> list[ServerProcess]:
-        return [self.server] if self.server is not None else []
-
     def __repr__(self) -> str:
         """Shows the endpoints and prefix."""
         return f"{type(self).__name__}({self.address!r}, prefix={self.prefix!r})"
 
 
-def _limits(
-    session_ttl: float | None, max_sessions: int | None, max_session_memory: int | None
-) -> dict[str, float | None]:
-    return {
-        "session_ttl": session_ttl,
-        "max_sessions": max_sessions,
-        "max_session_memory": max_session_memory,
-    }
-
-
-def _shard_transport(stub: ZenohStub, timeout: float, use_stream: bool) -> BatchTransport:
-    return StepQueryTransport(stub) if use_stream else UnaryTransport(stub, timeout)  # type: ignore[arg-type]
-
-
-class ShardedEsaClient(ZenohEsaClient):
+class ShardedEsaClient(BaseClient):
     """N esa servers (``--shard i/N``) behind one :class:`EsaClient` API.
 
     A session lives on shard :func:`~esa_client.sharding.shard_of` ``(id, N)``; a
@@ -254,8 +249,13 @@ class ShardedEsaClient(ZenohEsaClient):
 
     Attributes:
         shards: N.
+        prefix: The key prefix.
+        stub: The :class:`~esa_client.sharding.ShardedStub` (the raw wire API).
+        transport: The :class:`~esa_client.sharding.ShardedTransport`.
         servers: The spawned server processes, ``servers[i]`` serving shard i.
     """
+
+    transport: ShardedTransport
 
     def __init__(
         self,
@@ -272,36 +272,30 @@ class ShardedEsaClient(ZenohEsaClient):
         """Opens one Zenoh session and declares the queriers of every shard."""
         if shards < 1:
             raise ValueError(f"expected shards >= 1, got {shards}")
-        self.shards = shards
-        self.servers: list[ServerProcess] = []
-        self._executor = ThreadPoolExecutor(max_workers=shards, thread_name_prefix="esa-shard")
+        zenoh_link = _ZenohConnection(connect, prefix, timeout, config, token, token_file)
         try:
-            super().__init__(
-                connect,
-                prefix=prefix,
-                timeout=timeout,
-                config=config,
-                wait_ready=wait_ready,
-                token=token,
-                token_file=token_file,
-            )
+            parts = [
+                zenoh_link.transport(shard_prefix(zenoh_link.prefix, i)) for i in range(shards)
+            ]
+            transport = ShardedTransport(parts)
+            super().__init__(transport, address=zenoh_link.address, timeout=zenoh_link.timeout)
+            self.on_close(zenoh_link.close)
+            self.shards = shards
+            self.prefix = zenoh_link.prefix
+            self.servers: list[ServerProcess] = []
+            self.stub = ShardedStub([part.stub for part in parts])
+            if wait_ready:
+                self.wait_ready(self.timeout)
         except BaseException:
-            self._executor.shutdown()
+            zenoh_link.close()
             raise
-
-    def _make_stub(self) -> ShardedStub:
-        prefixes = [shard_prefix(self.prefix, i) for i in range(self.shards)]
-        return ShardedStub([ZenohStub(self._zenoh, p, self.timeout, self._token) for p in prefixes])
-
-    def _stubs(self) -> tuple[ZenohStub, ...]:
-        return self.stub.shards  # type: ignore[union-attr]
 
     def shard_of(self, session_id: str) -> int:
         """The shard that owns ``session_id``."""
         return shard_of(session_id, self.shards)
 
     @classmethod
-    def spawn(  # type: ignore[override]
+    def spawn(
         cls,
         binary: str | os.PathLike[str] | None = None,
         *,
@@ -337,6 +331,7 @@ class ShardedEsaClient(ZenohEsaClient):
         locators: list[str] = []
         limits = _limits(session_ttl, max_sessions, max_session_memory)
         token = secrets.token_urlsafe(32)
+        client: ShardedEsaClient | None = None
         try:
             for i in range(shards):
                 args = ["--zenoh-prefix", prefix, "--shard", f"{i}/{shards}", *extra_args]
@@ -354,9 +349,13 @@ class ShardedEsaClient(ZenohEsaClient):
                 token=token,
             )
             client.servers = servers
+            for server in servers:
+                client.on_close(server.stop)
             for i, server in enumerate(servers):
                 client._wait_shard(i, server, startup_timeout)
         except BaseException:
+            if client is not None:
+                client.close()
             for server in servers:
                 server.stop()
             raise
@@ -364,29 +363,13 @@ class ShardedEsaClient(ZenohEsaClient):
 
     def _wait_shard(self, shard: int, server: ServerProcess, timeout: float) -> None:
         server.check_running()
-        if not self._stubs()[shard].healthy(timeout, wait_for_ready=True):
+        if not self.transport.parts[shard].healthy(timeout, wait_for_ready=True):
             server.check_running()
             raise ServerUnavailable(
                 f"shard {shard} ({server.binary}) not answering within {timeout} s; "
                 f"its output:\n{server.output_tail()}",
                 grpc.StatusCode.UNAVAILABLE,
             )
-
-    def batch_transport(
-        self, ids: Sequence[str], action_dim: int, *, use_stream: bool = False
-    ) -> BatchTransport:
-        """Batches split per shard and sent concurrently (see :mod:`esa_client.sharding`)."""
-        parts = [_shard_transport(s, self.timeout, use_stream) for s in self._stubs()]
-        return ShardedBatchTransport(parts, ids, action_dim, self._executor)
-
-    def close(self) -> None:
-        """Closes the Zenoh session, the worker threads and spawned servers. Idempotent."""
-        if not self._closed:
-            self._executor.shutdown()
-        super().close()
-
-    def _servers(self) -> list[ServerProcess]:
-        return list(self.servers)
 
     def __repr__(self) -> str:
         """Shows the endpoints, prefix and shard count."""

@@ -2,10 +2,11 @@
 
 Each RPC is a queryable at ``<prefix>/<RpcName>`` (default prefix ``esa/v1``): the
 query payload is the protobuf request, a reply is the protobuf response, and a
-reply error carries a ``StreamError`` (gRPC code number plus message). A server
-started with ``--auth-token-file`` wants the token as each query's attachment.
-:class:`ZenohStub` mirrors the generated ``EsaServiceStub`` (one callable per RPC,
-``stub.Probe(request, timeout=...)``), so sessions and batches run unchanged over it.
+reply error carries a ``StreamError`` (gRPC code number, message and failing batch
+item). A server started with ``--auth-token-file`` wants the token as each query's
+attachment. :class:`ZenohStub` mirrors the generated ``EsaServiceStub`` (one callable
+per RPC, ``stub.Probe(request, timeout=...)``), so :class:`ZenohTransport` is the
+message transport of :mod:`esa_client.stub_transport` over it.
 
 Exactly one server serves a key, so a query that gets two replies means another
 process answers for it too (a misconfigured deployment, or an impostor on an open
@@ -16,6 +17,7 @@ being nearer than the real server.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 from collections.abc import Sequence
@@ -27,11 +29,12 @@ from google.protobuf.message import DecodeError, Message
 
 from ._proto.esa.v1 import esa_pb2
 from .errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
-from .transport import StepMessages
+from .stub_transport import StubTransport
 
 DEFAULT_PREFIX = "esa/v1"
 
 Response = TypeVar("Response", bound=Message)
+Decoded = TypeVar("Decoded", bound=Message)
 
 
 class TwoServersAnswered(EsaError):
@@ -68,7 +71,7 @@ def peer_config(connect: Sequence[str], timeout: float) -> zenoh.Config:
     """
     if not connect:
         raise ValueError("expected at least one Zenoh endpoint like 'tcp/127.0.0.1:7447', got []")
-    config = zenoh.Config()
+    config: zenoh.Config = zenoh.Config()
     for key, value in (
         ("mode", '"peer"'),
         ("connect/endpoints", json.dumps(list(connect))),
@@ -128,7 +131,9 @@ class ZenohRpc(Generic[Response]):
     @property
     def matched(self) -> bool:
         """True while a server's queryable for this key is reachable."""
-        return self._querier.matching_status.matching
+        # A MatchingStatus, whatever zenoh's stub (which says bool) claims.
+        status: Any = self._querier.matching_status
+        return bool(status.matching)
 
     def wait_matched(self, timeout: float) -> bool:
         """Waits up to ``timeout`` seconds for a queryable; returns whether one is reachable."""
@@ -185,7 +190,7 @@ class ZenohRpc(Generic[Response]):
             grpc.StatusCode.UNAVAILABLE,
         )
 
-    def _decode(self, message_type: type[Any], data: bytes) -> Any:
+    def _decode(self, message_type: type[Decoded], data: bytes) -> Decoded:
         try:
             return message_type.FromString(data)
         except DecodeError as err:
@@ -269,19 +274,56 @@ class ZenohStub:
             rpc.close()
 
 
-class StepQueryTransport(StepMessages):
-    """``SessionBatch`` round trips over the ``StepStream`` key (``use_stream=True`` on Zenoh).
+class ZenohStepQueries:
+    """``StepStream`` messages as queries on the ``StepStream`` key, one per message.
 
-    Zenoh queries are already message-oriented, so there is no stream to keep
-    open: each probe or report is one query whose answer may carry an in-band error.
+    Zenoh queries are already message-oriented, so there is no stream to keep open:
+    each message is one query whose answer may carry an in-band error.
     """
 
-    def __init__(self, stub: ZenohStub) -> None:
-        """Sends through ``stub.StepStream``."""
-        self._rpc = stub.StepStream
+    def __init__(self, rpc: ZenohRpc[esa_pb2.StepStreamResponse]) -> None:
+        """Sends through ``rpc`` (a stub's ``StepStream``)."""
+        self._rpc = rpc
 
-    def _exchange(self, request: esa_pb2.StepStreamRequest) -> esa_pb2.StepStreamResponse:
-        return self._rpc(request)
+    def exchange(
+        self, requests: Sequence[esa_pb2.StepStreamRequest]
+    ) -> list[esa_pb2.StepStreamResponse]:
+        """One query per request, in order."""
+        return [self._rpc(request) for request in requests]
 
     def close(self) -> None:
         """Nothing to release."""
+
+
+class ZenohTransport(StubTransport):
+    """The :class:`~esa_client.transport.Transport` over Zenoh queries to one key prefix.
+
+    Batches with ``use_stream=True`` send their messages to the ``StepStream`` key.
+
+    Args:
+        session: The Zenoh session (owned by the caller, who closes it after this).
+        prefix: The key prefix, e.g. ``esa/v1`` or ``esa/v1/shard/1``.
+        timeout: Deadline in seconds of every query.
+        token: The server's auth token, sent as every query's attachment.
+
+    Attributes:
+        stub: The :class:`ZenohStub` under ``prefix``.
+    """
+
+    stub: ZenohStub
+
+    def __init__(
+        self, session: zenoh.Session, prefix: str, timeout: float, token: str | None = None
+    ) -> None:
+        """Declares the queriers of every RPC under ``prefix``."""
+        stub = ZenohStub(session, prefix, timeout, token)
+        super().__init__(stub, timeout, lambda: ZenohStepQueries(stub.StepStream))
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
+        """True if the server behind the prefix answers a query within ``timeout`` seconds."""
+        return self.stub.healthy(timeout, wait_for_ready=wait_for_ready)
+
+    def close(self) -> None:
+        """Undeclares the queriers (nothing to do once the session is closed)."""
+        with contextlib.suppress(zenoh.ZError):
+            self.stub.close()

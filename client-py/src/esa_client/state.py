@@ -1,0 +1,125 @@
+"""What every session implementation shares: the state snapshot and the argument checks.
+
+:class:`SessionState` is what a transport's ``get_session`` returns; the checks turn
+caller arguments into the arrays a transport takes, with the same messages everywhere
+(``esa_client.session`` over a server, ``esa_client.reference`` in-process).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ._proto.esa.v1 import esa_pb2
+from .config import SessionConfig
+
+F64Array = npt.NDArray[np.float64]
+"""Float64 values: actions, probes, Q-values, scales."""
+
+I64Array = npt.NDArray[np.int64]
+"""Int64 values: steps, indices."""
+
+BoolArray = npt.NDArray[np.bool_]
+"""Booleans: episode-start flags."""
+
+
+@dataclass(frozen=True)
+class SessionState:
+    """A snapshot of one session (``GetSession``).
+
+    Attributes:
+        config: The config as given at creation.
+        step: Current step t inside the episode.
+        episodes_completed: Number of completed episodes e.
+        shift: Current shift v, shape ``(action_dim,)``.
+        probe_pending: True between a probe and its report.
+        response_mean_square: The running mean square m of the filtered response
+            (``normalize_response``); None until the first non-zero response seeds it.
+    """
+
+    config: SessionConfig
+    step: int
+    episodes_completed: int
+    shift: F64Array
+    probe_pending: bool
+    response_mean_square: float | None = None
+
+    @classmethod
+    def from_proto(cls, message: esa_pb2.GetSessionResponse) -> SessionState:
+        """Builds the snapshot from a ``GetSessionResponse``."""
+        return cls(
+            config=SessionConfig.from_proto(message.config),
+            step=message.step,
+            episodes_completed=message.episodes_completed,
+            shift=np.array(message.shift, dtype=np.float64),
+            probe_pending=message.probe_pending,
+            response_mean_square=(
+                message.response_mean_square if message.HasField("response_mean_square") else None
+            ),
+        )
+
+
+def as_batch_configs(
+    configs: SessionConfig | Sequence[SessionConfig], n: int | None
+) -> tuple[SessionConfig, ...]:
+    """Returns one config per session, checking they share one action dimension.
+
+    Args:
+        configs: One config for all sessions, or one per session.
+        n: Number of sessions; required with a single config, else must match.
+    """
+    if isinstance(configs, SessionConfig):
+        if n is None or n < 1:
+            raise ValueError(f"expected n >= 1 sessions for a single config, got {n}")
+        return (configs,) * n
+    out = tuple(configs)
+    if not out or (n is not None and n != len(out)):
+        raise ValueError(f"expected {n if n is not None else '>= 1'} configs, got {len(out)}")
+    dims = {c.action_dim for c in out}
+    if len(dims) != 1:
+        raise ValueError(f"expected one action_dim across the batch, got {sorted(dims)}")
+    return out
+
+
+def check_array(
+    values: npt.ArrayLike,
+    shape: tuple[int, ...],
+    name: str,
+    *,
+    dtype: type[Any] = np.float64,
+    finite: bool = False,
+    error: Callable[[str], Exception] = ValueError,
+) -> npt.NDArray[Any]:
+    """Returns ``values`` as a ``dtype`` array, checking its shape (and finiteness).
+
+    Args:
+        values: A batch argument, e.g. the actions.
+        shape: The shape it must have.
+        name: The argument's name, for the message.
+        dtype: The array's dtype.
+        finite: Also require every value to be finite.
+        error: Builds the exception from the message (``ValueError`` by default).
+
+    Raises:
+        Exception: Built by ``error``, if the shape is wrong or a value is not finite.
+    """
+    out = np.asarray(values, dtype=dtype)
+    if out.shape != shape:
+        raise error(f"expected {name} of shape {shape}, got {out.shape}")
+    if finite and not np.all(np.isfinite(out)):
+        raise error(f"expected finite {name}, got {out!r}")
+    return out
+
+
+def check_indices(indices: npt.ArrayLike | None, n: int) -> I64Array:
+    """Returns ``indices`` (default: all N) as an int array, checking the range."""
+    if indices is None:
+        return np.arange(n, dtype=np.int64)
+    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    if idx.size and (idx.min() < 0 or idx.max() >= n):
+        raise ValueError(f"expected indices in [0, {n}), got {idx.tolist()}")
+    return idx
