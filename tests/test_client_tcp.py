@@ -1,27 +1,26 @@
 """The Python client against an esa-server started by hand on loopback TCP (port 0)."""
 
-import os
 import signal
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-from esa_client import EsaClient, SessionConfig
+from esa_client import EsaClient, EsaError, SessionConfig
 from esa_client.reference import ReferenceBatch
+from esa_client.sidecar import find_server_binary
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
 def tcp_server():
-    binary = os.environ.get("ESA_SERVER_BIN") or str(
-        REPO_ROOT / "target/release/esa-server"
-    )
-    if not os.access(binary, os.X_OK):
-        pytest.fail(
-            f"esa-server not found at {binary}: run `cargo build --release -p esa-server`"
-        )
+    # The client's own lookup: ESA_SERVER_BIN (`make test`), a wheel's bundled
+    # server, or this checkout's target/release/esa-server (never built here).
+    try:
+        binary = str(find_server_binary(checkout=REPO_ROOT, build=False))
+    except EsaError as err:
+        pytest.fail(str(err))
     process = subprocess.Popen(
         [binary, "--listen", "127.0.0.1:0"],
         stdout=subprocess.PIPE,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -10,15 +9,22 @@ from collections.abc import Iterator, Sequence
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 
+from esa_client import EsaError
+from esa_client.sidecar import find_server_binary
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def server_binary() -> str:
-    """The esa-server binary: ``ESA_SERVER_BIN`` or the release build of this checkout."""
-    binary = os.environ.get("ESA_SERVER_BIN") or str(REPO_ROOT / "target/release/esa-server")
-    if not os.access(binary, os.X_OK):
-        raise SystemExit(f"esa-server not found at {binary}: run `cargo build --release`")
-    return binary
+    """The esa-server binary, found as the client finds it (``find_server_binary``).
+
+    ``ESA_SERVER_BIN`` (``make bench`` sets it) wins, then an installed wheel's bundled server,
+    then this checkout's release build (never built here).
+    """
+    try:
+        return str(find_server_binary(checkout=REPO_ROOT, build=False))
+    except EsaError as err:
+        raise SystemExit(str(err)) from err
 
 
 @contextmanager

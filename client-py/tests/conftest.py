@@ -1,26 +1,28 @@
 """Fixtures: the real esa-server binary, a shared spawned server, and config generators."""
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from esa_client import EsaClient, SessionConfig
+from esa_client import EsaClient, EsaError, SessionConfig
+from esa_client.sidecar import find_server_binary
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="session")
 def server_bin() -> str:
-    """The esa-server executable: $ESA_SERVER_BIN, else target/release/esa-server of this repo."""
-    path = Path(os.environ.get("ESA_SERVER_BIN") or REPO_ROOT / "target" / "release" / "esa-server")
-    if not (path.is_file() and os.access(path, os.X_OK)):
-        pytest.fail(
-            f"esa-server not found at {path}: run `cargo build --release -p esa-server` "
-            "or set ESA_SERVER_BIN"
-        )
-    return str(path)
+    """The esa-server executable, found as the client finds it (``find_server_binary``).
+
+    ``make test`` exports ESA_SERVER_BIN as the binary it built, which wins; otherwise the
+    installed wheel's bundled server, else this checkout's target/release/esa-server (never
+    built here: a test run does not start a cargo build).
+    """
+    try:
+        return str(find_server_binary(checkout=REPO_ROOT, build=False))
+    except EsaError as err:
+        pytest.fail(str(err))
 
 
 @pytest.fixture(scope="session")

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from esa_client import EsaError
+from esa_client.sidecar import BINARY_ENV, find_server_binary
 
 from esa_experiments.commands import main
 from esa_experiments.runs import RunStore
@@ -23,11 +25,12 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module", autouse=True)
 def server_bin():
-    """The real server binary; the spawned workers find it through ESA_SERVER_BIN."""
-    path = Path(os.environ.get("ESA_SERVER_BIN") or REPO_ROOT / "target" / "release" / "esa-server")
-    if not (path.is_file() and os.access(path, os.X_OK)):
-        pytest.fail(f"esa-server not found at {path}: run `cargo build --release -p esa-server`")
-    os.environ["ESA_SERVER_BIN"] = str(path)
+    """The real server binary (the client's lookup, no cargo build); workers get it by env."""
+    try:
+        path = find_server_binary(checkout=REPO_ROOT, build=False)
+    except EsaError as err:
+        pytest.fail(str(err))
+    os.environ[BINARY_ENV] = str(path)
     return path
 
 

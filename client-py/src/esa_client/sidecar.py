@@ -23,6 +23,7 @@ import tempfile
 import time
 import weakref
 from collections.abc import Sequence
+from importlib import resources
 from pathlib import Path
 
 import grpc
@@ -60,34 +61,108 @@ def _cargo_build(repo: Path) -> Path:
     raise EsaError(f"cargo built no {BINARY_NAME} executable in {repo}")
 
 
-def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
-    """Locates the ``esa-server`` executable.
+def _is_checkout(path: Path | None) -> bool:
+    """True if ``path`` is the root of a source checkout of the esa repository."""
+    return path is not None and (path / "server" / "Cargo.toml").is_file()
 
-    Search order: ``binary`` if given, the ``ESA_SERVER_BIN`` environment variable,
-    ``esa-server`` on ``PATH``, and finally a ``cargo build --release -p esa-server``
-    in the repository this package was installed from (editable installs).
+
+def _executable(path: Path) -> bool:
+    return path.is_file() and os.access(path, os.X_OK)
+
+
+def bundled_server_binary() -> Path | None:
+    """The ``esa-server`` an installed wheel carries (``esa_client/_bin/esa-server``), or None.
+
+    ``make wheel`` puts it there. An esa_client imported from a source checkout (an editable
+    install) has no bundled server: a ``_bin`` folder there is a leftover of an interrupted
+    ``make wheel``, so it is ignored and the checkout's own build is used instead.
 
     Raises:
-        EsaError: If none of these yields an executable, saying how to fix it.
+        EsaError: If the wheel's copy exists but is not executable (an installer that dropped
+            the file mode).
+    """
+    if _is_checkout(_REPO_ROOT):
+        return None
+    candidate = resources.files(__package__) / "_bin" / BINARY_NAME
+    # A package imported from a zip archive has no file that could be executed.
+    if not isinstance(candidate, Path) or not candidate.is_file():
+        return None
+    if not os.access(candidate, os.X_OK):
+        raise EsaError(
+            f"the bundled {BINARY_NAME} at {candidate} is not executable: `chmod +x` it, "
+            f"or set {BINARY_ENV} to another esa-server"
+        )
+    return candidate
+
+
+def find_server_binary(
+    binary: str | os.PathLike[str] | None = None,
+    *,
+    checkout: str | os.PathLike[str] | None = None,
+    build: bool = True,
+) -> Path:
+    """Locates the ``esa-server`` executable: the one lookup of the client, tests and tools.
+
+    Search order, first match wins:
+
+    1. ``binary``, if given;
+    2. the ``ESA_SERVER_BIN`` environment variable;
+    3. the server bundled in the installed wheel (:func:`bundled_server_binary`);
+    4. a source checkout: ``checkout`` if given and a checkout, else the checkout this package
+       is imported from (an editable install). With ``build`` and ``cargo`` on ``PATH`` it runs
+       ``cargo build --release -p esa-server`` there and uses the result; otherwise it uses
+       that checkout's ``target/release/esa-server`` (under ``CARGO_TARGET_DIR`` if set) if it
+       has been built;
+    5. ``esa-server`` on ``PATH``.
+
+    Why this order: an explicit choice (1, 2) always wins, so ``make test`` and ``make demo``,
+    which export ``ESA_SERVER_BIN`` as the binary they just built, use that binary even where
+    a wheel is installed. Without one, the server that belongs to the imported esa_client is
+    used: the wheel's own copy for a wheel install (3), the checkout's build for an editable
+    install (4), so client and server come from the same sources. ``PATH`` (5) is the last
+    resort because a binary found there may be of another version.
+    An ``ESA_SERVER_BIN`` (or ``binary``) that is not an executable is an error, never skipped.
+
+    Args:
+        binary: Path of the executable; None searches as above.
+        checkout: A source checkout to look in before the one esa_client is imported from
+            (the tests, benchmarks and experiments pass their own repository).
+        build: Whether step 4 may run ``cargo build``; False only takes an existing build.
+
+    Raises:
+        EsaError: If none of these yields an executable (saying how to get one), if the one
+            named by ``binary`` or ``ESA_SERVER_BIN`` is not executable, or if the cargo build
+            fails.
     """
     explicit = binary if binary is not None else os.environ.get(BINARY_ENV)
     if explicit:
         path = Path(explicit)
-        if not (path.is_file() and os.access(path, os.X_OK)):
+        if not _executable(path):
             raise EsaError(f"expected an executable esa-server at {path}, got none")
         return path
+    bundled = bundled_server_binary()
+    if bundled is not None:
+        return bundled
+    roots = [Path(checkout)] if checkout is not None else []
+    repo = next((root for root in [*roots, _REPO_ROOT] if _is_checkout(root)), None)
+    if repo is not None:
+        if build and shutil.which("cargo"):
+            return _cargo_build(repo)
+        target_dir = Path(os.environ.get("CARGO_TARGET_DIR") or "target")
+        built = repo / target_dir / "release" / BINARY_NAME  # an absolute target_dir wins
+        if _executable(built):
+            return built
     on_path = shutil.which(BINARY_NAME)
     if on_path:
         return Path(on_path)
-    if (_REPO_ROOT / "server" / "Cargo.toml").is_file():
-        if shutil.which("cargo"):
-            return _cargo_build(_REPO_ROOT)
-        built = _REPO_ROOT / "target" / "release" / BINARY_NAME
-        if built.is_file():
-            return built
+    hint = (
+        f"build it in {repo} with `cargo build --release -p {BINARY_NAME}` (or `make build`), "
+        if repo is not None
+        else ""
+    )
     raise EsaError(
-        f"cannot find {BINARY_NAME}: set {BINARY_ENV}, put it on PATH, or install this package "
-        "from a checkout of the esa repository with cargo available"
+        f"cannot find {BINARY_NAME}: {hint}install the esa-client wheel that bundles it "
+        f"(`make wheel`), set {BINARY_ENV} to its path, or put it on PATH"
     )
 
 
