@@ -77,6 +77,11 @@ wheel: ## build dist/esa_client-<version>-<platform>.whl (extension + bundled es
 		rm -rf client-py/src/esa_client/_bin; exit $$status
 	@ls -l dist/esa_client-*.whl
 
+.PHONY: wheel-check
+# Not part of `make test`: the clean venv downloads torch and stable-baselines3 from PyPI.
+wheel-check: ## make wheel, install only it (+ sb3 extra) in a clean venv, run a user script without Rust
+	$(PYTHON) client-py/scripts/wheel_check.py
+
 clean: ## remove build outputs and the venv
 	$(CARGO) clean
 	rm -rf $(VENV)
