@@ -51,7 +51,8 @@ class AdvantageHead(nn.Module):
 
     def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
         """Returns A for policy-normalized actions ``z``, shape ``(batch,)``."""
-        return (self.w(features) * z).sum(dim=1)
+        advantage: th.Tensor = (self.w(features) * z).sum(dim=1)
+        return advantage
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch as th
@@ -12,6 +12,12 @@ from ..config import EsaConfig
 from ..env_dt import env_dt
 from .runtime import EsaRuntime
 
+if TYPE_CHECKING:
+    # The mixin is always combined with an SB3 algorithm (ESAPPO, ESASAC): checked as one.
+    from stable_baselines3.common.base_class import BaseAlgorithm as _Algorithm
+else:
+    _Algorithm = object
+
 
 def tile_obs(obs: th.Tensor | dict[str, th.Tensor], reps: int) -> th.Tensor | dict[str, th.Tensor]:
     """Repeats a batch of observations ``reps`` times along the batch axis."""
@@ -20,7 +26,7 @@ def tile_obs(obs: th.Tensor | dict[str, th.Tensor], reps: int) -> th.Tensor | di
     return obs.repeat(reps, *([1] * (obs.dim() - 1)))
 
 
-class EsaMixin:
+class EsaMixin(_Algorithm):
     """Adds an ESA runtime to an SB3 algorithm; put it first in the bases.
 
     The runtime (server connection and sessions) is created on the first rollout
@@ -66,35 +72,42 @@ class EsaMixin:
         self.esa_address = esa_address
         self.esa_spawn = dict(esa_spawn or {})
         self._esa = None
-        super().__init__(policy, env, *args, **kwargs)  # type: ignore[call-arg]
-        space = self.action_space  # type: ignore[attr-defined]
+        super().__init__(policy, env, *args, **kwargs)
+        space = self.action_space
         if space is not None and not isinstance(space, spaces.Box):
             raise ValueError(f"expected a Box action space for ESA, got {space}")
-        if self.env is not None:  # type: ignore[attr-defined]
+        if self.env is not None:
             self._esa_session_config()
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Bounds of the action space ESA shifts in; None where it is unbounded."""
         raise NotImplementedError
 
+    def _esa_box(self) -> spaces.Box:
+        """The action space, a Box (the constructor checked it)."""
+        space = self.action_space
+        assert isinstance(space, spaces.Box)
+        return space
+
     def _esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounds the env's actions are clipped to, in the space ESA works in."""
-        space = self.action_space  # type: ignore[attr-defined]
+        space = self._esa_box()
         return space.low.reshape(-1), space.high.reshape(-1)
 
     def _esa_session_config(self) -> object:
         low, high = self._esa_space()
         dim = self._esa_env_bounds()[0].size
-        return self.esa.session_config(dim, env_dt(self.env, self.esa.dt), low, high)  # type: ignore[attr-defined]
+        return self.esa.session_config(dim, env_dt(self.env, self.esa.dt), low, high)
 
     def _esa_runtime(self) -> EsaRuntime:
         if self._esa is None:
+            assert self.env is not None, "ESA steps run in rollouts, which need an env"
             low, high = self._esa_space()
             clip_low, clip_high = self._esa_env_bounds()
             self._esa = EsaRuntime(
                 self.esa,
                 self.esa_address,
-                self.env,  # type: ignore[attr-defined]
+                self.env,
                 low,
                 high,
                 clip_low,
@@ -112,13 +125,13 @@ class EsaMixin:
     def set_env(self, env: Any, force_reset: bool = True) -> None:
         """Sets a new env; the ESA sessions are re-created for it on the next rollout."""
         self.esa_close()
-        super().set_env(env, force_reset)  # type: ignore[misc]
+        super().set_env(env, force_reset)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_esa"]  # type: ignore[misc]
+        return [*super()._excluded_save_params(), "_esa"]
 
     def dump_logs(self, *args: Any, **kwargs: Any) -> None:
         """Records the ESA statistics, then dumps the logs as SB3 does."""
         if self._esa is not None:
-            self._esa.record(self.logger)  # type: ignore[attr-defined]
-        super().dump_logs(*args, **kwargs)  # type: ignore[misc]
+            self._esa.record(self.logger)
+        super().dump_logs(*args, **kwargs)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch as th
@@ -12,6 +12,7 @@ from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.distributions import Distribution
 from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -119,7 +120,7 @@ class ESAPPO(EsaMixin, PPO):
                 "must have a density under the policy), got squash_output=True"
             )
         features_dim = spaces.flatdim(self.observation_space)
-        action_dim = int(np.prod(self.action_space.shape))
+        action_dim = int(np.prod(self.action_space.shape or ()))
         # A forked generator: building the head must not move PPO's random stream.
         with th.random.fork_rng(devices=[]):
             self.esa_head = AdvantageHead(features_dim, action_dim, self.esa_head_hidden)
@@ -147,13 +148,15 @@ class ESAPPO(EsaMixin, PPO):
 
     def _esa_scaling(self) -> tuple[np.ndarray, np.ndarray]:
         """Center and half-width mapping the Box to [-1, 1] (0 and 1 where a side is open)."""
-        low, high = self.action_space.low.reshape(-1), self.action_space.high.reshape(-1)
+        box = self._esa_box()
+        low, high = box.low.reshape(-1), box.high.reshape(-1)
         bounded = np.isfinite(low) & np.isfinite(high)
         return np.where(bounded, (high + low) / 2, 0.0), np.where(bounded, (high - low) / 2, 1.0)
 
     def _to_esa_units(self, actions: np.ndarray) -> np.ndarray:
         center, half_width = self._esa_scaling()
-        return (actions - center) / half_width
+        scaled: np.ndarray = (actions - center) / half_width
+        return scaled
 
     def _head_features(self, obs: th.Tensor | dict[str, th.Tensor]) -> th.Tensor:
         """The observation as the head sees it: preprocessed as SB3 does, flattened."""
@@ -172,7 +175,8 @@ class ESAPPO(EsaMixin, PPO):
             with th.no_grad():
                 a = th.as_tensor(raw, dtype=th.float32, device=self.device)
                 z = (a - mean.repeat(reps, 1)) / std.repeat(reps, 1)
-                return self.esa_head(tile_obs(features, reps), z).cpu().numpy()
+                values: np.ndarray = self.esa_head(tile_obs(features, reps), z).cpu().numpy()
+                return values
 
         return q_fn
 
@@ -187,7 +191,9 @@ class ESAPPO(EsaMixin, PPO):
         """
         policy = self.policy
 
-        def forward(obs: th.Tensor, deterministic: bool = False) -> tuple[th.Tensor, ...]:
+        def forward(
+            obs: th.Tensor, deterministic: bool = False
+        ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
             features = policy.extract_features(obs)
             if policy.share_features_extractor:
                 latent_pi, latent_vf = policy.mlp_extractor(features)
@@ -202,8 +208,9 @@ class ESAPPO(EsaMixin, PPO):
             if self._esa_active and not deterministic:
                 n = len(actions)
                 sampled = actions.reshape(n, -1).cpu().numpy().astype(np.float64)
-                mean = distribution.distribution.mean.reshape(n, -1)
-                std = distribution.distribution.stddev.reshape(n, -1)
+                gaussian = _gaussian(distribution)
+                mean = gaussian.mean.reshape(n, -1)
+                std = gaussian.stddev.reshape(n, -1)
                 scaled = self._to_esa_units(sampled)
                 half_width = self._esa_scaling()[1]
                 applied = self._esa_runtime().step(
@@ -215,8 +222,9 @@ class ESAPPO(EsaMixin, PPO):
                 # a_t plus the shift in raw units: exactly a_t when v = 0.
                 shifted = sampled + (applied - scaled) * half_width
                 actions = th.as_tensor(shifted, dtype=actions.dtype, device=actions.device)
-            return actions.reshape((-1, *self.action_space.shape)), values, log_prob
+            return actions.reshape((-1, *self._esa_box().shape)), values, log_prob
 
+        # The hook itself: an instance attribute shadows the policy's forward in this block.
         policy.forward = forward  # type: ignore[method-assign]
         try:
             yield
@@ -246,7 +254,7 @@ class ESAPPO(EsaMixin, PPO):
         advantages = buffer.to_torch(buffer.advantages.reshape(-1))
         with th.no_grad():
             # The policy that collected this rollout: train() has not updated it yet.
-            distribution = self.policy.get_distribution(obs).distribution
+            distribution = _gaussian(self.policy.get_distribution(obs))
             mean = distribution.mean.reshape(len(obs), -1)
             std = distribution.stddev.reshape(len(obs), -1)
         rollout = Rollout(self._head_features(obs), (actions - mean) / std, normalized(advantages))
@@ -269,3 +277,12 @@ class ESAPPO(EsaMixin, PPO):
             self._esa_active = True
         self._esa_head_fitted = True
         self.logger.record("esa/active", float(self._esa_active))
+
+
+def _gaussian(distribution: Distribution) -> th.distributions.Normal:
+    """The torch Normal of a Box policy's action distribution.
+
+    A Box policy without squashing (checked in ``_setup_model``) has a DiagGaussian or a gSDE
+    distribution, both a ``Normal`` underneath; SB3 types the attribute for every kind.
+    """
+    return cast(th.distributions.Normal, distribution.distribution)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -14,6 +15,23 @@ from ..errors import EsaError, SessionNotFound
 
 QFunction = Callable[[np.ndarray], np.ndarray]
 """Maps ``(k N, D)`` actions to ``(k N,)`` values at the N current observations tiled k times."""
+
+
+class VecEnvLike(Protocol):
+    """What the runtime reads of a VecEnv: the env count (``dt`` is read by ``env_dt``)."""
+
+    @property
+    def num_envs(self) -> int:
+        """The number of envs N."""
+        ...
+
+
+class LoggerLike(Protocol):
+    """What the runtime writes to: an SB3 ``Logger`` (or anything with its ``record``)."""
+
+    def record(self, key: str, value: Any) -> None:
+        """Records one value under ``key``."""
+        ...
 
 
 class EsaRuntime:
@@ -49,24 +67,22 @@ class EsaRuntime:
         self,
         esa: EsaConfig,
         address: str | None,
-        vec_env: object,
+        vec_env: VecEnvLike,
         low: np.ndarray | None,
         high: np.ndarray | None,
         clip_low: np.ndarray,
         clip_high: np.ndarray,
         *,
         improvement_every: int = 8,
-        spawn: dict[str, object] | None = None,
+        spawn: dict[str, Any] | None = None,
     ) -> None:
         """Connects (or spawns the server) and creates one session per env."""
         if improvement_every < 1:
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
-        n_envs = vec_env.num_envs  # type: ignore[attr-defined]
+        n_envs = vec_env.num_envs
         self.esa = esa
         config = esa.session_config(clip_low.size, env_dt(vec_env, esa.dt), low, high)
-        self.client = (
-            EsaClient.spawn(**(spawn or {})) if address is None else EsaClient(address)  # type: ignore[arg-type]
-        )
+        self.client = EsaClient.spawn(**(spawn or {})) if address is None else EsaClient(address)
         try:
             self.batch = self.client.create_batch(config, n_envs, use_stream=True)
         except BaseException:
@@ -116,10 +132,10 @@ class EsaRuntime:
         self._calls += 1
         return applied
 
-    def record(self, logger: object) -> None:
+    def record(self, logger: LoggerLike) -> None:
         """Writes the mean stats since the last call to an SB3 logger and resets them."""
         for key, value in self._stats.means().items():
-            logger.record(f"esa/{key}", value)  # type: ignore[attr-defined]
+            logger.record(f"esa/{key}", value)
         self._stats = _Stats()
 
     def close(self) -> None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch as th
@@ -80,7 +80,7 @@ class ESASAC(EsaMixin, SAC):
         super().__init__(policy, env, *args, **kwargs)
 
     def _esa_space(self) -> tuple[np.ndarray, np.ndarray]:
-        dim = int(np.prod(self.action_space.shape))
+        dim = int(np.prod(self.action_space.shape or ()))
         return -np.ones(dim), np.ones(dim)
 
     def _esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -123,6 +123,7 @@ class ESASAC(EsaMixin, SAC):
         self._update_gate(learning_starts)
         if not self._esa_active:
             return action, buffer_action
+        assert self._last_obs is not None and self._last_episode_starts is not None  # in rollouts
         obs, _ = self.policy.obs_to_tensor(self._last_obs)
         _, std = self._policy_mean_and_std(obs)
         applied = self._esa_runtime().step(
@@ -145,6 +146,7 @@ class ESASAC(EsaMixin, SAC):
             return
         if self.num_timesteps - self._esa_gate_checked_at < self.esa_gate_every:
             return
+        assert self.replay_buffer is not None  # set up with the model
         recent = min(self.num_timesteps - self._esa_gate_checked_at, self.replay_buffer.size())
         self._esa_gate_checked_at = self.num_timesteps
         quality = self._critic_quality(recent // self.n_envs)
@@ -159,16 +161,22 @@ class ESASAC(EsaMixin, SAC):
         directly (its sampler would draw from numpy's global generator).
         """
         rb = self.replay_buffer
+        assert rb is not None  # set up with the model
         idx = (rb.pos - 1 - np.arange(max(steps, 2))) % rb.buffer_size
 
         def flat(array: np.ndarray) -> np.ndarray:
-            return array[idx].reshape(len(idx) * self.n_envs, *array.shape[2:])
+            values: np.ndarray = array[idx].reshape(len(idx) * self.n_envs, *array.shape[2:])
+            return values
+
+        def normalized_obs(array: np.ndarray) -> np.ndarray:
+            # A ReplayBuffer holds array observations (dict ones live in a DictReplayBuffer).
+            return cast(np.ndarray, rb._normalize_obs(flat(array), self._vec_normalize_env))
 
         next_obs = rb.next_observations if not rb.optimize_memory_usage else None
         if next_obs is None:
             return 0.0
-        obs = rb.to_torch(rb._normalize_obs(flat(rb.observations), self._vec_normalize_env))
-        nxt = rb.to_torch(rb._normalize_obs(flat(next_obs), self._vec_normalize_env))
+        obs = rb.to_torch(normalized_obs(rb.observations))
+        nxt = rb.to_torch(normalized_obs(next_obs))
         actions = rb.to_torch(flat(rb.actions))
         rewards = rb._normalize_reward(flat(rb.rewards), self._vec_normalize_env)
         alive = 1.0 - flat(rb.dones) * (1.0 - flat(rb.timeouts))
