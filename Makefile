@@ -49,11 +49,12 @@ test-rust:
 test-python:
 	$(PY) -m pytest $(PY_PACKAGES)
 
-lint: venv ## rustfmt, clippy -D warnings, ruff
+lint: venv ## rustfmt, clippy -D warnings, ruff, mypy --strict
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy --release --workspace --all-targets -- -D warnings
 	$(VENV)/bin/ruff check $(PY_LINT)
 	$(VENV)/bin/ruff format --check $(PY_LINT)
+	$(VENV)/bin/mypy  # mypy.ini: --strict over client-py/src and experiments/src
 
 fmt: venv ## apply rustfmt and ruff format
 	$(CARGO) fmt --all

@@ -3,6 +3,7 @@
 import pytest
 
 from esa_experiments.commands import main
+from esa_experiments.studies import STUDY_NAMES
 
 
 def run_cli(tmp_path, capsys, *argv):
@@ -16,7 +17,7 @@ def run_cli(tmp_path, capsys, *argv):
     [
         (
             ["run", "nope"],
-            "expected a study in ['example1', 'mujoco', 'ablation', 'quadrotor'], got 'nope'",
+            f"expected a study in {list(STUDY_NAMES)}, got 'nope'",
         ),
         (["plot", "nope"], "expected a study in"),
         (["run", "mujoco", "--methods", "ppo", "td3"], "unknown methods ['td3']"),

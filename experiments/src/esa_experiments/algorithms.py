@@ -16,11 +16,11 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 from stable_baselines3 import DDPG, PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+from stable_baselines3.common.type_aliases import GymEnv
 
 from esa_experiments.configs import algorithm_hyperparams, lookup
 from esa_experiments.param_noise import PPOParamNoise, SACParamNoise
@@ -118,7 +118,11 @@ def resolve_hyperparams(
     return hp
 
 
-def build_model(method: str, env: gym.Env, seed: int, hyperparams: dict[str, Any]) -> BaseAlgorithm:
+def _of_family(classes: dict[str, type[BaseAlgorithm]], family: str) -> type[BaseAlgorithm]:
+    return classes[family]
+
+
+def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]) -> BaseAlgorithm:
     """Constructs the SB3 model of ``method`` on ``env`` (CPU, no logging output).
 
     Args:
@@ -128,6 +132,7 @@ def build_model(method: str, env: gym.Env, seed: int, hyperparams: dict[str, Any
         hyperparams: output of :func:`resolve_hyperparams`.
     """
     spec = get_method(method)
+    cls: type[BaseAlgorithm]
     hp = dict(hyperparams)
     hp.pop("n_envs", None)  # used to build the env (see training.py)
     kwargs: dict[str, Any] = {
@@ -140,13 +145,13 @@ def build_model(method: str, env: gym.Env, seed: int, hyperparams: dict[str, Any
         from esa_client import EsaConfig
         from esa_client.sb3 import ESAPPO, ESASAC
 
-        cls = {"ppo": ESAPPO, "sac": ESASAC}[spec.family]
+        cls = _of_family({"ppo": ESAPPO, "sac": ESASAC}, spec.family)
         kwargs["esa"] = EsaConfig(**hp.pop("esa"))
     elif spec.addon == "param_noise":
-        cls = {"ppo": PPOParamNoise, "sac": SACParamNoise}[spec.family]
+        cls = _of_family({"ppo": PPOParamNoise, "sac": SACParamNoise}, spec.family)
         kwargs["param_noise"] = hp.pop("param_noise")
     elif spec.addon == "ou":
-        dim = int(np.prod(env.action_space.shape))
+        dim = int(np.prod(env.action_space.shape or ()))
         kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
             mean=np.zeros(dim),
             sigma=hp.pop("ou_sigma") * np.ones(dim),
@@ -154,5 +159,5 @@ def build_model(method: str, env: gym.Env, seed: int, hyperparams: dict[str, Any
         )
         cls = DDPG
     else:
-        cls = {"ppo": PPO, "sac": SAC}[spec.family]
+        cls = _of_family({"ppo": PPO, "sac": SAC}, spec.family)
     return cls("MlpPolicy", env, **kwargs, **hp)

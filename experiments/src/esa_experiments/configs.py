@@ -44,7 +44,8 @@ def lookup(table: Mapping[str, _T], key: str, kind: str) -> _T:
 
 def _load(path: Path) -> dict[str, Any]:
     with path.open("rb") as handle:
-        return tomllib.load(handle)
+        table: dict[str, Any] = tomllib.load(handle)
+    return table
 
 
 def algorithm_hyperparams(family: str, env: str, path: Path | None = None) -> dict[str, Any]:

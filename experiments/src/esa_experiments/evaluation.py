@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -161,7 +162,10 @@ class LogCapture(KVWriter):
         self.rows: list[dict[str, float]] = []
 
     def write(
-        self, key_values: dict[str, object], key_excluded: dict[str, object], step: int = 0
+        self,
+        key_values: dict[str, Any],
+        key_excluded: dict[str, tuple[str, ...]],
+        step: int = 0,
     ) -> None:
         """Keeps the numeric values of the interesting keys of one dump."""
         row = {

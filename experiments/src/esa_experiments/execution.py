@@ -76,7 +76,11 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _throttled(messages: queue.Queue, job: int) -> ProgressFn:
+Messages = queue.Queue[tuple[int, int]]
+"""Progress messages from the workers: (job, steps done)."""
+
+
+def _throttled(messages: Messages, job: int) -> ProgressFn:
     last = 0.0
 
     def report(done: int) -> None:
@@ -105,7 +109,7 @@ def run_one(spec: RunSpec, base: Path | None, progress: ProgressFn | None = None
     return Outcome(spec, time.perf_counter() - start)
 
 
-def _worker(spec: RunSpec, base: Path | None, messages: queue.Queue, job: int) -> Outcome:
+def _worker(spec: RunSpec, base: Path | None, messages: Messages, job: int) -> Outcome:
     return run_one(spec, base, _throttled(messages, job))
 
 
@@ -148,7 +152,7 @@ def execute(
         overall = progress.add_task("[bold]all runs", total=len(specs))
         bars: dict[int, TaskID] = {}
         finished: set[int] = set()
-        futures: dict[Future, int] = {}
+        futures: dict[Future[Outcome], int] = {}
         for job, spec in enumerate(specs):
             futures[pool.submit(_worker, spec, base, messages, job)] = job
         try:
@@ -174,7 +178,7 @@ def execute(
 
 
 def _drain(
-    messages: queue.Queue,
+    messages: Messages,
     progress: Progress,
     bars: dict[int, TaskID],
     finished: set[int],

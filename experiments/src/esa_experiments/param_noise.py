@@ -43,8 +43,8 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
-from collections.abc import Iterator
-from typing import Any
+from collections.abc import Iterator, Mapping
+from typing import Any, cast
 
 import numpy as np
 import torch as th
@@ -54,6 +54,7 @@ from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.sac.policies import Actor
 
 Perturbation = dict[str, th.Tensor]
 
@@ -112,7 +113,7 @@ class AdaptiveParamNoise:
         logger.record("param_noise/distance", distance)
         logger.record("param_noise/sigma", self.sigma)
 
-    def sample(self, parameters: dict[str, th.Tensor]) -> Perturbation:
+    def sample(self, parameters: Mapping[str, th.Tensor]) -> Perturbation:
         """Draws ``eps ~ N(0, sigma^2 I)`` shaped like each of ``parameters``."""
         return {
             name: th.randn(p.shape, generator=self._generator, dtype=p.dtype).to(p.device)
@@ -210,11 +211,12 @@ class PPOParamNoise(PPO):
         return self._shift(-1.0) if self._eps_applied else contextlib.nullcontext()
 
     def _mean_actions(self, obs: th.Tensor) -> th.Tensor:
-        return self.policy.get_distribution(obs).distribution.mean
+        # A Box policy's distribution (DiagGaussian or gSDE) is a Normal; SB3 types it for all.
+        return cast(th.distributions.Normal, self.policy.get_distribution(obs).distribution).mean
 
     def _adapt(self) -> None:
         obs = th.as_tensor(self.rollout_buffer.observations, device=self.device)
-        obs = obs.reshape(-1, *self.observation_space.shape)
+        obs = obs.reshape(-1, *(self.observation_space.shape or ()))
         with th.no_grad():
             clean = self._mean_actions(obs)
             with self._shift(+1.0):
@@ -276,7 +278,7 @@ class SACParamNoise(SAC):
         self._perturb()
 
     @staticmethod
-    def _actor_parameters(actor: th.nn.Module) -> dict[str, th.nn.Parameter]:
+    def _actor_parameters(actor: Actor) -> dict[str, th.nn.Parameter]:
         return _named({"latent_pi": actor.latent_pi, "mu": actor.mu})
 
     def _perturb(self) -> None:

@@ -6,6 +6,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 from matplotlib.axes import Axes
@@ -29,7 +30,7 @@ class Panel:
     methods: Sequence[str]
 
 
-def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: object) -> object:
+def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: Any) -> object:
     """Draws the mean with a +- SE band; returns the line's colour."""
     line = ax.plot(stats[x], stats["mean"], label=label, **style)[0]
     ax.fill_between(

@@ -12,7 +12,7 @@ With ``rliable``, per (env, method), over the seeds:
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -30,7 +30,9 @@ SEED = 0
 """The bootstrap's random seed: the statistics are reproducible from the CSVs."""
 
 
-def _interval(scores: np.ndarray, aggregate: object) -> tuple[float, float, float]:
+def _interval(
+    scores: np.ndarray, aggregate: Callable[[np.ndarray], float]
+) -> tuple[float, float, float]:
     point, ci = rly.get_interval_estimates(
         {"m": scores[:, None]}, lambda x: np.array([aggregate(x)]), reps=REPS
     )
@@ -85,7 +87,7 @@ def statistics(
             "verdict": "",
         }
         base = baselines.get(method)
-        if (env, base) in auc:
+        if base is not None and (env, base) in auc:
             p, low, high = probability_of_improvement(scores, auc[env, base])
             row["P(better than base) [95% CI]"] = f"{p:.2f} [{low:.2f}, {high:.2f}]"
             row["verdict"] = f"**{verdict(low, high)}** than {labels.get(base, base)}"

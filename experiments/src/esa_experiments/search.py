@@ -27,7 +27,8 @@ def _distributions() -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, (kind, values) in study.SPACE.items():
         if kind == "log":
-            out[name] = d.FloatDistribution(*values, log=True)
+            low, high = values
+            out[name] = d.FloatDistribution(low, high, log=True)
         elif kind == "uniform":
             out[name] = d.FloatDistribution(*values)
         else:

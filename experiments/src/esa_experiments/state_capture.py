@@ -14,10 +14,17 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, cast
 
 import gymnasium as gym
 import numpy as np
 import torch as th
+
+if TYPE_CHECKING:
+    from esa_client.sb3 import ESAPPO
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+    from stable_baselines3.common.base_class import BaseAlgorithm
+    from stable_baselines3.common.policies import ActorCriticPolicy
 
 WIDE_TRUST_REGION = 1.0
 
@@ -50,18 +57,19 @@ class SavedState:
 
 
 def capture_states(
-    model: object, env: gym.Env, states: int, *, save_every: int, seed: int
+    model: ESAPPO, env: gym.Env, states: int, *, save_every: int, seed: int
 ) -> list[SavedState]:
     """Runs ``model`` (a trained ESAPPO) with ESA on ``env`` until ``states`` are saved."""
-    m: object = model
-    config = m._esa_session_config()  # type: ignore[attr-defined]
+    m = model
+    config = m._esa_session_config()
     wide_config = dataclasses.replace(config, trust_region=WIDE_TRUST_REGION)
-    client = m._esa_runtime().client  # type: ignore[attr-defined]
+    client = m._esa_runtime().client
     sessions = [client.create_session(config), client.create_session(wide_config)]
-    center, half_width = m._esa_scaling()  # type: ignore[attr-defined]
-    paired = m.esa.paired_response  # type: ignore[attr-defined]
+    center, half_width = m._esa_scaling()
+    paired = m.esa.paired_response
     generator = th.Generator().manual_seed(seed)
-    low, high = env.action_space.low, env.action_space.high
+    box = cast(gym.spaces.Box, env.action_space)  # the MuJoCo tasks' actions are a Box
+    low, high = box.low, box.high
     saved: list[SavedState] = []
     episode = 0
     try:
@@ -72,12 +80,12 @@ def capture_states(
             while not done and len(saved) < states:
                 with th.no_grad():
                     obs_t = th.as_tensor(obs, dtype=th.float32)[None]
-                    dist = m.policy.get_distribution(obs_t).distribution  # type: ignore[attr-defined]
+                    dist = gaussian(m, obs_t)
                     mean, std = dist.mean, dist.stddev
                     sampled = (mean + std * th.randn(mean.shape, generator=generator)).numpy()[0]
                 scaled = (sampled - center) / half_width
                 sigma = std.numpy()[0] / half_width
-                q_fn = m._esa_q_at(m._head_features(obs_t), mean, std)  # type: ignore[attr-defined]
+                q_fn = m._esa_q_at(m._head_features(obs_t), mean, std)
                 shifts, gains = [], []
                 for session in sessions:
                     probe, applied = session.probe_applied(
@@ -89,7 +97,7 @@ def capture_states(
                     gains.append(float(q[1] - q[2]))
                 actions = [sampled + shift * half_width for shift in shifts]
                 if t >= 10 and t % save_every == 0:
-                    data = env.unwrapped.data  # type: ignore[attr-defined]
+                    data = cast("MujocoEnv", env.unwrapped).data
                     saved.append(
                         SavedState(
                             qpos=data.qpos.copy(),
@@ -110,3 +118,13 @@ def capture_states(
         for session in sessions:
             session.close()
     return saved
+
+
+def gaussian(model: BaseAlgorithm, obs: th.Tensor) -> th.distributions.Normal:
+    """The torch Normal of a Box PPO policy at ``obs``.
+
+    SB3 types ``Distribution.distribution`` for every kind of action space; a Box policy's
+    (DiagGaussian, or gSDE) is a ``Normal``.
+    """
+    policy = cast("ActorCriticPolicy", model.policy)  # an on-policy (PPO) model's
+    return cast(th.distributions.Normal, policy.get_distribution(obs).distribution)

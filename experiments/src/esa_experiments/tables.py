@@ -86,7 +86,7 @@ def summary(
         reached = seeds.to_threshold.dropna()
         base = baselines.get(method)
         overhead = ""
-        if (env, base) in train_time:
+        if base is not None and (env, base) in train_time:
             (wall, cpu), (base_wall, base_cpu) = train_time[env, method], train_time[env, base]
             overhead = f"{wall / base_wall:.2f}x / {cpu / base_cpu:.2f}x"
         rows.append(

@@ -8,7 +8,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from ..config import EsaConfig
+from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
 from .runtime import EsaRuntime
 
@@ -94,7 +94,7 @@ class EsaMixin(_Algorithm):
         space = self._esa_box()
         return space.low.reshape(-1), space.high.reshape(-1)
 
-    def _esa_session_config(self) -> object:
+    def _esa_session_config(self) -> SessionConfig:
         low, high = self._esa_space()
         dim = self._esa_env_bounds()[0].size
         return self.esa.session_config(dim, env_dt(self.env, self.esa.dt), low, high)

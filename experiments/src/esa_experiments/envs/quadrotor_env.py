@@ -203,7 +203,7 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
         self._qvel = self.data.qvel
         self._ctrl = self.data.ctrl
         body = self.model.body("quadrotor").id
-        rot = np.zeros(9)
+        rot: np.ndarray = np.zeros(9)
         mujoco.mju_quat2Mat(rot, self.model.body_iquat[body])
         rot = rot.reshape(3, 3)
         inertia = rot @ np.diag(self.model.body_inertia[body]) @ rot.T
@@ -364,7 +364,8 @@ class QuadrotorEnv(gym.Env[np.ndarray, np.ndarray]):
         mujoco.mj_camlight(self.model, self.data)
         self._renderer.update_scene(self.data, camera=self.camera_name)
         self._draw_target(self._renderer.scene)
-        return self._renderer.render()
+        frame: np.ndarray = self._renderer.render()
+        return frame
 
     def _draw_target(self, scene: mujoco.MjvScene, segments: int = 120) -> None:
         """Append the target (sphere and heading arrow) and its path (polyline) to the scene."""

@@ -60,4 +60,4 @@ def load_study(name: str) -> Study:
     if name not in STUDY_NAMES:
         raise ValueError(f"expected a study in {list(STUDY_NAMES)}, got {name!r}")
     module: ModuleType = importlib.import_module(f"{__name__}.{name}")
-    return module  # type: ignore[return-value]
+    return module

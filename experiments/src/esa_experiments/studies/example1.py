@@ -85,13 +85,15 @@ BUDGETS = {"smoke": Args(), "full": Args()}
 def objective(u: np.ndarray, t: float, env: str) -> np.ndarray:
     """J at inputs ``u`` (shape ``(..., 2)``) and time ``t`` (``env``: static or timevarying)."""
     optimum = OPTIMUM * t if env == "timevarying" else OPTIMUM
-    return np.sum((np.asarray(u) - optimum) ** 2, axis=-1)
+    cost: np.ndarray = np.sum((np.asarray(u) - optimum) ** 2, axis=-1)
+    return cost
 
 
 def gradient(u: np.ndarray, t: float, env: str) -> np.ndarray:
     """Analytic gradient of J."""
     optimum = OPTIMUM * t if env == "timevarying" else OPTIMUM
-    return 2 * (u - optimum)
+    slope: np.ndarray = 2 * (u - optimum)
+    return slope
 
 
 def specs(
@@ -118,7 +120,7 @@ def _run_esc(args: Args, env: str, progress: ProgressFn) -> pd.DataFrame:
         learning_rate=args.learning_rate,
     )
     start = np.array(START)
-    rows = []
+    rows: list[tuple[float, ...]] = []
     with EsaClient.spawn() as client:
         session = client.create_session(config)
         estimate = start

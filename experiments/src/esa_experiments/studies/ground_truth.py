@@ -16,19 +16,27 @@ by the environment's own measure; the rank correlation of the head's predicted
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 import numpy as np
 import pandas as pd
 import torch as th
+from matplotlib.figure import Figure
 
 from esa_experiments.evaluation import ProgressFn
 from esa_experiments.runs import RunResult, RunSpec, RunStore, atomic_write_text
-from esa_experiments.state_capture import SavedState, capture_states
+from esa_experiments.state_capture import SavedState, capture_states, gaussian
 from esa_experiments.studies import campaign
 from esa_experiments.tables import to_markdown
 from esa_experiments.tasks import get_task
 from esa_experiments.training import StepBudget, rl_spec, trained
+
+if TYPE_CHECKING:
+    from esa_client.sb3 import ESAPPO
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+    from stable_baselines3.common.base_class import BaseAlgorithm
 
 NAME = "ground_truth"
 DESCRIPTION = "Monte-Carlo returns of a_t vs ESA's a_t + v(t) from saved MuJoCo states"
@@ -93,7 +101,11 @@ def run(spec: RunSpec, progress: ProgressFn) -> RunResult:
         env = get_task(spec.env).make()
         try:
             saved = capture_states(
-                model, env, args["states"], save_every=args["save_every"], seed=spec.seed
+                cast("ESAPPO", model),  # the study's only method is ppo_esa
+                env,
+                args["states"],
+                save_every=args["save_every"],
+                seed=spec.seed,
             )
             rows = []
             for i, state in enumerate(saved):
@@ -121,15 +133,21 @@ def run(spec: RunSpec, progress: ProgressFn) -> RunResult:
 
 
 def _mc_return(
-    model: object, env: gym.Env, state: SavedState, action: np.ndarray, args: dict, seed: int
+    model: BaseAlgorithm,
+    env: gym.Env,
+    state: SavedState,
+    action: np.ndarray,
+    args: dict[str, Any],
+    seed: int,
 ) -> float:
     """Mean discounted return of ``action`` from ``state``, then the stochastic policy."""
-    base = env.unwrapped
-    low, high = env.action_space.low, env.action_space.high
+    base = cast("MujocoEnv", env.unwrapped)  # the ground-truth tasks are MuJoCo envs
+    box = cast(gym.spaces.Box, env.action_space)
+    low, high = box.low, box.high
     total = 0.0
     for m in range(args["rollouts"]):
         generator = th.Generator().manual_seed(seed + m)  # the same draws for both branches
-        base.set_state(state.qpos, state.qvel)  # type: ignore[attr-defined]
+        base.set_state(state.qpos, state.qvel)
         obs, reward, terminated, _, _ = base.step(np.clip(action, low, high))
         ret, discount = float(reward), GAMMA
         for _ in range(args["horizon"] - 1):
@@ -137,14 +155,14 @@ def _mc_return(
                 break
             with th.no_grad():
                 obs_t = th.as_tensor(obs, dtype=th.float32)[None]
-                dist = model.policy.get_distribution(obs_t).distribution  # type: ignore[attr-defined]
+                dist = gaussian(model, obs_t)
                 noise = th.randn(dist.mean.shape, generator=generator)
                 act = (dist.mean + dist.stddev * noise).numpy()[0]
             obs, reward, terminated, _, _ = base.step(np.clip(act, low, high))
             ret += discount * float(reward)
             discount *= GAMMA
         total += ret
-    return total / args["rollouts"]
+    return float(total / args["rollouts"])
 
 
 BRANCHES = (
@@ -189,9 +207,30 @@ def report(store: RunStore, args: Args) -> str:
             )
     table = to_markdown(pd.DataFrame(rows))
     atomic_write_text(store.artifact("table.md"), table + "\n")
+    figure = _figure(frame, store.artifact("ground_truth.png"))
     return (
+        f"![ground truth]({store.relative(figure)})\n\n"
         f"Discounted (gamma {GAMMA}) Monte-Carlo returns over {args.horizon} steps, "
         f"{args.rollouts} rollouts per state and branch with common random numbers; "
         "95 % CI by bootstrap over states:\n\n"
         f"{table}\n"
     )
+
+
+def _figure(frame: pd.DataFrame, path: Path) -> Path:
+    """Per env, the measured return gain of each state against what the critic predicted."""
+    envs = list(dict.fromkeys(frame.env))
+    fig = Figure(figsize=(4 * len(envs), 3.6), layout="constrained")
+    axes = fig.subplots(1, len(envs), squeeze=False)[0]
+    for ax, env in zip(axes, envs, strict=True):
+        runs = frame[frame.env == env]
+        for label, delta_key, predicted_key, _ in BRANCHES:
+            ax.plot(runs[predicted_key], runs[delta_key], ".", alpha=0.5, label=label)
+        ax.axhline(0.0, color="grey", linewidth=0.8)
+        ax.axvline(0.0, color="grey", linewidth=0.8)
+        ax.set_title(env, fontsize=10)
+        ax.set_xlabel("critic's predicted gain A(s, a + v) - A(s, a)")
+    axes[0].set_ylabel("measured return(a + v) - return(a)")
+    axes[0].legend(fontsize=8)
+    fig.savefig(path, dpi=120)
+    return path

@@ -16,11 +16,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from esa_experiments.algorithms import LABELS
 from esa_experiments.envs.quadrotor_rollout import TrackedEpisode, record_episode
 from esa_experiments.envs.trajectory_plot import plot_tracking
 from esa_experiments.evaluation import EVAL_SEED_OFFSET, ProgressFn
 from esa_experiments.plotting import Panel
-from esa_experiments.reporting import LABELS, budget_table, rl_section
+from esa_experiments.reporting import budget_table, rl_section
 from esa_experiments.runs import RunResult, RunSpec, RunStore
 from esa_experiments.studies import mujoco
 from esa_experiments.tables import to_markdown
