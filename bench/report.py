@@ -35,7 +35,7 @@ from soak_report import soak_section  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PLOT_NAME = "latency_vs_batch.png"
-# The goal of a figure issue 7 asks to report without a number to meet.
+# The goal of a figure we report without a number to meet.
 NO_TARGET = "(no target; reported)"
 # Line style per API in the plot; the colour is the transport's.
 API_STYLES = {"batch": "-", "stream": "--", "-": ":"}
@@ -43,7 +43,7 @@ API_STYLES = {"batch": "-", "stream": "--", "-": ":"}
 
 @dataclass
 class Target:
-    """One target of issue 7 and what was measured for it."""
+    """One performance target and what was measured for it."""
 
     name: str
     goal: str
@@ -137,7 +137,7 @@ def at_most(limit: float) -> Callable[[float], bool]:
 def targets(
     core: dict, server: dict | None, python: dict | None, training: dict | None
 ) -> list[Target]:
-    """Every target of issue 7 with its measured figure."""
+    """Every performance target with its measured figure."""
     out = []
     wall, cpu = core.get(("wall", 6)), core.get(("cpu", 6))
     out.append(

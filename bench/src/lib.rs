@@ -1,6 +1,6 @@
 //! Load generation against the real `esa-server` binary, shared by two
-//! programs: `esa-bench` (latency, throughput and memory per session, issue
-//! 7) and `esa-soak` (minutes of load with floods and faults, issue 14).
+//! programs: `esa-bench` (latency, throughput and memory per session)
+//! and `esa-soak` (minutes of load with floods and faults).
 //! Everything stays on loopback.
 
 pub mod driver;

@@ -1,4 +1,4 @@
-//! `esa-bench`: load generator for the real `esa-server` binary (issue 7).
+//! `esa-bench`: load generator for the real `esa-server` binary.
 //!
 //! Starts the server as a child process on loopback TCP, on a Unix socket
 //! and with Zenoh on loopback, and measures, for D-dimensional sessions:

@@ -1,4 +1,4 @@
-//! The soak (issue 14): minutes of steady load on a real `esa-server` while
+//! The soak: minutes of steady load on a real `esa-server` while
 //! floods and faults come and go, to show that memory stays flat, that no
 //! client is lost, and what the load's latency becomes meanwhile.
 //!

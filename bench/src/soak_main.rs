@@ -1,5 +1,5 @@
 //! `esa-soak`: minutes of load on the real `esa-server` with floods and
-//! faults (issue 14); see `esa_bench::soak`. Writes `--json`, which
+//! faults; see `esa_bench::soak`. Writes `--json`, which
 //! `bench/soak_report.py` turns into the soak section of BENCHMARKS.md.
 
 use std::path::PathBuf;

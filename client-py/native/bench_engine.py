@@ -1,6 +1,6 @@
 """Micro-benchmark of esa_client._native: one probe + report pair of N sessions, in-process.
 
-Default: N = 8 sessions of D = 6 (issue 16's target: p50 <= 10 us per pair), once with section 1's
+Default: N = 8 sessions of D = 6 (the target: p50 <= 10 us per pair), once with section 1's
 law (no action scales, no references) and once with every section 1b field on (scales with each
 probe, references with each report). ``--gil`` measures what releasing the GIL costs per call
 against the call's own time for growing batches, which is how ``DETACH_VALUES`` was chosen.

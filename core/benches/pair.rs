@@ -1,4 +1,4 @@
-//! One probe + report pair through the core (issue 7, deliverable 2; target <= 100 ns at D = 6).
+//! One probe + report pair through the core (target: <= 100 ns at D = 6).
 //!
 //! Two laws, each its own group: `probe_report_pair` is section 1's law as before (no section 1b field),
 //! `probe_report_pair_1b` has every field of CONTRACT.md section 1b on (`normalize_response`,

@@ -1,7 +1,7 @@
 //! Per-dimension state of a session and the per-dimension steps of the law (the hot loops).
 //!
 //! The state is the columns of one D x 10 nalgebra matrix: one allocation per session (instead of one per
-//! vector) keeps an idle D = 6 session under the 1 KiB budget of issue 7, and the column-major layout
+//! vector) keeps an idle D = 6 session under its 1 KiB budget, and the column-major layout
 //! keeps every per-dimension vector contiguous, so each step is one fused loop over plain slices that
 //! the compiler vectorizes, without bounds checks.
 

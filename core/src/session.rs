@@ -42,7 +42,7 @@ pub struct Session {
 
 /// The config's scalar fields and the shapes of its per-dimension ones. The per-dimension values
 /// themselves live broadcast in the [`Lanes`]: keeping the config's own vectors too would cost an idle
-/// D = 6 session five more allocations, about a quarter of issue 7's 1 KiB budget.
+/// D = 6 session five more allocations, about a quarter of its 1 KiB budget.
 #[derive(Clone, Debug, PartialEq)]
 struct Settings {
     dt: f64,

@@ -1,7 +1,7 @@
 //! `sin` for the probe's sinusoid `s_i = sin(w_i * tau)`, without a libm call per lane.
 //!
 //! libm's `sin` costs ~20-30 ns on the target machine, which alone would spend the whole 100 ns budget of
-//! a D = 6 probe/report pair (issue 7). Here the argument is reduced by Cody-Waite with fdlibm's
+//! a D = 6 probe/report pair. Here the argument is reduced by Cody-Waite with fdlibm's
 //! three-part pi/2 and evaluated with fdlibm's `__kernel_sin`/`__kernel_cos` polynomials: inlinable and
 //! branch-free, so a loop over the lanes vectorizes, and within 2.2e-16 (one ulp of 1.0) of libm's `sin` (tested below), far inside
 //! the 1e-9 to which clients must reproduce the law. Arguments beyond [`REDUCTION_LIMIT`] need libm.

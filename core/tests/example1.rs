@@ -1,4 +1,4 @@
-//! Example 1 of the ESA paper (Section II) run through the core with the parameters of issue 2:
+//! Example 1 of the ESA paper (Section II) run through the core with the paper's parameters:
 //! constant sampled action a = (2, 2), Q = -J(probe), dt = 0.01, w = (60, 75) rad/s, K = 0.2,
 //! alpha = 0.25, default high-pass (w_h = min(w) / 10 = 6 rad/s).
 

@@ -1,4 +1,4 @@
-//! Access control (issue 14, finding 3): the optional shared-secret token
+//! Access control: the optional shared-secret token
 //! over gRPC and Zenoh, the private Unix socket, and complete queryables.
 
 use std::os::unix::fs::PermissionsExt as _;

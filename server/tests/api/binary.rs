@@ -202,7 +202,7 @@ fn a_bad_zenoh_config_stops_the_server_with_a_message() {
 
 /// A launcher (here a shell) passes `--parent-pid $$`: whatever kills the
 /// launcher, the server notices it is orphaned, shuts down and removes its
-/// directory (issue 14, finding 5).
+/// directory (no orphans after SIGKILL, SIGTERM or SIGHUP).
 #[tokio::test]
 async fn the_server_exits_with_its_parent_whatever_kills_it() {
     for signal_name in ["KILL", "TERM", "HUP"] {

@@ -1,4 +1,4 @@
-//! Connection hygiene (issue 14, finding 4): silent and unresponsive
+//! Connection hygiene: silent and unresponsive
 //! connections are closed, a full server makes room for a new client, and
 //! floods of idle connections neither lock real clients out nor spin the
 //! CPU. Floods are a few hundred loopback connections, each test bounded in

@@ -1,4 +1,4 @@
-//! Memory bounds (issue 14, findings 1, 2 and 8): request messages are
+//! Memory bounds: request messages are
 //! limited in size, in what they decode to, in the memory they hold while
 //! arriving and in how long they may take; sessions are budgeted in bytes.
 //! Every size here is bounded, and every server is on loopback.

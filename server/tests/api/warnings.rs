@@ -1,4 +1,4 @@
-//! Log volume (issue 14, finding 7): a client that makes every update
+//! Log volume: a client that makes every update
 //! non-finite gets one warning per period, not one per report.
 
 use std::io::Write;

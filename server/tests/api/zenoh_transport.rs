@@ -271,7 +271,7 @@ async fn wildcard_prefixes_are_refused() {
 
 /// Complete queryables: a query that only wants answers from servers
 /// holding the whole key space (as routers and careful clients ask) still
-/// reaches this one (issue 14, finding 3).
+/// reaches this one, so clients can ignore replies from incomplete peers.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn queryables_are_declared_complete() {
     let both = start_both("complete/esa/v1").await;

@@ -133,9 +133,11 @@ def specs(
 
 def drive(budget: str, seeds: list[int], jobs: int, root: Path, console: Console) -> None:
     """Runs or resumes the search (what ``run default_search`` does)."""
+    import sys
+
     from esa_experiments.search import search
 
-    search(budget, seeds, jobs, root, console)
+    search(sys.modules[__name__], budget, seeds, jobs, root, console)
 
 
 run = run_training
