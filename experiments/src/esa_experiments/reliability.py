@@ -90,7 +90,9 @@ def statistics(
         if base is not None and (env, base) in auc:
             p, low, high = probability_of_improvement(scores, auc[env, base])
             row["P(better than base) [95% CI]"] = f"{p:.2f} [{low:.2f}, {high:.2f}]"
-            row["verdict"] = f"**{verdict(low, high)}** than {labels.get(base, base)}"
+            word = verdict(low, high)
+            relation = "to" if word == "equal" else "than"
+            row["verdict"] = f"**{word}** {relation} {labels.get(base, base)}"
         rows.append(row)
     return pd.DataFrame(rows)
 
