@@ -128,13 +128,25 @@ pub async fn probe(
     action: &[f64],
     episode_start: bool,
 ) -> Result<pb::ProbeResponse, Status> {
+    probe_scaled(client, id, step, action, &[], episode_start).await
+}
+
+/// A Probe with CONTRACT.md section 1b's action scale (empty: unscaled).
+pub async fn probe_scaled(
+    client: &mut Client,
+    id: &str,
+    step: u64,
+    action: &[f64],
+    action_scale: &[f64],
+    episode_start: bool,
+) -> Result<pb::ProbeResponse, Status> {
     client
         .probe(pb::ProbeRequest {
             session_id: id.into(),
             step,
             action: action.to_vec(),
             episode_start,
-            ..Default::default()
+            action_scale: action_scale.to_vec(),
         })
         .await
         .map(tonic::Response::into_inner)
@@ -146,12 +158,23 @@ pub async fn report(
     step: u64,
     q_value: f64,
 ) -> Result<pb::ReportResponse, Status> {
+    report_paired(client, id, step, q_value, None).await
+}
+
+/// A Report with CONTRACT.md section 1b's paired reference Q (None: unpaired).
+pub async fn report_paired(
+    client: &mut Client,
+    id: &str,
+    step: u64,
+    q_value: f64,
+    q_reference: Option<f64>,
+) -> Result<pb::ReportResponse, Status> {
     client
         .report(pb::ReportRequest {
             session_id: id.into(),
             step,
             q_value,
-            ..Default::default()
+            q_reference,
         })
         .await
         .map(tonic::Response::into_inner)
@@ -381,4 +404,29 @@ pub async fn call_raw(url: &str, method: &str, bytes: Vec<u8>) -> Result<Vec<u8>
     grpc.unary(tonic::Request::new(bytes), path, RawCodec)
         .await
         .map(tonic::Response::into_inner)
+}
+
+/// xorshift64*: a dependency-free, seeded source of test inputs.
+pub struct Rng(pub u64);
+
+impl Rng {
+    pub fn next_f64(&mut self) -> f64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        (self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.next_f64()
+    }
+
+    pub fn coin(&mut self) -> bool {
+        self.next_f64() < 0.5
+    }
+
+    /// An integer in 0..n.
+    pub fn below(&mut self, n: u64) -> u64 {
+        (self.next_f64() * n as f64) as u64
+    }
 }

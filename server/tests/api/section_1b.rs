@@ -12,7 +12,7 @@ use esa_server::pb::step_stream_request::Kind as Req;
 use esa_server::pb::step_stream_response::Kind as Resp;
 use tonic::Code;
 
-use crate::common::{get, Client};
+use crate::common::{get, Client, Rng};
 use crate::stream::Stream;
 use crate::zenoh_transport::{query, start_both, Both};
 
@@ -190,31 +190,11 @@ async fn wires(both: &Both) -> Vec<Wire<'_>> {
     ]
 }
 
-/// xorshift64*: a dependency-free, seeded source of test inputs.
-struct Rng(u64);
-
-impl Rng {
-    fn next_f64(&mut self) -> f64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        (self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.next_f64()
-    }
-
-    fn coin(&mut self) -> bool {
-        self.next_f64() < 0.5
-    }
-
-    fn maybe(&mut self, lo: f64, hi: f64) -> Option<f64> {
-        self.coin().then(|| self.uniform(lo, hi))
-    }
+/// An optional value in [lo, hi), present half the time.
+fn maybe(rng: &mut Rng, lo: f64, hi: f64) -> Option<f64> {
+    rng.coin().then(|| rng.uniform(lo, hi))
 }
 
-/// A random valid config with every section 1b field unset or set.
 fn random_config(rng: &mut Rng, d: u32) -> pb::SessionConfig {
     let dt = rng.uniform(0.002, 0.05);
     let bounded = rng.coin();
@@ -224,18 +204,18 @@ fn random_config(rng: &mut Rng, d: u32) -> pb::SessionConfig {
         amplitude: vec![rng.uniform(0.0, 0.5)],
         frequency: (0..d).map(|_| rng.uniform(0.3, 2.9) / dt).collect(),
         learning_rate: vec![rng.uniform(0.0, 1.0)],
-        highpass_cutoff: rng.maybe(0.1, 10.0),
+        highpass_cutoff: maybe(rng, 0.1, 10.0),
         disable_highpass: rng.coin(),
         action_low: if bounded { vec![-1.5] } else { vec![] },
         action_high: if bounded { vec![1.5] } else { vec![] },
-        shift_limit: rng.maybe(0.05, 2.0),
-        lr_decay: rng.maybe(0.5, 1.0),
+        shift_limit: maybe(rng, 0.05, 2.0),
+        lr_decay: maybe(rng, 0.5, 1.0),
         max_episodes: 0,
         normalize_response: rng.coin(),
-        response_rms_rate: rng.maybe(0.01, 1.0),
-        response_clip: rng.maybe(0.5, 5.0),
-        shift_leak: rng.maybe(0.0, 0.2),
-        trust_region: rng.maybe(0.1, 3.0),
+        response_rms_rate: maybe(rng, 0.01, 1.0),
+        response_clip: maybe(rng, 0.5, 5.0),
+        shift_leak: maybe(rng, 0.0, 0.2),
+        trust_region: maybe(rng, 0.1, 3.0),
     }
 }
 

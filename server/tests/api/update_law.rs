@@ -7,72 +7,12 @@ use esa_core::Session;
 use esa_server::convert::config_from_proto;
 use esa_server::pb;
 
-use crate::common::{create, get, start, Client};
+use crate::common::{create, get, probe_scaled, report_paired, start, Rng};
 
-async fn probe(
-    client: &mut Client,
-    id: &str,
-    step: u64,
-    action: &[f64],
-    action_scale: &[f64],
-    episode_start: bool,
-) -> pb::ProbeResponse {
-    client
-        .probe(pb::ProbeRequest {
-            session_id: id.into(),
-            step,
-            action: action.to_vec(),
-            episode_start,
-            action_scale: action_scale.to_vec(),
-        })
-        .await
-        .expect("probe")
-        .into_inner()
-}
-
-async fn report(
-    client: &mut Client,
-    id: &str,
-    step: u64,
-    q_value: f64,
-    q_reference: Option<f64>,
-) -> pb::ReportResponse {
-    client
-        .report(pb::ReportRequest {
-            session_id: id.into(),
-            step,
-            q_value,
-            q_reference,
-        })
-        .await
-        .expect("report")
-        .into_inner()
-}
-
-/// xorshift64*: a dependency-free, seeded source of test inputs.
-struct Rng(u64);
-
-impl Rng {
-    fn next_f64(&mut self) -> f64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        (self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.next_f64()
-    }
-
-    fn below(&mut self, n: u64) -> u64 {
-        (self.next_f64() * n as f64) as u64
-    }
-
-    /// Length 1 (broadcast) or `d` values in [lo, hi).
-    fn vector(&mut self, d: u32, lo: f64, hi: f64) -> Vec<f64> {
-        let len = if self.below(2) == 0 { 1 } else { d };
-        (0..len).map(|_| self.uniform(lo, hi)).collect()
-    }
+/// Length 1 (broadcast) or `d` values in [lo, hi).
+fn vector(rng: &mut Rng, d: u32, lo: f64, hi: f64) -> Vec<f64> {
+    let len = if rng.below(2) == 0 { 1 } else { d };
+    (0..len).map(|_| rng.uniform(lo, hi)).collect()
 }
 
 fn random_config(rng: &mut Rng) -> pb::SessionConfig {
@@ -82,15 +22,15 @@ fn random_config(rng: &mut Rng) -> pb::SessionConfig {
     pb::SessionConfig {
         action_dim: d,
         dt,
-        amplitude: rng.vector(d, 0.0, 0.5),
+        amplitude: vector(rng, d, 0.0, 0.5),
         // Strictly below Nyquist: w * dt < pi.
-        frequency: rng.vector(d, 0.5 / dt, 3.0 / dt),
-        learning_rate: rng.vector(d, 0.0, 2.0),
+        frequency: vector(rng, d, 0.5 / dt, 3.0 / dt),
+        learning_rate: vector(rng, d, 0.0, 2.0),
         highpass_cutoff: (rng.below(2) == 0).then(|| rng.uniform(0.1, 10.0)),
         disable_highpass: rng.below(3) == 0,
         action_low: if bounded { vec![-1.0] } else { vec![] },
         action_high: if bounded {
-            rng.vector(d, 0.5, 2.0)
+            vector(rng, d, 0.5, 2.0)
         } else {
             vec![]
         },
@@ -135,7 +75,9 @@ async fn wire_results_equal_the_core_on_random_configs() {
                     _ => (0..d).map(|_| rng.uniform(0.05, 2.0)).collect(),
                 };
                 let start = step == 0 && episode > 0;
-                let wire = probe(&mut client, &id, step, &action, &scale, start).await;
+                let wire = probe_scaled(&mut client, &id, step, &action, &scale, start)
+                    .await
+                    .expect("probe");
                 out.clear();
                 core.probe(step, &action, &scale, start, &mut out).unwrap();
                 assert_eq!(
@@ -151,7 +93,9 @@ async fn wire_results_equal_the_core_on_random_configs() {
                 );
                 let reference = (rng.below(2) == 0).then(|| q_at(&out));
 
-                let wire = report(&mut client, &id, step, q, reference).await;
+                let wire = report_paired(&mut client, &id, step, q, reference)
+                    .await
+                    .expect("report");
                 out.clear();
                 core.report(step, q, reference, &mut out).unwrap();
                 assert_eq!(
