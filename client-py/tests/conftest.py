@@ -68,6 +68,29 @@ def make_config():
     return random_config
 
 
+def same_states(server_states, reference_states) -> None:
+    """Asserts that sessions' states (server vs ``esa_client.reference``) agree to 1e-9."""
+    tol = dict(rtol=1e-9, atol=1e-9)
+    for got, want in zip(server_states, reference_states, strict=True):
+        assert got.config == want.config
+        assert (got.step, got.episodes_completed, got.probe_pending) == (
+            want.step,
+            want.episodes_completed,
+            want.probe_pending,
+        )
+        np.testing.assert_allclose(got.shift, want.shift, **tol)
+        if want.response_mean_square is None:
+            assert got.response_mean_square is None
+        else:
+            np.testing.assert_allclose(got.response_mean_square, want.response_mean_square, **tol)
+
+
+@pytest.fixture
+def assert_same_states():
+    """:func:`same_states`, for the parity tests of every transport."""
+    return same_states
+
+
 @pytest.fixture(scope="session")
 def zenoh_client(server_bin):
     """One private server with Zenoh on loopback (and gRPC on a Unix socket), over Zenoh."""

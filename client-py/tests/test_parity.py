@@ -22,19 +22,8 @@ def q_of(rng, probes):
     return -10 * np.tanh(distance) + rng.normal(size=probes.shape[:-1])
 
 
-def assert_same_states(server_states, reference_states):
-    for got, want in zip(server_states, reference_states, strict=True):
-        assert got.config == want.config
-        assert (got.step, got.episodes_completed, got.probe_pending) == (
-            want.step,
-            want.episodes_completed,
-            want.probe_pending,
-        )
-        np.testing.assert_allclose(got.shift, want.shift, **TOL)
-
-
 @pytest.mark.parametrize("seed", range(6))
-def test_unary_session_matches_reference(client, make_config, seed):
+def test_unary_session_matches_reference(client, make_config, seed, assert_same_states):
     rng = np.random.default_rng(seed)
     config = make_config(rng)
     server = client.create_session(config, f"parity-unary-{seed}-{uuid.uuid4()}")
@@ -64,7 +53,7 @@ def test_unary_session_matches_reference(client, make_config, seed):
 
 @pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
 @pytest.mark.parametrize("seed", range(4))
-def test_session_batch_matches_reference(client, make_config, seed, use_stream):
+def test_session_batch_matches_reference(client, make_config, seed, use_stream, assert_same_states):
     rng = np.random.default_rng(100 + seed)
     n, d = int(rng.integers(1, 9)), int(rng.integers(1, 4))
     configs = [make_config(rng, d) for _ in range(n)]
@@ -94,7 +83,9 @@ def test_session_batch_matches_reference(client, make_config, seed, use_stream):
 
 
 @pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
-def test_rejected_batches_change_nothing_on_either_side(client, make_config, use_stream):
+def test_rejected_batches_change_nothing_on_either_side(
+    client, make_config, use_stream, assert_same_states
+):
     rng = np.random.default_rng(7)
     configs = [make_config(rng, 2) for _ in range(3)]
     server = client.create_batch(configs, use_stream=use_stream)

@@ -21,23 +21,8 @@ def landscape(points, level):
     return level - np.sum(np.tanh((points - target) ** 2), axis=-1)
 
 
-def assert_same_states(server_states, reference_states):
-    for got, want in zip(server_states, reference_states, strict=True):
-        assert got.config == want.config
-        assert (got.step, got.episodes_completed, got.probe_pending) == (
-            want.step,
-            want.episodes_completed,
-            want.probe_pending,
-        )
-        np.testing.assert_allclose(got.shift, want.shift, **TOL)
-        if want.response_mean_square is None:
-            assert got.response_mean_square is None
-        else:
-            np.testing.assert_allclose(got.response_mean_square, want.response_mean_square, **TOL)
-
-
 @pytest.mark.parametrize("seed", range(4))
-def test_unary_session_matches_reference(client, make_config, seed):
+def test_unary_session_matches_reference(client, make_config, seed, assert_same_states):
     rng = np.random.default_rng(1000 + seed)
     config = make_config(rng)
     server = client.create_session(config, f"1b-unary-{seed}-{uuid.uuid4()}")
@@ -83,7 +68,9 @@ def run_batch(batch, rng, n, d, steps, defer):
 
 @pytest.mark.parametrize("defer", [False, True], ids=["sequential", "pipelined"])
 @pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
-def test_session_batch_matches_reference(client, make_config, use_stream, defer):
+def test_session_batch_matches_reference(
+    client, make_config, use_stream, defer, assert_same_states
+):
     rng = np.random.default_rng(2000)
     n, d = 5, 3
     configs = [make_config(rng, d) for _ in range(n)]
@@ -97,7 +84,7 @@ def test_session_batch_matches_reference(client, make_config, use_stream, defer)
     server.close()
 
 
-def test_pipelined_and_sequential_steps_answer_the_same(client, make_config):
+def test_pipelined_and_sequential_steps_answer_the_same(client, make_config, assert_same_states):
     rng = np.random.default_rng(3000)
     configs = [make_config(rng, 2) for _ in range(4)]
     sequential = client.create_batch(configs, use_stream=True)
@@ -180,7 +167,9 @@ def test_config_round_trips_the_section_1b_fields(client):
 
 
 @pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
-def test_bad_scales_and_references_are_refused_and_change_nothing(client, use_stream):
+def test_bad_scales_and_references_are_refused_and_change_nothing(
+    client, use_stream, assert_same_states
+):
     config = good_config(normalize_response=True, trust_region=1.0)
     batch = client.create_batch(config, n=3, use_stream=use_stream)
     reference = ReferenceBatch([config] * 3)
@@ -217,7 +206,7 @@ def test_unary_bad_scale_and_reference(client):
     session.close()
 
 
-def test_zenoh_matches_reference(zenoh_client, make_config):
+def test_zenoh_matches_reference(zenoh_client, make_config, assert_same_states):
     rng = np.random.default_rng(4000)
     configs = [make_config(rng, 2) for _ in range(3)]
     for use_stream in (False, True):
@@ -233,7 +222,7 @@ def test_zenoh_matches_reference(zenoh_client, make_config):
 
 @pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
 def test_sharded_batches_split_and_merge_scales_references_and_applied_actions(
-    server_bin, use_stream
+    server_bin, use_stream, assert_same_states
 ):
     from esa_client import ShardedEsaClient
     from esa_client.sharding import shard_of
