@@ -44,6 +44,23 @@ class StepBudget:
     overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
+SMOKE_BUDGET = StepBudget(
+    on_policy=256,
+    off_policy=300,
+    eval_every_on=128,
+    eval_every_off=150,
+    eval_episodes=1,
+    # Two PPO rollouts of 4 envs x 32 steps (ESAPPO probes from the second one on)
+    # and a short off-policy warm-up.
+    overrides={
+        "ppo": {"n_steps": 32, "batch_size": 64, "n_epochs": 2},
+        "sac": {"learning_starts": 100, "batch_size": 64},
+        "ddpg": {"learning_starts": 100, "batch_size": 64},
+    },
+)
+"""The CI-sized budget of the RL studies (``--budget smoke``)."""
+
+
 def rl_spec(
     study: str,
     env: str,

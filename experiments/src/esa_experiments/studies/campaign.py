@@ -20,13 +20,13 @@ stratified-bootstrap 95 % CIs and the probability of improvement over the baseli
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from esa_experiments.plotting import Panel
 from esa_experiments.reliability import reliability_section
 from esa_experiments.reporting import budget_table, rl_section
 from esa_experiments.runs import RunSpec, RunStore
-from esa_experiments.training import StepBudget, rl_spec, run_training
+from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
 
 NAME = "campaign"
 DESCRIPTION = "the shipped ESA default vs PPO/SAC, the paper's law and learning rate 0"
@@ -52,18 +52,8 @@ class Args:
     sac_envs: tuple[str, ...] = ("Hopper-v5",)
 
 
-SMOKE = StepBudget(
-    on_policy=384,
-    off_policy=300,
-    eval_every_on=128,
-    eval_every_off=150,
-    eval_episodes=1,
-    # Three PPO rollouts of 4 envs x 32 steps (the gate needs two) and a short warm-up.
-    overrides={
-        "ppo": {"n_steps": 32, "batch_size": 64, "n_epochs": 2},
-        "sac": {"learning_starts": 100, "batch_size": 64},
-    },
-)
+# Three PPO rollouts: the gate needs two before ESA can act on the third.
+SMOKE = replace(SMOKE_BUDGET, on_policy=384)
 
 BUDGETS = {
     "smoke": Args({env: SMOKE for env in ENVS}, {env: 1 for env in ENVS}),

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from esa_experiments.plotting import Panel
 from esa_experiments.reporting import budget_table, rl_section
 from esa_experiments.runs import RunSpec, RunStore
-from esa_experiments.training import StepBudget, rl_spec, run_training
+from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
 
 NAME = "mujoco"
 DESCRIPTION = "PPO/SAC with and without ESA vs parameter noise and DDPG+OU on 4 envs"
@@ -28,20 +28,7 @@ OFF_POLICY = ("sac", "sac_esa", "sac_paramnoise", "ddpg_ou")
 METHODS = ON_POLICY + OFF_POLICY
 DEFAULT_SEEDS = "0-4"
 
-SMOKE = StepBudget(
-    on_policy=256,
-    off_policy=300,
-    eval_every_on=128,
-    eval_every_off=150,
-    eval_episodes=1,
-    # Two PPO rollouts of 4 envs x 32 steps (ESAPPO probes from the second one on)
-    # and a short off-policy warm-up.
-    overrides={
-        "ppo": {"n_steps": 32, "batch_size": 64, "n_epochs": 2},
-        "sac": {"learning_starts": 100, "batch_size": 64},
-        "ddpg": {"learning_starts": 100, "batch_size": 64},
-    },
-)
+SMOKE = SMOKE_BUDGET
 
 
 @dataclass(frozen=True)
