@@ -297,6 +297,37 @@ impl Engine {
         Ok(&mut self.slot_mut(index).session)
     }
 
+    /// Probe of one session (the server's unary Probe): returns the probe and the applied action.
+    pub fn probe_one(
+        &mut self,
+        id: &str,
+        step: u64,
+        action: &[f64],
+        action_scale: &[f64],
+        episode_start: bool,
+    ) -> Result<(Vec<f64>, Vec<f64>), EngineError> {
+        let session = self.session_mut(id)?;
+        let mut probe = Vec::with_capacity(session.action_dim());
+        session.probe(step, action, action_scale, episode_start, &mut probe)?;
+        let mut applied = Vec::with_capacity(session.action_dim());
+        session.applied_action(&mut applied);
+        Ok((probe, applied))
+    }
+
+    /// Report of one session (the server's unary Report): returns the improved action.
+    pub fn report_one(
+        &mut self,
+        id: &str,
+        step: u64,
+        q_value: f64,
+        q_reference: Option<f64>,
+    ) -> Result<Vec<f64>, EngineError> {
+        let session = self.session_mut(id)?;
+        let mut action = Vec::with_capacity(session.action_dim());
+        session.report(step, q_value, q_reference, &mut action)?;
+        Ok(action)
+    }
+
     /// Resolves `ids` into a handle: 1 to `MAX_BATCH_ITEMS` ids, each well formed, live and at
     /// most once (errors name the item, as a batch request's would).
     pub fn resolve<S: AsRef<str>>(&self, ids: &[S]) -> Result<Handle, EngineError> {

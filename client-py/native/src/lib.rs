@@ -158,6 +158,52 @@ impl Engine {
             .map_err(|err| engine_error(py, err))
     }
 
+    /// Probe of one session: returns (probe, applied), each of the session's dimension.
+    #[pyo3(signature = (session_id, step, action, episode_start = false, action_scale = None))]
+    fn probe_one<'py>(
+        &self,
+        py: Python<'py>,
+        session_id: &str,
+        step: u64,
+        action: &Bound<'py, PyAny>,
+        episode_start: bool,
+        action_scale: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let action = Values::<f64>::floats(action)?;
+        let scale = match action_scale {
+            Some(scale) => Values::<f64>::floats(scale)?,
+            None => Values::empty(),
+        };
+        let (probe, applied) = self
+            .lock(py)
+            .probe_one(
+                session_id,
+                step,
+                action.as_slice(),
+                scale.as_slice(),
+                episode_start,
+            )
+            .map_err(|err| engine_error(py, err))?;
+        PyTuple::new(py, [probe.into_pyarray(py), applied.into_pyarray(py)])
+    }
+
+    /// Report of one session: returns the improved action.
+    #[pyo3(signature = (session_id, step, q_value, q_reference = None))]
+    fn report_one<'py>(
+        &self,
+        py: Python<'py>,
+        session_id: &str,
+        step: u64,
+        q_value: f64,
+        q_reference: Option<f64>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let action = self
+            .lock(py)
+            .report_one(session_id, step, q_value, q_reference)
+            .map_err(|err| engine_error(py, err))?;
+        Ok(action.into_pyarray(py).into_any())
+    }
+
     /// Resolves session ids into a handle for `probe` and `report`.
     fn resolve(&self, py: Python<'_>, session_ids: Vec<String>) -> PyResult<BatchHandle> {
         let inner = self
@@ -351,31 +397,34 @@ impl<'py> Values<'py, bool> {
 }
 
 impl<'py> Values<'py, u64> {
+    /// Signed steps as unsigned ones; a negative step is a ValueError (numpy would wrap it).
+    fn unsigned(signed: &[i64]) -> PyResult<Self> {
+        signed
+            .iter()
+            .map(|&step| {
+                u64::try_from(step).map_err(|_| {
+                    PyValueError::new_err(format!("steps: expected integers >= 0, got {step}"))
+                })
+            })
+            .collect::<PyResult<Vec<u64>>>()
+            .map(Values::Owned)
+    }
+
     /// Steps: unsigned integers; signed ones must not be negative (numpy would wrap them).
     fn steps(object: &Bound<'py, PyAny>) -> PyResult<Self> {
         if let Some(values) = Self::borrow(object) {
             return Ok(values);
+        }
+        // int64 is numpy's default integer: read it without numpy's conversion.
+        if let Some(signed) = Values::<i64>::borrow(object) {
+            return Self::unsigned(signed.as_slice());
         }
         let py = object.py();
         let array = numpy_function(py, "asarray")?.call1((object,))?;
         let kind: String = array.getattr("dtype")?.getattr("kind")?.extract()?;
         match kind.as_str() {
             "u" => Self::convert(&array, "uint64"),
-            "i" => {
-                let signed = Values::<i64>::convert(&array, "int64")?;
-                let steps = signed
-                    .as_slice()
-                    .iter()
-                    .map(|&step| {
-                        u64::try_from(step).map_err(|_| {
-                            PyValueError::new_err(format!(
-                                "steps: expected integers >= 0, got {step}"
-                            ))
-                        })
-                    })
-                    .collect::<PyResult<Vec<u64>>>()?;
-                Ok(Values::Owned(steps))
-            }
+            "i" => Self::unsigned(Values::<i64>::convert(&array, "int64")?.as_slice()),
             _ => Err(PyTypeError::new_err(format!(
                 "steps: expected an array of unsigned integers, got dtype kind {kind:?}"
             ))),

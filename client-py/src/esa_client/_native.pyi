@@ -122,6 +122,34 @@ class Engine:
             EngineError: INVALID_ARGUMENT (malformed id), NOT_FOUND.
         """
 
+    def probe_one(
+        self,
+        session_id: str,
+        step: int,
+        action: npt.ArrayLike,
+        episode_start: bool = False,
+        action_scale: npt.ArrayLike | None = None,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Probe of one session (the server's unary Probe).
+
+        Returns:
+            ``(probe, applied)``, float64[D] each.
+
+        Raises:
+            EngineError: As Probe: INVALID_ARGUMENT, NOT_FOUND, FAILED_PRECONDITION (no index).
+            OverflowError: ``step`` is negative or above 2^64 - 1.
+        """
+
+    def report_one(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None = None
+    ) -> npt.NDArray[np.float64]:
+        """Report of one session (the server's unary Report): returns the improved action.
+
+        Raises:
+            EngineError: As Report: INVALID_ARGUMENT, NOT_FOUND, FAILED_PRECONDITION (no index).
+            OverflowError: ``step`` is negative or above 2^64 - 1.
+        """
+
     def resolve(self, session_ids: Sequence[str]) -> BatchHandle:
         """Resolves session ids (item order) into a handle for :meth:`probe` and :meth:`report`.
 

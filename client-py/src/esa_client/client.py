@@ -401,3 +401,24 @@ class EsaClient(BaseClient):
         return connect_spawned(
             server, lambda: cls(server.address, timeout=timeout), startup_timeout
         )
+
+    @staticmethod
+    def in_process(*, max_sessions: int | None = None) -> BaseClient:
+        """A client of the in-process engine: the same API, no server and no socket.
+
+        The engine (``esa_client._native``) is esa-core compiled into this package: the
+        server's update law, checks and typed errors, bit for bit, at a few microseconds
+        per batch round trip. Its sessions live in this process only; use :meth:`spawn`
+        or a server address to share them across processes, machines or languages.
+
+        Args:
+            max_sessions: Live-session limit; None = the server's default (100,000).
+
+        Returns:
+            A client over :class:`~esa_client.inprocess_transport.InProcessTransport`.
+        """
+        # Imported here: the extension module loads only for those who use it.
+        from .inprocess_transport import InProcessTransport
+
+        transport = InProcessTransport(max_sessions=max_sessions)
+        return BaseClient(transport, address="in-process", timeout=float("inf"))

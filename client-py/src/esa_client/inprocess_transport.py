@@ -1,0 +1,167 @@
+"""The :class:`~esa_client.transport.Transport` over ``esa_client._native``, in-process.
+
+``esa_client._native.Engine`` is esa-core itself, compiled into the package: the server's
+update law, validation and error codes, without a process or a socket in between. This
+transport hands it numpy arrays as they come (no messages are built for the round trips)
+and turns its ``EngineError`` into the :class:`~esa_client.errors.EsaError` subclass the
+server's status code maps to, with the same failing item. Nothing is shared with other
+processes: a trainer that needs its sessions elsewhere uses the sidecar.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from types import TracebackType
+
+from ._native import BatchHandle, Engine, EngineError
+from ._proto.esa.v1 import esa_pb2
+from .errors import error_for
+from .state import F64Array, SessionState
+from .transport import BatchProbe, BatchReport
+
+
+class _TypedErrors:
+    """A context that re-raises the engine's errors as the server's typed ones.
+
+    A class rather than ``contextlib.contextmanager``: it runs on every round trip, and a
+    generator-based context costs about as much as the engine's own call.
+    """
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        error: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        if isinstance(error, EngineError):
+            raise error_for(error.code, error.message, error.index) from None
+        # A step out of uint64's range: a ValueError, as protobuf raises it for the wire.
+        if isinstance(error, OverflowError):
+            raise ValueError(f"step: expected an integer in [0, 2^64), {error}") from None
+
+
+_typed_errors = _TypedErrors()
+
+
+class InProcessBatch:
+    """A batch's round trips as ``Engine.probe`` / ``Engine.report`` calls.
+
+    The ids are resolved on the first call (not when the batch opens, so that a session
+    missing then fails the call that needs it, as on a server), then kept: the handle
+    names sessions by id, so sessions recreated under the same ids are found again.
+    """
+
+    def __init__(self, engine: Engine, ids: Sequence[str]) -> None:
+        """Steps the sessions ``ids`` of ``engine``, in this order."""
+        self._engine = engine
+        self._ids = list(ids)
+        self._handle: BatchHandle | None = None
+
+    def _resolved(self) -> BatchHandle:
+        if self._handle is None:
+            self._handle = self._engine.resolve(self._ids)
+        return self._handle
+
+    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
+        """ProbeBatch in-process."""
+        with _typed_errors:
+            return self._engine.probe(
+                self._resolved(),
+                request.steps,
+                request.actions,
+                request.episode_starts,
+                request.action_scales,
+            )
+
+    def report(self, request: BatchReport) -> F64Array:
+        """ReportBatch in-process."""
+        with _typed_errors:
+            return self._engine.report(
+                self._resolved(), request.steps, request.q_values, request.q_references
+            )
+
+    def report_then_probe(
+        self, report: BatchReport, probe: BatchProbe
+    ) -> tuple[F64Array, F64Array]:
+        """The report, then the probe (a failed report stops the probe)."""
+        self.report(report)
+        return self.probe(probe)
+
+    def close(self) -> None:
+        """Nothing to release: the sessions stay."""
+
+
+class InProcessTransport:
+    """The :class:`~esa_client.transport.Transport` over an ``esa_client._native.Engine``.
+
+    Args:
+        engine: The engine; None creates one with the server's default session limit.
+        max_sessions: The limit of a created engine (``--max-sessions``); None = 100,000.
+
+    Attributes:
+        engine: The engine holding the sessions.
+    """
+
+    def __init__(self, engine: Engine | None = None, *, max_sessions: int | None = None) -> None:
+        """Uses ``engine``, or a new one."""
+        if engine is not None and max_sessions is not None:
+            raise ValueError("expected engine or max_sessions, got both")
+        if engine is None:
+            engine = Engine() if max_sessions is None else Engine(max_sessions=max_sessions)
+        self.engine = engine
+
+    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
+        """CreateSession; an empty id generates a UUID."""
+        with _typed_errors:
+            return self.engine.create_session(session_id, config.SerializeToString())
+
+    def get_session(self, session_id: str) -> SessionState:
+        """GetSession."""
+        with _typed_errors:
+            encoded = self.engine.get_session(session_id)
+        return SessionState.from_proto(esa_pb2.GetSessionResponse.FromString(encoded))
+
+    def close_session(self, session_id: str) -> None:
+        """CloseSession."""
+        with _typed_errors:
+            self.engine.close_session(session_id)
+
+    def end_episode(self, session_id: str) -> int:
+        """EndEpisode; returns the completed-episode count."""
+        with _typed_errors:
+            return self.engine.end_episode(session_id)
+
+    def probe(
+        self,
+        session_id: str,
+        step: int,
+        action: F64Array,
+        episode_start: bool,
+        action_scale: F64Array | None,
+    ) -> tuple[F64Array, F64Array]:
+        """Probe of one session; returns the probe and the applied action."""
+        with _typed_errors:
+            return self.engine.probe_one(session_id, step, action, episode_start, action_scale)
+
+    def report(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None
+    ) -> F64Array:
+        """Report of one session; returns the improved action."""
+        with _typed_errors:
+            return self.engine.report_one(session_id, step, q_value, q_reference)
+
+    def open_batch(
+        self, ids: Sequence[str], action_dim: int, *, use_stream: bool
+    ) -> InProcessBatch:
+        """An :class:`InProcessBatch` (a call is already one round trip: no stream)."""
+        return InProcessBatch(self.engine, ids)
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
+        """Always True: the engine is in this process."""
+        return True
+
+    def close(self) -> None:
+        """Nothing to release: the engine goes with its last reference."""
