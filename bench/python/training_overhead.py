@@ -2,9 +2,11 @@
 
 Each pair trains for the same number of steps on InvertedPendulum-v5, the same seed
 and hyperparameters, torch on one thread, once with one env (SB3's default, how most
-users run it) and once with 8 envs (``DummyVecEnv``). Only ``learn()`` is timed; for
-the ESA agents that includes spawning their private esa-server (Unix socket,
-StepStream), the round trips, the critic evaluations and ESAPPO's advantage head.
+users run it) and once with 8 envs (``DummyVecEnv``). Every ESA agent runs once per
+engine (``esa_engine``): ``inprocess`` (esa-core in the trainer's process) and
+``sidecar`` (a private esa-server, Unix socket, StepStream). Only ``learn()`` is timed;
+for the ESA agents that includes opening the engine or spawning the server, the round
+trips, the critic evaluations and ESAPPO's advantage head.
 The pairs run alternately ``repeats`` times so background load hits both alike.
 
 The ESA agents run the shipped ``EsaConfig()`` and, to price ESA when it is on at every
@@ -56,6 +58,8 @@ class Args:
     sac_steps: int = 8_000
     sac_learning_starts: int = 800
     repeats: int = 2
+    agents: str = "ESAPPO,ESAPPO ungated,ESASAC,ESASAC ungated"
+    engines: str = "inprocess,sidecar"
     seed: int = 0
     out: str = "bench/results/training.json"
 
@@ -102,8 +106,21 @@ def timed_methods() -> Iterator[dict[str, float]]:
             setattr(cls, name, method)
 
 
-def train_seconds(name: str, n_envs: int, args: Args) -> tuple[float, dict[str, float]]:
+def agent_name(agent: str, engine: str) -> str:
+    """The name of an ESA agent on one engine, as the results and BENCHMARKS.md show it."""
+    return f"{agent} [{engine}]"
+
+
+def train_seconds(
+    name: str, n_envs: int, args: Args, engine: str | None = None
+) -> tuple[float, dict[str, float]]:
     """Builds agent ``name`` (``PPO``, ``SAC`` or a key of ``AGENTS``) and times ``learn()``.
+
+    Args:
+        name: The agent.
+        n_envs: How many envs.
+        args: The benchmark settings.
+        engine: The ESA agent's ``esa_engine`` (None for the plain ones).
 
     Returns:
         The wall-clock seconds and the seconds spent in each ``TIMED`` bucket.
@@ -111,12 +128,13 @@ def train_seconds(name: str, n_envs: int, args: Args) -> tuple[float, dict[str, 
     env = make_vec_env(args.env_id, n_envs=n_envs, seed=args.seed)
     common = dict(seed=args.seed, device="cpu", verbose=0)
     family, esa = AGENTS.get(name, (name, None))
+    chosen = {} if esa is None else {"esa_engine": engine}
     if family == "PPO":
         kwargs = dict(n_steps=args.ppo_n_steps, batch_size=64, **common)
         model = (
             PPO("MlpPolicy", env, **kwargs)
             if esa is None
-            else ESAPPO("MlpPolicy", env, esa=esa, **kwargs)
+            else ESAPPO("MlpPolicy", env, esa=esa, **chosen, **kwargs)
         )
         steps = args.ppo_steps
     else:
@@ -124,7 +142,7 @@ def train_seconds(name: str, n_envs: int, args: Args) -> tuple[float, dict[str, 
         model = (
             SAC("MlpPolicy", env, **kwargs)
             if esa is None
-            else ESASAC("MlpPolicy", env, esa=esa, **kwargs)
+            else ESASAC("MlpPolicy", env, esa=esa, **chosen, **kwargs)
         )
         steps = args.sac_steps
     with timed_methods() as buckets:
@@ -144,23 +162,30 @@ def main() -> None:
     # Without it every spawn would first ask cargo whether the binary is up to date.
     os.environ["ESA_SERVER_BIN"] = server_binary()
     rows = []
+    agents = args.agents.split(",")
+    engines = args.engines.split(",")
+    runs = [(plain, plain, None) for plain in sorted({AGENTS[a][0] for a in agents})]
+    runs += [(agent_name(a, e), a, e) for a in agents for e in engines]
     for n_envs in (int(n) for n in args.n_envs.split(",")):
-        names = ["PPO", "SAC", *AGENTS]
-        seconds: dict[str, list[float]] = {name: [] for name in names}
-        buckets: dict[str, list[dict[str, float]]] = {name: [] for name in names}
+        seconds: dict[str, list[float]] = {name: [] for name, _, _ in runs}
+        buckets: dict[str, list[dict[str, float]]] = {name: [] for name, _, _ in runs}
         for _ in range(args.repeats):
-            for name in names:
-                wall, split = train_seconds(name, n_envs, args)
+            for name, agent, engine in runs:
+                wall, split = train_seconds(agent, n_envs, args, engine)
                 seconds[name].append(wall)
                 buckets[name].append(split)
                 parts = ", ".join(f"{k} {v:.2f} s" for k, v in split.items())
-                print(f"{n_envs} env(s) {name:<15} {wall:7.2f} s  {parts}", flush=True)
-        for esa, (plain, _) in AGENTS.items():
+                print(f"{n_envs} env(s) {name:<26} {wall:7.2f} s  {parts}", flush=True)
+        for esa, agent, engine in runs:
+            if engine is None:
+                continue
+            plain = AGENTS[agent][0]
             ratios = np.asarray(seconds[esa]) / np.asarray(seconds[plain])
             rows.append(
                 {
                     "plain": plain,
                     "esa": esa,
+                    "engine": engine,
                     "n_envs": n_envs,
                     "steps": args.ppo_steps if plain == "PPO" else args.sac_steps,
                     "plain_seconds": seconds[plain],

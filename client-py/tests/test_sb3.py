@@ -21,8 +21,9 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from esa_client import EsaConfig, SessionBatch
+from esa_client.inprocess_transport import InProcessTransport
 from esa_client.sb3 import ESAPPO, ESASAC
-from esa_client.sb3.runtime import EsaRuntime
+from esa_client.sb3.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
 
 N_ENVS = 4
 pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")
@@ -166,6 +167,7 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
         "MlpPolicy",
         env,
         esa=EsaConfig(learning_rate=0.2, gate=None),
+        esa_engine="sidecar",  # a private server, whose lifetime this test follows
         n_steps=256,
         batch_size=256,
         n_epochs=4,
@@ -364,3 +366,57 @@ def test_esa_spawn_arguments_are_checked_when_the_server_starts(server_bin, monk
     )
     with pytest.raises(ValueError, match="session_ttl"):
         model.learn(3 * 64)
+
+
+def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
+    """The in-process engine and a private server give the same actions with the same seed."""
+    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+    runs = {}
+    for engine in ("inprocess", "sidecar"):
+        env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=4, wrapper_class=RecordActions)
+        model = ESAPPO(
+            "MlpPolicy",
+            env,
+            esa=UNGATED,
+            esa_engine=engine,
+            n_steps=64,
+            batch_size=64,
+            n_epochs=2,
+            policy_kwargs=dict(net_arch=[16]),
+            seed=4,
+        )
+        model.learn(5 * 64 * 2)
+        assert model._esa is not None and model._esa_active
+        in_process = isinstance(model._esa.client.transport, InProcessTransport)
+        assert in_process == (engine == "inprocess")
+        assert (model._esa.client.server is None) == in_process
+        runs[engine] = ([np.stack(e.actions) for e in env.envs], parameters(model))
+        model.esa_close()
+    (local_actions, local_parameters), (server_actions, server_parameters) = runs.values()
+    assert len(local_actions[0]) == 5 * 64
+    for here, there in zip(local_actions, server_actions, strict=True):
+        np.testing.assert_array_equal(here, there)
+    assert th.equal(local_parameters, server_parameters)
+
+
+def test_the_default_engine_is_in_process_unless_a_server_is_named():
+    model = ESAPPO("MlpPolicy", "InvertedPendulum-v5", n_steps=64, batch_size=64)
+    assert model.esa_engine is None
+    assert DEFAULT_ENGINE == "inprocess"
+    assert choose_engine(None, None, None) == "inprocess"
+    assert choose_engine(None, "unix:/tmp/x.sock", None) == "sidecar"
+    assert choose_engine(None, None, {"session_ttl": 5}) == "sidecar"
+    assert choose_engine("sidecar", None, None) == "sidecar"
+
+
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        (dict(esa_engine="gpu"), "esa_engine"),
+        (dict(esa_engine="inprocess", esa_address="127.0.0.1:1"), "esa_address"),
+        (dict(esa_engine="inprocess", esa_spawn={"session_ttl": 5}), "esa_spawn"),
+    ],
+)
+def test_a_bad_engine_choice_fails_at_construction(extra, match):
+    with pytest.raises(ValueError, match=match):
+        ESASAC("MlpPolicy", "Pendulum-v1", **extra)

@@ -10,7 +10,7 @@ from gymnasium import spaces
 
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
-from .runtime import EsaRuntime
+from .runtime import Engine, EsaRuntime, choose_engine
 
 if TYPE_CHECKING:
     # The mixin is always combined with an SB3 algorithm (ESAPPO, ESASAC): checked as one.
@@ -36,6 +36,7 @@ class EsaMixin(_Algorithm):
 
     esa: EsaConfig
     esa_address: str | None
+    esa_engine: Engine | None
     _esa: EsaRuntime | None
 
     def __init__(
@@ -46,6 +47,7 @@ class EsaMixin(_Algorithm):
         esa: EsaConfig | None = None,
         esa_address: str | None = None,
         esa_spawn: dict[str, Any] | None = None,
+        esa_engine: Engine | None = None,
         **kwargs: Any,
     ) -> None:
         """Creates the SB3 model; the ESA sessions are created when training starts.
@@ -58,6 +60,10 @@ class EsaMixin(_Algorithm):
             esa_address: An esa-server address; None spawns a private server.
             esa_spawn: Arguments of :meth:`EsaClient.spawn` for that private server, e.g.
                 ``{"session_ttl": 3600}`` when rollouts are far apart.
+            esa_engine: Where the sessions live: ``"inprocess"`` (esa-core in this process:
+                no server, nothing shared) or ``"sidecar"`` (an esa-server: ``esa_address``,
+                else a private one). None: the server that ``esa_address`` or ``esa_spawn``
+                describe, else ``"inprocess"`` (README "Choosing the engine").
             **kwargs: Any other argument of the SB3 algorithm.
 
         Raises:
@@ -71,6 +77,8 @@ class EsaMixin(_Algorithm):
             raise ValueError(f"expected esa to be an EsaConfig, got {self.esa!r}")
         self.esa_address = esa_address
         self.esa_spawn = dict(esa_spawn or {})
+        choose_engine(esa_engine, esa_address, self.esa_spawn)  # a bad choice fails here
+        self.esa_engine = esa_engine
         self._esa = None
         super().__init__(policy, env, *args, **kwargs)
         space = self.action_space
@@ -113,6 +121,7 @@ class EsaMixin(_Algorithm):
                 clip_low,
                 clip_high,
                 spawn=self.esa_spawn,
+                engine=self.esa_engine,
             )
         return self._esa
 

@@ -63,7 +63,10 @@ class ESAPPO(EsaMixin, PPO):
         env: As for PPO.
         esa: The ESA hyperparameters (default ``EsaConfig()``).
         esa_address: An esa-server address (``host:port`` or ``unix:/path``); None
-            spawns a private server that stops with the model (or ``esa_close()``).
+            spawns a private server that stops with the model (or ``esa_close()``)
+            when ``esa_engine`` is ``"sidecar"``.
+        esa_engine: ``"inprocess"`` (esa-core in this process) or ``"sidecar"`` (an
+            esa-server); None: ``esa_address``'s server when given, else in-process.
         esa_head_hidden: Hidden units of each of the advantage head's two layers.
         esa_head_learning_rate: Adam learning rate of the advantage head.
         esa_head_epochs: Passes over its data each time the head is fitted.

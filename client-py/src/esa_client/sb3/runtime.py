@@ -4,14 +4,52 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol, get_args
 
 import numpy as np
 
-from ..client import EsaClient
+from ..client import BaseClient, EsaClient
 from ..config import EsaConfig
 from ..env_dt import env_dt
 from ..errors import EsaError, SessionNotFound
+
+Engine = Literal["inprocess", "sidecar"]
+"""Where the sessions of a learner live: this process's engine, or an esa-server."""
+
+ENGINES: tuple[Engine, ...] = get_args(Engine)
+
+DEFAULT_ENGINE: Engine = "inprocess"
+"""What ``ESAPPO`` / ``ESASAC`` use when given no server: the in-process engine, measured
+faster for a single-process trainer (README "Choosing the engine")."""
+
+
+def choose_engine(
+    engine: Engine | None, address: str | None, spawn: dict[str, Any] | None
+) -> Engine:
+    """The engine a learner uses: ``engine``, else the described server, else the default.
+
+    Raises:
+        ValueError: If ``engine`` is unknown, or ``"inprocess"`` with a server address or
+            spawn arguments (which only a server can use).
+    """
+    if engine is None:
+        return "sidecar" if address is not None or spawn else DEFAULT_ENGINE
+    if engine not in ENGINES:
+        raise ValueError(f"expected esa_engine in {ENGINES}, got {engine!r}")
+    if engine == "inprocess" and (address is not None or spawn):
+        raise ValueError(
+            "expected no esa_address or esa_spawn with esa_engine='inprocess' (they describe "
+            f"a server), got esa_address={address!r}, esa_spawn={spawn!r}"
+        )
+    return engine
+
+
+def open_client(engine: Engine, address: str | None, spawn: dict[str, Any] | None) -> BaseClient:
+    """A client of ``engine``: in-process, the server at ``address``, or a spawned one."""
+    if engine == "inprocess":
+        return EsaClient.in_process()
+    return EsaClient.spawn(**(spawn or {})) if address is None else EsaClient(address)
+
 
 QFunction = Callable[[np.ndarray], np.ndarray]
 """Maps ``(k N, D)`` actions to ``(k N,)`` values at the N current observations tiled k times."""
@@ -49,7 +87,8 @@ class EsaRuntime:
 
     Args:
         esa: The ESA hyperparameters.
-        address: Server address, or None to spawn a private server for this learner.
+        address: Server address, or None to spawn a private server for this learner
+            (unless ``engine`` is ``"inprocess"``).
         vec_env: The learner's VecEnv (gives the env count and ``dt``).
         low: Lower action bounds of the space ESA works in (shape ``(D,)``); None for an
             unbounded space (PPO's Gaussian, whose samples SB3 stores unclipped).
@@ -61,6 +100,8 @@ class EsaRuntime:
             evaluation that training does not need, so it is sampled, not paid per step.
         spawn: Arguments of :meth:`EsaClient.spawn` for a private server (``session_ttl``,
             ``max_sessions``, ``max_session_memory``, ``extra_args``, ...).
+        engine: ``"inprocess"`` (this process's engine) or ``"sidecar"`` (an esa-server);
+            None chooses as :func:`choose_engine` does.
     """
 
     def __init__(
@@ -75,14 +116,15 @@ class EsaRuntime:
         *,
         improvement_every: int = 8,
         spawn: dict[str, Any] | None = None,
+        engine: Engine | None = None,
     ) -> None:
-        """Connects (or spawns the server) and creates one session per env."""
+        """Opens the engine (or connects, or spawns the server); one session per env."""
         if improvement_every < 1:
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
         n_envs = vec_env.num_envs
         self.esa = esa
         config = esa.session_config(clip_low.size, env_dt(vec_env, esa.dt), low, high)
-        self.client = EsaClient.spawn(**(spawn or {})) if address is None else EsaClient(address)
+        self.client = open_client(choose_engine(engine, address, spawn), address, spawn)
         try:
             self.batch = self.client.create_batch(config, n_envs, use_stream=True)
         except BaseException:

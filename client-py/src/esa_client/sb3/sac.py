@@ -46,7 +46,10 @@ class ESASAC(EsaMixin, SAC):
         env: As for SAC.
         esa: The ESA hyperparameters (default ``EsaConfig()``).
         esa_address: An esa-server address (``host:port`` or ``unix:/path``); None
-            spawns a private server that stops with the model (or ``esa_close()``).
+            spawns a private server that stops with the model (or ``esa_close()``)
+            when ``esa_engine`` is ``"sidecar"``.
+        esa_engine: ``"inprocess"`` (esa-core in this process) or ``"sidecar"`` (an
+            esa-server); None: ``esa_address``'s server when given, else in-process.
         esa_probe_critic: Which critic ESA probes: the online or the Polyak target
             networks, the minimum or the mean of the twins.
         esa_gate_every: Env steps between two checks of the gate.
