@@ -7,13 +7,37 @@ Switching a script to ESA is one import and one argument::
     model = ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa=EsaConfig(amplitude=0.2))
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 # torch loads torch._dynamo (and triton's native libraries) lazily at the first optimizer
 # step; doing that while gRPC's threads serve an open StepStream segfaulted in our SB3
 # tests, so it is loaded here, before any channel exists.
 import torch._dynamo  # noqa: F401  (imported for its side effect)
 
 from ..config import EsaConfig
-from .ppo import ESAPPO
-from .sac import ESASAC
+
+if TYPE_CHECKING:
+    from .ppo import ESAPPO
+    from .sac import ESASAC
+
+
+def __getattr__(name: str) -> Any:
+    """Imports a drop-in on first use.
+
+    So the runtime and the advantage head, which :mod:`esa_client.rllib` shares, import
+    without stable-baselines3 installed.
+    """
+    if name == "ESAPPO":
+        from .ppo import ESAPPO
+
+        return ESAPPO
+    if name == "ESASAC":
+        from .sac import ESASAC
+
+        return ESASAC
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = ["ESAPPO", "ESASAC", "EsaConfig"]

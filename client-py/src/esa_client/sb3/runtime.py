@@ -9,7 +9,7 @@ from typing import Any, Literal, Protocol, get_args
 import numpy as np
 
 from ..client import BaseClient, EsaClient
-from ..config import EsaConfig
+from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
 from ..errors import EsaError, SessionNotFound
 
@@ -121,14 +121,58 @@ class EsaRuntime:
         """Opens the engine (or connects, or spawns the server); one session per env."""
         if improvement_every < 1:
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
-        n_envs = vec_env.num_envs
-        self.esa = esa
         config = esa.session_config(clip_low.size, env_dt(vec_env, esa.dt), low, high)
-        self.client = open_client(choose_engine(engine, address, spawn), address, spawn)
+        client = open_client(choose_engine(engine, address, spawn), address, spawn)
+        self._attach(esa, client, config, vec_env.num_envs, clip_low, clip_high, improvement_every)
+
+    @classmethod
+    def on_client(
+        cls,
+        esa: EsaConfig,
+        client: BaseClient,
+        config: SessionConfig,
+        n_envs: int,
+        clip_low: np.ndarray,
+        clip_high: np.ndarray,
+        *,
+        improvement_every: int = 8,
+    ) -> EsaRuntime:
+        """A runtime on a client opened elsewhere, for trainers without an SB3 VecEnv.
+
+        Args:
+            esa: The ESA hyperparameters.
+            client: The connection (gRPC or Zenoh); the runtime owns it from now on and
+                closes it, also when the sessions cannot be created.
+            config: The sessions' config.
+            n_envs: How many sessions (one per env).
+            clip_low: As for the constructor.
+            clip_high: As for the constructor.
+            improvement_every: As for the constructor.
+        """
+        if improvement_every < 1:
+            client.close()
+            raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
+        runtime = cls.__new__(cls)
+        runtime._attach(esa, client, config, n_envs, clip_low, clip_high, improvement_every)
+        return runtime
+
+    def _attach(
+        self,
+        esa: EsaConfig,
+        client: BaseClient,
+        config: SessionConfig,
+        n_envs: int,
+        clip_low: np.ndarray,
+        clip_high: np.ndarray,
+        improvement_every: int,
+    ) -> None:
+        """Creates the ``n_envs`` sessions on ``client``, which the runtime then owns."""
+        self.esa = esa
+        self.client = client
         try:
-            self.batch = self.client.create_batch(config, n_envs, use_stream=True)
+            self.batch = client.create_batch(config, n_envs, use_stream=True)
         except BaseException:
-            self.client.close()
+            client.close()
             raise
         self._clip = (clip_low.reshape(1, -1), clip_high.reshape(1, -1))
         self._improvement_every = improvement_every
