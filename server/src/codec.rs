@@ -23,11 +23,9 @@ use tonic_prost::ProstEncoder;
 use crate::error::Error;
 use crate::pb;
 
-/// Most items (sessions) a batch may carry.
-pub const MAX_BATCH_ITEMS: usize = 65_536;
-
-/// Most action values a batch may carry: the action dimensions of its sessions added up.
-pub const MAX_BATCH_VALUES: usize = 1 << 20;
+/// The batch limits are esa-core's, which checks them; the wire decoder bounds repeated fields
+/// by them too.
+pub use esa_core::batch::{MAX_BATCH_ITEMS, MAX_BATCH_VALUES};
 
 /// Longest accepted session id, in bytes.
 pub const MAX_ID_BYTES: usize = 128;

@@ -8,6 +8,7 @@
 //! ([`esa_proto::details`]). [`StartError`] is why the server could not start
 //! or keep serving: never a request's fault, never sent to a client.
 
+use esa_core::batch::BatchError;
 use esa_core::CoreError;
 use tonic::{Code, Status};
 
@@ -89,6 +90,17 @@ impl Error {
             // A batch holds at most `codec::MAX_BATCH_ITEMS` items, so the index fits.
             Error::Item { index, .. } => u32::try_from(*index).ok(),
             _ => None,
+        }
+    }
+}
+
+/// A refused batch: the whole request's error is INVALID_ARGUMENT with the core's message, an
+/// item's error is that item's, worded `item {index}: ...` either way.
+impl From<BatchError> for Error {
+    fn from(err: BatchError) -> Self {
+        match err {
+            BatchError::Request(message) => Error::InvalidArgument(message),
+            BatchError::Item { index, error } => Error::item(index, error),
         }
     }
 }

@@ -7,11 +7,11 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use esa_core::Session;
+use esa_core::{batch, Session};
 use prost::Message;
 use subtle::ConstantTimeEq as _;
 
-use crate::codec::{self, WireLimits, MAX_BATCH_ITEMS, MAX_BATCH_VALUES};
+use crate::codec::{self, WireLimits};
 use crate::convert::{config_from_proto, config_to_proto};
 use crate::error::Error;
 use crate::metrics::{Metrics, StoreGauges};
@@ -242,60 +242,23 @@ impl EsaHandler {
     }
 
     fn run_probe_batch(&self, req: pb::ProbeBatchRequest) -> Result<pb::ProbeBatchResponse, Error> {
-        let n = check_batch_len(req.session_ids.len())?;
-        check_field_len("steps", req.steps.len(), n)?;
-        if !req.episode_starts.is_empty() {
-            check_field_len("episode_starts", req.episode_starts.len(), n)?;
-        }
-        let starts = || {
-            req.episode_starts
-                .iter()
-                .copied()
-                .chain(std::iter::repeat(false))
-        };
+        // The lengths first: a malformed request is refused before any session is looked up.
+        batch::check_probe_lengths(
+            req.session_ids.len(),
+            req.steps.len(),
+            req.episode_starts.len(),
+        )?;
         self.store.with_batch(&req.session_ids, |sessions| {
-            let total = check_batch_values(sessions.iter().map(|s| s.action_dim()).sum())?;
-            check_concatenated("actions", req.actions.len(), total, n)?;
-            if !req.action_scales.is_empty() {
-                check_concatenated("action_scales", req.action_scales.len(), total, n)?;
-            }
-            // Every item is checked before any session changes: all-or-nothing.
-            let mut items = Vec::with_capacity(n);
-            let (mut actions, mut scales) = (req.actions.as_slice(), req.action_scales.as_slice());
-            for (index, ((session, &step), episode_start)) in
-                sessions.iter().zip(&req.steps).zip(starts()).enumerate()
-            {
-                let d = session.action_dim();
-                let action = take(&mut actions, d, index, "actions")?;
-                let scale = if req.action_scales.is_empty() {
-                    &[][..]
-                } else {
-                    take(&mut scales, d, index, "action_scales")?
-                };
-                session
-                    .check_probe(step, action, scale, episode_start)
-                    .map_err(|err| Error::item(index, err))?;
-                items.push(ProbeItem {
-                    step,
-                    action,
-                    scale,
-                    episode_start,
-                });
-            }
-            let mut probes = Vec::with_capacity(total);
-            let mut actions = Vec::with_capacity(total);
-            for (index, (session, item)) in sessions.iter_mut().zip(items).enumerate() {
-                session
-                    .probe(
-                        item.step,
-                        item.action,
-                        item.scale,
-                        item.episode_start,
-                        &mut probes,
-                    )
-                    .map_err(|err| Error::item(index, err))?;
-                session.applied_action(&mut actions);
-            }
+            let (mut probes, mut actions) = (Vec::new(), Vec::new());
+            batch::probe(
+                sessions,
+                &req.steps,
+                &req.actions,
+                &req.episode_starts,
+                &req.action_scales,
+                &mut probes,
+                &mut actions,
+            )?;
             Ok(pb::ProbeBatchResponse { probes, actions })
         })
     }
@@ -304,46 +267,25 @@ impl EsaHandler {
         &self,
         req: pb::ReportBatchRequest,
     ) -> Result<pb::ReportBatchResponse, Error> {
-        let n = check_batch_len(req.session_ids.len())?;
-        check_field_len("steps", req.steps.len(), n)?;
-        check_field_len("q_values", req.q_values.len(), n)?;
-        if !req.q_references.is_empty() {
-            check_field_len("q_references", req.q_references.len(), n)?;
-        }
-        let references = || {
-            req.q_references
-                .iter()
-                .copied()
-                .map(Some)
-                .chain(std::iter::repeat(None))
-        };
+        batch::check_report_lengths(
+            req.session_ids.len(),
+            req.steps.len(),
+            req.q_values.len(),
+            req.q_references.len(),
+        )?;
         self.store.with_batch(&req.session_ids, |sessions| {
-            for (index, (((session, &step), &q), reference)) in sessions
-                .iter()
-                .zip(&req.steps)
-                .zip(&req.q_values)
-                .zip(references())
-                .enumerate()
-            {
-                session
-                    .check_report(step, q, reference)
-                    .map_err(|err| Error::item(index, err))?;
-            }
-            let total = check_batch_values(sessions.iter().map(|s| s.action_dim()).sum())?;
-            let mut actions = Vec::with_capacity(total);
-            for (index, ((((session, &step), &q), reference), id)) in sessions
-                .iter_mut()
-                .zip(&req.steps)
-                .zip(&req.q_values)
-                .zip(references())
-                .zip(&req.session_ids)
-                .enumerate()
-            {
-                let outcome = session
-                    .report(step, q, reference, &mut actions)
-                    .map_err(|err| Error::item(index, err))?;
-                self.note_nonfinite(outcome.nonfinite_skipped, id);
-            }
+            let mut actions = Vec::new();
+            batch::report(
+                sessions,
+                &req.steps,
+                &req.q_values,
+                &req.q_references,
+                &mut actions,
+                |index, outcome| {
+                    let id = req.session_ids.get(index).map_or("", String::as_str);
+                    self.note_nonfinite(outcome.nonfinite_skipped, id);
+                },
+            )?;
             Ok(pb::ReportBatchResponse { actions })
         })
     }
@@ -386,65 +328,4 @@ fn encoded<Req: Message + Default + WireLimits, Resp: Message>(
     handle: impl FnOnce(Req) -> Result<Resp, Error>,
 ) -> Result<Vec<u8>, Error> {
     handle(codec::decode(payload)?).map(|resp| resp.encode_to_vec())
-}
-
-fn check_batch_len(n: usize) -> Result<usize, Error> {
-    if n == 0 || n > MAX_BATCH_ITEMS {
-        return Err(Error::InvalidArgument(format!(
-            "session_ids: expected 1 to {MAX_BATCH_ITEMS} items per batch, got {n}"
-        )));
-    }
-    Ok(n)
-}
-
-/// The action values of a batch (the dimensions of its sessions added up) are bounded too, so
-/// that the largest legal request has a size (`codec::MAX_REQUEST_BYTES`).
-fn check_batch_values(total: usize) -> Result<usize, Error> {
-    if total > MAX_BATCH_VALUES {
-        return Err(Error::InvalidArgument(format!(
-            "session_ids: the sessions' action_dim add up to {total}, expected at most \
-             {MAX_BATCH_VALUES} action values per batch; split the batch"
-        )));
-    }
-    Ok(total)
-}
-
-fn check_field_len(field: &str, len: usize, n: usize) -> Result<(), Error> {
-    if len != n {
-        return Err(Error::InvalidArgument(format!(
-            "{field}: expected {n} values (one per session_ids item), got {len}"
-        )));
-    }
-    Ok(())
-}
-
-/// A concatenated per-element field must hold exactly the batch's action values.
-fn check_concatenated(field: &str, len: usize, total: usize, n: usize) -> Result<(), Error> {
-    if len != total {
-        return Err(Error::InvalidArgument(format!(
-            "{field}: expected {total} values (the action_dim of the {n} sessions \
-             added up), got {len}"
-        )));
-    }
-    Ok(())
-}
-
-/// One validated item of a ProbeBatch.
-struct ProbeItem<'a> {
-    step: u64,
-    action: &'a [f64],
-    scale: &'a [f64],
-    episode_start: bool,
-}
-
-/// Splits the next `d` values of `field` off `rest` (item `index`'s part).
-fn take<'a>(rest: &mut &'a [f64], d: usize, index: usize, field: &str) -> Result<&'a [f64], Error> {
-    let (head, tail) = rest.split_at_checked(d).ok_or_else(|| {
-        Error::item(
-            index,
-            Error::InvalidArgument(format!("{field}: too few values for this item")),
-        )
-    })?;
-    *rest = tail;
-    Ok(head)
 }
