@@ -8,7 +8,7 @@ use clap::{Parser, ValueEnum};
 
 use esa_server::codec::MAX_REQUEST_BYTES;
 use esa_server::zenoh_transport::{loopback_config, Shard, DEFAULT_PREFIX};
-use esa_server::{ServerBuilder, StartError};
+use esa_server::{ServerBuilder, StartError, TlsSettings};
 
 /// Extremum-Seeking Action selection (ESA) as a gRPC service: keeps the
 /// per-episode extremum-seeking state of many RL environments (sessions) and
@@ -42,6 +42,26 @@ pub struct Cli {
     /// <token>`, or the Zenoh query attachment. Health checks are exempt.
     #[arg(long, value_name = "PATH")]
     pub auth_token_file: Option<PathBuf>,
+
+    /// Serve gRPC over TLS with this PEM certificate (chain, server
+    /// certificate first); needs --tls-key. Clients then connect with the CA
+    /// that issued it. Not with --uds, whose file mode is its access control.
+    #[arg(
+        long,
+        value_name = "PATH",
+        requires = "tls_key",
+        conflicts_with = "uds"
+    )]
+    pub tls_cert: Option<PathBuf>,
+
+    /// The PEM private key (PKCS#8, SEC1 or PKCS#1) of --tls-cert.
+    #[arg(long, value_name = "PATH", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+
+    /// Mutual TLS: require every client to present a certificate issued by a
+    /// CA in this PEM file; other clients fail the TLS handshake.
+    #[arg(long, value_name = "PATH", requires = "tls_cert")]
+    pub tls_client_ca: Option<PathBuf>,
 
     /// Seconds without a request after which a session expires and its id
     /// becomes NOT_FOUND; fractions allowed, 0 = never.
@@ -177,8 +197,23 @@ pub enum LogFormat {
 }
 
 impl Cli {
+    /// The TLS settings of --tls-cert, --tls-key and --tls-client-ca, their files read and
+    /// checked; None without --tls-cert.
+    pub fn tls(&self) -> Result<Option<TlsSettings>, StartError> {
+        match (&self.tls_cert, &self.tls_key) {
+            (Some(cert), Some(key)) => {
+                TlsSettings::from_files(cert, key, self.tls_client_ca.as_deref()).map(Some)
+            }
+            _ => Ok(None),
+        }
+    }
+
     /// The server options these flags ask for, requiring `token` when given.
-    pub fn server_builder(&self, token: Option<Vec<u8>>) -> ServerBuilder {
+    pub fn server_builder(
+        &self,
+        token: Option<Vec<u8>>,
+        tls: Option<TlsSettings>,
+    ) -> ServerBuilder {
         let ttl = (self.session_ttl > 0.0).then(|| Duration::from_secs_f64(self.session_ttl));
         let keepalive = (self.keepalive_interval > 0.0).then(|| {
             (
@@ -207,6 +242,9 @@ impl Cli {
         if let Some(token) = token {
             builder = builder.auth_token(token);
         }
+        if let Some(tls) = tls {
+            builder = builder.tls(tls);
+        }
         builder
     }
 
@@ -225,33 +263,60 @@ impl Cli {
         Ok(Some(dir))
     }
 
-    /// Warnings for listening beyond loopback without a token: anyone who can reach such a
-    /// server can read, reset and close every session.
+    /// Warnings for listening beyond loopback without both TLS and access control (a token,
+    /// or client certificates): without access control anyone who can reach the server can
+    /// read, reset and close every session; without TLS the token and every request cross the
+    /// network in clear text.
     pub fn exposure_warnings(&self, has_token: bool) -> Vec<String> {
-        if has_token {
-            return Vec::new();
-        }
-        let mut exposed = Vec::new();
+        let mut warnings = Vec::new();
         if self.uds.is_none() && !self.listen.ip().is_loopback() {
-            exposed.push(format!("gRPC on {}", self.listen));
+            let encrypted = self.tls_cert.is_some();
+            let controlled = has_token || self.tls_client_ca.is_some();
+            let advice = match (encrypted, controlled) {
+                (true, true) => None,
+                (false, false) => Some(
+                    "with neither TLS nor access control: anyone who can reach it can read, \
+                     reset and close every session. Serve it with --tls-cert and --tls-key, \
+                     and --auth-token-file (or --tls-client-ca)",
+                ),
+                (false, true) => Some(
+                    "without TLS: the auth token and every request cross the network in \
+                     clear text, where anyone on the path can read the token and reuse it. \
+                     Add --tls-cert and --tls-key",
+                ),
+                (true, false) => Some(
+                    "with TLS but no access control: anyone who can reach it can read, reset \
+                     and close every session. Add --auth-token-file or --tls-client-ca",
+                ),
+            };
+            if let Some(advice) = advice {
+                warnings.push(format!(
+                    "gRPC on {} is reachable beyond this host {advice}",
+                    self.listen
+                ));
+            }
         }
         if self.zenoh {
-            exposed.extend(
-                self.zenoh_listen
-                    .iter()
-                    .filter(|endpoint| !is_loopback_endpoint(endpoint))
-                    .map(|endpoint| format!("Zenoh on {endpoint}")),
-            );
+            for endpoint in &self.zenoh_listen {
+                if is_loopback_endpoint(endpoint) {
+                    continue;
+                }
+                // Endpoints given here carry no certificates: TLS needs --zenoh-config.
+                let advice = if has_token {
+                    "without TLS: the auth token and every query cross the network in clear \
+                     text. Use a --zenoh-config with mutual TLS (deploy/zenoh/mtls-*.json5)"
+                } else {
+                    "with neither TLS nor access control: anyone who can reach it can read, \
+                     reset and close every session, or answer a trainer's queries. Use a \
+                     --zenoh-config with mutual TLS (deploy/zenoh/mtls-*.json5) and \
+                     --auth-token-file"
+                };
+                warnings.push(format!(
+                    "Zenoh on {endpoint} is reachable beyond this host {advice}"
+                ));
+            }
         }
-        exposed
-            .into_iter()
-            .map(|what| {
-                format!(
-                    "{what} is reachable beyond this host and no --auth-token-file is set: \
-                     anyone who can reach it can read, reset and close every session"
-                )
-            })
-            .collect()
+        warnings
     }
 
     /// The Zenoh config and key prefix these flags ask for; None without `--zenoh`.
@@ -399,17 +464,45 @@ mod tests {
 
     /// No address is bound here: the warnings depend only on the flags.
     #[test]
-    fn listening_beyond_loopback_without_a_token_is_warned_about() {
+    fn listening_beyond_loopback_without_tls_and_a_token_is_warned_about() {
         let parse = |args: &[&str]| Cli::try_parse_from([&["esa-server"], args].concat()).unwrap();
         assert!(parse(&[]).exposure_warnings(false).is_empty());
         assert!(parse(&["--uds", "/tmp/x.sock"])
             .exposure_warnings(false)
             .is_empty());
-        let wide = parse(&["--listen", "192.0.2.1:50051"]);
-        let warnings = wide.exposure_warnings(false);
-        assert_eq!(warnings.len(), 1);
-        assert!(warnings[0].contains("192.0.2.1:50051"), "{warnings:?}");
-        assert!(wide.exposure_warnings(true).is_empty());
+        let wide = ["--listen", "192.0.2.1:50051"];
+        let tls = ["--tls-cert", "c.pem", "--tls-key", "k.pem"];
+        let mutual = [&tls[..], &["--tls-client-ca", "ca.pem"]].concat();
+        for (args, token, needles) in [
+            (
+                &[][..],
+                false,
+                &[
+                    "neither TLS nor access control",
+                    "--tls-cert",
+                    "--auth-token-file",
+                ][..],
+            ),
+            (&[], true, &["without TLS", "clear text", "--tls-cert"]),
+            (
+                &tls,
+                false,
+                &["no access control", "--auth-token-file", "--tls-client-ca"],
+            ),
+        ] {
+            let warnings = parse(&[&wide[..], args].concat()).exposure_warnings(token);
+            assert_eq!(warnings.len(), 1, "{warnings:?}");
+            assert!(warnings[0].contains("192.0.2.1:50051"), "{warnings:?}");
+            for needle in needles {
+                assert!(warnings[0].contains(needle), "{needle}: {warnings:?}");
+            }
+        }
+        assert!(parse(&[&wide[..], &tls].concat())
+            .exposure_warnings(true)
+            .is_empty());
+        assert!(parse(&[&wide[..], &mutual].concat())
+            .exposure_warnings(false)
+            .is_empty());
         let zenoh = parse(&[
             "--zenoh",
             "--zenoh-listen",
@@ -419,9 +512,31 @@ mod tests {
             "--zenoh-listen",
             "tcp/192.0.2.1:7447",
         ]);
-        let warnings = zenoh.exposure_warnings(false);
-        assert_eq!(warnings.len(), 1, "{warnings:?}");
-        assert!(warnings[0].contains("tcp/192.0.2.1:7447"), "{warnings:?}");
+        for token in [false, true] {
+            let warnings = zenoh.exposure_warnings(token);
+            assert_eq!(warnings.len(), 1, "{warnings:?}");
+            assert!(warnings[0].contains("tcp/192.0.2.1:7447"), "{warnings:?}");
+            assert!(warnings[0].contains("mutual TLS"), "{warnings:?}");
+        }
+    }
+
+    #[test]
+    fn tls_flags_come_together_and_not_with_a_unix_socket() {
+        let parse = |args: &[&str]| Cli::try_parse_from([&["esa-server"], args].concat());
+        assert!(parse(&["--tls-cert", "c.pem"]).is_err());
+        assert!(parse(&["--tls-key", "k.pem"]).is_err());
+        assert!(parse(&["--tls-client-ca", "ca.pem"]).is_err());
+        assert!(parse(&[
+            "--tls-cert",
+            "c.pem",
+            "--tls-key",
+            "k.pem",
+            "--uds",
+            "/tmp/x.sock"
+        ])
+        .is_err());
+        assert!(parse(&["--tls-cert", "c.pem", "--tls-key", "k.pem"]).is_ok());
+        assert!(parse(&[]).unwrap().tls().unwrap().is_none());
     }
 
     #[test]

@@ -21,12 +21,14 @@ pub mod resources;
 pub mod server;
 pub mod store;
 pub mod throttle;
+pub mod tls;
 pub mod zenoh_transport;
 
 pub use error::{Error, StartError};
 pub use esa_proto::Rpc;
 pub use handler::EsaHandler;
 pub use server::{EsaServer, Listener, ServerBuilder};
+pub use tls::TlsSettings;
 
 /// The esa.v1 types: esa-proto's messages, client and descriptor set, and the
 /// server side of the service generated here with the bounded codec.

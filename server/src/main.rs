@@ -49,10 +49,11 @@ async fn run(cli: &Cli) -> Result<(), StartError> {
         Err(err) => tracing::warn!(%err, "cannot raise the open-files limit"),
     }
     let token = cli.auth_token_file.as_deref().map(read_token).transpose()?;
+    let tls = cli.tls()?;
     for warning in cli.exposure_warnings(token.is_some()) {
         tracing::warn!("{warning}");
     }
-    let server = cli.server_builder(token).build();
+    let server = cli.server_builder(token, tls).build();
     let listener = match &cli.uds {
         Some(path) => Listener::unix_with_mode(path, cli.uds_mode)?,
         None => Listener::tcp(cli.listen).await?,

@@ -28,6 +28,7 @@ use crate::pb::esa_service_server::EsaServiceServer;
 use crate::resources;
 use crate::store::SessionStore;
 use crate::throttle::WARNING_PERIOD;
+use crate::tls::TlsSettings;
 
 /// Options of an [`EsaServer`]; defaults match the binary's flag defaults.
 #[derive(Clone, Debug)]
@@ -43,6 +44,7 @@ pub struct ServerBuilder {
     max_streams_per_connection: u32,
     keepalive: Option<(Duration, Duration)>,
     auth_token: Option<Vec<u8>>,
+    tls: Option<TlsSettings>,
     shutdown_grace: Duration,
 }
 
@@ -63,6 +65,7 @@ impl Default for ServerBuilder {
             max_streams_per_connection: 128,
             keepalive: Some((Duration::from_secs(30), Duration::from_secs(10))),
             auth_token: None,
+            tls: None,
             shutdown_grace: Duration::from_secs(5),
         }
     }
@@ -154,6 +157,13 @@ impl ServerBuilder {
         self
     }
 
+    /// Serves gRPC over TLS (mutual TLS when the settings name a client CA). Each TLS
+    /// handshake must finish within the handshake timeout.
+    pub fn tls(mut self, settings: TlsSettings) -> Self {
+        self.tls = Some(settings);
+        self
+    }
+
     /// How long shutdown waits for open calls (such as a StepStream a client
     /// keeps open) before closing them.
     pub fn shutdown_grace(mut self, grace: Duration) -> Self {
@@ -185,6 +195,7 @@ impl ServerBuilder {
             connections: self.connections,
             max_streams_per_connection: self.max_streams_per_connection,
             keepalive: self.keepalive,
+            tls: self.tls,
             shutdown_grace: self.shutdown_grace,
         }
     }
@@ -198,6 +209,7 @@ pub struct EsaServer {
     connections: ConnectionLimits,
     max_streams_per_connection: u32,
     keepalive: Option<(Duration, Duration)>,
+    tls: Option<TlsSettings>,
     shutdown_grace: Duration,
 }
 
@@ -290,7 +302,13 @@ impl EsaServer {
         let esa = EsaServiceServer::new(GrpcService::new(self.handler(), stop_rx))
             .max_decoding_message_size(self.requests.max_message_bytes);
         let (keepalive_interval, keepalive_timeout) = self.keepalive.unzip();
-        let router = tonic::transport::Server::builder()
+        let mut server = tonic::transport::Server::builder();
+        if let Some(tls) = &self.tls {
+            // The registry's preface deadline is met by the ClientHello; this one bounds the
+            // rest of the TLS handshake.
+            server = server.tls_config(tls.server_config(self.connections.handshake_timeout))?;
+        }
+        let router = server
             .timeout(self.requests.message_timeout)
             .max_concurrent_streams(self.max_streams_per_connection)
             .http2_keepalive_interval(keepalive_interval)
