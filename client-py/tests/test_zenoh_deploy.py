@@ -33,6 +33,7 @@ def test_every_role_has_an_example():
     assert [p.name for p in CONFIGS] == [
         "router-tls.json5",
         "router.json5",
+        "server-tls.json5",
         "server.json5",
         "trainer-tls.json5",
         "trainer.json5",

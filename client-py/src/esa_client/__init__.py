@@ -29,6 +29,7 @@ from .errors import (
     StepMismatch,
     Unauthenticated,
 )
+from .grpc_transport import TlsConfig
 from .session import Session, SessionBatch, SessionState
 
 # Zenoh is an optional extra (esa-client[zenoh]): its clients load on first use.
@@ -60,6 +61,7 @@ __all__ = [
     "SessionState",
     "ShardedEsaClient",
     "StepMismatch",
+    "TlsConfig",
     "Unauthenticated",
     "ZenohEsaClient",
 ]

@@ -23,7 +23,7 @@ import grpc
 from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
 from .errors import EsaError, ServerUnavailable
-from .grpc_transport import GrpcTransport
+from .grpc_transport import GrpcTransport, TlsConfig
 from .session import Session, SessionBatch, restore_sessions
 from .sidecar import ServerProcess
 from .state import SessionState, as_batch_configs
@@ -327,6 +327,9 @@ class EsaClient(BaseClient):
             ``authorization: Bearer <token>`` metadata with every call.
         token_file: A file holding the token instead (e.g. the server's own token file).
             With neither, the ``ESA_AUTH_TOKEN`` environment variable is used if set.
+        tls: Connect over TLS (a server started with ``--tls-cert``), e.g.
+            ``TlsConfig(ca="ca.pem")``, with ``cert=`` and ``key=`` for mutual TLS; the
+            token then travels encrypted. None: plaintext (loopback or a Unix socket).
 
     Attributes:
         address: The gRPC target.
@@ -347,11 +350,23 @@ class EsaClient(BaseClient):
         timeout: float = 5.0,
         token: str | None = None,
         token_file: str | os.PathLike[str] | None = None,
+        tls: TlsConfig | None = None,
     ) -> None:
-        """Opens a channel to ``address`` (connecting lazily)."""
+        """Opens a channel to ``address`` (connecting lazily).
+
+        Raises:
+            ValueError: If the address, timeout or token is malformed, or TLS is asked for
+                on a Unix socket (the server serves TLS on TCP only).
+            OSError: If a token or TLS file cannot be read.
+        """
         timeout = check_timeout(timeout)
         address = _check_address(address)
-        transport = GrpcTransport(address, timeout, resolve_token(token, token_file))
+        if tls is not None and address.startswith("unix:"):
+            raise ValueError(
+                f"expected a host:port address with tls (the server serves TLS on TCP only), "
+                f"got {address!r}"
+            )
+        transport = GrpcTransport(address, timeout, resolve_token(token, token_file), tls)
         super().__init__(transport, address=address, timeout=timeout)
         self.stub = transport.stub
         self._channel = transport.channel

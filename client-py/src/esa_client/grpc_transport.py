@@ -9,9 +9,12 @@ report and the next probe before reading either answer, so a step costs one roun
 from __future__ import annotations
 
 import collections
+import os
 import queue
 import threading
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import grpc
@@ -31,6 +34,54 @@ _CHANNEL_OPTIONS: list[tuple[str, int | str]] = [
     ("grpc.max_receive_message_length", 256 * 1024 * 1024),
     ("grpc.max_send_message_length", 256 * 1024 * 1024),
 ]
+
+
+@dataclass(frozen=True)
+class TlsConfig:
+    """TLS for the channel to a server started with ``--tls-cert`` and ``--tls-key``.
+
+    Connect to a host name (or IP address) that the server's certificate names; a failed
+    handshake (untrusted server, refused client certificate) raises ``ServerUnavailable``.
+
+    Args:
+        ca: PEM file of the CA(s) that issued the server's certificate; None trusts the
+            system's roots.
+        cert: PEM file of this client's certificate, for a server started with
+            ``--tls-client-ca`` (mutual TLS); needs ``key``.
+        key: PEM file of the certificate's private key.
+        server_name: The name to check the server's certificate against instead of the
+            address's host (e.g. when connecting through a tunnel).
+    """
+
+    ca: str | os.PathLike[str] | None = None
+    cert: str | os.PathLike[str] | None = None
+    key: str | os.PathLike[str] | None = None
+    server_name: str | None = None
+
+    def __post_init__(self) -> None:
+        """Checks that ``cert`` and ``key`` come together."""
+        if (self.cert is None) != (self.key is None):
+            raise ValueError(
+                f"expected both cert and key (mutual TLS) or neither, "
+                f"got cert={self.cert!r}, key={self.key!r}"
+            )
+
+    def credentials(self) -> grpc.ChannelCredentials:
+        """The channel credentials, the files read now.
+
+        Raises:
+            OSError: If a file cannot be read.
+        """
+
+        def read(path: str | os.PathLike[str] | None) -> bytes | None:
+            return None if path is None else Path(path).read_bytes()
+
+        return grpc.ssl_channel_credentials(
+            root_certificates=read(self.ca),
+            private_key=read(self.key),
+            certificate_chain=read(self.cert),
+        )
+
 
 _CallFields = collections.namedtuple(
     "_CallFields",
@@ -156,26 +207,46 @@ class GrpcTransport(StubTransport):
         address: ``host:port`` or ``unix:/path/to/socket`` (checked by the caller).
         timeout: Deadline in seconds of every call.
         token: Sent as ``authorization: Bearer <token>`` with every call; None sends none.
+        tls: Connect over TLS; None connects in plaintext.
 
     Attributes:
         channel: The gRPC channel (connecting lazily).
         stub: The generated ``EsaServiceStub`` on it.
     """
 
-    def __init__(self, address: str, timeout: float, token: str | None = None) -> None:
+    def __init__(
+        self,
+        address: str,
+        timeout: float,
+        token: str | None = None,
+        tls: TlsConfig | None = None,
+    ) -> None:
         """Opens the channel (connecting lazily)."""
         options = list(_CHANNEL_OPTIONS)
         if address.startswith("unix:"):
             # gRPC core would send the socket path as :authority, which HTTP/2 servers
             # such as hyper (tonic) reject as malformed; any valid host name works.
             options.append(("grpc.default_authority", "localhost"))
-        self.channel = grpc.insecure_channel(address, options=options)
-        # Only with a token: an interceptor costs every call some microseconds.
-        channel = (
-            self.channel
-            if token is None
-            else grpc.intercept_channel(self.channel, _BearerToken(token))
-        )
+        channel: grpc.Channel
+        if tls is not None:
+            if tls.server_name is not None:
+                options.append(("grpc.ssl_target_name_override", tls.server_name))
+            credentials = tls.credentials()
+            if token is not None:
+                # gRPC sends call credentials only over TLS, as the same Bearer header.
+                credentials = grpc.composite_channel_credentials(
+                    credentials, grpc.access_token_call_credentials(token)
+                )
+            self.channel = grpc.secure_channel(address, credentials, options=options)
+            channel = self.channel
+        else:
+            self.channel = grpc.insecure_channel(address, options=options)
+            # Only with a token: an interceptor costs every call some microseconds.
+            channel = (
+                self.channel
+                if token is None
+                else grpc.intercept_channel(self.channel, _BearerToken(token))
+            )
         stub = esa_pb2_grpc.EsaServiceStub(channel)
         self._health = health_pb2_grpc.HealthStub(channel)
         super().__init__(stub, timeout, lambda: GrpcStepStream(stub.StepStream, timeout))
