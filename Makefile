@@ -15,7 +15,8 @@ export MUJOCO_GL ?= egl
 
 PY_PACKAGES := client-py experiments tests
 PY_LINT := $(PY_PACKAGES) bench
-PY_EXTRAS := -e "client-py[sb3,zenoh,dev]" -e "experiments[dev]"
+# rllib: Ray RLlib, so that make test also runs the RLlib tests (client-py/tests/test_rllib*.py).
+PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,dev]" -e "experiments[dev]"
 
 .PHONY: help setup build venv demo test test-rust test-python lint fmt bench soak clean
 

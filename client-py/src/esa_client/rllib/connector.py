@@ -1,0 +1,373 @@
+"""``EsaModuleToEnv``: the module-to-env ConnectorV2 piece that applies ESA on an EnvRunner.
+
+RLlib's module-to-env pipeline turns the RLModule's output into the actions sent to the
+vectorized env: ``GetActions`` samples ``a_t`` (and its log-probability), the batch is
+converted to numpy and split per env copy, then the user's pieces run, then
+``NormalizeAndClipActions`` unsquashes or clips a copy for the env. This piece sits in
+the user slot, so every action it writes is both what the env executes (after RLlib's
+unsquash/clip) and what the episode stores for training.
+
+Each step, for the N env copies of the EnvRunner (one ESA session each, one StepStream),
+it runs the SB3 drop-ins' ESA step (:class:`esa_client.sb3.runtime.EsaRuntime`, the same
+code): Algorithm 1 with the section 1b law of CONTRACT.md. The policy's samples and
+standard deviations go to the server, the module's critic scores the probes and the
+applied actions in one batch, the report rides with the next probe, and the action
+becomes ``a_t + v(t)``:
+
+- PPO: stored unclipped with RLlib's ``action_logp`` left at ``log pi_old(a_t)``, the
+  exact behaviour log-probability of the shifted action (``v(t)`` does not depend on
+  ``a_t``), so PPO's ratio is a correct importance ratio, as in ESAPPO;
+- SAC: clipped to SAC's squashed [-1, 1] and stored in the replay buffer, as in ESASAC
+  (``action_logp``, which RLlib's SAC does not train on, stays ``log pi(a_t)``).
+
+Episodes map to the sessions' episodes. RLlib's vector envs reset a finished env on the
+*next* ``step`` call (gymnasium's next-step autoreset) and discard that step's action.
+That step starts the new session episode: its probe is at phase 0, where the probe
+equals the applied action and the update moves nothing, so the episode's first real
+action is the session's step 1. Starting it there, and not again one step later, keeps
+the session's episode count (``lr_decay``, ``max_episodes``) equal to the env's.
+An EnvRunner that is recreated builds a new connector, hence new sessions; one whose
+server became unreachable reconnects once (a node sidecar is restarted) and starts new
+sessions.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import weakref
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+from ray.rllib.connectors.connector_v2 import ConnectorV2
+from ray.rllib.core.columns import Columns
+
+from ..config import EsaConfig
+from ..env_dt import env_dt
+from ..errors import ServerUnavailable
+
+# Importing the sb3 package also loads torch._dynamo before any gRPC channel exists (see
+# esa_client.sb3): the learner of a local EnvRunner steps its optimizer while the
+# connector's StepStream is open.
+from ..sb3.runtime import EsaRuntime
+from .modules import ESA_OBS, EsaModuleMixin
+from .service import EsaService
+
+ESA_SHIFT = "esa_shift"
+"""Optional extra model output (``record_shift=True``): ``a_t + v(t) - a_t`` per step."""
+
+
+class _Metrics:
+    """EsaRuntime.record's logger interface over RLlib's MetricsLogger."""
+
+    def __init__(self, metrics: Any, window: int) -> None:
+        self.metrics, self.window = metrics, window
+
+    def record(self, key: str, value: Any) -> None:
+        if key.endswith("sessions_restored"):
+            self.metrics.log_value(key, value, reduce="sum")
+        else:
+            self.metrics.log_value(key, value, reduce="mean", window=self.window)
+
+
+def vector_env_dt(env: Any) -> float | None:
+    """Seconds per step of a gymnasium vector env's copies (None without env or dt)."""
+    if env is None:
+        return None
+    copies = getattr(getattr(env, "unwrapped", env), "envs", None)
+    with contextlib.suppress(ValueError, AttributeError):
+        if copies:  # SyncVectorEnv: read through the first copy's wrappers
+            return env_dt(copies[0])
+        return env_dt(_FirstCopy(env))
+    return None
+
+
+class _FirstCopy:
+    """An AsyncVectorEnv's first copy as ``env_dt`` reads an env."""
+
+    def __init__(self, env: Any) -> None:
+        self.env = env
+
+    def get_wrapper_attr(self, name: str) -> Any:
+        return self.env.get_attr(name)[0]
+
+
+def _stack(items: list[Any]) -> Any:
+    if isinstance(items[0], dict):
+        return {k: _stack([item[k] for item in items]) for k in items[0]}
+    return np.stack([np.asarray(item) for item in items])
+
+
+def _to_tensor(value: Any, device: torch.device) -> Any:
+    if isinstance(value, dict):
+        return {k: _to_tensor(v, device) for k, v in value.items()}
+    return torch.as_tensor(value, device=device)
+
+
+def _tile(value: Any, reps: int) -> Any:
+    if isinstance(value, dict):
+        return {k: _tile(v, reps) for k, v in value.items()}
+    return value.repeat(reps, *([1] * (value.dim() - 1)))
+
+
+class _Rows:
+    """The per-env-copy items of the unbatched columns, row r being env copy r.
+
+    After RLlib's ``UnBatchToIndividualItems`` a single-agent column maps ``(eps_id,)``
+    to a one-item list, in the order of ``shared_data["memorized_map_structure"]``: the
+    env copies' order. An env copy that RLlib autoresets on this step appears under the
+    id of its finished episode (the batch was built before the new episode existed).
+    """
+
+    def __init__(
+        self, batch: dict[str, Any], episodes: list[Any], shared_data: dict[str, Any] | None
+    ) -> None:
+        self.batch = batch
+        column = batch[Columns.ACTIONS]
+        structure = (shared_data or {}).get("memorized_map_structure")
+        keys = list(column) if isinstance(column, dict) else []
+        if isinstance(structure, list):
+            keys = [(eps_id,) for eps_id in structure]
+        in_order = all(
+            key == (episode.id_,)
+            for key, episode in zip(keys, episodes, strict=False)
+            if episode.is_reset
+        )
+        if not (
+            isinstance(column, dict)
+            and len(keys) == len(episodes) == len(column)
+            and set(keys) == set(column)
+            and in_order
+        ):
+            raise ValueError(
+                "expected one action per env copy, keyed by episode id in env order (a "
+                f"single-agent EnvRunner), got keys {list(column)[:8]} for "
+                f"episodes {[episode.id_ for episode in episodes][:8]}"
+            )
+        self.keys = keys
+
+    def get(self, name: str) -> list[Any]:
+        return [self.batch[name][key][0] for key in self.keys]
+
+    def put(self, name: str, values: list[Any]) -> None:
+        self.batch[name] = {key: [value] for key, value in zip(self.keys, values, strict=True)}
+
+
+class EsaModuleToEnv(ConnectorV2):
+    """Module-to-env piece: Algorithm 1's action ``a_t + v(t)`` for every env copy.
+
+    :func:`~esa_client.rllib.with_esa` adds it to ``config.env_runners(
+    module_to_env_connector=...)`` after any pieces of yours; it needs the module to be
+    :class:`~esa_client.rllib.modules.EsaSACTorchRLModule` or
+    :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule`. It acts only when exploring
+    (``explore=True``, i.e. training rollouts) and while the module's ``esa_active`` is
+    set (the learner's gate); otherwise the actions pass through untouched, and the
+    sessions start new episodes when ESA acts again.
+
+    The sessions (one per env copy, on one StepStream) are created on the first step that
+    needs them, so an EnvRunner without env (the local one of a remote setup) never
+    connects. Logged per EnvRunner (``env_runners/esa/...``): ``active``,
+    ``mean_abs_shift``, ``shift_over_std``, ``kl_per_dim``, ``clipped_fraction``,
+    ``improvement``, ``sessions_restored``, ``reconnects``.
+
+    Args:
+        input_observation_space: As for every ConnectorV2.
+        input_action_space: As for every ConnectorV2.
+        esa: The ESA hyperparameters (default ``EsaConfig()``).
+        service: Where the sessions live (default: the node's sidecar).
+        dt: Seconds per env step when ``EsaConfig.dt`` is None (``with_esa`` reads it
+            from the EnvRunner's env).
+        record_shift: Also output column ``esa_shift`` (the shift applied, stored with the
+            episode as an extra model output), for diagnostics and tests.
+        improvement_every: Measure ``esa/improvement`` on one step in this many.
+        metrics_window: Window of the mean ESA statistics.
+        **kwargs: Passed to ``ConnectorV2``.
+
+    Raises:
+        ValueError: If ``esa`` is not an EsaConfig or ``improvement_every`` < 1.
+    """
+
+    def __init__(
+        self,
+        input_observation_space: Any = None,
+        input_action_space: Any = None,
+        *,
+        esa: EsaConfig | None = None,
+        service: EsaService | None = None,
+        dt: float | None = None,
+        record_shift: bool = False,
+        improvement_every: int = 8,
+        metrics_window: int = 1000,
+        **kwargs: Any,
+    ) -> None:
+        """Builds the piece; nothing connects before the first exploring step."""
+        super().__init__(input_observation_space, input_action_space, **kwargs)
+        self.esa = esa if esa is not None else EsaConfig()
+        if not isinstance(self.esa, EsaConfig):
+            raise ValueError(f"expected esa to be an EsaConfig, got {self.esa!r}")
+        if improvement_every < 1:
+            raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
+        self.service = service if service is not None else EsaService()
+        self.dt = dt
+        self.record_shift = record_shift
+        self.improvement_every = improvement_every
+        self.metrics_window = metrics_window
+        self._runtime: EsaRuntime | None = None
+        self._finalizer: weakref.finalize[Any, Any] | None = None
+        # Whether the last step went through ESA: if not, the sessions missed episode ends.
+        self._active = False
+        # Env copies whose last step was an autoreset step (it started their episode).
+        self._autoreset = np.zeros(0, dtype=bool)
+        self.reconnects = 0
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickles (and deep-copies) the settings only: a copy opens its own sessions."""
+        state = self.__dict__.copy()
+        state.update(_runtime=None, _finalizer=None, _active=False)
+        return state
+
+    @property
+    def runtime(self) -> EsaRuntime | None:
+        """The sessions of this EnvRunner's env copies (None before the first ESA step)."""
+        return self._runtime
+
+    def close(self) -> None:
+        """Closes the sessions (and the sidecar hold); a later step reopens them."""
+        if self._finalizer is not None:
+            self._finalizer()
+        self._runtime = self._finalizer = None
+        self._active = False
+
+    def _open(self, module: EsaModuleMixin, n_envs: int) -> EsaRuntime:
+        dt = self.esa.dt if self.esa.dt is not None else self.dt
+        if dt is None:
+            raise ValueError(
+                "expected the env to define dt or metadata['render_fps'], got neither; "
+                "set EsaConfig(dt=...) to the seconds per environment step"
+            )
+        low, high = module.esa_space()
+        clip_low, clip_high = module.esa_env_bounds()
+        config = self.esa.session_config(module.esa_action_dim, dt, low, high)
+        runtime = EsaRuntime.on_client(
+            self.esa,
+            self.service.connect(),
+            config,
+            n_envs,
+            clip_low,
+            clip_high,
+            improvement_every=self.improvement_every,
+        )
+        self._finalizer = weakref.finalize(self, runtime.close)
+        self._runtime = runtime
+        self._autoreset = np.zeros(n_envs, dtype=bool)
+        return runtime
+
+    def __call__(
+        self,
+        *,
+        rl_module: Any,
+        batch: dict[str, Any],
+        episodes: list[Any],
+        explore: bool | None = None,
+        shared_data: dict[str, Any] | None = None,
+        metrics: Any = None,
+        **kwargs: Any,
+    ) -> Any:
+        """Replaces the sampled actions by ``a_t + v(t)`` (exploring, gate open)."""
+        if ESA_OBS not in batch:
+            return batch
+        obs_column = batch.pop(ESA_OBS)
+        if not explore:
+            self._active = False
+            return batch
+        if not isinstance(rl_module, EsaModuleMixin):
+            raise ValueError(
+                "expected an ESA RLModule (EsaSACTorchRLModule or EsaPPOTorchRLModule, "
+                f"set by with_esa) on the EnvRunner, got {type(rl_module).__name__}"
+            )
+        module = rl_module
+        active = module.esa_is_active()
+        if metrics is not None:
+            metrics.log_value(
+                "esa/active", float(active), reduce="mean", window=self.metrics_window
+            )
+        rows = _Rows(batch, episodes, shared_data)
+        n = len(episodes)
+        sampled_rows = [np.asarray(a) for a in rows.get(Columns.ACTIONS)]
+        like = sampled_rows[0]
+        sampled = np.stack(sampled_rows).reshape(n, -1).astype(np.float64)
+        if not active:
+            self._active = False
+            self._record_shift(rows, np.zeros_like(sampled), like)
+            return batch
+        runtime = self._runtime if self._runtime is not None else self._open(module, n)
+        if not self._active:
+            # First step, or ESA was off: the sessions missed episode ends.
+            runtime.batch.reset()
+            self._autoreset[:] = False
+        self._active = True
+        # Not reset yet: RLlib autoresets this copy on this step and discards its action.
+        autoreset = np.array([not episode.is_reset for episode in episodes])
+        fresh = np.array([episode.is_reset and episode.t == 0 for episode in episodes])
+        starts = autoreset | (fresh & ~self._autoreset)
+        self._autoreset = autoreset
+        device = next(iter(module.parameters())).device
+        with torch.no_grad():
+            obs = _to_tensor(_stack([obs_column[key][0] for key in rows.keys]), device)
+            dist_inputs = torch.as_tensor(
+                np.stack(rows.get(Columns.ACTION_DIST_INPUTS)), device=device
+            )
+            scale = module.esa_scale(dist_inputs).double().cpu().numpy()
+
+        def q_fn(points: np.ndarray) -> np.ndarray:
+            reps = len(points) // n
+            with torch.no_grad():
+                actions = torch.as_tensor(points, dtype=torch.float32, device=device)
+                q = module.esa_q(_tile(obs, reps), dist_inputs.repeat(reps, 1), actions)
+                values: np.ndarray = q.double().cpu().numpy()
+                return values
+
+        try:
+            applied = runtime.step(sampled, starts, q_fn, scale)
+        except ServerUnavailable:
+            # The server is gone (e.g. the node sidecar was killed): reconnect once.
+            self.close()
+            self.reconnects += 1
+            if metrics is not None:
+                metrics.log_value("esa/reconnects", 1, reduce="sum")
+            runtime = self._open(module, n)
+            applied = runtime.step(sampled, np.ones(n, dtype=bool), q_fn, scale)
+            self._active = True
+        if metrics is not None:
+            runtime.record(_Metrics(metrics, self.metrics_window))
+        rows.put(Columns.ACTIONS, [row.astype(like.dtype).reshape(like.shape) for row in applied])
+        self._record_shift(rows, applied - sampled, like)
+        return batch
+
+    def _record_shift(self, rows: _Rows, shift: np.ndarray, like: np.ndarray) -> None:
+        """Writes column ``esa_shift`` (with ``record_shift``; zeros while ESA is off)."""
+        if self.record_shift:
+            rows.put(ESA_SHIFT, [row.astype(np.float32).reshape(like.shape) for row in shift])
+
+
+class ConnectorFactory:
+    """``config.env_runners(module_to_env_connector=...)``: yours, then :class:`EsaModuleToEnv`.
+
+    Args:
+        previous: The factory that was configured before (None if none).
+        **kwargs: The :class:`EsaModuleToEnv` arguments (``esa``, ``service``, ...).
+    """
+
+    def __init__(self, previous: Callable[..., Any] | None, **kwargs: Any) -> None:
+        """Keeps the previous factory and the connector's arguments."""
+        self.previous = previous
+        self.kwargs = kwargs
+
+    def __call__(self, env: Any = None, spaces: Any = None) -> list[ConnectorV2]:
+        """The pieces for one EnvRunner (``env`` is its vector env, or None)."""
+        pieces: list[ConnectorV2] = []
+        if self.previous is not None:
+            value = self.previous(env, spaces)
+            pieces = list(value) if isinstance(value, (list, tuple)) else [value]
+        return [*pieces, EsaModuleToEnv(dt=vector_env_dt(env), **self.kwargs)]

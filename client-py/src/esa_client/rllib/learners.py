@@ -1,0 +1,248 @@
+"""Learners that keep the ESA critic fitted and the gate set, on the learner side.
+
+:class:`EsaSACTorchLearner` is RLlib's SAC learner plus ``ESASAC``'s gate: every
+``gate_every`` sampled env steps it computes, on the train batch being learned from, the
+rank correlation between the probed critic's ``Q(s, a) - Q(s, mu)`` and the one-step
+advantage ``r + gamma^n V(s') - V(s)`` with ``V(s) = Q(s, mu)``, and sets the module's
+``esa_active``. ESASAC computes it on the transitions collected since its last check;
+RLlib's replay buffer lives elsewhere, so here it is the replay sample of that update.
+
+:class:`EsaPPOTorchLearner` is RLlib's PPO learner plus ``ESAPPO``'s head training, with
+ESAPPO's own code (:mod:`esa_client.sb3.advantage_head`): a learner connector piece after
+RLlib's GAE records, for every train batch, the observations, the policy-normalized
+actions ``z = (x - mu_old) / sigma_old`` (``mu_old``, ``sigma_old`` from the behaviour
+distribution inputs stored with the episodes) and the GAE advantages (loss-masked rows
+only); after PPO's update the learner checks the gate on that rollout (the head has not
+seen it yet), then fits the head on the last ``head_rollouts`` rollouts with its own Adam
+optimizer and generator. PPO's optimizer never sees the head's parameters. The head's
+weights and ``esa_active`` reach the env runners with the next weight sync.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from ray.rllib.algorithms.ppo.torch.ppo_torch_learner import PPOTorchLearner
+from ray.rllib.algorithms.sac.torch.sac_torch_learner import SACTorchLearner
+from ray.rllib.connectors.connector_v2 import ConnectorV2
+from ray.rllib.core.columns import Columns
+from ray.rllib.evaluation.postprocessing import Postprocessing
+from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
+
+from ..sb3.advantage_head import Rollout, critic_quality, fit, normalized, rank_correlation
+from .modules import EsaPPOTorchRLModule, EsaSACTorchRLModule
+
+
+def _unwrapped(module: Any) -> Any:
+    return module.unwrapped() if hasattr(module, "unwrapped") else module
+
+
+def _gate(module: EsaPPOTorchRLModule | EsaSACTorchRLModule) -> float | None:
+    """``EsaConfig.gate`` of the module's settings (None: no gate)."""
+    gate = module.esa_settings["config"].get("gate")
+    return None if gate is None else float(gate)
+
+
+class EsaSACTorchLearner(SACTorchLearner):
+    """SAC's learner, setting the ``esa_active`` of an ``EsaSACTorchRLModule``.
+
+    With ``EsaConfig(gate=None)`` ESA turns on at the first update (when RLlib's
+    ``num_steps_sampled_before_learning_starts`` have been sampled), as in ESASAC.
+    Logged per module: ``esa/gate_correlation`` (at each check), ``esa/active``.
+    """
+
+    def build(self) -> None:
+        """Builds RLlib's SAC learner and the gate's bookkeeping."""
+        super().build()
+        self._esa_checked_at: dict[Any, float] = {}
+        self._esa_due: set[Any] = set()
+
+    def _esa_modules(self) -> list[tuple[Any, EsaSACTorchRLModule]]:
+        return [
+            (mid, _unwrapped(m))
+            for mid, m in self.module._rl_modules.items()
+            if isinstance(_unwrapped(m), EsaSACTorchRLModule)
+        ]
+
+    def before_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
+        """Decides which modules check their gate on this update's batch."""
+        super().before_gradient_based_update(timesteps=timesteps)
+        now = float(timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0) or 0)
+        for mid, module in self._esa_modules():
+            if _gate(module) is None:
+                module.esa_active.fill_(1.0)
+            elif now - self._esa_checked_at.get(mid, 0.0) >= module.esa_settings["gate_every"]:
+                self._esa_due.add(mid)
+                self._esa_checked_at[mid] = now
+
+    def compute_loss_for_module(
+        self, *, module_id: Any, config: Any, batch: dict[str, Any], fwd_out: dict[str, Any]
+    ) -> Any:
+        """SAC's loss; on a gate check, also the critic's quality on this batch (no grad)."""
+        loss = super().compute_loss_for_module(
+            module_id=module_id, config=config, batch=batch, fwd_out=fwd_out
+        )
+        module = _unwrapped(self.module[module_id])
+        gate = _gate(module) if isinstance(module, EsaSACTorchRLModule) else None
+        if module_id in self._esa_due and gate is not None:
+            self._esa_due.discard(module_id)
+            quality = sac_critic_quality(module, batch, config.gamma)
+            module.esa_active.fill_(float(quality >= gate))
+            self.metrics.log_value((module_id, "esa/gate_correlation"), quality, window=1)
+        if isinstance(module, EsaSACTorchRLModule):
+            self.metrics.log_value((module_id, "esa/active"), module.esa_active.item(), window=1)
+        return loss
+
+
+def sac_critic_quality(module: EsaSACTorchRLModule, batch: dict[str, Any], gamma: float) -> float:
+    """Rank correlation of ``Q(s, a) - Q(s, mu)`` with ``r + gamma^n V(s') - V(s)`` on a batch.
+
+    ``Q`` is the probed critic, ``V(s) = Q(s, mu(s))``; ``n`` is the batch's ``n_step``
+    (RLlib's n-step returns), 1 if absent.
+    """
+    with torch.no_grad():
+        obs, nxt = batch[Columns.OBS], batch[Columns.NEXT_OBS]
+        which = module.esa_probe_critic
+        value = module.esa_critic(obs, module.esa_mean_action(obs), which)
+        value_next = module.esa_critic(nxt, module.esa_mean_action(nxt), which)
+        predicted = module.esa_critic(obs, batch[Columns.ACTIONS], which) - value
+        alive = 1.0 - batch[Columns.TERMINATEDS].float()
+        discount = gamma ** batch["n_step"] if "n_step" in batch else gamma
+        advantage = batch[Columns.REWARDS] + discount * alive * value_next - value
+    return rank_correlation(predicted.double().cpu().numpy(), advantage.double().cpu().numpy())
+
+
+class EsaRolloutRecorder(ConnectorV2):
+    """Learner connector piece (after GAE): keeps what the advantage head learns from.
+
+    For every :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule` in the batch, puts
+    ``(Rollout(features, z, normalized advantages), advantages)`` of the loss-masked rows
+    into ``pending[module_id]``; the batch itself is left as it is.
+    """
+
+    def __init__(self, pending: dict[Any, Any], **kwargs: Any) -> None:
+        """Writes into ``pending`` (the learner's)."""
+        super().__init__(**kwargs)
+        self.pending = pending
+
+    def __call__(self, *, rl_module: Any, batch: dict[str, Any], **kwargs: Any) -> Any:
+        """Records the rollouts; returns ``batch`` unchanged."""
+        for module_id, data in batch.items():
+            if module_id not in rl_module:
+                continue
+            module = _unwrapped(rl_module[module_id])
+            if not isinstance(module, EsaPPOTorchRLModule):
+                continue
+            if Postprocessing.ADVANTAGES not in data or Columns.ACTION_DIST_INPUTS not in data:
+                continue
+
+            def tensor(name: str, data: dict[str, Any] = data) -> torch.Tensor:
+                value = torch.as_tensor(data[name])
+                mask = data.get(Columns.LOSS_MASK)
+                return value[torch.as_tensor(mask, dtype=torch.bool)] if mask is not None else value
+
+            with torch.no_grad():
+                advantages = tensor(Postprocessing.ADVANTAGES).float()
+                rollout = Rollout(
+                    module.esa_features(tensor(Columns.OBS)),
+                    module.esa_z(
+                        tensor(Columns.ACTION_DIST_INPUTS).float(), tensor(Columns.ACTIONS).float()
+                    ),
+                    normalized(advantages),
+                )
+            self.pending[module_id] = (rollout, advantages)
+        return batch
+
+
+@dataclass
+class _Head:
+    """One module's head training state (not checkpointed: rebuilt from the next rollouts)."""
+
+    optimizer: torch.optim.Optimizer
+    rng: np.random.Generator
+    rollouts: list[Rollout] = field(default_factory=list)
+    fitted: bool = False
+    active: bool = False
+
+
+class EsaPPOTorchLearner(PPOTorchLearner):
+    """PPO's learner, fitting :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule`'s head.
+
+    Per update, after PPO's own: the gate (``esa/gate_correlation``: the head's rank
+    correlation with the GAE advantages of the new rollout, before it is trained on it),
+    then :func:`esa_client.sb3.advantage_head.fit` on the last ``head_rollouts`` rollouts
+    (``head_epochs`` passes, minibatches of ``head_batch_size``, Adam at
+    ``head_learning_rate``; logged ``esa/head_loss``), then ``esa_active``. With
+    ``EsaConfig(gate=None)`` ESA turns on after the first fit, as in ESAPPO.
+
+    Supports one learner (``num_learners`` 0 or 1): with more, each would fit its own
+    head on its shard, outside DDP.
+    """
+
+    def build(self) -> None:
+        """Builds RLlib's PPO learner and appends the rollout recorder after its GAE."""
+        if (self.config.num_learners or 0) > 1:
+            raise ValueError(
+                f"expected num_learners <= 1 for ESA with PPO, got {self.config.num_learners}"
+            )
+        super().build()
+        self._esa_pending: dict[Any, tuple[Rollout, torch.Tensor]] = {}
+        self._esa_heads: dict[Any, _Head] = {}
+        if self._learner_connector is not None:
+            self._learner_connector.append(EsaRolloutRecorder(self._esa_pending))
+
+    def configure_optimizers_for_module(self, module_id: Any, config: Any = None) -> None:
+        """RLlib's default Adam over the module's parameters, less the advantage head's."""
+        assert self._module is not None  # built before the optimizers
+        module = self._module[module_id]
+        head = getattr(_unwrapped(module), "esa_head", None)
+        if head is None:
+            super().configure_optimizers_for_module(module_id, config)
+            return
+        excluded = {id(p) for p in head.parameters()}
+        params = [p for p in self.get_parameters(module) if id(p) not in excluded]
+        optimizer = torch.optim.Adam(params)
+        self.register_optimizer(
+            module_id=module_id, optimizer=optimizer, params=params, lr_or_lr_schedule=config.lr
+        )
+
+    def _head(self, module_id: Any, module: EsaPPOTorchRLModule) -> _Head:
+        if module_id not in self._esa_heads:
+            settings = module.esa_settings
+            self._esa_heads[module_id] = _Head(
+                torch.optim.Adam(module.esa_head.parameters(), lr=settings["head_learning_rate"]),
+                np.random.default_rng(self.config.seed),
+            )
+        return self._esa_heads[module_id]
+
+    def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
+        """PPO's bookkeeping, then the gate and the head's fit on the new rollout."""
+        super().after_gradient_based_update(timesteps=timesteps)
+        for module_id in list(self._esa_pending):
+            rollout, advantages = self._esa_pending.pop(module_id)
+            module = _unwrapped(self.module[module_id])
+            head = self._head(module_id, module)
+            settings, gate = module.esa_settings, _gate(module)
+            if head.fitted:
+                quality = critic_quality(module.esa_head, rollout, advantages)
+                self.metrics.log_value((module_id, "esa/gate_correlation"), quality, window=1)
+                head.active = gate is None or quality >= gate
+            head.rollouts = [*head.rollouts, rollout][-settings["head_rollouts"] :]
+            loss = fit(
+                module.esa_head,
+                head.optimizer,
+                head.rollouts,
+                epochs=settings["head_epochs"],
+                batch_size=settings["head_batch_size"],
+                rng=head.rng,
+            )
+            self.metrics.log_value((module_id, "esa/head_loss"), loss, window=1)
+            if not head.fitted and gate is None:
+                head.active = True
+            head.fitted = True
+            with torch.no_grad():
+                module.esa_active.fill_(float(head.active))
+            self.metrics.log_value((module_id, "esa/active"), float(head.active), window=1)

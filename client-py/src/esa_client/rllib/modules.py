@@ -1,0 +1,279 @@
+"""RLModules whose env-runner copies keep the critic ESA probes.
+
+RLlib builds the RLModule of every EnvRunner ``inference_only``: SAC's Q networks are
+dropped there, and PPO has no action-value network at all. ESA probes a critic at
+action time, on the env runners, so:
+
+- :class:`EsaSACTorchRLModule` keeps the Q networks it probes (by default the Polyak
+  target twins, ``probe_critic="target_mean"``, as ``ESASAC``) in its inference-only
+  copy. They are part of the weights the learner ships to the env runners after every
+  update (``get_non_inference_attributes`` no longer lists them), so they stay synced.
+- :class:`EsaPPOTorchRLModule` adds ``ESAPPO``'s advantage head
+  (:class:`esa_client.sb3.advantage_head.AdvantageHead`, shared code) to PPO's default
+  module. The learner fits it (:class:`~esa_client.rllib.learners.EsaPPOTorchLearner`)
+  and it travels to the env runners with the policy's weights.
+
+Both carry ``esa_active``, a buffer the learner sets from ``EsaConfig.gate`` and that
+ships with the weights: the env runners' connector shifts actions only while it is 1.
+Both add the observation batch they acted on to their exploration output (column
+``esa_obs``), which :class:`~esa_client.rllib.connector.EsaModuleToEnv` removes before
+anything is stored. Extra networks are initialized on a forked torch generator, so that
+the random stream of the env runners and the learner is plain RLlib's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any, cast
+
+import gymnasium as gym
+import numpy as np
+import torch
+from ray.rllib.algorithms.ppo.torch.default_ppo_torch_rl_module import DefaultPPOTorchRLModule
+from ray.rllib.algorithms.sac.torch.default_sac_torch_rl_module import DefaultSACTorchRLModule
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.distribution.torch.torch_distribution import (
+    TorchDiagGaussian,
+    TorchSquashedGaussian,
+)
+from ray.rllib.core.learner.utils import make_target_network
+from ray.rllib.core.models.base import ENCODER_OUT
+from ray.rllib.utils.numpy import MAX_LOG_NN_OUTPUT, MIN_LOG_NN_OUTPUT
+
+from ..sb3.advantage_head import AdvantageHead
+
+ESA_OBS = "esa_obs"
+"""Exploration output column: the observations the module acted on (removed by the connector)."""
+
+PROBE_CRITICS: tuple[str, ...] = ("online_min", "online_mean", "target_min", "target_mean")
+
+
+def settings_of(module: Any) -> dict[str, Any]:
+    """The ESA settings ``with_esa`` put into the module's ``model_config["esa"]``."""
+    settings = (module.model_config or {}).get("esa")
+    if not isinstance(settings, dict):
+        raise ValueError(
+            f"expected model_config['esa'] (set by esa_client.rllib.with_esa) in "
+            f"{type(module).__name__}, got {settings!r}"
+        )
+    return dict(settings)
+
+
+def _box(space: gym.Space[Any]) -> gym.spaces.Box:
+    if not isinstance(space, gym.spaces.Box):
+        raise ValueError(f"expected a Box action space for ESA, got {space}")
+    return space
+
+
+class EsaModuleMixin:
+    """What :class:`~esa_client.rllib.connector.EsaModuleToEnv` asks of a module.
+
+    Actions are in the module's own units (what its distribution samples and what RLlib
+    stores); with RLlib's default ``normalize_actions=True`` that is the Box scaled to
+    [-1, 1], the units ESAPPO and ESASAC work in.
+    """
+
+    esa_active: torch.Tensor
+    # RLModule's attributes (a gymnasium Space; a dict, as with_esa sets it).
+    action_space: Any
+    model_config: Any
+
+    if TYPE_CHECKING:
+        # The mixin is always combined with an RLlib TorchRLModule, an nn.Module.
+
+        def register_buffer(self, name: str, tensor: torch.Tensor | None) -> None:
+            """``nn.Module.register_buffer``."""
+
+        def parameters(self, recurse: bool = True) -> Iterator[torch.nn.Parameter]:
+            """``nn.Module.parameters``."""
+
+    def _setup_esa(self) -> None:
+        self.esa_settings = settings_of(self)
+        self.esa_action_dim = int(np.prod(_box(self.action_space).shape))
+        # Off until the learner says otherwise (with gate=None: at its first update).
+        self.register_buffer("esa_active", torch.zeros((), dtype=torch.float32))
+
+    def esa_is_active(self) -> bool:
+        """Whether the learner's gate lets ESA shift actions now."""
+        return bool(self.esa_active.item() > 0.5)
+
+    def esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Bounds of the sessions (ESA's clip), in action units; None = unbounded."""
+        raise NotImplementedError
+
+    def esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Where the env clips actions, in action units (for ``esa/clipped_fraction``)."""
+        dim = self.esa_action_dim
+        if self.esa_settings.get("normalize_actions", True):
+            return -np.ones(dim), np.ones(dim)
+        space = _box(self.action_space)
+        return space.low.reshape(-1).astype(np.float64), space.high.reshape(-1).astype(np.float64)
+
+    def esa_scale(self, dist_inputs: torch.Tensor) -> torch.Tensor:
+        """The policy's standard deviation in action units, shape ``(N, D)``."""
+        raise NotImplementedError
+
+    def esa_q(self, obs: Any, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The probed critic at ``(obs, actions)`` (rows aligned), shape ``(B,)``."""
+        raise NotImplementedError
+
+    def _forward_exploration(self, batch: dict[str, Any], **kwargs: Any) -> dict[str, Any]:
+        # The RLModule's method, next in the MRO of the concrete classes below.
+        out: dict[str, Any] = super()._forward_exploration(batch, **kwargs)  # type: ignore[misc]
+        out[ESA_OBS] = batch[Columns.OBS]
+        return out
+
+
+class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
+    """RLlib's default SAC module, keeping the probed Q networks in its env-runner copy.
+
+    ``model_config["esa"]["probe_critic"]`` picks them as in ``ESASAC``: the online or the
+    Polyak target twins, their minimum or mean (default ``target_mean``). Only those are
+    kept and shipped to the env runners; the learner's module is RLlib's, unchanged.
+    """
+
+    def setup(self) -> None:
+        """Builds RLlib's SAC module, plus the probed Q networks when inference-only."""
+        super().setup()
+        self._setup_esa()
+        if self.get_exploration_action_dist_cls() is not TorchSquashedGaussian:
+            raise ValueError(
+                "expected SAC's squashed Gaussian for ESA, got "
+                f"{self.get_exploration_action_dist_cls().__name__}"
+            )
+        probe = self.esa_settings.get("probe_critic", "target_mean")
+        if probe not in PROBE_CRITICS:
+            raise ValueError(f"expected probe_critic in {PROBE_CRITICS}, got {probe!r}")
+        self.esa_probe_critic = probe
+        self.esa_probe_online = probe.startswith("online")
+        if self.inference_only:
+            # RLlib's setup skipped the Q networks here. They are overwritten by the
+            # learner's weights before the first sample; built on a forked generator so
+            # that the env runner's random stream stays plain RLlib's.
+            catalog = self.catalog
+            assert catalog is not None  # RLlib's default SAC module always has one
+            with torch.random.fork_rng(devices=[]):
+                self.qf_encoder = catalog.build_qf_encoder(framework=self.framework)
+                self.qf = catalog.build_qf_head(framework=self.framework)
+                if self.twin_q:
+                    self.qf_twin_encoder = catalog.build_qf_encoder(framework=self.framework)
+                    self.qf_twin = catalog.build_qf_head(framework=self.framework)
+                if not self.esa_probe_online:
+                    self.target_qf_encoder = make_target_network(self.qf_encoder)
+                    self.target_qf = make_target_network(self.qf)
+                    if self.twin_q:
+                        self.target_qf_twin_encoder = make_target_network(self.qf_twin_encoder)
+                        self.target_qf_twin = make_target_network(self.qf_twin)
+
+    def get_non_inference_attributes(self) -> list[str]:
+        """RLlib's list less the probed networks: those are kept and shipped."""
+        online = ["qf", "qf_encoder"] + (["qf_twin", "qf_twin_encoder"] if self.twin_q else [])
+        target = [f"target_{name}" for name in online]
+        return target if self.esa_probe_online else online
+
+    def esa_space(self) -> tuple[np.ndarray, np.ndarray]:
+        """SAC's squashed space, [-1, 1]."""
+        return -np.ones(self.esa_action_dim), np.ones(self.esa_action_dim)
+
+    def esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """SAC's actions are in [-1, 1] whatever the env: its bounds are those."""
+        return self.esa_space()
+
+    def esa_scale(self, dist_inputs: torch.Tensor) -> torch.Tensor:
+        """``min((1 - tanh(mu)^2) std, 1)``: tanh's linearization at the mean, as ESASAC."""
+        mean, log_std = dist_inputs.chunk(2, dim=-1)
+        std = log_std.clamp(MIN_LOG_NN_OUTPUT, MAX_LOG_NN_OUTPUT).exp()
+        squashed = torch.tanh(mean)
+        return ((1.0 - squashed**2) * std).clamp(max=1.0)
+
+    def _esa_q_pair(self, obs: Any, actions: torch.Tensor, online: bool) -> torch.Tensor:
+        """Both Q networks (or the one) at ``(obs, actions)``, shape ``(B, 1 or 2)``."""
+        batch = {Columns.OBS: obs, Columns.ACTIONS: actions}
+        prefix = "" if online else "target_"
+        names = ["qf", "qf_twin"] if self.twin_q else ["qf"]
+        # RLlib's public Q methods (compute_q_values, forward_target) give the twins'
+        # minimum only; its helper gives each. It returns a tensor (typed as a dict).
+        q = [
+            cast(
+                torch.Tensor,
+                self._qf_forward_train_helper(
+                    batch,
+                    getattr(self, f"{prefix}{name}_encoder"),
+                    getattr(self, f"{prefix}{name}"),
+                ),
+            )
+            for name in names
+        ]
+        return torch.stack(q, dim=1)
+
+    def esa_q(self, obs: Any, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The probed critic (``probe_critic``) at ``(obs, actions)``."""
+        return self.esa_critic(obs, actions, self.esa_probe_critic)
+
+    def esa_critic(self, obs: Any, actions: torch.Tensor, which: str) -> torch.Tensor:
+        """Q of ``which`` (one of :data:`PROBE_CRITICS`) at ``(obs, actions)``, shape ``(B,)``."""
+        online, reduce = which.split("_")
+        q = self._esa_q_pair(obs, actions, online == "online")
+        return q.min(dim=1).values if reduce == "min" else q.mean(dim=1)
+
+    def esa_mean_action(self, obs: Any) -> torch.Tensor:
+        """The squashed policy's mean action ``tanh(mu(s))``."""
+        logits = self.pi(self.pi_encoder({Columns.OBS: obs})[ENCODER_OUT])
+        return torch.tanh(logits.chunk(2, dim=-1)[0])
+
+
+class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
+    """RLlib's default PPO module plus ``ESAPPO``'s advantage head ``A(s, a) = w(s) . z``.
+
+    ``z = (a - mu(s)) / sigma(s)`` in the module's action units; ``w`` is
+    :class:`~esa_client.sb3.advantage_head.AdvantageHead` on the flattened observation
+    (``model_config["esa"]["head_hidden"]`` units per layer). The head is not in PPO's
+    optimizer; :class:`~esa_client.rllib.learners.EsaPPOTorchLearner` fits it. It is not
+    among RLlib's non-inference attributes, so the env runners' copy keeps it and the
+    weight sync ships it.
+    """
+
+    def setup(self) -> None:
+        """Builds RLlib's PPO module and the advantage head."""
+        super().setup()
+        self._setup_esa()
+        if self.get_exploration_action_dist_cls() is not TorchDiagGaussian:
+            raise ValueError(
+                "expected PPO's diagonal Gaussian for ESA, got "
+                f"{self.get_exploration_action_dist_cls().__name__}"
+            )
+        if self.model_config.get("use_lstm") or self.model_config.get("use_attention"):
+            raise ValueError("expected a stateless PPO module for ESA, got a recurrent one")
+        if self.observation_space is None:
+            raise ValueError("expected an observation space for ESA's advantage head, got None")
+        features = int(gym.spaces.flatdim(self.observation_space))
+        # A forked generator: the head must not move PPO's random stream.
+        with torch.random.fork_rng(devices=[]):
+            self.esa_head = AdvantageHead(
+                features, self.esa_action_dim, int(self.esa_settings.get("head_hidden", 64))
+            )
+
+    @staticmethod
+    def esa_features(obs: torch.Tensor) -> torch.Tensor:
+        """The observation as the head sees it: flattened, float."""
+        return obs.reshape(len(obs), -1).float()
+
+    def esa_space(self) -> tuple[None, None]:
+        """PPO's Gaussian is unbounded: RLlib stores its samples unclipped, as SB3 does."""
+        return None, None
+
+    def esa_scale(self, dist_inputs: torch.Tensor) -> torch.Tensor:
+        """The Gaussian's standard deviation."""
+        return dist_inputs.chunk(2, dim=-1)[1].exp()
+
+    def esa_z(self, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Policy-normalized actions ``(a - mu) / sigma``."""
+        mean, log_std = dist_inputs.chunk(2, dim=-1)
+        return (actions.reshape(len(actions), -1) - mean) / log_std.exp()
+
+    def esa_q(self, obs: Any, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The advantage head at ``(obs, actions)``."""
+        advantage: torch.Tensor = self.esa_head(
+            self.esa_features(obs), self.esa_z(dist_inputs, actions)
+        )
+        return advantage

@@ -1,0 +1,297 @@
+"""ESA for Ray RLlib: real runs through a real server (skipped without ``esa-client[rllib]``).
+
+Two EnvRunners x two envs of SAC and of PPO on Pendulum-v1, a few hundred steps each, on
+one local Ray instance: the env executes the actions ESA applied (RLlib's unsquash of
+the stored ones), the stored actions are ``a_t + v(t)`` with the server's shift, PPO
+stores them unclipped with ``log pi_old(a_t)``, both runners share one node sidecar that
+stops after them, and the env runners' critics are the learner's. Then learning rate 0
+equals plain RLlib bit for bit (see ``test_learning_rate_zero_equals_plain_rllib`` for
+where RLlib is deterministic).
+"""
+
+import gc
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("ray.rllib")
+
+import gymnasium as gym  # noqa: E402
+import ray  # noqa: E402
+import torch  # noqa: E402
+from ray import cloudpickle  # noqa: E402
+from ray.rllib.algorithms.ppo import PPOConfig  # noqa: E402
+from ray.rllib.algorithms.sac import SACConfig  # noqa: E402
+from ray.rllib.core import DEFAULT_MODULE_ID  # noqa: E402
+from ray.rllib.core.columns import Columns  # noqa: E402
+from ray.rllib.core.distribution.torch.torch_distribution import (  # noqa: E402
+    TorchDiagGaussian,
+    TorchSquashedGaussian,
+)
+from ray.tune.registry import register_env  # noqa: E402
+
+from esa_client import EsaConfig  # noqa: E402
+from esa_client.rllib import ESA_SHIFT, EsaModuleToEnv, with_esa  # noqa: E402
+
+# The env creator below travels to the Ray workers by value (this module is not importable
+# there under pytest's importlib mode).
+cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+UNGATED = EsaConfig(gate=None)
+ENV = "esa-test-pendulum"
+
+
+class ExecutedAction(gym.Wrapper):
+    """Pendulum-v1 that reports the action it executed in ``info["executed"]``."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated, truncated, {**info, "executed": np.array(action)}
+
+
+def make_env(_config=None):
+    return ExecutedAction(gym.make("Pendulum-v1"))
+
+
+@pytest.fixture(scope="module")
+def ray_session(server_bin, tmp_path_factory):
+    """One local Ray instance; its workers find the server and a private sidecar dir."""
+    sidecar = tmp_path_factory.mktemp("rllib") / "sidecar"
+    saved = {k: os.environ.get(k) for k in ("ESA_SERVER_BIN", "ESA_RLLIB_SIDECAR_DIR")}
+    os.environ.update(ESA_SERVER_BIN=server_bin, ESA_RLLIB_SIDECAR_DIR=str(sidecar))
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    register_env(ENV, make_env)
+    try:
+        yield sidecar
+    finally:
+        ray.shutdown()
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def sac_config(runners: int, seed: int = 0) -> SACConfig:
+    return (
+        SACConfig()
+        .environment(ENV)
+        .env_runners(
+            num_env_runners=runners,
+            num_envs_per_env_runner=2,
+            rollout_fragment_length=25,
+            num_cpus_per_env_runner=1,
+        )
+        .training(num_steps_sampled_before_learning_starts=100, train_batch_size_per_learner=32)
+        # SAC's default also runs each iteration for at least 1 s: how many steps it
+        # samples and trains then depends on the machine's speed. Steps only here.
+        .reporting(min_sample_timesteps_per_iteration=100, min_time_s_per_iteration=0)
+        .debugging(seed=seed)
+    )
+
+
+def ppo_config(runners: int, seed: int = 0) -> PPOConfig:
+    return (
+        PPOConfig()
+        .environment(ENV)
+        .env_runners(
+            num_env_runners=runners,
+            num_envs_per_env_runner=2,
+            rollout_fragment_length=50,
+            num_cpus_per_env_runner=1,
+        )
+        .training(train_batch_size_per_learner=200, minibatch_size=50, num_epochs=2)
+        .debugging(seed=seed)
+    )
+
+
+def esa_connector(runner) -> EsaModuleToEnv:
+    return next(c for c in runner._module_to_env.connectors if isinstance(c, EsaModuleToEnv))
+
+
+def collect(runner):
+    """One more sample on a runner: what it stored, what its envs executed, its sessions."""
+    episodes = runner.sample(num_timesteps=40, explore=True)
+    rows = {"actions": [], "shift": [], "logp": [], "dist": [], "executed": []}
+    for episode in episodes:
+        n = len(episode)
+        if n == 0:
+            continue
+        rows["actions"].append(np.asarray(episode.get_actions()))
+        rows["shift"].append(np.asarray(episode.get_extra_model_outputs(ESA_SHIFT)))
+        rows["logp"].append(np.asarray(episode.get_extra_model_outputs(Columns.ACTION_LOGP)))
+        rows["dist"].append(np.asarray(episode.get_extra_model_outputs(Columns.ACTION_DIST_INPUTS)))
+        rows["executed"].append(np.stack([i["executed"] for i in episode.get_infos()[1:]]))
+    connector = esa_connector(runner)
+    return {
+        **{k: np.concatenate(v) for k, v in rows.items()},
+        "address": connector.runtime.client.address,
+        "sessions": connector.runtime.batch.ids,
+        "state": runner.module.get_state(),
+        "pid": os.getpid(),
+    }
+
+
+def learner_state(algo):
+    state = algo.learner_group.get_state(components="learner/rl_module")
+    return state["learner"]["rl_module"][DEFAULT_MODULE_ID]
+
+
+def wait_stopped(sidecar, timeout=15.0):
+    """True once the node sidecar has stopped (its keeper drops server.json and says so)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        log = (sidecar / "keeper.log").read_text() if (sidecar / "keeper.log").exists() else ""
+        done = log.count("serving ") == log.count("no runner left: stopped")
+        if done and not (sidecar / "server.json").exists():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def two_runner_run(config, iterations):
+    algo = with_esa(config, UNGATED, record_shift=True).build_algo()
+    try:
+        results = [algo.train() for _ in range(iterations)]
+        samples = algo.env_runner_group.foreach_env_runner(collect, local_env_runner=False)
+        return results, samples, learner_state(algo)
+    finally:
+        algo.stop()
+
+
+def check_shared_sidecar(sidecar, samples):
+    addresses = {s["address"] for s in samples}
+    assert len({s["pid"] for s in samples}) == 2
+    assert len(addresses) == 1, addresses
+    assert addresses.pop().startswith(f"unix:{sidecar}/")
+    assert len({i for s in samples for i in s["sessions"]}) == 4  # 2 runners x 2 envs
+    assert wait_stopped(sidecar), "the node sidecar outlived its runners"
+    log = (sidecar / "keeper.log").read_text()
+    assert log.count("serving ") == log.count("no runner left: stopped") >= 1
+
+
+def test_sac_two_runners_execute_and_store_esa_actions(ray_session):
+    results, samples, learner = two_runner_run(sac_config(runners=2), iterations=3)
+    assert results[-1]["env_runners"]["esa/mean_abs_shift"] > 0
+    assert results[-1]["env_runners"]["esa/active"] > 0
+    for s in samples:
+        actions, shift = s["actions"], s["shift"]
+        assert np.all(np.abs(actions) <= 1.0)  # SAC's squashed space: clipped there
+        assert np.mean(np.abs(shift) > 0) > 0.5
+        # The env executed RLlib's unsquash of the stored action (Pendulum: [-2, 2]).
+        np.testing.assert_allclose(s["executed"], 2.0 * actions, rtol=0, atol=1e-6)
+        # The stored action is the sample plus the server's shift; RLlib's logp is the sample's.
+        sampled = torch.as_tensor(actions - shift)
+        inner = (sampled.abs() < 0.99).all(dim=1)
+        dist = TorchSquashedGaussian.from_logits(torch.as_tensor(s["dist"]))
+        logp = dist.logp(sampled).numpy()
+        np.testing.assert_allclose(logp[inner], s["logp"][inner], rtol=1e-4, atol=1e-4)
+        # The env runner probes the learner's target critics (synced after the last update).
+        for key in ("target_qf.net.mlp.0.weight", "target_qf_twin.net.mlp.0.weight"):
+            matching = [k for k in s["state"] if k.startswith(key.split(".")[0] + ".")]
+            assert matching, f"no {key.split('.')[0]} on the env runner"
+            for k in matching:
+                np.testing.assert_array_equal(s["state"][k], learner[k])
+        assert not any(k.startswith(("qf.", "qf_twin.")) for k in s["state"])
+    check_shared_sidecar(ray_session, samples)
+
+
+def test_ppo_two_runners_store_applied_actions_and_behaviour_logp(ray_session):
+    results, samples, learner = two_runner_run(ppo_config(runners=2), iterations=2)
+    learners = results[-1]["learners"][DEFAULT_MODULE_ID]
+    assert np.isfinite(learners["esa/head_loss"])
+    assert "esa/gate_correlation" in learners
+    for s in samples:
+        x, shift = s["actions"], s["shift"]
+        assert np.mean(np.abs(shift) > 0) > 0.5
+        assert np.any(np.abs(x) > 1.0)  # stored unclipped
+        np.testing.assert_allclose(s["executed"], np.clip(2.0 * x, -2.0, 2.0), atol=1e-5)
+        dist = TorchDiagGaussian.from_logits(torch.as_tensor(s["dist"]))
+        behaviour = dist.logp(torch.as_tensor(x - shift)).numpy()
+        # log pi_old(a_t), the exact behaviour log-probability of x = a_t + v(t) ...
+        np.testing.assert_allclose(s["logp"], behaviour, rtol=1e-5, atol=1e-5)
+        # ... not the policy's density at x.
+        assert not np.allclose(s["logp"], dist.logp(torch.as_tensor(x)).numpy())
+        # The advantage head on the env runner is the one the learner fitted.
+        head = [k for k in learner if k.startswith("esa_head.")]
+        assert head and "esa_active" in s["state"]
+        for k in [*head, "esa_active"]:
+            np.testing.assert_array_equal(s["state"][k], learner[k])
+    check_shared_sidecar(ray_session, samples)
+
+
+def weights(algo):
+    return {k: v for k, v in learner_state(algo).items() if not k.startswith("esa_")}
+
+
+def local_run(config, iterations):
+    algo = config.build_algo()
+    buffer = getattr(algo, "local_replay_buffer", None)
+    if buffer is not None:
+        # RLlib's episode replay buffers draw from an unseeded generator (seed=None).
+        buffer.rng = np.random.default_rng(0)
+    try:
+        for _ in range(iterations):
+            algo.train()
+        episodes = algo.env_runner.sample(num_timesteps=20, explore=True)
+        actions = np.concatenate([np.asarray(e.get_actions()) for e in episodes if len(e)])
+        return weights(algo), actions
+    finally:
+        algo.stop()
+
+
+@pytest.mark.parametrize("algorithm", ["sac", "ppo"])
+def test_learning_rate_zero_equals_plain_rllib(ray_session, algorithm):
+    """With learning rate 0, ESA changes no action: weights and samples are plain RLlib's.
+
+    On the local EnvRunner (no remote runners), where RLlib is deterministic for a fixed
+    seed once two things are pinned: SAC's iterations are bounded by steps only (its
+    default ``min_time_s_per_iteration=1`` makes the amount of training per iteration
+    depend on wall time, see ``sac_config``), and its episode replay buffer, whose
+    generator RLlib leaves unseeded, draws from a seeded one. The ESA module's extra
+    networks are built on a forked torch generator, so they draw nothing from RLlib's.
+    """
+    make = sac_config if algorithm == "sac" else ppo_config
+    plain_weights, plain_actions = local_run(make(runners=0, seed=3), iterations=2)
+    config = with_esa(make(runners=0, seed=3), EsaConfig(learning_rate=0.0, gate=None))
+    esa_weights, esa_actions = local_run(config, iterations=2)
+    assert plain_weights.keys() == esa_weights.keys()
+    for key in plain_weights:
+        np.testing.assert_array_equal(esa_weights[key], plain_weights[key], err_msg=key)
+    np.testing.assert_array_equal(esa_actions, plain_actions)
+    gc.collect()  # the local EnvRunner's connector lets go of the sidecar when collected
+    assert wait_stopped(ray_session)
+
+
+def test_with_esa_refuses_what_it_cannot_do():
+    from ray.rllib.algorithms.dqn import DQNConfig
+
+    with pytest.raises(ValueError, match="SACConfig or PPOConfig"):
+        with_esa(DQNConfig())
+    with pytest.raises(ValueError, match="probe_critic"):
+        with_esa(SACConfig(), probe_critic="online_max")
+    with pytest.raises(ValueError, match="head_epochs"):
+        with_esa(PPOConfig(), head_epochs=0)
+    with pytest.raises(ValueError, match="EsaConfig"):
+        with_esa(PPOConfig(), esa={"amplitude": 0.1})
+    config = with_esa(PPOConfig())
+    # Twice replaces the first connector instead of stacking two.
+    factory = with_esa(config)._module_to_env_connector
+    assert factory.previous is None
+    assert json.dumps(config.rl_module_spec.model_config["esa"])  # plain data
+
+
+def test_the_shared_esa_code_imports_without_stable_baselines3():
+    # esa_client.rllib runs ESA with the SB3 drop-ins' runtime and advantage head: those
+    # must not pull in stable-baselines3, which esa-client[rllib] does not install.
+    code = (
+        "import sys; sys.modules['stable_baselines3'] = None\n"
+        "import esa_client.rllib.connector, esa_client.rllib.learners\n"
+        "assert 'stable_baselines3' not in [m.split('.')[0] for m in sys.modules if sys.modules[m]]"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
