@@ -205,7 +205,13 @@ fn a_bad_zenoh_config_stops_the_server_with_a_message() {
 /// directory (no orphans after SIGKILL, SIGTERM or SIGHUP).
 #[tokio::test]
 async fn the_server_exits_with_its_parent_whatever_kills_it() {
-    for signal_name in ["KILL", "TERM", "HUP"] {
+    for (signal_name, number) in [("KILL", 9), ("TERM", 15), ("HUP", 1)] {
+        if ignored_here(number) {
+            // An ignored signal stays ignored in every child (nohup ignores SIGHUP), so
+            // the launcher could not die of it: nothing to test.
+            eprintln!("SIG{signal_name} is ignored by this test process: not tested");
+            continue;
+        }
         let dir = tempfile::tempdir().unwrap();
         let script = r#""$0" --uds "$1/esa.sock" --remove-dir-on-exit "$1" --parent-pid $$ \
             >/dev/null 2>&1 </dev/null & echo $!; wait"#;
@@ -238,6 +244,17 @@ async fn the_server_exits_with_its_parent_whatever_kills_it() {
             "SIG{signal_name}: directory left behind"
         );
     }
+}
+
+/// Whether this process ignores signal `number` (`SigIgn` of /proc/self/status).
+fn ignored_here(number: u32) -> bool {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap();
+    let mask = status
+        .lines()
+        .find_map(|line| line.strip_prefix("SigIgn:"))
+        .map(|hex| u64::from_str_radix(hex.trim(), 16).unwrap())
+        .unwrap();
+    mask & (1 << (number - 1)) != 0
 }
 
 #[test]
