@@ -150,9 +150,12 @@ def test_unauthenticated_maps_from_stream_errors_too():
     assert isinstance(error, Unauthenticated) and isinstance(error, PermissionError)
 
 
+# The trainer must be able to die of each signal, even when the tests run under nohup
+# (which ignores SIGHUP in every child).
 TRAINER = """
-import sys, time
+import signal, sys, time
 from esa_client import EsaClient
+signal.signal(signal.SIGHUP, signal.SIG_DFL)
 client = EsaClient.spawn(sys.argv[1])
 print(client.server.pid, client.server.socket_path.parent, flush=True)
 time.sleep(60)
