@@ -5,6 +5,7 @@
 //! generator and any Rust client share these types; the server's side of the
 //! service is generated in esa-server.
 
+pub mod convert;
 pub mod details;
 mod rpc;
 

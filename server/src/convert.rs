@@ -1,58 +1,19 @@
-//! Conversions between the wire types (`pb`) and `esa_core` types. Values are
-//! copied as sent; validation is the core's job (`SessionConfig::validate`).
+//! The server's side of the wire/core conversions (`esa_proto::convert`): a
+//! request's config is required.
 
 use esa_core::SessionConfig;
 
 use crate::error::Error;
 use crate::pb;
 
+pub use esa_proto::convert::{config_to_proto, session_snapshot};
+
 /// The core config for a request's `config` field, which is required.
 pub fn config_from_proto(config: Option<pb::SessionConfig>) -> Result<SessionConfig, Error> {
     let c = config.ok_or_else(|| {
         Error::InvalidArgument("config: required, expected a SessionConfig, got none".into())
     })?;
-    Ok(SessionConfig {
-        action_dim: c.action_dim,
-        dt: c.dt,
-        amplitude: c.amplitude,
-        frequency: c.frequency,
-        learning_rate: c.learning_rate,
-        highpass_cutoff: c.highpass_cutoff,
-        disable_highpass: c.disable_highpass,
-        action_low: c.action_low,
-        action_high: c.action_high,
-        shift_limit: c.shift_limit,
-        lr_decay: c.lr_decay,
-        max_episodes: c.max_episodes,
-        normalize_response: c.normalize_response,
-        response_rms_rate: c.response_rms_rate,
-        response_clip: c.response_clip,
-        shift_leak: c.shift_leak,
-        trust_region: c.trust_region,
-    })
-}
-
-/// The wire form of a session's config, as it was given at creation.
-pub fn config_to_proto(c: &SessionConfig) -> pb::SessionConfig {
-    pb::SessionConfig {
-        action_dim: c.action_dim,
-        dt: c.dt,
-        amplitude: c.amplitude.clone(),
-        frequency: c.frequency.clone(),
-        learning_rate: c.learning_rate.clone(),
-        highpass_cutoff: c.highpass_cutoff,
-        disable_highpass: c.disable_highpass,
-        action_low: c.action_low.clone(),
-        action_high: c.action_high.clone(),
-        shift_limit: c.shift_limit,
-        lr_decay: c.lr_decay,
-        max_episodes: c.max_episodes,
-        normalize_response: c.normalize_response,
-        response_rms_rate: c.response_rms_rate,
-        response_clip: c.response_clip,
-        shift_leak: c.shift_leak,
-        trust_region: c.trust_region,
-    }
+    Ok(esa_proto::convert::config_from_proto(c))
 }
 
 #[cfg(test)]

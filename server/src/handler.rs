@@ -12,7 +12,7 @@ use prost::Message;
 use subtle::ConstantTimeEq as _;
 
 use crate::codec::{self, WireLimits};
-use crate::convert::{config_from_proto, config_to_proto};
+use crate::convert::{config_from_proto, session_snapshot};
 use crate::error::Error;
 use crate::metrics::{Metrics, StoreGauges};
 use crate::pb;
@@ -178,16 +178,8 @@ impl EsaHandler {
     /// A snapshot of one session's config and state.
     pub fn get_session(&self, req: pb::GetSessionRequest) -> Result<pb::GetSessionResponse, Error> {
         self.observe(Rpc::GetSession, || {
-            self.store.with_session(&req.session_id, |session| {
-                Ok(pb::GetSessionResponse {
-                    config: Some(config_to_proto(&session.config())),
-                    step: session.step(),
-                    episodes_completed: session.episodes_completed(),
-                    shift: session.shift().to_vec(),
-                    probe_pending: session.probe_pending(),
-                    response_mean_square: session.response_mean_square(),
-                })
-            })
+            self.store
+                .with_session(&req.session_id, |session| Ok(session_snapshot(session)))
         })
     }
 

@@ -8,7 +8,8 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use esa_core::batch::{self, BatchError};
 use esa_core::{CoreError, Session, SessionConfig};
 
-use crate::pb;
+use esa_proto::convert::session_snapshot;
+use esa_proto::v1 as pb;
 
 /// Longest accepted session id, in bytes (the server's limit).
 pub const MAX_ID_BYTES: usize = 128;
@@ -280,14 +281,7 @@ impl Engine {
     /// A snapshot of a session, as GetSession answers it.
     pub fn get_session(&mut self, id: &str) -> Result<pb::GetSessionResponse, EngineError> {
         let session = self.session_mut(id)?;
-        Ok(pb::GetSessionResponse {
-            config: Some(config_to_proto(&session.config())),
-            step: session.step(),
-            episodes_completed: session.episodes_completed(),
-            shift: session.shift().to_vec(),
-            probe_pending: session.probe_pending(),
-            response_mean_square: session.response_mean_square(),
-        })
+        Ok(session_snapshot(session))
     }
 
     /// The session `id` (INVALID_ARGUMENT for a malformed id, NOT_FOUND for an unknown one).
@@ -520,50 +514,4 @@ fn shared_dim(sessions: &[&mut Session]) -> Option<usize> {
         .iter()
         .all(|s| s.action_dim() == first)
         .then_some(first)
-}
-
-/// The core config of a wire config (values copied as sent; the core validates).
-pub fn config_from_proto(c: pb::SessionConfig) -> SessionConfig {
-    SessionConfig {
-        action_dim: c.action_dim,
-        dt: c.dt,
-        amplitude: c.amplitude,
-        frequency: c.frequency,
-        learning_rate: c.learning_rate,
-        highpass_cutoff: c.highpass_cutoff,
-        disable_highpass: c.disable_highpass,
-        action_low: c.action_low,
-        action_high: c.action_high,
-        shift_limit: c.shift_limit,
-        lr_decay: c.lr_decay,
-        max_episodes: c.max_episodes,
-        normalize_response: c.normalize_response,
-        response_rms_rate: c.response_rms_rate,
-        response_clip: c.response_clip,
-        shift_leak: c.shift_leak,
-        trust_region: c.trust_region,
-    }
-}
-
-/// The wire form of a session's config, as it was given at creation.
-pub fn config_to_proto(c: &SessionConfig) -> pb::SessionConfig {
-    pb::SessionConfig {
-        action_dim: c.action_dim,
-        dt: c.dt,
-        amplitude: c.amplitude.clone(),
-        frequency: c.frequency.clone(),
-        learning_rate: c.learning_rate.clone(),
-        highpass_cutoff: c.highpass_cutoff,
-        disable_highpass: c.disable_highpass,
-        action_low: c.action_low.clone(),
-        action_high: c.action_high.clone(),
-        shift_limit: c.shift_limit,
-        lr_decay: c.lr_decay,
-        max_episodes: c.max_episodes,
-        normalize_response: c.normalize_response,
-        response_rms_rate: c.response_rms_rate,
-        response_clip: c.response_clip,
-        shift_leak: c.shift_leak,
-        trust_region: c.trust_region,
-    }
 }

@@ -18,11 +18,7 @@ use pyo3::types::{PyBytes, PyDict, PyTuple};
 
 mod engine;
 
-/// Types generated from `proto/esa/v1/esa.proto` (build.rs).
-#[allow(dead_code, missing_docs, clippy::all)]
-mod pb {
-    include!(concat!(env!("OUT_DIR"), "/esa.v1.rs"));
-}
+use esa_proto::v1 as pb;
 
 /// By default, batches of more action values than this run with the GIL released (measured:
 /// `native/bench_engine.py --gil`); below it, releasing the GIL and taking it back (and copying the
@@ -131,7 +127,7 @@ impl Engine {
             )
         })?;
         self.lock(py)
-            .create_session(session_id, engine::config_from_proto(config))
+            .create_session(session_id, esa_proto::convert::config_from_proto(config))
             .map_err(|err| engine_error(py, err))
     }
 
