@@ -1,7 +1,8 @@
 """Writes BENCHMARKS.md and the latency-vs-batch PNG from the results of ``bench/run.sh``.
 
 Reads ``bench/results/``: ``server.json`` (esa-bench), ``python.json``
-(client_latency.py), ``training.json`` (training_overhead.py), ``run.json``
+(client_latency.py), ``training.json`` (training_overhead.py), ``sizes.json``
+(artifact_sizes.py: the wheel and the binaries), ``run.json``
 (machine, load and commands, written by run.sh) and ``core.json``, the medians
 of the core pair bench that run.sh copies out of criterion's estimates (read
 from ``target/criterion`` when ``core.json`` is missing). Every issue-7 target
@@ -134,11 +135,55 @@ def at_most(limit: float) -> Callable[[float], bool]:
     return lambda x: x <= limit
 
 
+MIB = 2**20
+
+# Wall-clock of an ESA agent over its plain algorithm, per engine (the sidecar pays the
+# round trips of a process boundary); rows of runs that predate the engine choice ran
+# the sidecar.
+TRAINING_LIMITS = {"inprocess": 1.15, "sidecar": 1.25}
+
+
+def size_targets(sizes: dict | None) -> list[Target]:
+    """The wheel (<= 10 MB) and the server binaries (reported) from ``sizes.json``."""
+    sizes = sizes or {}
+    out = []
+    wheel = sizes.get("wheel")
+    out.append(
+        Target(
+            "wheel size (`make wheel`: extension + bundled stripped esa-server)",
+            "<= 10 MB",
+            f"{wheel['bytes'] / 1e6:.1f} MB ({Path(wheel['path']).name})"
+            if wheel
+            else "not measured",
+            wheel["bytes"] <= 10e6 if wheel else None,
+        )
+    )
+    for key, what in [
+        ("wheel_server", "esa-server binary in the wheel (profile `dist`: fat LTO, stripped)"),
+        ("wheel_extension", "extension `esa_client._native` in the wheel"),
+        ("server_release", "esa-server binary, profile `release` (`make build`)"),
+    ]:
+        entry = sizes.get(key)
+        out.append(
+            Target(
+                what,
+                NO_TARGET,
+                f"{entry['bytes'] / MIB:.1f} MiB" if entry else "not measured",
+                None,
+            )
+        )
+    return out
+
+
 def targets(
-    core: dict, server: dict | None, python: dict | None, training: dict | None
+    core: dict,
+    server: dict | None,
+    python: dict | None,
+    training: dict | None,
+    sizes: dict | None = None,
 ) -> list[Target]:
     """Every performance target with its measured figure."""
-    out = []
+    out = size_targets(sizes)
     wall, cpu = core.get(("wall", 6)), core.get(("cpu", 6))
     out.append(
         Target(
@@ -203,6 +248,24 @@ def targets(
                 best_8["p50_us"] <= limit if best_8 and limit is not None else None,
             )
         )
+    in_process_8 = find(py_rows, server="esa-native", envs=8)
+    out.append(
+        Target(
+            "Python SessionBatch(8) pair p50 in-process (`EsaClient.in_process()`)",
+            "<= 10 us",
+            f"{fmt(in_process_8['p50_us'])} us" if in_process_8 else "not measured",
+            in_process_8["p50_us"] <= 10 if in_process_8 else None,
+        )
+    )
+    uds_8 = min((r for r in esa_8 if r["socket"] == "uds"), key=lambda r: r["p50_us"], default=None)
+    out.append(
+        Target(
+            "Python SessionBatch(8) pair p50 over the Unix socket (best api)",
+            "<= 150 us",
+            f"{fmt(uds_8['p50_us'])} us ({uds_8['api']})" if uds_8 else "not measured",
+            uds_8["p50_us"] <= 150 if uds_8 else None,
+        )
+    )
     baseline_ratio = server_baseline_ratio(server)
     out.append(
         Target(
@@ -223,12 +286,13 @@ def targets(
     )
     for row in training["rows"] if training else []:
         envs = row.get("n_envs", training["args"].get("n_envs"))
+        limit = TRAINING_LIMITS[row.get("engine", "sidecar")]
         out.append(
             Target(
                 f"{row['esa']} / {row['plain']} wall-clock ({row['steps']} steps, {envs} env(s))",
-                "<= 1.25" if row["plain"] == "PPO" else NO_TARGET,
+                f"<= {limit}",
                 f"{row['ratio_median']:.2f}",
-                row["ratio_median"] <= 1.25 if row["plain"] == "PPO" else None,
+                row["ratio_median"] <= limit,
             )
         )
     rss = server.get("rss") if server else None
@@ -422,7 +486,9 @@ def python_section(python: dict) -> list[str]:
         f"{args['warmup']:g} s warm-up, then at most {args['window']:g} s or "
         f"{args['max_pairs']:,} pairs. `batch` = ProbeBatch/ReportBatch calls "
         "(`use_stream=False`, the default), `stream` = the StepStream. `uds` is "
-        "`EsaClient.spawn()`, what the SB3 drop-ins use. `reference` = "
+        '`EsaClient.spawn()`, what the SB3 drop-ins use with `esa_engine="sidecar"`; '
+        "`esa-native` = `EsaClient.in_process()` (esa-core in-process, their default). "
+        "`reference` = "
         "`esa_client.reference` in-process; `python-grpcio` = `bench/python/baseline_server.py`. "
         "`zenoh` = `ZenohEsaClient.spawn()` (esa-server `--zenoh` on loopback): `batch` = "
         "queries on `esa/v1/ProbeBatch`/`ReportBatch`, `stream` = one query per StepStream "
@@ -469,8 +535,10 @@ def training_section(training: dict) -> list[str]:
         f"`n_steps={args['ppo_n_steps']}`, `batch_size=64` and SAC "
         f"`learning_starts={args['sac_learning_starts']}`; ESA agents with the shipped "
         "`EsaConfig()` (its gate keeps ESA off while the critic is poor) and with "
-        "`EsaConfig(gate=None)` (ESA at every step once a critic exists), each with a private "
-        "esa-server (Unix socket, StepStream, one pipelined round trip per step). Wall-clock "
+        "`EsaConfig(gate=None)` (ESA at every step once a critic exists), each on both engines "
+        "(`esa_engine`): `[inprocess]` = esa-core in the trainer's process, `[sidecar]` = a "
+        "private esa-server (Unix socket, StepStream, one pipelined round trip per step). "
+        f"PPO rollouts of `n_steps={args['ppo_n_steps']}` per env. Wall-clock "
         f"of `learn()`, {args['repeats']} alternating repeats; ratio = median of the "
         "per-repeat ratios.",
         "",
@@ -741,6 +809,7 @@ def main() -> None:
     python = load(args.results / "python.json")
     training = load(args.results / "training.json")
     run = load(args.results / "run.json")
+    sizes = load(args.results / "sizes.json")
     laws = core_medians(load(args.results / "core.json"), args.criterion)
     core = laws["1"]
     section_1b = load(args.results / "section_1b.json")
@@ -762,7 +831,7 @@ def main() -> None:
             ["target", "goal", "measured", ""],
             [
                 [t.name, t.goal, t.measured, verdict(t)]
-                for t in targets(core, server, python, training)
+                for t in targets(core, server, python, training, sizes)
             ],
         ),
         "",

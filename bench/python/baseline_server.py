@@ -86,6 +86,11 @@ class BaselineSession:
         s = np.sin(self.w * (self.t * self.config.dt))
         return np.clip(action + self.v + self.k * s, self.low, self.high)
 
+    def applied(self) -> np.ndarray:
+        """Algorithm 1's action to apply, ``clip(a_t + v(t))``, for the pending probe."""
+        shift = 0.0 if self.passthrough() else self.v
+        return np.clip(self.pending + shift, self.low, self.high)
+
     def report(self, step: int, q: float) -> np.ndarray:
         """Updates the shift from the probe's value and returns the improved action."""
         if step == self.t - 1 and self.pending is None and self.last_action is not None:
@@ -159,7 +164,9 @@ class BaselineServicer(esa_pb2_grpc.EsaServiceServicer):
             session = self._session(request.session_id, context)
             action = np.array(request.action, dtype=np.float64)
             out = session.probe(request.step, action, request.episode_start)
-            return esa_pb2.ProbeResponse(probe=out.tolist(), step=request.step)
+            return esa_pb2.ProbeResponse(
+                probe=out.tolist(), step=request.step, action=session.applied().tolist()
+            )
 
         return self._run(context, probe)
 
@@ -214,7 +221,10 @@ class BaselineServicer(esa_pb2_grpc.EsaServiceServicer):
                 s.probe(step, a, start)
                 for s, step, a, start in zip(sessions, request.steps, actions, starts, strict=True)
             ]
-            return esa_pb2.ProbeBatchResponse(probes=np.concatenate(probes).tolist())
+            applied = [s.applied() for s in sessions]
+            return esa_pb2.ProbeBatchResponse(
+                probes=np.concatenate(probes).tolist(), actions=np.concatenate(applied).tolist()
+            )
 
         return self._run(context, probe_batch)
 

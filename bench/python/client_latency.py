@@ -9,7 +9,9 @@ N = 1, 8, 64 envs of D = 6 against:
 - esa-server with ``--zenoh`` on loopback (``ZenohEsaClient.spawn``): the same two
   ways, as queries on ``esa/v1/ProbeBatch``/``ReportBatch`` or one query per
   StepStream message on ``esa/v1/StepStream``;
-- ``esa_client.reference`` in-process (no server, no network);
+- ``EsaClient.in_process()``: esa-core in this process (``esa_client._native``), the
+  in-process engine of the SB3 drop-ins;
+- ``esa_client.reference`` in-process (numpy; no server, no network);
 - ``baseline_server.py``, a plain Python grpcio server, through the same client.
 
 Section 1b of CONTRACT.md (``--parts 1b``, written to ``--section-1b-out``): the
@@ -181,6 +183,7 @@ def targets() -> list[Target]:
             )
         )
         out.append(("python-grpcio", "tcp", api, lambda: client_at(baseline_server())))
+    out.append(("esa-native", "in-process", "-", EsaClient.in_process))
     out.append(("reference", "in-process", "-", lambda: nullcontext(ReferenceClient())))
     return out
 
@@ -193,6 +196,7 @@ def section_1b_targets() -> list[Target]:
         out.append(
             ("esa-server", "uds", api, lambda: EsaClient.spawn(server_binary(), timeout=30.0))
         )
+    out.append(("esa-native", "in-process", "-", EsaClient.in_process))
     out.append(("reference", "in-process", "-", lambda: nullcontext(ReferenceClient())))
     return out
 

@@ -1,8 +1,9 @@
 """Training wall-clock with and without ESA: PPO vs ESAPPO and SAC vs ESASAC.
 
 Each pair trains for the same number of steps on InvertedPendulum-v5, the same seed
-and hyperparameters, torch on one thread, once with one env (SB3's default, how most
-users run it) and once with 8 envs (``DummyVecEnv``). Every ESA agent runs once per
+and hyperparameters, torch on one thread, with one env by default (SB3's default, how
+most users run it; ``--n-envs 1,8`` adds 8 envs in a ``DummyVecEnv``), PPO with SB3's
+default 2048-step rollouts. Every ESA agent runs once per
 engine (``esa_engine``): ``inprocess`` (esa-core in the trainer's process) and
 ``sidecar`` (a private esa-server, Unix socket, StepStream). Only ``learn()`` is timed;
 for the ESA agents that includes opening the engine or spawning the server, the round
@@ -20,7 +21,7 @@ round trips plus critic evaluations) and ESAPPO's advantage-head fit and gate.
 
 Usage::
 
-    python bench/python/training_overhead.py [--ppo-steps 12288] [--sac-steps 8000]
+    python bench/python/training_overhead.py [--ppo-steps 12288] [--sac-steps 8000] [--n-envs 1]
 """
 
 from __future__ import annotations
@@ -52,9 +53,9 @@ class Args:
     """Benchmark settings (all overridable on the command line)."""
 
     env_id: str = "InvertedPendulum-v5"
-    n_envs: str = "1,8"
+    n_envs: str = "1"
     ppo_steps: int = 12_288
-    ppo_n_steps: int = 256
+    ppo_n_steps: int = 2048
     sac_steps: int = 8_000
     sac_learning_starts: int = 800
     repeats: int = 2
