@@ -1,5 +1,9 @@
 """Fixtures: the real esa-server binary, a shared spawned server, and config generators."""
 
+import os
+import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +34,46 @@ def client(server_bin):
     """One private server for the whole session; tests use unique session ids."""
     with EsaClient.spawn(server_bin) as c:
         yield c
+
+
+@contextmanager
+def tcp_server(server_bin: str, *args: str) -> Iterator[str]:
+    """esa-server on a free loopback port with ``args``, stopped on exit; yields its address."""
+    server = subprocess.Popen(
+        # Dies with this test process, whatever ends it.
+        [server_bin, "--listen", "127.0.0.1:0", "--parent-pid", str(os.getpid()), *args],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert server.stdout is not None
+        address = next(
+            (
+                line.removeprefix("listening on ").strip()
+                for line in server.stdout
+                if line.startswith("listening on ")
+            ),
+            None,
+        )
+        if address is None:
+            server.wait(timeout=10)
+            pytest.fail(f"esa-server exited ({server.returncode}) without listening")
+        yield address
+    finally:
+        server.terminate()
+        try:
+            server.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()
+
+
+@pytest.fixture(scope="session")
+def serve_tcp():
+    """:func:`tcp_server`: ``with serve_tcp(server_bin, *args) as address``."""
+    return tcp_server
 
 
 def random_config(rng: np.random.Generator, action_dim: int | None = None) -> SessionConfig:

@@ -5,8 +5,6 @@ the client's own exceptions, never a raw ``grpc.RpcError``, otherwise.
 The certificates are fixed test-only files (fixtures/tls/README.md)."""
 
 import json
-import os
-import subprocess
 from pathlib import Path
 
 import grpc
@@ -29,66 +27,25 @@ TRUSTING = TlsConfig(ca=PKI / "ca.pem")
 TRAINER = TlsConfig(ca=PKI / "ca.pem", cert=PKI / "client.pem", key=PKI / "client-key.pem")
 
 
-def spawn_tls(server_bin: str, *args: str) -> tuple[subprocess.Popen[str], str]:
-    """Starts esa-server over TLS on a free loopback port; returns it and its address."""
-    server = subprocess.Popen(
-        [
-            server_bin,
-            "--listen",
-            "127.0.0.1:0",
-            "--tls-cert",
-            str(PKI / "server.pem"),
-            "--tls-key",
-            str(PKI / "server-key.pem"),
-            # Dies with this test process, whatever ends it.
-            "--parent-pid",
-            str(os.getpid()),
-            *args,
-        ],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-    )
-    assert server.stdout is not None
-    for line in server.stdout:
-        if line.startswith("listening on "):
-            return server, line.removeprefix("listening on ").strip()
-    server.wait(timeout=10)
-    pytest.fail(f"esa-server exited ({server.returncode}) without listening")
-
-
-def stop(server: subprocess.Popen[str]) -> None:
-    server.terminate()
-    try:
-        server.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        server.kill()
-        server.wait()
+TLS_ARGS = ("--tls-cert", str(PKI / "server.pem"), "--tls-key", str(PKI / "server-key.pem"))
 
 
 @pytest.fixture(scope="module")
-def tls_server(server_bin):
-    server, address = spawn_tls(server_bin)
-    yield address
-    stop(server)
+def tls_server(server_bin, serve_tcp):
+    """esa-server over TLS on a free loopback port; yields its address."""
+    with serve_tcp(server_bin, *TLS_ARGS) as address:
+        yield address
 
 
 @pytest.fixture(scope="module")
-def mutual_server(server_bin, tmp_path_factory):
+def mutual_server(server_bin, serve_tcp, tmp_path_factory):
     """Mutual TLS and a token, the setup for a server reachable beyond its host."""
     token_file = tmp_path_factory.mktemp("token") / "token"
     token_file.write_text(TOKEN)
     token_file.chmod(0o600)
-    server, address = spawn_tls(
-        server_bin,
-        "--tls-client-ca",
-        str(PKI / "ca.pem"),
-        "--auth-token-file",
-        str(token_file),
-    )
-    yield address
-    stop(server)
+    client_ca = ("--tls-client-ca", str(PKI / "ca.pem"), "--auth-token-file", str(token_file))
+    with serve_tcp(server_bin, *TLS_ARGS, *client_ca) as address:
+        yield address
 
 
 def probe_and_report(client: EsaClient, use_stream: bool) -> None:

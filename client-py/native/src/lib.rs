@@ -5,6 +5,9 @@
 //! in between. Validation and error codes are the server's (CONTRACT.md section 2): a refused
 //! call raises `EngineError(code, message, index)` with the gRPC status code the server answers
 //! the same case with, and changes nothing. The stub `esa_client/_native.pyi` documents the API.
+//!
+//! A [`client::GrpcClient`] reaches an esa-server instead: the same calls over gRPC (tonic), the
+//! GIL released while they wait; a failed call raises `StatusError(code, message, index)`.
 
 use numpy::ndarray::Array2;
 use numpy::{Element, IntoPyArray, PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
@@ -16,6 +19,7 @@ use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
 use pyo3::types::{PyBytes, PyDict, PyTuple};
 
+mod client;
 mod engine;
 
 use esa_proto::v1 as pb;
@@ -35,11 +39,22 @@ create_exception!(
 
 fn engine_error(py: Python<'_>, err: engine::EngineError) -> PyErr {
     let exc = EngineError::new_err(err.message.clone());
+    status_error(py, exc, err.code as i32, err.message, err.index)
+}
+
+/// `exc` with the attributes of a failed call: its gRPC `code` number, `message` and `index`.
+fn status_error(
+    py: Python<'_>,
+    exc: PyErr,
+    code: i32,
+    message: String,
+    index: Option<usize>,
+) -> PyErr {
     let value = exc.value(py);
     let attributes = (|| -> PyResult<()> {
-        value.setattr("code", err.code as i32)?;
-        value.setattr("message", err.message)?;
-        value.setattr("index", err.index)?;
+        value.setattr("code", code)?;
+        value.setattr("message", message)?;
+        value.setattr("index", index)?;
         Ok(())
     })();
     match attributes {
@@ -449,13 +464,17 @@ fn shaped<'py>(
     }
 }
 
-/// esa-core in-process: `Engine`, `BatchHandle`, `EngineError` and the gRPC code numbers.
+/// esa-core in-process (`Engine`, `BatchHandle`, `EngineError`), a gRPC client (`GrpcClient`,
+/// `GrpcBatch`, `StatusError`) and the gRPC code numbers.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
     m.add_class::<Engine>()?;
     m.add_class::<BatchHandle>()?;
     m.add("EngineError", py.get_type::<EngineError>())?;
+    m.add_class::<client::GrpcClient>()?;
+    m.add_class::<client::GrpcBatch>()?;
+    m.add("StatusError", py.get_type::<client::StatusError>())?;
     m.add("INVALID_ARGUMENT", engine::Code::InvalidArgument as i32)?;
     m.add("NOT_FOUND", engine::Code::NotFound as i32)?;
     m.add("ALREADY_EXISTS", engine::Code::AlreadyExists as i32)?;

@@ -1,4 +1,4 @@
-"""esa-core in-process (the Rust extension built from client-py/native).
+"""esa-core in-process and a gRPC client (the Rust extension built from client-py/native).
 
 An :class:`Engine` holds sessions by id, like an esa-server, and runs the server's all-or-nothing
 batches over numpy arrays without a process or a socket in between. Validation and error codes
@@ -212,3 +212,119 @@ class Engine:
             EngineError: As ReportBatch: INVALID_ARGUMENT, FAILED_PRECONDITION, NOT_FOUND;
                 ``index`` names the failing item.
         """
+
+class StatusError(Exception):
+    """A failed call of :class:`GrpcClient`: the server's status, or the connection's.
+
+    Attributes:
+        code: The gRPC status code number (UNAVAILABLE = 14 for a server that cannot be
+            reached or a closed client, DEADLINE_EXCEEDED = 4 for no answer in time).
+        message: The status message.
+        index: The failing batch item, from the status details (``esa.v1.BatchItem``), or None.
+    """
+
+    code: int
+    message: str
+    index: int | None
+
+class GrpcBatch:
+    """The ``ProbeBatch`` / ``ReportBatch`` calls of N sessions, from :meth:`GrpcClient.batch`.
+
+    Arrays are read as :meth:`Engine.probe` reads them; answers are float64[N, D].
+    """
+
+    def probe(
+        self,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None = None,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """ProbeBatch: returns ``(probes, applied)``.
+
+        Raises:
+            StatusError: The server's error (``index`` names the failing item), or the wire's.
+            ValueError: ``steps`` holds negative integers, an array cannot be converted, or
+                the answer is not N * D values.
+        """
+
+    def report(
+        self,
+        steps: npt.ArrayLike,
+        q_values: npt.ArrayLike,
+        q_references: npt.ArrayLike | None = None,
+    ) -> npt.NDArray[np.float64]:
+        """ReportBatch: returns the improved actions.
+
+        Raises:
+            StatusError: As :meth:`probe`.
+            ValueError: As :meth:`probe`.
+        """
+
+    def __len__(self) -> int:
+        """N, the number of sessions."""
+
+class GrpcClient:
+    """A gRPC client of one esa-server (tonic), the GIL released while a call waits.
+
+    It connects on the first call, and again after a lost connection. Every call has the
+    deadline ``timeout`` and carries ``authorization: Bearer <token>`` when a token is given.
+
+    Args:
+        address: ``host:port`` (TCP) or ``unix:/path/to/socket``.
+        timeout: Deadline of every call, in seconds.
+        token: The server's auth token, or None.
+
+    Raises:
+        ValueError: A malformed address, timeout or token.
+    """
+
+    def __init__(self, address: str, timeout: float, token: str | None = None) -> None: ...
+    def create_session(self, session_id: str, config: bytes) -> str:
+        """CreateSession with an encoded ``esa.v1.SessionConfig``; returns the id."""
+
+    def get_session(self, session_id: str) -> bytes:
+        """GetSession: the encoded ``esa.v1.GetSessionResponse``."""
+
+    def close_session(self, session_id: str) -> None:
+        """CloseSession."""
+
+    def end_episode(self, session_id: str) -> int:
+        """EndEpisode: returns the completed episodes."""
+
+    def probe_one(
+        self,
+        session_id: str,
+        step: int,
+        action: npt.ArrayLike,
+        episode_start: bool,
+        action_scale: npt.ArrayLike | None = None,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Probe: returns ``(probe, applied)``, float64[D] each.
+
+        Raises:
+            StatusError: The server's error, or the wire's.
+            OverflowError: ``step`` is negative or above 2^64 - 1.
+        """
+
+    def report_one(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None = None
+    ) -> npt.NDArray[np.float64]:
+        """Report: returns the improved action, float64[D].
+
+        Raises:
+            StatusError: The server's error, or the wire's.
+            OverflowError: ``step`` is negative or above 2^64 - 1.
+        """
+
+    def batch(self, session_ids: Sequence[str], dim: int) -> GrpcBatch:
+        """The batch calls of these sessions (in item order), all of action dimension ``dim``."""
+
+    def healthy(self, timeout: float, wait_for_ready: bool = False) -> bool:
+        """Whether the server's health service answers SERVING within ``timeout`` seconds.
+
+        ``wait_for_ready`` retries while the server cannot be reached, up to the deadline.
+        """
+
+    def close(self) -> None:
+        """Drops the connection; later calls raise StatusError(UNAVAILABLE). Idempotent."""

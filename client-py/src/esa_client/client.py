@@ -16,7 +16,7 @@ import time
 import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import grpc
 
@@ -27,7 +27,11 @@ from .grpc_transport import GrpcTransport, TlsConfig
 from .session import Session, SessionBatch, restore_sessions
 from .sidecar import ServerProcess
 from .state import SessionState, as_batch_configs
+from .stub_transport import ServiceStub
 from .transport import Transport
+
+if TYPE_CHECKING:
+    from .native_transport import NativeGrpcTransport
 
 
 def _check_address(address: str) -> str:
@@ -330,18 +334,23 @@ class EsaClient(BaseClient):
         tls: Connect over TLS (a server started with ``--tls-cert``), e.g.
             ``TlsConfig(ca="ca.pem")``, with ``cert=`` and ``key=`` for mutual TLS; the
             token then travels encrypted. None: plaintext (loopback or a Unix socket).
+        native: Call through the Rust gRPC client of ``esa_client._native``
+            (:class:`~esa_client.native_transport.NativeGrpcTransport`: several times
+            faster per round trip, no TLS, no ``StepStream``) instead of grpcio.
 
     Attributes:
         address: The gRPC target.
         timeout: The per-call deadline in seconds.
-        stub: The generated ``EsaServiceStub`` (for raw access to the wire API).
-        transport: The :class:`~esa_client.grpc_transport.GrpcTransport`.
+        stub: The generated ``EsaServiceStub`` (for raw access to the wire API); grpcio's
+            only, so not with ``native=True``.
+        transport: The :class:`~esa_client.grpc_transport.GrpcTransport`, or the
+            :class:`~esa_client.native_transport.NativeGrpcTransport` with ``native=True``.
         server: The :class:`~esa_client.sidecar.ServerProcess` when started by
             :meth:`spawn`, else None.
         sessions_restored: How many sessions :meth:`restore_sessions` recreated.
     """
 
-    transport: GrpcTransport
+    transport: GrpcTransport | NativeGrpcTransport
 
     def __init__(
         self,
@@ -351,12 +360,13 @@ class EsaClient(BaseClient):
         token: str | None = None,
         token_file: str | os.PathLike[str] | None = None,
         tls: TlsConfig | None = None,
+        native: bool = False,
     ) -> None:
         """Opens a channel to ``address`` (connecting lazily).
 
         Raises:
             ValueError: If the address, timeout or token is malformed, or TLS is asked for
-                on a Unix socket (the server serves TLS on TCP only).
+                on a Unix socket (the server serves TLS on TCP only) or with ``native``.
             OSError: If a token or TLS file cannot be read.
         """
         timeout = check_timeout(timeout)
@@ -366,10 +376,30 @@ class EsaClient(BaseClient):
                 f"expected a host:port address with tls (the server serves TLS on TCP only), "
                 f"got {address!r}"
             )
-        transport = GrpcTransport(address, timeout, resolve_token(token, token_file), tls)
+        resolved = resolve_token(token, token_file)
+        transport: GrpcTransport | NativeGrpcTransport
+        if native:
+            if tls is not None:
+                raise ValueError("expected tls=None with native=True (grpcio serves TLS)")
+            # Imported here: the extension module loads only for those who use it.
+            from .native_transport import NativeGrpcTransport
+
+            transport = NativeGrpcTransport(address, timeout, resolved)
+        else:
+            transport = GrpcTransport(address, timeout, resolved, tls)
+            self._channel = transport.channel
         super().__init__(transport, address=address, timeout=timeout)
-        self.stub = transport.stub
-        self._channel = transport.channel
+
+    @property
+    def stub(self) -> ServiceStub:
+        """The generated ``EsaServiceStub`` of the grpcio channel.
+
+        Raises:
+            AttributeError: With ``native=True`` (no grpcio channel).
+        """
+        if not isinstance(self.transport, GrpcTransport):
+            raise AttributeError("EsaClient(native=True) has no grpcio stub")
+        return self.transport.stub
 
     @classmethod
     def spawn(
@@ -382,6 +412,7 @@ class EsaClient(BaseClient):
         extra_args: Sequence[str] = (),
         timeout: float = 5.0,
         startup_timeout: float = 30.0,
+        native: bool = False,
     ) -> EsaClient:
         """Starts a private esa-server on a Unix socket and returns a client connected to it.
 
@@ -400,6 +431,7 @@ class EsaClient(BaseClient):
             extra_args: Further server arguments.
             timeout: Per-call deadline of the returned client.
             startup_timeout: Seconds to wait for the server to report healthy.
+            native: Call through the Rust gRPC client instead of grpcio (see :class:`EsaClient`).
 
         Raises:
             ValueError: If a limit is not a number at least its minimum.
@@ -414,7 +446,7 @@ class EsaClient(BaseClient):
             extra_args=extra_args,
         )
         return connect_spawned(
-            server, lambda: cls(server.address, timeout=timeout), startup_timeout
+            server, lambda: cls(server.address, timeout=timeout, native=native), startup_timeout
         )
 
     @staticmethod

@@ -9,7 +9,8 @@ from the error's structured details (never from its message).
 
 from __future__ import annotations
 
-from typing import cast
+from types import TracebackType
+from typing import Protocol, cast
 
 import grpc
 from grpc_status import rpc_status
@@ -145,3 +146,45 @@ def _batch_item(call: grpc.Call) -> int | None:
         if detail.Unpack(item):
             return item.index
     return None
+
+
+class StatusLike(Protocol):
+    """What ``esa_client._native``'s ``EngineError`` and ``StatusError`` carry."""
+
+    code: int
+    message: str
+    index: int | None
+
+
+class TypedErrors:
+    """A context that re-raises ``esa_client._native``'s errors as the server's typed ones.
+
+    A class rather than ``contextlib.contextmanager``: it runs on every round trip, and a
+    generator-based context costs about as much as the in-process engine's own call.
+
+    Args:
+        native: The extension's exception class whose instances to translate (their
+            ``code``, ``message`` and ``index`` go to :func:`error_for`).
+    """
+
+    def __init__(self, native: type[Exception]) -> None:
+        """Translates ``native``'s instances."""
+        self._native = native
+
+    def __enter__(self) -> None:
+        """Nothing to set up."""
+        return None
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        error: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        """Raises the typed error of a native one; lets any other pass."""
+        if isinstance(error, self._native):
+            status = cast(StatusLike, error)
+            raise error_for(status.code, status.message, status.index) from None
+        # A step out of uint64's range: a ValueError, as protobuf raises it for the wire.
+        if isinstance(error, OverflowError):
+            raise ValueError(f"step: expected an integer in [0, 2^64), {error}") from None

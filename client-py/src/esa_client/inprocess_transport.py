@@ -11,39 +11,15 @@ processes: a trainer that needs its sessions elsewhere uses the sidecar.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from types import TracebackType
 
 from ._native import BatchHandle, Engine, EngineError
 from ._proto.esa.v1 import esa_pb2
-from .errors import error_for
+from .errors import TypedErrors
 from .state import F64Array, SessionState
 from .transport import BatchProbe, BatchReport
 
 
-class _TypedErrors:
-    """A context that re-raises the engine's errors as the server's typed ones.
-
-    A class rather than ``contextlib.contextmanager``: it runs on every round trip, and a
-    generator-based context costs about as much as the engine's own call.
-    """
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        if isinstance(error, EngineError):
-            raise error_for(error.code, error.message, error.index) from None
-        # A step out of uint64's range: a ValueError, as protobuf raises it for the wire.
-        if isinstance(error, OverflowError):
-            raise ValueError(f"step: expected an integer in [0, 2^64), {error}") from None
-
-
-_typed_errors = _TypedErrors()
+_typed_errors = TypedErrors(EngineError)
 
 
 class InProcessBatch:

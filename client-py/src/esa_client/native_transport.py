@@ -1,0 +1,128 @@
+"""The transport over gRPC through the Rust client of ``esa_client._native``.
+
+``esa_client._native.GrpcClient`` is esa-proto's tonic client on a private runtime that the
+calling thread drives itself, with the GIL released while a call waits: a round trip costs
+no thread hand-off and no Python-level message building (numpy arrays go straight into the
+request). It speaks the same ``esa.v1`` calls as :class:`~esa_client.grpc_transport.
+GrpcTransport` and raises the same :class:`~esa_client.errors.EsaError` subclasses with the
+same failing item. It has no TLS and no ``StepStream``: a batch's round trips are
+``ProbeBatch`` / ``ReportBatch`` calls, whose pair costs less than grpcio's pipelined stream.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from ._native import GrpcBatch, GrpcClient, StatusError
+from ._proto.esa.v1 import esa_pb2
+from .errors import TypedErrors
+from .state import F64Array, SessionState
+from .transport import BatchProbe, BatchReport
+
+_typed_errors = TypedErrors(StatusError)
+
+
+class NativeGrpcBatch:
+    """A batch's round trips as ``ProbeBatch`` / ``ReportBatch`` calls of the Rust client."""
+
+    def __init__(self, batch: GrpcBatch) -> None:
+        """Sends through ``batch`` (its ids and action dimension fixed)."""
+        self._batch = batch
+
+    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
+        """Sends one ProbeBatch."""
+        with _typed_errors:
+            return self._batch.probe(
+                request.steps, request.actions, request.episode_starts, request.action_scales
+            )
+
+    def report(self, request: BatchReport) -> F64Array:
+        """Sends one ReportBatch."""
+        with _typed_errors:
+            return self._batch.report(request.steps, request.q_values, request.q_references)
+
+    def report_then_probe(
+        self, report: BatchReport, probe: BatchProbe
+    ) -> tuple[F64Array, F64Array]:
+        """The report, then the probe (two round trips; a failed report stops the probe)."""
+        self.report(report)
+        return self.probe(probe)
+
+    def close(self) -> None:
+        """Nothing to release: the sessions stay."""
+
+
+class NativeGrpcTransport:
+    """The :class:`~esa_client.transport.Transport` over ``esa_client._native.GrpcClient``.
+
+    Args:
+        address: ``host:port`` or ``unix:/path/to/socket`` (checked by the caller).
+        timeout: Deadline in seconds of every call.
+        token: Sent as ``authorization: Bearer <token>`` with every call; None sends none.
+
+    Attributes:
+        client: The Rust client (connecting lazily).
+    """
+
+    def __init__(self, address: str, timeout: float, token: str | None = None) -> None:
+        """Opens the client (connecting on the first call)."""
+        self.client = GrpcClient(address, timeout, token)
+
+    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
+        """``CreateSession``; returns the id (the server's UUID for an empty one)."""
+        with _typed_errors:
+            return self.client.create_session(session_id, config.SerializeToString())
+
+    def get_session(self, session_id: str) -> SessionState:
+        """``GetSession``."""
+        with _typed_errors:
+            encoded = self.client.get_session(session_id)
+        return SessionState.from_proto(esa_pb2.GetSessionResponse.FromString(encoded))
+
+    def close_session(self, session_id: str) -> None:
+        """``CloseSession``."""
+        with _typed_errors:
+            self.client.close_session(session_id)
+
+    def end_episode(self, session_id: str) -> int:
+        """``EndEpisode``; returns the completed-episode count."""
+        with _typed_errors:
+            return self.client.end_episode(session_id)
+
+    def probe(
+        self,
+        session_id: str,
+        step: int,
+        action: F64Array,
+        episode_start: bool,
+        action_scale: F64Array | None,
+    ) -> tuple[F64Array, F64Array]:
+        """``Probe``; returns the probe and the applied action."""
+        with _typed_errors:
+            return self.client.probe_one(session_id, step, action, episode_start, action_scale)
+
+    def report(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None
+    ) -> F64Array:
+        """``Report``; returns the improved action."""
+        with _typed_errors:
+            return self.client.report_one(session_id, step, q_value, q_reference)
+
+    def open_batch(
+        self, ids: Sequence[str], action_dim: int, *, use_stream: bool
+    ) -> NativeGrpcBatch:
+        """A :class:`NativeGrpcBatch`; ``use_stream`` is ignored (no ``StepStream`` here)."""
+        return NativeGrpcBatch(self.client.batch(list(ids), action_dim))
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
+        """Asks the server's ``grpc.health.v1.Health`` service whether it is serving.
+
+        Args:
+            timeout: Deadline in seconds.
+            wait_for_ready: Retry (up to the deadline) while the server is not reachable yet.
+        """
+        return self.client.healthy(timeout, wait_for_ready)
+
+    def close(self) -> None:
+        """Drops the connection. Idempotent."""
+        self.client.close()
