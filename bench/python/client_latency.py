@@ -5,7 +5,9 @@ the critic at the probes (here ``-|probe|^2``), ``batch.report(q)``. Measured fo
 N = 1, 8, 64 envs of D = 6 against:
 
 - esa-server over loopback TCP and a Unix socket (``EsaClient.spawn``), each with
-  ``ProbeBatch``/``ReportBatch`` calls and with the ``StepStream``;
+  ``ProbeBatch``/``ReportBatch`` calls and with the ``StepStream``, through grpcio, and
+  with the calls through the Rust client of ``esa_client._native`` (api ``native``,
+  ``EsaClient(..., native=True)``);
 - esa-server with ``--zenoh`` on loopback (``ZenohEsaClient.spawn``): the same two
   ways, as queries on ``esa/v1/ProbeBatch``/``ReportBatch`` or one query per
   StepStream message on ``esa/v1/StepStream``;
@@ -156,9 +158,9 @@ def measure(batch, args: Args, law: str = "1", mode: str = "pair") -> dict:
 
 
 @contextmanager
-def client_at(address: AbstractContextManager[str]) -> Iterator[EsaClient]:
-    """An ``EsaClient`` on the address a server context yields."""
-    with address as target, EsaClient(target, timeout=30.0) as client:
+def client_at(address: AbstractContextManager[str], native: bool = False) -> Iterator[EsaClient]:
+    """An ``EsaClient`` (grpcio, or the Rust client) on the address a server context yields."""
+    with address as target, EsaClient(target, timeout=30.0, native=native) as client:
         yield client
 
 
@@ -183,9 +185,23 @@ def targets() -> list[Target]:
             )
         )
         out.append(("python-grpcio", "tcp", api, lambda: client_at(baseline_server())))
+    out += native_targets()
     out.append(("esa-native", "in-process", "-", EsaClient.in_process))
     out.append(("reference", "in-process", "-", lambda: nullcontext(ReferenceClient())))
     return out
+
+
+def native_targets() -> list[Target]:
+    """esa-server over TCP and a Unix socket through the Rust client (batch calls)."""
+    return [
+        ("esa-server", "tcp", "native", lambda: client_at(esa_server_tcp(), native=True)),
+        (
+            "esa-server",
+            "uds",
+            "native",
+            lambda: EsaClient.spawn(server_binary(), timeout=30.0, native=True),
+        ),
+    ]
 
 
 def section_1b_targets() -> list[Target]:

@@ -43,7 +43,9 @@ _parity = sibling("test_inprocess")
 # Collected here too, with this module's ``local``: the native client of another server.
 test_unary_scripts_are_identical = _parity.test_unary_scripts_are_identical
 test_batch_scripts_are_identical = _parity.test_batch_scripts_are_identical
-test_bad_inputs_raise_alike_and_change_nothing = _parity.test_bad_inputs_raise_alike_and_change_nothing
+test_bad_inputs_raise_alike_and_change_nothing = (
+    _parity.test_bad_inputs_raise_alike_and_change_nothing
+)
 CONFIG = _parity.CONFIG
 TOKEN = "native-s3cret-" + "z" * 16
 

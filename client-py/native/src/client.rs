@@ -23,7 +23,7 @@ use pyo3::types::{PyBytes, PyTuple};
 use tokio::runtime::Runtime;
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::transport::{Channel, Endpoint};
-use tonic::{Code, Request, Response, Status};
+use tonic::{Code, Request, Response, Status, TimeoutExpired};
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
@@ -175,22 +175,49 @@ fn keeper(runtime: Arc<Runtime>) -> mpsc::Sender<()> {
         .name("esa-grpc-keeper".into())
         .spawn(move || {
             while let Err(RecvTimeoutError::Timeout) = stopped.recv_timeout(KEEPER_INTERVAL) {
-                runtime.block_on(tokio::time::sleep(KEEPER_DRIVE));
+                runtime.block_on(async { tokio::time::sleep(KEEPER_DRIVE).await });
             }
         });
     stop
 }
 
 /// The `StatusError` of a failed call, with the batch item its details name.
+///
+/// Two of tonic's own statuses get grpcio's (and the contract's) code: a passed deadline is
+/// CANCELLED in tonic, and a connection lost mid-call UNKNOWN, with the error as its source (a
+/// status the server sent has none).
 fn error_of(py: Python<'_>, status: &Status) -> PyErr {
     let index = esa_proto::details::batch_item(status.details()).map(|index| index as usize);
+    let (code, message) = match std::error::Error::source(status) {
+        Some(source) if status.code() == Code::Unknown => (
+            Code::Unavailable,
+            format!("{}: {}", status.message(), chain(source)),
+        ),
+        _ if status.code() == Code::Cancelled
+            && status.message() == TimeoutExpired(()).to_string() =>
+        {
+            (Code::DeadlineExceeded, status.message().to_string())
+        }
+        _ => (status.code(), status.message().to_string()),
+    };
     status_error(
         py,
-        StatusError::new_err(status.message().to_string()),
-        status.code() as i32,
-        status.message().to_string(),
+        StatusError::new_err(message.clone()),
+        code as i32,
+        message,
         index,
     )
+}
+
+/// An error and its sources, `outer: inner: ...`.
+fn chain(error: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = error.to_string();
+    let mut next = error.source();
+    while let Some(source) = next {
+        text = format!("{text}: {source}");
+        next = source.source();
+    }
+    text
 }
 
 fn closed() -> PyErr {
@@ -231,7 +258,12 @@ impl GrpcClient {
     }
 
     /// CreateSession from an encoded `esa.v1.SessionConfig`; returns the id.
-    fn create_session(&self, py: Python<'_>, session_id: String, config: &[u8]) -> PyResult<String> {
+    fn create_session(
+        &self,
+        py: Python<'_>,
+        session_id: String,
+        config: &[u8],
+    ) -> PyResult<String> {
         let config = pb::SessionConfig::decode(config)
             .map_err(|err| PyValueError::new_err(format!("config: {err}")))?;
         let request = pb::CreateSessionRequest {
@@ -239,19 +271,27 @@ impl GrpcClient {
             config: Some(config),
         };
         let remote = self.remote(py)?;
-        let response = remote.call(py, request, |mut s, r| async move {
-            s.create_session(r).await
-        })?;
+        let response = remote.call(
+            py,
+            request,
+            |mut s, r| async move { s.create_session(r).await },
+        )?;
         Ok(response.session_id)
     }
 
     /// GetSession: the encoded `esa.v1.GetSessionResponse`.
-    fn get_session<'py>(&self, py: Python<'py>, session_id: String) -> PyResult<Bound<'py, PyBytes>> {
+    fn get_session<'py>(
+        &self,
+        py: Python<'py>,
+        session_id: String,
+    ) -> PyResult<Bound<'py, PyBytes>> {
         let request = pb::GetSessionRequest { session_id };
         let remote = self.remote(py)?;
-        let response = remote.call(py, request, |mut s, r| async move {
-            s.get_session(r).await
-        })?;
+        let response = remote.call(
+            py,
+            request,
+            |mut s, r| async move { s.get_session(r).await },
+        )?;
         Ok(PyBytes::new(py, &response.encode_to_vec()))
     }
 
@@ -259,9 +299,11 @@ impl GrpcClient {
     fn close_session(&self, py: Python<'_>, session_id: String) -> PyResult<()> {
         let request = pb::CloseSessionRequest { session_id };
         let remote = self.remote(py)?;
-        remote.call(py, request, |mut s, r| async move {
-            s.close_session(r).await
-        })?;
+        remote.call(
+            py,
+            request,
+            |mut s, r| async move { s.close_session(r).await },
+        )?;
         Ok(())
     }
 
@@ -269,9 +311,11 @@ impl GrpcClient {
     fn end_episode(&self, py: Python<'_>, session_id: String) -> PyResult<u64> {
         let request = pb::EndEpisodeRequest { session_id };
         let remote = self.remote(py)?;
-        let response = remote.call(py, request, |mut s, r| async move {
-            s.end_episode(r).await
-        })?;
+        let response = remote.call(
+            py,
+            request,
+            |mut s, r| async move { s.end_episode(r).await },
+        )?;
         Ok(response.episodes_completed)
     }
 
@@ -387,9 +431,11 @@ impl GrpcBatch {
             action_scales: optional_floats(action_scales)?,
         };
         let remote = self.client.get().remote(py)?;
-        let response = remote.call(py, request, |mut s, r| async move {
-            s.probe_batch(r).await
-        })?;
+        let response = remote.call(
+            py,
+            request,
+            |mut s, r| async move { s.probe_batch(r).await },
+        )?;
         let n = self.session_ids.len();
         PyTuple::new(
             py,
@@ -416,9 +462,11 @@ impl GrpcBatch {
             q_references: optional_floats(q_references)?,
         };
         let remote = self.client.get().remote(py)?;
-        let response = remote.call(py, request, |mut s, r| async move {
-            s.report_batch(r).await
-        })?;
+        let response = remote.call(
+            py,
+            request,
+            |mut s, r| async move { s.report_batch(r).await },
+        )?;
         shaped(py, response.actions, self.session_ids.len(), Some(self.dim))
     }
 
