@@ -18,7 +18,6 @@ from .errors import TypedErrors
 from .state import F64Array, SessionState
 from .transport import BatchProbe, BatchReport
 
-
 _typed_errors = TypedErrors(EngineError)
 
 
