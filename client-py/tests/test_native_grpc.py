@@ -10,6 +10,7 @@ token, a dead server, a deadline, a closed client.
 import importlib.util
 import os
 import signal
+import time
 import uuid
 from pathlib import Path
 from types import ModuleType
@@ -47,6 +48,7 @@ test_bad_inputs_raise_alike_and_change_nothing = (
     _parity.test_bad_inputs_raise_alike_and_change_nothing
 )
 CONFIG = _parity.CONFIG
+freeze = sibling("test_lifecycle").freeze
 TOKEN = "native-s3cret-" + "z" * 16
 
 
@@ -113,7 +115,7 @@ def test_a_frozen_server_hits_the_deadline(server_bin):
     with EsaClient.spawn(server_bin, native=True, timeout=0.5) as client:
         session = client.create_session(CONFIG)
         assert client.server is not None
-        os.kill(client.server.pid, signal.SIGSTOP)
+        freeze(client.server.pid)
         try:
             with pytest.raises(DeadlineExceeded) as info:
                 session.probe([0.0, 0.0], episode_start=True)
@@ -121,6 +123,18 @@ def test_a_frozen_server_hits_the_deadline(server_bin):
         finally:
             os.kill(client.server.pid, signal.SIGCONT)
         assert session.probe([0.0, 0.0], episode_start=True).shape == (2,)
+
+
+def test_an_idle_connection_answers_the_servers_pings(server_bin):
+    # The server closes a connection whose ping goes unanswered for 2.5 s; no call runs here.
+    keepalive = ["--keepalive-interval", "0.3", "--keepalive-timeout", "2.5"]
+    with EsaClient.spawn(server_bin, native=True, extra_args=keepalive) as client:
+        batch = client.create_batch(CONFIG, 2)
+        batch.probe(np.zeros((2, 2)), [True, True])
+        time.sleep(3.5)
+        assert batch.report([1.0, 2.0]).shape == (2, 2)
+        assert client.server is not None
+        assert "closed" not in client.server.output_tail().lower()
 
 
 def test_a_closed_client_is_unavailable(server_bin, local):

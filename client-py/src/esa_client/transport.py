@@ -5,6 +5,7 @@ batches are written once against :class:`Transport`, and each way of reaching th
 law implements it:
 
 - gRPC, unary calls or one ``StepStream`` per batch (:mod:`esa_client.grpc_transport`);
+- gRPC through the Rust client of ``esa_client._native`` (:mod:`esa_client.native_transport`);
 - Zenoh queries (:mod:`esa_client.zenoh_transport`);
 - N shards, each reached through its own transport (:mod:`esa_client.sharding`);
 - the in-process engine of ``esa_client._native``, which takes numpy arrays directly.
