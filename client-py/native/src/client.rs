@@ -17,7 +17,7 @@ use numpy::IntoPyArray;
 use parking_lot::RwLock;
 use prost::Message;
 use pyo3::create_exception;
-use pyo3::exceptions::{PyException, PyValueError};
+use pyo3::exceptions::{PyException, PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 use tokio::runtime::Runtime;
@@ -83,7 +83,7 @@ impl Remote {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
-            .map_err(|err| invalid("runtime", &err))?;
+            .map_err(|err| PyOSError::new_err(format!("the client's runtime: {err}")))?;
         let runtime = Arc::new(runtime);
         // Lazily, as a grpcio channel: a server not up yet fails the calls, not the client.
         let channel = {
