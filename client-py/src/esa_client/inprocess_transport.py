@@ -13,9 +13,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ._native import BatchHandle, Engine, EngineError
-from ._proto.esa.v1 import esa_pb2
 from .errors import TypedErrors
-from .state import F64Array, SessionState
+from .native_calls import NativeSessionCalls
+from .state import F64Array
 from .transport import BatchProbe, BatchReport
 
 _typed_errors = TypedErrors(EngineError)
@@ -69,7 +69,7 @@ class InProcessBatch:
         """Nothing to release: the sessions stay."""
 
 
-class InProcessTransport:
+class InProcessTransport(NativeSessionCalls):
     """The :class:`~esa_client.transport.Transport` over an ``esa_client._native.Engine``.
 
     Args:
@@ -87,46 +87,7 @@ class InProcessTransport:
         if engine is None:
             engine = Engine() if max_sessions is None else Engine(max_sessions=max_sessions)
         self.engine = engine
-
-    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
-        """CreateSession; an empty id generates a UUID."""
-        with _typed_errors:
-            return self.engine.create_session(session_id, config.SerializeToString())
-
-    def get_session(self, session_id: str) -> SessionState:
-        """GetSession."""
-        with _typed_errors:
-            encoded = self.engine.get_session(session_id)
-        return SessionState.from_proto(esa_pb2.GetSessionResponse.FromString(encoded))
-
-    def close_session(self, session_id: str) -> None:
-        """CloseSession."""
-        with _typed_errors:
-            self.engine.close_session(session_id)
-
-    def end_episode(self, session_id: str) -> int:
-        """EndEpisode; returns the completed-episode count."""
-        with _typed_errors:
-            return self.engine.end_episode(session_id)
-
-    def probe(
-        self,
-        session_id: str,
-        step: int,
-        action: F64Array,
-        episode_start: bool,
-        action_scale: F64Array | None,
-    ) -> tuple[F64Array, F64Array]:
-        """Probe of one session; returns the probe and the applied action."""
-        with _typed_errors:
-            return self.engine.probe_one(session_id, step, action, episode_start, action_scale)
-
-    def report(
-        self, session_id: str, step: int, q_value: float, q_reference: float | None
-    ) -> F64Array:
-        """Report of one session; returns the improved action."""
-        with _typed_errors:
-            return self.engine.report_one(session_id, step, q_value, q_reference)
+        super().__init__(self.engine, _typed_errors)
 
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool

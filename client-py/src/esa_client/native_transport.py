@@ -14,9 +14,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ._native import GrpcBatch, GrpcClient, StatusError
-from ._proto.esa.v1 import esa_pb2
 from .errors import TypedErrors
-from .state import F64Array, SessionState
+from .native_calls import NativeSessionCalls
+from .state import F64Array
 from .transport import BatchProbe, BatchReport
 
 _typed_errors = TypedErrors(StatusError)
@@ -52,7 +52,7 @@ class NativeGrpcBatch:
         """Nothing to release: the sessions stay."""
 
 
-class NativeGrpcTransport:
+class NativeGrpcTransport(NativeSessionCalls):
     """The :class:`~esa_client.transport.Transport` over ``esa_client._native.GrpcClient``.
 
     Args:
@@ -67,46 +67,7 @@ class NativeGrpcTransport:
     def __init__(self, address: str, timeout: float, token: str | None = None) -> None:
         """Opens the client (connecting on the first call)."""
         self.client = GrpcClient(address, timeout, token)
-
-    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
-        """``CreateSession``; returns the id (the server's UUID for an empty one)."""
-        with _typed_errors:
-            return self.client.create_session(session_id, config.SerializeToString())
-
-    def get_session(self, session_id: str) -> SessionState:
-        """``GetSession``."""
-        with _typed_errors:
-            encoded = self.client.get_session(session_id)
-        return SessionState.from_proto(esa_pb2.GetSessionResponse.FromString(encoded))
-
-    def close_session(self, session_id: str) -> None:
-        """``CloseSession``."""
-        with _typed_errors:
-            self.client.close_session(session_id)
-
-    def end_episode(self, session_id: str) -> int:
-        """``EndEpisode``; returns the completed-episode count."""
-        with _typed_errors:
-            return self.client.end_episode(session_id)
-
-    def probe(
-        self,
-        session_id: str,
-        step: int,
-        action: F64Array,
-        episode_start: bool,
-        action_scale: F64Array | None,
-    ) -> tuple[F64Array, F64Array]:
-        """``Probe``; returns the probe and the applied action."""
-        with _typed_errors:
-            return self.client.probe_one(session_id, step, action, episode_start, action_scale)
-
-    def report(
-        self, session_id: str, step: int, q_value: float, q_reference: float | None
-    ) -> F64Array:
-        """``Report``; returns the improved action."""
-        with _typed_errors:
-            return self.client.report_one(session_id, step, q_value, q_reference)
+        super().__init__(self.client, _typed_errors)
 
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool

@@ -1,0 +1,109 @@
+"""The session calls of the two transports over ``esa_client._native``.
+
+``Engine`` (esa-core in this process) and ``GrpcClient`` (esa-proto's gRPC client) answer
+the same per-session calls with the same arguments: protobuf bytes for a config and a
+snapshot, numpy arrays for one session's step. :class:`NativeSessionCalls` forwards the
+:class:`~esa_client.transport.Transport` methods to either and re-raises its errors as the
+server's typed ones; the two transports add their batches and lifetimes.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy.typing as npt
+
+from ._proto.esa.v1 import esa_pb2
+from .errors import TypedErrors
+from .state import F64Array, SessionState
+
+
+class NativeSessions(Protocol):
+    """What ``Engine`` and ``GrpcClient`` both answer (see ``esa_client/_native.pyi``)."""
+
+    def create_session(self, session_id: str, config: bytes) -> str:
+        """CreateSession; returns the id."""
+        ...
+
+    def get_session(self, session_id: str) -> bytes:
+        """GetSession, as encoded ``GetSessionResponse`` bytes."""
+        ...
+
+    def close_session(self, session_id: str) -> None:
+        """CloseSession."""
+        ...
+
+    def end_episode(self, session_id: str) -> int:
+        """EndEpisode; returns the completed-episode count."""
+        ...
+
+    def probe_one(
+        self,
+        session_id: str,
+        step: int,
+        action: npt.ArrayLike,
+        episode_start: bool,
+        action_scale: npt.ArrayLike | None = None,
+    ) -> tuple[F64Array, F64Array]:
+        """Probe; returns the probe and the applied action."""
+        ...
+
+    def report_one(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None = None
+    ) -> F64Array:
+        """Report; returns the improved action."""
+        ...
+
+
+class NativeSessionCalls:
+    """The per-session Transport methods over a :class:`NativeSessions`.
+
+    Args:
+        sessions: The native object that holds or reaches the sessions.
+        typed_errors: Translates that object's exception into the typed errors.
+    """
+
+    def __init__(self, sessions: NativeSessions, typed_errors: TypedErrors) -> None:
+        """Forwards to ``sessions``."""
+        self._sessions = sessions
+        self._typed_errors = typed_errors
+
+    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
+        """``CreateSession``; an empty id gets a UUID."""
+        with self._typed_errors:
+            return self._sessions.create_session(session_id, config.SerializeToString())
+
+    def get_session(self, session_id: str) -> SessionState:
+        """``GetSession``."""
+        with self._typed_errors:
+            encoded = self._sessions.get_session(session_id)
+        return SessionState.from_proto(esa_pb2.GetSessionResponse.FromString(encoded))
+
+    def close_session(self, session_id: str) -> None:
+        """``CloseSession``."""
+        with self._typed_errors:
+            self._sessions.close_session(session_id)
+
+    def end_episode(self, session_id: str) -> int:
+        """``EndEpisode``; returns the completed-episode count."""
+        with self._typed_errors:
+            return self._sessions.end_episode(session_id)
+
+    def probe(
+        self,
+        session_id: str,
+        step: int,
+        action: F64Array,
+        episode_start: bool,
+        action_scale: F64Array | None,
+    ) -> tuple[F64Array, F64Array]:
+        """``Probe`` of one session; returns the probe and the applied action."""
+        with self._typed_errors:
+            return self._sessions.probe_one(session_id, step, action, episode_start, action_scale)
+
+    def report(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None
+    ) -> F64Array:
+        """``Report`` of one session; returns the improved action."""
+        with self._typed_errors:
+            return self._sessions.report_one(session_id, step, q_value, q_reference)
