@@ -106,7 +106,10 @@ def sidecar_against_engine() -> int:
 
 
 def train(name: str, make_model: Callable[[], object], steps: int, **learn: object) -> dict:
-    """Trains ``steps`` steps; checks the private server was the bundled one and the stats."""
+    """Trains ``steps`` steps; checks where the sessions lived and the ESA statistics.
+
+    A sidecar model must have used the bundled server; an in-process one no server at all.
+    """
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import configure
 
@@ -114,8 +117,10 @@ def train(name: str, make_model: Callable[[], object], steps: int, **learn: obje
         binaries: set[str] = set()
 
         def _on_step(self) -> bool:
-            if self.model._esa is not None:
-                self.binaries.add(str(self.model._esa.client.server.binary))
+            runtime = self.model._esa
+            if runtime is not None:
+                server = runtime.client.server
+                self.binaries.add(str(server.binary) if server is not None else "in-process")
             return True
 
     folder = Path(tempfile.mkdtemp(prefix=f"esa-wheel-{name}-"))
@@ -124,7 +129,8 @@ def train(name: str, make_model: Callable[[], object], steps: int, **learn: obje
     record = RecordServer()
     model.learn(steps, callback=record, **learn)
     model.esa_close()
-    assert record.binaries == {str(bundled)}, record.binaries
+    expected = str(bundled) if model.esa_engine == "sidecar" else "in-process"
+    assert record.binaries == {expected}, record.binaries
     with open(folder / "progress.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     shift = [float(r["esa/mean_abs_shift"]) for r in rows if r.get("esa/mean_abs_shift")]
@@ -144,28 +150,31 @@ with phase("import esa_client.sb3 (torch, stable-baselines3)"):
     from esa_client.sb3 import ESAPPO, ESASAC
 
 training = {}
-with phase("ESAPPO Pendulum-v1 512 steps"):
-    training["ESAPPO"] = train(
-        "ppo",
-        lambda: ESAPPO(
-            "MlpPolicy",
-            "Pendulum-v1",
-            esa=EsaConfig(gate=None),
-            n_steps=128,
-            batch_size=64,
-            n_epochs=2,
-            seed=0,
-            device="cpu",
-        ),
-        512,
-    )
-with phase("ESASAC Pendulum-v1 400 steps"):
-    training["ESASAC"] = train(
+for engine in ("inprocess", "sidecar"):
+    with phase(f"ESAPPO [{engine}] Pendulum-v1 512 steps"):
+        training[f"ESAPPO [{engine}]"] = train(
+            f"ppo-{engine}",
+            lambda engine=engine: ESAPPO(
+                "MlpPolicy",
+                "Pendulum-v1",
+                esa=EsaConfig(gate=None),
+                esa_engine=engine,
+                n_steps=128,
+                batch_size=64,
+                n_epochs=2,
+                seed=0,
+                device="cpu",
+            ),
+            512,
+        )
+with phase("ESASAC [sidecar] Pendulum-v1 400 steps"):
+    training["ESASAC [sidecar]"] = train(
         "sac",
         lambda: ESASAC(
             "MlpPolicy",
             "Pendulum-v1",
             esa=EsaConfig(gate=None),
+            esa_engine="sidecar",
             learning_starts=100,
             batch_size=64,
             seed=0,
