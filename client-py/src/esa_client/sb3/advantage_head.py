@@ -51,8 +51,13 @@ class AdvantageHead(nn.Module):
 
     def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
         """Returns A for policy-normalized actions ``z``, shape ``(batch,)``."""
-        advantage: th.Tensor = (self.w(features) * z).sum(dim=1)
-        return advantage
+        return self.advantage(self.w(features), z)
+
+    @staticmethod
+    def advantage(w: th.Tensor, z: th.Tensor) -> th.Tensor:
+        """``A = w . z`` row by row, from the network's output ``w = self.w(features)``."""
+        value: th.Tensor = (w * z).sum(dim=1)
+        return value
 
 
 @dataclass

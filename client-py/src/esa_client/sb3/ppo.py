@@ -113,6 +113,7 @@ class ESAPPO(EsaMixin, PPO):
         self._esa_head_data: list[Rollout] = []
         self._esa_head_fitted = False
         self._esa_active = False
+        self._esa_scale: tuple[np.ndarray, np.ndarray] | None = None
         super().__init__(policy, env, *args, esa=esa, esa_address=esa_address, **kwargs)
 
     def _setup_model(self) -> None:
@@ -138,8 +139,9 @@ class ESAPPO(EsaMixin, PPO):
         return [*state_dicts, "esa_head", "esa_head_optimizer"], variables
 
     def _excluded_save_params(self) -> list[str]:
-        # The head's training data are rebuilt from the next rollouts.
-        return [*super()._excluded_save_params(), "_esa_head_data"]
+        # The head's training data are rebuilt from the next rollouts, the scaling from the
+        # action space.
+        return [*super()._excluded_save_params(), "_esa_head_data", "_esa_scale"]
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
@@ -151,10 +153,16 @@ class ESAPPO(EsaMixin, PPO):
 
     def _esa_scaling(self) -> tuple[np.ndarray, np.ndarray]:
         """Center and half-width mapping the Box to [-1, 1] (0 and 1 where a side is open)."""
-        box = self._esa_box()
-        low, high = box.low.reshape(-1), box.high.reshape(-1)
-        bounded = np.isfinite(low) & np.isfinite(high)
-        return np.where(bounded, (high + low) / 2, 0.0), np.where(bounded, (high - low) / 2, 1.0)
+        # Cached: every env step needs it, and the action space never changes.
+        if self._esa_scale is None:
+            box = self._esa_box()
+            low, high = box.low.reshape(-1), box.high.reshape(-1)
+            bounded = np.isfinite(low) & np.isfinite(high)
+            self._esa_scale = (
+                np.where(bounded, (high + low) / 2, 0.0),
+                np.where(bounded, (high - low) / 2, 1.0),
+            )
+        return self._esa_scale
 
     def _to_esa_units(self, actions: np.ndarray) -> np.ndarray:
         center, half_width = self._esa_scaling()
@@ -171,14 +179,24 @@ class ESAPPO(EsaMixin, PPO):
     def _esa_q_at(self, features: th.Tensor, mean: th.Tensor, std: th.Tensor) -> Any:
         """The head at the current observations, for actions in ESA units."""
         center, half_width = self._esa_scaling()
+        mean_np = mean.cpu().numpy()
+        std_np = std.cpu().numpy()
+        # w(s) of the features tiled `reps` times, per reps: the sampled step's second call
+        # (esa/improvement) reuses the first's. Tiled, not broadcast, because a matrix
+        # product's rounding depends on its row count.
+        weights: dict[int, th.Tensor] = {}
 
         def q_fn(actions: np.ndarray) -> np.ndarray:
             reps = len(actions) // len(features)
-            raw = actions * half_width + center
+            raw = (actions * half_width + center).astype(np.float32)
+            # In float32 as torch would compute it (elementwise IEEE, the same bits),
+            # without torch's per-call overhead on these few numbers.
+            z = (raw.reshape(reps, *mean_np.shape) - mean_np) / std_np
             with th.no_grad():
-                a = th.as_tensor(raw, dtype=th.float32, device=self.device)
-                z = (a - mean.repeat(reps, 1)) / std.repeat(reps, 1)
-                values: np.ndarray = self.esa_head(tile_obs(features, reps), z).cpu().numpy()
+                if reps not in weights:
+                    weights[reps] = self.esa_head.w(tile_obs(features, reps))
+                z_t = th.from_numpy(z.reshape(len(actions), -1)).to(self.device)
+                values: np.ndarray = AdvantageHead.advantage(weights[reps], z_t).cpu().numpy()
                 return values
 
         return q_fn

@@ -232,16 +232,24 @@ class EsaRuntime:
         self.client.close()
 
 
+_FOLD_EVERY = 256
+"""Steps whose statistics are computed together: a dozen numpy calls per step would cost
+as much as the ESA step itself, the same calls on a stack of steps almost nothing."""
+
+
 class _Stats:
     """Running sums of what ESA did to the actions since the last log record."""
 
     def __init__(self) -> None:
         self.sums: dict[str, float] = {}
         self.counts: dict[str, int] = {}
+        self._steps: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        self._clip: tuple[np.ndarray, np.ndarray] | None = None
 
-    def _add(self, key: str, value: float) -> None:
-        self.sums[key] = self.sums.get(key, 0.0) + value
-        self.counts[key] = self.counts.get(key, 0) + 1
+    def _add(self, key: str, values: np.ndarray) -> None:
+        """Adds one value per step."""
+        self.sums[key] = self.sums.get(key, 0.0) + float(values.sum())
+        self.counts[key] = self.counts.get(key, 0) + len(values)
 
     def add_step(
         self,
@@ -250,18 +258,39 @@ class _Stats:
         policy_std: np.ndarray | None,
         clip: tuple[np.ndarray, np.ndarray],
     ) -> None:
+        if self._steps and (
+            sampled.shape != self._steps[0][0].shape
+            or (policy_std is None) != (self._steps[0][2] is None)
+        ):
+            self._fold()
+        # Copies: the caller owns the arrays and may reuse them before the fold.
+        std = None if policy_std is None else np.array(policy_std, dtype=np.float64)
+        self._steps.append((sampled.copy(), applied.copy(), std))
+        self._clip = clip
+        if len(self._steps) >= _FOLD_EVERY:
+            self._fold()
+
+    def _fold(self) -> None:
+        """Adds the per-step means of the held steps (all of one shape) to the sums."""
+        if not self._steps or self._clip is None:
+            return
+        sampled = np.stack([s for s, _, _ in self._steps])
+        applied = np.stack([a for _, a, _ in self._steps])
+        # All or none of the held steps have a std (add_step folds when that changes).
+        stds = [d for _, _, d in self._steps if d is not None]
+        self._steps = []
         shift = applied - sampled
-        self._add("mean_abs_shift", float(np.abs(shift).mean()))
-        clipped = (applied < clip[0]) | (applied > clip[1])
-        self._add("clipped_fraction", float(np.any(clipped, axis=1).mean()))
-        if policy_std is not None:
-            z = shift / np.asarray(policy_std, dtype=np.float64)
-            self._add("shift_over_std", float(np.abs(z).mean()))
+        self._add("mean_abs_shift", np.abs(shift).mean(axis=(1, 2)))
+        clipped = (applied < self._clip[0]) | (applied > self._clip[1])
+        self._add("clipped_fraction", np.any(clipped, axis=2).mean(axis=1))
+        if stds:
+            z = shift / np.stack(stds)
+            self._add("shift_over_std", np.abs(z).mean(axis=(1, 2)))
             # KL(behaviour || pi) of N(mu + v, s^2) against N(mu, s^2), per dimension.
-            self._add("kl_per_dim", float((0.5 * z**2).mean()))
+            self._add("kl_per_dim", (0.5 * z**2).mean(axis=(1, 2)))
 
     def add_improvement(self, value: float) -> None:
-        self._add("improvement", value)
+        self._add("improvement", np.array([value]))
 
     def add_restored(self, sessions: int) -> None:
         # A count since the last record, not a mean.
@@ -269,4 +298,5 @@ class _Stats:
         self.counts["sessions_restored"] = 1
 
     def means(self) -> dict[str, float]:
+        self._fold()
         return {key: self.sums[key] / self.counts[key] for key in self.sums}
