@@ -140,7 +140,7 @@ MIB = 2**20
 # Wall-clock of an ESA agent over its plain algorithm, per engine (the sidecar pays the
 # round trips of a process boundary); rows of runs that predate the engine choice ran
 # the sidecar.
-TRAINING_LIMITS = {"inprocess": 1.15, "sidecar": 1.25}
+TRAINING_LIMITS = {"inprocess": 1.15, "sidecar": 1.25, "sidecar-native": 1.25}
 
 
 def size_targets(sizes: dict | None) -> list[Target]:
@@ -535,9 +535,11 @@ def training_section(training: dict) -> list[str]:
         f"`n_steps={args['ppo_n_steps']}`, `batch_size=64` and SAC "
         f"`learning_starts={args['sac_learning_starts']}`; ESA agents with the shipped "
         "`EsaConfig()` (its gate keeps ESA off while the critic is poor) and with "
-        "`EsaConfig(gate=None)` (ESA at every step once a critic exists), each on both engines "
+        "`EsaConfig(gate=None)` (ESA at every step once a critic exists), each on every engine "
         "(`esa_engine`): `[inprocess]` = esa-core in the trainer's process, `[sidecar]` = a "
-        "private esa-server (Unix socket, StepStream, one pipelined round trip per step). "
+        "private esa-server (Unix socket, grpcio StepStream, one pipelined round trip per "
+        "step), `[sidecar-native]` = the same server through the Rust client of "
+        '`esa_client._native` (`esa_spawn={"native": True}`: unary batch calls). '
         f"PPO rollouts of `n_steps={args['ppo_n_steps']}` per env. Wall-clock "
         f"of `learn()`, {args['repeats']} alternating repeats; ratio = median of the "
         "per-repeat ratios.",

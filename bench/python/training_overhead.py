@@ -4,8 +4,10 @@ Each pair trains for the same number of steps on InvertedPendulum-v5, the same s
 and hyperparameters, torch on one thread, with one env by default (SB3's default, how
 most users run it; ``--n-envs 1,8`` adds 8 envs in a ``DummyVecEnv``), PPO with SB3's
 default 2048-step rollouts. Every ESA agent runs once per
-engine (``esa_engine``): ``inprocess`` (esa-core in the trainer's process) and
-``sidecar`` (a private esa-server, Unix socket, StepStream). Only ``learn()`` is timed;
+engine (``esa_engine``): ``inprocess`` (esa-core in the trainer's process),
+``sidecar`` (a private esa-server, Unix socket, grpcio StepStream) and
+``sidecar-native`` (the same server called through the Rust client of
+``esa_client._native``: ``esa_spawn={"native": True}``). Only ``learn()`` is timed;
 for the ESA agents that includes opening the engine or spawning the server, the round
 trips, the critic evaluations and ESAPPO's advantage head.
 The pairs run alternately ``repeats`` times so background load hits both alike.
@@ -60,7 +62,7 @@ class Args:
     sac_learning_starts: int = 800
     repeats: int = 2
     agents: str = "ESAPPO,ESAPPO ungated,ESASAC,ESASAC ungated"
-    engines: str = "inprocess,sidecar"
+    engines: str = "inprocess,sidecar,sidecar-native"
     seed: int = 0
     out: str = "bench/results/training.json"
 
@@ -72,6 +74,13 @@ TIMED = [
     (EsaRuntime, "step", "esa_step"),
     (ESAPPO, "_update_esa_head", "critic_fit"),
 ]
+
+ENGINES = {
+    "inprocess": {"esa_engine": "inprocess"},
+    "sidecar": {"esa_engine": "sidecar"},
+    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"native": True}},
+}
+"""Engine name -> the ESA agent's arguments that choose it."""
 
 AGENTS = {
     "ESAPPO": ("PPO", EsaConfig()),
@@ -121,7 +130,7 @@ def train_seconds(
         name: The agent.
         n_envs: How many envs.
         args: The benchmark settings.
-        engine: The ESA agent's ``esa_engine`` (None for the plain ones).
+        engine: The ESA agent's engine, a key of ``ENGINES`` (None for the plain ones).
 
     Returns:
         The wall-clock seconds and the seconds spent in each ``TIMED`` bucket.
@@ -129,7 +138,7 @@ def train_seconds(
     env = make_vec_env(args.env_id, n_envs=n_envs, seed=args.seed)
     common = dict(seed=args.seed, device="cpu", verbose=0)
     family, esa = AGENTS.get(name, (name, None))
-    chosen = {} if esa is None else {"esa_engine": engine}
+    chosen = {} if esa is None or engine is None else ENGINES[engine]
     if family == "PPO":
         kwargs = dict(n_steps=args.ppo_n_steps, batch_size=64, **common)
         model = (
