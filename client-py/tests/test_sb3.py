@@ -20,7 +20,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
-from esa_client import EsaConfig, SessionBatch
+from esa_client import EsaClient, EsaConfig, SessionBatch
 from esa_client.inprocess_transport import InProcessTransport
 from esa_client.sb3 import ESAPPO, ESASAC, runtime
 from esa_client.sb3.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
@@ -349,6 +349,29 @@ def test_runtime_rejects_a_non_positive_improvement_stride(every):
         EsaRuntime(
             EsaConfig(), None, None, None, None, np.zeros(1), np.ones(1), improvement_every=every
         )
+
+
+def test_a_zero_policy_std_keeps_the_action_instead_of_failing():
+    """A squashed policy saturates (sigma = 0 in float32); ESA must not stop training then."""
+    config = EsaConfig(gate=None)
+    runtime = EsaRuntime.on_client(
+        config,
+        EsaClient.in_process(),
+        config.session_config(2, 0.05, -np.ones(2), np.ones(2)),
+        2,
+        -np.ones(2),
+        np.ones(2),
+    )
+    sampled = np.array([[0.5, -1.0], [0.1, 0.2]])
+    std = np.array([[0.3, 0.0], [0.0, 0.0]], dtype=np.float32)
+    starts = np.ones(2, dtype=bool)
+    for step in range(50):
+        applied = runtime.step(sampled, starts if step == 0 else ~starts, lambda x: x.sum(1), std)
+        assert np.all(np.isfinite(applied))
+        assert np.all(np.abs(applied - sampled)[std == 0] < 1e-30), "no room to move"
+    assert np.abs(applied - sampled)[0, 0] > 0, "the other dimension still moves"
+    assert np.isfinite(runtime._stats.means()["kl_per_dim"])
+    runtime.close()
 
 
 class Pause(BaseCallback):

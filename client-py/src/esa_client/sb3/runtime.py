@@ -51,6 +51,9 @@ def open_client(engine: Engine, address: str | None, spawn: dict[str, Any] | Non
     return EsaClient.spawn(**(spawn or {})) if address is None else EsaClient(address)
 
 
+SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
+"""The floor of the action scale sent for a policy's std (the contract needs sigma > 0)."""
+
 QFunction = Callable[[np.ndarray], np.ndarray]
 """Maps ``(k N, D)`` actions to ``(k N,)`` values at the N current observations tiled k times."""
 
@@ -200,6 +203,12 @@ class EsaRuntime:
             shape ``(N, D)``.
         """
         a = np.asarray(sampled, dtype=np.float64)
+        if policy_std is not None:
+            # A saturated squashed policy (tanh(mu) = +-1 in float32) or an underflowed std
+            # has sigma = 0, which the contract rejects (INVALID_ARGUMENT mid-training). The
+            # smallest positive float32 keeps sigma > 0 and changes no non-zero std; the
+            # trust region and the scaled step then keep v at 0 there, as sigma = 0 means.
+            policy_std = np.maximum(policy_std, SMALLEST_SCALE)
         scale = policy_std if self.esa.use_policy_std else None
         try:
             probes, applied = self.batch.probe_applied(a, episode_starts, action_scales=scale)
