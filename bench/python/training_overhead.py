@@ -41,8 +41,8 @@ from pathlib import Path
 import numpy as np
 import torch as th
 from esa_client import SessionBatch
+from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, ESASAC, EsaConfig
-from esa_client.sb3.runtime import EsaRuntime
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.env_util import make_vec_env
 

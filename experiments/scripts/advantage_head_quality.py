@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch as th
-from esa_client.sb3.advantage_head import rank_correlation
+from esa_client.common.advantage_head import rank_correlation
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env

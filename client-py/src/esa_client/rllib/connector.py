@@ -8,8 +8,8 @@ the user slot, so every action it writes is both what the env executes (after RL
 unsquash/clip) and what the episode stores for training.
 
 Each step, for the N env copies of the EnvRunner (one ESA session each, one StepStream),
-it runs the SB3 drop-ins' ESA step (:class:`esa_client.sb3.runtime.EsaRuntime`, the same
-code): Algorithm 1 with the section 1b law of CONTRACT.md. The policy's samples and
+it runs the SB3 drop-ins' ESA step (:class:`esa_client.common.runtime.EsaRuntime`, the
+same code): Algorithm 1 with the section 1b law of CONTRACT.md. The policy's samples and
 standard deviations go to the server, the module's critic scores the probes and the
 applied actions in one batch, the report rides with the next probe, and the action
 becomes ``a_t + v(t)``:
@@ -40,17 +40,17 @@ from typing import Any
 
 import numpy as np
 import torch
+
+# torch._dynamo is loaded before any gRPC channel exists (as in esa_client.sb3): the
+# learner of a local EnvRunner steps its optimizer while the connector's StepStream is open.
+import torch._dynamo  # noqa: F401  (imported for its side effect)
 from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core.columns import Columns
 
+from ..common.runtime import EsaRuntime
 from ..config import EsaConfig
 from ..env_dt import env_dt
 from ..errors import ServerUnavailable
-
-# Importing the sb3 package also loads torch._dynamo before any gRPC channel exists (see
-# esa_client.sb3): the learner of a local EnvRunner steps its optimizer while the
-# connector's StepStream is open.
-from ..sb3.runtime import EsaRuntime
 from .modules import ESA_OBS, EsaModuleMixin
 from .service import EsaService
 

@@ -9,7 +9,7 @@ action time, on the env runners, so:
   copy. They are part of the weights the learner ships to the env runners after every
   update (``get_non_inference_attributes`` no longer lists them), so they stay synced.
 - :class:`EsaPPOTorchRLModule` adds ``ESAPPO``'s advantage head
-  (:class:`esa_client.sb3.advantage_head.AdvantageHead`, shared code) to PPO's default
+  (:class:`esa_client.common.advantage_head.AdvantageHead`, shared code) to PPO's default
   module. The learner fits it (:class:`~esa_client.rllib.learners.EsaPPOTorchLearner`)
   and it travels to the env runners with the policy's weights.
 
@@ -40,7 +40,7 @@ from ray.rllib.core.learner.utils import make_target_network
 from ray.rllib.core.models.base import ENCODER_OUT
 from ray.rllib.utils.numpy import MAX_LOG_NN_OUTPUT, MIN_LOG_NN_OUTPUT
 
-from ..sb3.advantage_head import AdvantageHead
+from ..common.advantage_head import AdvantageHead
 
 ESA_OBS = "esa_obs"
 """Exploration output column: the observations the module acted on (removed by the connector)."""
@@ -226,7 +226,7 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
     """RLlib's default PPO module plus ``ESAPPO``'s advantage head ``A(s, a) = w(s) . z``.
 
     ``z = (a - mu(s)) / sigma(s)`` in the module's action units; ``w`` is
-    :class:`~esa_client.sb3.advantage_head.AdvantageHead` on the flattened observation
+    :class:`~esa_client.common.advantage_head.AdvantageHead` on the flattened observation
     (``model_config["esa"]["head_hidden"]`` units per layer). The head is not in PPO's
     optimizer; :class:`~esa_client.rllib.learners.EsaPPOTorchLearner` fits it. It is not
     among RLlib's non-inference attributes, so the env runners' copy keeps it and the

@@ -26,8 +26,9 @@ if TYPE_CHECKING:
 def __getattr__(name: str) -> Any:
     """Imports a drop-in on first use.
 
-    So the runtime and the advantage head, which :mod:`esa_client.rllib` shares, import
-    without stable-baselines3 installed.
+    So ``esa_client.sb3`` (and ``EsaConfig`` from it) imports without stable-baselines3
+    installed; the framework-neutral runtime and advantage head live in
+    :mod:`esa_client.common`.
     """
     if name == "ESAPPO":
         from .ppo import ESAPPO

@@ -8,9 +8,9 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
+from ..common.runtime import Engine, EsaRuntime, choose_engine
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
-from .runtime import Engine, EsaRuntime, choose_engine
 
 if TYPE_CHECKING:
     # The mixin is always combined with an SB3 algorithm (ESAPPO, ESASAC): checked as one.

@@ -16,8 +16,8 @@ from stable_baselines3.common.distributions import Distribution
 from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.vec_env import VecEnv
 
+from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from ..config import EsaConfig
-from .advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from .mixin import EsaMixin, tile_obs
 
 

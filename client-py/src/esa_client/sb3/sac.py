@@ -9,7 +9,7 @@ import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.noise import ActionNoise
 
-from .advantage_head import rank_correlation
+from ..common.advantage_head import rank_correlation
 from .mixin import EsaMixin, tile_obs
 
 ProbeCritic = Literal["online_min", "online_mean", "target_min", "target_mean"]

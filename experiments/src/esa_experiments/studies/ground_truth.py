@@ -180,7 +180,7 @@ def _bootstrap_ci(values: np.ndarray, reps: int = 2000, seed: int = 0) -> tuple[
 
 def report(store: RunStore, args: Args) -> str:
     """Per env: the mean return difference with its bootstrap CI, and what the critic knew."""
-    from esa_client.sb3.advantage_head import rank_correlation
+    from esa_client.common.advantage_head import rank_correlation
 
     frame = store.load()
     rows = []

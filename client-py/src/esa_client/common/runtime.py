@@ -1,4 +1,4 @@
-"""The ESA side of an SB3 learner: one session per env, one round trip per step, statistics."""
+"""The ESA side of a learner (SB3 or RLlib): one session per env, one round trip per step."""
 
 from __future__ import annotations
 
