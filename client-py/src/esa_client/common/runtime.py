@@ -215,6 +215,8 @@ class EsaRuntime:
         except SessionNotFound:
             self._stats.add_restored(self.batch.restore())
             probes, applied = self.batch.probe_applied(a, action_scales=scale)
+        # Kept for trainers that execute the probe itself (exploration by the sinusoid).
+        self.last_probes = probes
         n = len(a)
         points = np.concatenate([probes, applied]) if self.esa.paired_response else probes
         q = np.asarray(q_fn(points), dtype=np.float64)
