@@ -138,9 +138,7 @@ def assert_same_states():
 @pytest.fixture(scope="session")
 def zenoh_client(server_bin):
     """One private server with Zenoh on loopback (and gRPC on a Unix socket), over Zenoh."""
-    from esa_client import ZenohEsaClient
-
-    with ZenohEsaClient.spawn(server_bin) as c:
+    with EsaClient.spawn(server_bin, transport="zenoh") as c:
         yield c
 
 

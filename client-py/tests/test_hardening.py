@@ -22,9 +22,9 @@ from esa_client import (
     Unauthenticated,
 )
 from esa_client._proto.esa.v1 import esa_pb2
-from esa_client.client import resolve_token
+from esa_client.base_client import resolve_token
 from esa_client.errors import esa_error
-from esa_client.stub_transport import call
+from esa_client.transports.stub import call
 
 CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
 TOKEN = "s3cret-" + "x" * 20

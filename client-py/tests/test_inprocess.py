@@ -29,7 +29,7 @@ from esa_client import (
 )
 from esa_client._native import Engine
 from esa_client._proto.esa.v1 import esa_pb2
-from esa_client.inprocess_transport import InProcessTransport
+from esa_client.transports.in_process import InProcessTransport
 
 
 def sibling(name: str) -> ModuleType:

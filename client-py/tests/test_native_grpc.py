@@ -1,4 +1,4 @@
-"""The Rust gRPC client (``EsaClient(..., native=True)``) and grpcio answer alike, bit for bit.
+"""The Rust gRPC client (``EsaClient.connect(..., transport="native")``) and grpcio answer alike.
 
 The parity tests of the in-process engine (``test_inprocess.py``) run again with the native
 client of a second real server in place of the engine: the same random scripts through both
@@ -26,7 +26,8 @@ from esa_client import (
     SessionNotFound,
     Unauthenticated,
 )
-from esa_client.native_transport import NativeGrpcTransport
+from esa_client.transports.grpcio import GrpcTransport
+from esa_client.transports.native import NativeGrpcTransport
 
 
 def sibling(name: str) -> ModuleType:
@@ -55,7 +56,7 @@ TOKEN = "native-s3cret-" + "z" * 16
 @pytest.fixture(scope="module")
 def local(server_bin):
     """A second private server on a Unix socket, through the native client."""
-    with EsaClient.spawn(server_bin, native=True) as c:
+    with EsaClient.spawn(server_bin, transport="native") as c:
         yield c
 
 
@@ -75,15 +76,42 @@ def test_the_factories_choose_the_transport(local, client):
     with pytest.raises(AttributeError, match="native"):
         local.stub  # noqa: B018 (the property raises)
     with pytest.raises(ValueError, match="tls"):
-        EsaClient("127.0.0.1:1", native=True, tls=object())  # type: ignore[arg-type]
+        EsaClient.connect("127.0.0.1:1", transport="native", tls=object())  # type: ignore[arg-type]
     assert not isinstance(client.transport, NativeGrpcTransport)
+    with EsaClient.connect(local.address, transport="native", wait_ready=True) as native:
+        assert isinstance(native.transport, NativeGrpcTransport)
+        assert (step_pair(native) == step_pair(local)).all()
+    with EsaClient.connect(local.address) as grpcio:
+        assert isinstance(grpcio.transport, GrpcTransport) and grpcio.healthy()
+
+
+def test_the_deprecated_constructors_still_work(local):
+    """``EsaClient(address, native=...)`` and ``spawn(native=True)``: aliases for one release."""
+    with EsaClient(local.address, native=True) as native:
+        assert isinstance(native.transport, NativeGrpcTransport) and native.healthy()
+    with EsaClient(local.address) as grpcio:
+        assert isinstance(grpcio.transport, GrpcTransport) and grpcio.healthy()
+
+
+@pytest.mark.parametrize(
+    ("arguments", "match"),
+    [
+        ({"transport": "pigeon"}, "transport"),
+        ({"shards": 2}, "shards with transport='zenoh' only"),
+        ({"prefix": "esa/v1", "transport": "native"}, "prefix with transport='zenoh' only"),
+        ({"transport": "zenoh", "tls": object()}, "tls=None with transport='zenoh'"),
+    ],
+)
+def test_connect_refuses_arguments_its_transport_does_not_take(arguments, match):
+    with pytest.raises(ValueError, match=match):
+        EsaClient.connect("127.0.0.1:1", **arguments)
 
 
 def test_tcp_and_the_auth_token(server_bin, serve_tcp, tmp_path):
     token_file = tmp_path / "token"
     token_file.write_text(TOKEN)
     with serve_tcp(server_bin, "--auth-token-file", str(token_file)) as address:
-        with EsaClient(address, native=True, token=TOKEN) as owner:
+        with EsaClient.connect(address, transport="native", token=TOKEN) as owner:
             assert owner.healthy(wait_for_ready=True)
             with EsaClient(address, token=TOKEN) as grpcio:
                 assert (step_pair(owner) == step_pair(grpcio)).all()

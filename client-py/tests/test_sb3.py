@@ -23,8 +23,8 @@ from stable_baselines3.common.logger import configure
 from esa_client import EsaClient, EsaConfig, SessionBatch
 from esa_client.common import runtime
 from esa_client.common.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
-from esa_client.inprocess_transport import InProcessTransport
 from esa_client.sb3 import ESAPPO, ESASAC
+from esa_client.transports.in_process import InProcessTransport
 
 N_ENVS = 4
 pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")

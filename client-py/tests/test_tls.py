@@ -123,7 +123,7 @@ def test_zenoh_over_mutual_tls_admits_only_certificates_of_the_ca(server_bin, tm
     zenoh = pytest.importorskip("zenoh")
     from esa_client import ZenohEsaClient
     from esa_client.sidecar import ServerProcess
-    from esa_client.zenoh_transport import peer_config
+    from esa_client.transports.zenoh_query import peer_config
 
     server_config = tmp_path / "server-mtls.json5"
     server_config.write_text(

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from esa_client import SessionConfig, ZenohEsaClient
+from esa_client import EsaClient, SessionConfig
 from esa_client.sidecar import ServerProcess
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
@@ -65,7 +65,9 @@ def test_the_example_server_waits_for_a_router_that_starts_later(server_bin, tmp
             router_config.insert_json5(key, value)
         with zenoh.open(router_config):
             server.announced("listening on ", 15.0)
-            with ZenohEsaClient(f"tcp/127.0.0.1:{port}", timeout=5.0) as trainer:
+            with EsaClient.connect(
+                f"tcp/127.0.0.1:{port}", transport="zenoh", timeout=5.0
+            ) as trainer:
                 assert trainer.create_session(CONFIG).id
     finally:
         server.stop()

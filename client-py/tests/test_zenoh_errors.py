@@ -13,6 +13,7 @@ import zenoh
 
 from esa_client import (
     DeadlineExceeded,
+    EsaClient,
     InvalidArgument,
     ResourceExhausted,
     ServerUnavailable,
@@ -25,7 +26,7 @@ from esa_client import (
 )
 from esa_client._proto.esa.v1 import esa_pb2
 from esa_client.sidecar import ServerProcess
-from esa_client.zenoh_transport import TwoServersAnswered, peer_config
+from esa_client.transports.zenoh_query import TwoServersAnswered, peer_config
 
 CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
 
@@ -119,6 +120,13 @@ def test_garbage_bytes_get_a_stream_error_payload(zenoh_client):
 
 
 def test_without_the_token_calls_are_unauthenticated(zenoh_client):
+    with EsaClient.connect(
+        zenoh_client.address, transport="zenoh", timeout=5.0, wait_ready=False
+    ) as stranger:
+        assert isinstance(stranger, ZenohEsaClient)
+        with pytest.raises(Unauthenticated):
+            stranger.create_session(CONFIG)
+    # The deprecated constructor, kept for one release, builds the same client.
     with ZenohEsaClient(zenoh_client.address, timeout=5.0, wait_ready=False) as stranger:
         with pytest.raises(Unauthenticated):
             stranger.create_session(CONFIG)

@@ -9,8 +9,8 @@ import uuid
 import numpy as np
 import pytest
 
-from esa_client import SessionConfig, SessionNotFound, ZenohEsaClient
-from esa_client.zenoh_transport import peer_config
+from esa_client import EsaClient, SessionConfig, SessionNotFound
+from esa_client.transports.zenoh_query import peer_config
 
 CONFIG = SessionConfig(
     action_dim=2,
@@ -107,7 +107,9 @@ def test_a_second_client_connects_to_the_announced_locator(zenoh_client, own_con
     endpoints = zenoh_client.address.split(",")
     config = peer_config(endpoints, 2.0) if own_config else None
     token = zenoh_client.server.token
-    with ZenohEsaClient(endpoints, timeout=2.0, config=config, token=token) as other:
+    with EsaClient.connect(
+        endpoints, transport="zenoh", timeout=2.0, zenoh_config=config, token=token
+    ) as other:
         session = other.create_session(CONFIG)
         assert zenoh_client.session_state(session.id).step == 0
         session.close()

@@ -36,7 +36,7 @@ def spread_ids(tag, n):
 
 @pytest.fixture(scope="module")
 def sharded(server_bin):
-    with ShardedEsaClient.spawn(server_bin, shards=2) as client:
+    with EsaClient.spawn(server_bin, transport="zenoh", shards=2) as client:
         yield client
 
 

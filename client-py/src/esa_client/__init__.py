@@ -10,13 +10,17 @@ Quick start::
         probes = batch.probe(actions, episode_starts)       # (4, 1)
         improved = batch.report(critic(observations, probes))  # (4, 1)
 
-Stable-baselines3 drop-ins live in :mod:`esa_client.sb3`, a gymnasium wrapper in
-:mod:`esa_client.wrappers`, and an in-process implementation of the update law in
-:mod:`esa_client.reference`. ``ZenohEsaClient`` and ``ShardedEsaClient`` (extra
-``esa-client[zenoh]``) offer the same API over Zenoh, for one server or N shards.
+One class builds every client: ``EsaClient.connect(address, transport="grpc" | "native"
+| "zenoh")`` for a running server (``shards=N`` over Zenoh), ``EsaClient.spawn(...)`` for a
+private one, ``EsaClient.in_process()`` for esa-core in this process; the transports are
+in :mod:`esa_client.transports`. ``ZenohEsaClient`` and ``ShardedEsaClient`` (extra
+``esa-client[zenoh]``) are what ``transport="zenoh"`` returns; building them directly is
+deprecated. Stable-baselines3 drop-ins live in :mod:`esa_client.sb3`, RLlib's in
+:mod:`esa_client.rllib`, a gymnasium wrapper in :mod:`esa_client.wrappers`.
 """
 
-from .client import EsaClient
+from .base_client import BaseClient
+from .client import EsaClient, TransportName
 from .config import EsaConfig, SessionConfig
 from .errors import (
     DeadlineExceeded,
@@ -29,8 +33,8 @@ from .errors import (
     StepMismatch,
     Unauthenticated,
 )
-from .grpc_transport import TlsConfig
 from .session import Session, SessionBatch, SessionState
+from .transports.grpcio import TlsConfig
 
 # Zenoh is an optional extra (esa-client[zenoh]): its clients load on first use.
 _ZENOH_EXPORTS = {"ZenohEsaClient", "ShardedEsaClient"}
@@ -46,6 +50,7 @@ def __getattr__(name: str) -> object:
 
 
 __all__ = [
+    "BaseClient",
     "DeadlineExceeded",
     "EsaClient",
     "EsaConfig",
@@ -62,6 +67,7 @@ __all__ = [
     "ShardedEsaClient",
     "StepMismatch",
     "TlsConfig",
+    "TransportName",
     "Unauthenticated",
     "ZenohEsaClient",
 ]

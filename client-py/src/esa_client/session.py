@@ -12,7 +12,7 @@ returns the probe and the action to apply, ``clip(a_t + v(t))``; the report of t
 step can then be deferred (``report(..., defer=True)``) and rides with the next
 probe, pipelined on a StepStream.
 
-Both are written against :class:`~esa_client.transport.Transport` only: the same code
+Both are written against :class:`~esa_client.transports.base.Transport` only: the same code
 runs over gRPC, Zenoh, N shards or an in-process engine.
 """
 
@@ -33,7 +33,7 @@ from .state import (
     check_array,
     check_indices,
 )
-from .transport import BatchProbe, BatchReport, Transport
+from .transports.base import BatchProbe, BatchReport, Transport
 
 __all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
 

@@ -9,7 +9,8 @@ from typing import Any, SupportsFloat
 import gymnasium as gym
 import numpy as np
 
-from .client import BaseClient, EsaClient
+from .base_client import BaseClient
+from .client import EsaClient
 from .config import EsaConfig
 from .env_dt import env_dt
 from .errors import EsaError

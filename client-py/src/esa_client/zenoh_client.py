@@ -1,10 +1,12 @@
-"""Clients that reach esa servers over Zenoh: one server, or N shards of sessions.
+"""The clients over Zenoh: one server, or N shards of sessions.
 
-Both have the :class:`~esa_client.EsaClient` API (sessions, ``SessionBatch``,
-typed errors, a deadline on every call, ``spawn``); only the transport differs:
-:class:`~esa_client.zenoh_transport.ZenohTransport` to one key prefix, or a
-:class:`~esa_client.sharding.ShardedTransport` over one per shard. Each client owns
-its Zenoh session and the servers it spawned.
+Built by ``EsaClient.connect(..., transport="zenoh")`` and
+``EsaClient.spawn(transport="zenoh")`` (:class:`esa_client.EsaClient`). Both have the
+client API of :class:`~esa_client.base_client.BaseClient` (sessions, ``SessionBatch``,
+typed errors, a deadline on every call); only the transport differs:
+:class:`~esa_client.transports.zenoh_query.ZenohTransport` to one key prefix, or a
+:class:`~esa_client.transports.sharded.ShardedTransport` over one per shard. Each client
+owns its Zenoh session and the servers it spawned.
 """
 
 from __future__ import annotations
@@ -18,11 +20,12 @@ from typing import TypedDict
 import grpc
 import zenoh
 
-from .client import BaseClient, check_timeout, connect_spawned, resolve_token
+from .base_client import BaseClient, check_timeout, connect_spawned, resolve_token
 from .errors import ServerUnavailable
-from .sharding import ShardedStub, ShardedTransport, shard_of, shard_prefix
+from .sharding import shard_of, shard_prefix
 from .sidecar import ServerProcess
-from .zenoh_transport import (
+from .transports.sharded import ShardedStub, ShardedTransport
+from .transports.zenoh_query import (
     DEFAULT_PREFIX,
     ZenohTransport,
     check_prefix,
@@ -121,6 +124,11 @@ def _limits(
 class ZenohEsaClient(BaseClient):
     """A connection to an esa server over Zenoh, with the :class:`EsaClient` API.
 
+    .. deprecated::
+        Constructing it directly (``ZenohEsaClient(...)``, ``ZenohEsaClient.spawn()``) is
+        kept for one release: use ``EsaClient.connect(endpoint, transport="zenoh")`` and
+        ``EsaClient.spawn(transport="zenoh")``, which return this class.
+
     The client is a Zenoh peer that connects to ``connect`` only (no scouting, no
     listener) unless a full Zenoh ``config`` is given (e.g. client mode to a
     ``zenohd`` router). Every call is a query with the client's deadline: no answer
@@ -147,8 +155,8 @@ class ZenohEsaClient(BaseClient):
     Attributes:
         address: The endpoints, comma-separated (for messages).
         prefix: The key prefix.
-        stub: The :class:`~esa_client.zenoh_transport.ZenohStub`.
-        transport: The :class:`~esa_client.zenoh_transport.ZenohTransport`.
+        stub: The :class:`~esa_client.transports.zenoh_query.ZenohStub`.
+        transport: The :class:`~esa_client.transports.zenoh_query.ZenohTransport`.
         server: The spawned :class:`~esa_client.sidecar.ServerProcess`, else None.
     """
 
@@ -231,6 +239,12 @@ class ZenohEsaClient(BaseClient):
 class ShardedEsaClient(BaseClient):
     """N esa servers (``--shard i/N``) behind one :class:`EsaClient` API.
 
+    .. deprecated::
+        Constructing it directly (``ShardedEsaClient(...)``, ``ShardedEsaClient.spawn()``)
+        is kept for one release: use ``EsaClient.connect(endpoints, transport="zenoh",
+        shards=N)`` and ``EsaClient.spawn(transport="zenoh", shards=N)``, which return
+        this class.
+
     A session lives on shard :func:`~esa_client.sharding.shard_of` ``(id, N)``; a
     ``SessionBatch`` splits every probe/report per shard, sends the parts
     concurrently and merges the answers in order. If a shard is down, calls for its
@@ -250,8 +264,8 @@ class ShardedEsaClient(BaseClient):
     Attributes:
         shards: N.
         prefix: The key prefix.
-        stub: The :class:`~esa_client.sharding.ShardedStub` (the raw wire API).
-        transport: The :class:`~esa_client.sharding.ShardedTransport`.
+        stub: The :class:`~esa_client.transports.sharded.ShardedStub` (the raw wire API).
+        transport: The :class:`~esa_client.transports.sharded.ShardedTransport`.
         servers: The spawned server processes, ``servers[i]`` serving shard i.
     """
 

@@ -8,7 +8,8 @@ from typing import Any, Literal, Protocol, get_args
 
 import numpy as np
 
-from ..client import BaseClient, EsaClient
+from ..base_client import BaseClient
+from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
 from ..errors import EsaError, SessionNotFound
@@ -48,7 +49,7 @@ def open_client(engine: Engine, address: str | None, spawn: dict[str, Any] | Non
     """A client of ``engine``: in-process, the server at ``address``, or a spawned one."""
     if engine == "inprocess":
         return EsaClient.in_process()
-    return EsaClient.spawn(**(spawn or {})) if address is None else EsaClient(address)
+    return EsaClient.spawn(**(spawn or {})) if address is None else EsaClient.connect(address)
 
 
 SMALLEST_SCALE = float(np.finfo(np.float32).tiny)

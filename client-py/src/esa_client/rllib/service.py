@@ -41,7 +41,8 @@ from pathlib import Path
 
 import grpc
 
-from ..client import BaseClient, EsaClient
+from ..base_client import BaseClient
+from ..client import EsaClient
 from ..errors import EsaError, ServerUnavailable
 from ..sidecar import find_server_binary
 
@@ -295,20 +296,13 @@ class EsaService:
                 ``startup_timeout``.
         """
         if self.zenoh is not None:
-            from ..zenoh_client import ShardedEsaClient, ZenohEsaClient
-            from ..zenoh_transport import DEFAULT_PREFIX
-
-            prefix = self.zenoh_prefix if self.zenoh_prefix is not None else DEFAULT_PREFIX
-            if self.shards is not None:
-                return ShardedEsaClient(
-                    self.zenoh,
-                    shards=self.shards,
-                    prefix=prefix,
-                    timeout=self.timeout,
-                    token_file=self.token_file,
-                )
-            return ZenohEsaClient(
-                self.zenoh, prefix=prefix, timeout=self.timeout, token_file=self.token_file
+            return EsaClient.connect(
+                self.zenoh,
+                transport="zenoh",
+                shards=self.shards,
+                prefix=self.zenoh_prefix,
+                timeout=self.timeout,
+                token_file=self.token_file,
             )
         sidecar = None
         if self.address is None:
@@ -322,7 +316,7 @@ class EsaService:
             assert address is not None  # set above when there is no sidecar
             # The sidecar is this user's own, on a private socket: it has no token.
             token_file = self.token_file if sidecar is None else None
-            client = EsaClient(address, timeout=self.timeout, token_file=token_file)
+            client = EsaClient.connect(address, timeout=self.timeout, token_file=token_file)
         except BaseException:
             if sidecar is not None:
                 sidecar.release()

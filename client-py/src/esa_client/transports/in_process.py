@@ -1,4 +1,4 @@
-"""The :class:`~esa_client.transport.Transport` over ``esa_client._native``, in-process.
+"""The :class:`~esa_client.transports.base.Transport` over ``esa_client._native``, in-process.
 
 ``esa_client._native.Engine`` is esa-core itself, compiled into the package: the server's
 update law, validation and error codes, without a process or a socket in between. This
@@ -12,16 +12,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ._native import BatchHandle, Engine, EngineError
-from .errors import TypedErrors
+from .._native import BatchHandle, Engine, EngineError
+from ..errors import TypedErrors
+from ..state import F64Array
+from .base import BatchProbe, BatchReport, InTurnBatch
 from .native_calls import NativeSessionCalls
-from .state import F64Array
-from .transport import BatchProbe, BatchReport
 
 _typed_errors = TypedErrors(EngineError)
 
 
-class InProcessBatch:
+class InProcessBatch(InTurnBatch):
     """A batch's round trips as ``Engine.probe`` / ``Engine.report`` calls.
 
     The ids are resolved on the first call (not when the batch opens, so that a session
@@ -58,19 +58,9 @@ class InProcessBatch:
                 self._resolved(), request.steps, request.q_values, request.q_references
             )
 
-    def report_then_probe(
-        self, report: BatchReport, probe: BatchProbe
-    ) -> tuple[F64Array, F64Array]:
-        """The report, then the probe (a failed report stops the probe)."""
-        self.report(report)
-        return self.probe(probe)
-
-    def close(self) -> None:
-        """Nothing to release: the sessions stay."""
-
 
 class InProcessTransport(NativeSessionCalls):
-    """The :class:`~esa_client.transport.Transport` over an ``esa_client._native.Engine``.
+    """The :class:`~esa_client.transports.base.Transport` over an ``esa_client._native.Engine``.
 
     Args:
         engine: The engine; None creates one with the server's default session limit.

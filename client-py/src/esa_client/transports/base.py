@@ -4,10 +4,10 @@ The client is split the way httpx splits its ``Client`` from its transports: ses
 batches are written once against :class:`Transport`, and each way of reaching the update
 law implements it:
 
-- gRPC, unary calls or one ``StepStream`` per batch (:mod:`esa_client.grpc_transport`);
-- gRPC through the Rust client of ``esa_client._native`` (:mod:`esa_client.native_transport`);
-- Zenoh queries (:mod:`esa_client.zenoh_transport`);
-- N shards, each reached through its own transport (:mod:`esa_client.sharding`);
+- gRPC, unary calls or one ``StepStream`` per batch (:mod:`esa_client.transports.grpcio`);
+- gRPC through the Rust client of ``esa_client._native`` (:mod:`esa_client.transports.native`);
+- Zenoh queries (:mod:`esa_client.transports.zenoh_query`);
+- N shards, each reached through its own transport (:mod:`esa_client.transports.sharded`);
 - the in-process engine of ``esa_client._native``, which takes numpy arrays directly.
 
 ``EsaClient``, ``ZenohEsaClient`` and ``ShardedEsaClient`` choose a transport and own its
@@ -20,11 +20,12 @@ caused it.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import NamedTuple, Protocol
 
-from ._proto.esa.v1 import esa_pb2
-from .state import BoolArray, F64Array, I64Array, SessionState
+from .._proto.esa.v1 import esa_pb2
+from ..state import BoolArray, F64Array, I64Array, SessionState
 
 
 class BatchProbe(NamedTuple):
@@ -86,6 +87,33 @@ class BatchTransport(Protocol):
     def close(self) -> None:
         """Releases what the batch holds (e.g. its stream); the sessions stay."""
         ...
+
+
+class InTurnBatch(ABC):
+    """A :class:`BatchTransport` whose pair is the report, then the probe, in turn.
+
+    For batches whose wire has nothing to pipeline (the in-process engine, unary calls):
+    two round trips, and a failed report raises before the probe is sent, so the probe
+    changed nothing. Subclasses implement :meth:`probe` and :meth:`report`.
+    """
+
+    @abstractmethod
+    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
+        """``ProbeBatch``: returns the probes and the applied actions, each ``(N, D)``."""
+
+    @abstractmethod
+    def report(self, request: BatchReport) -> F64Array:
+        """``ReportBatch``: returns the improved actions, ``(N, D)``."""
+
+    def report_then_probe(
+        self, report: BatchReport, probe: BatchProbe
+    ) -> tuple[F64Array, F64Array]:
+        """The report, then the probe (two round trips; a failed report stops the probe)."""
+        self.report(report)
+        return self.probe(probe)
+
+    def close(self) -> None:  # noqa: B027 (a default, not abstract: most hold nothing)
+        """Nothing to release: the sessions stay."""
 
 
 class Transport(Protocol):

@@ -3,7 +3,7 @@
 ``Engine`` (esa-core in this process) and ``GrpcClient`` (esa-proto's gRPC client) answer
 the same per-session calls with the same arguments: protobuf bytes for a config and a
 snapshot, numpy arrays for one session's step. :class:`NativeSessionCalls` forwards the
-:class:`~esa_client.transport.Transport` methods to either and re-raises its errors as the
+:class:`~esa_client.transports.base.Transport` methods to either and re-raises its errors as the
 server's typed ones; the two transports add their batches and lifetimes.
 """
 
@@ -13,9 +13,9 @@ from typing import Protocol
 
 import numpy.typing as npt
 
-from ._proto.esa.v1 import esa_pb2
-from .errors import TypedErrors
-from .state import F64Array, SessionState
+from .._proto.esa.v1 import esa_pb2
+from ..errors import TypedErrors
+from ..state import F64Array, SessionState
 
 
 class NativeSessions(Protocol):

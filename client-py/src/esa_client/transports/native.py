@@ -3,7 +3,7 @@
 ``esa_client._native.GrpcClient`` is esa-proto's tonic client on a private runtime that the
 calling thread drives itself, with the GIL released while a call waits: a round trip costs
 no thread hand-off and no Python-level message building (numpy arrays go straight into the
-request). It speaks the same ``esa.v1`` calls as :class:`~esa_client.grpc_transport.
+request). It speaks the same ``esa.v1`` calls as :class:`~esa_client.transports.grpcio.
 GrpcTransport` and raises the same :class:`~esa_client.errors.EsaError` subclasses with the
 same failing item. It has no TLS and no ``StepStream``: a batch's round trips are
 ``ProbeBatch`` / ``ReportBatch`` calls, whose pair costs less than grpcio's pipelined stream.
@@ -13,16 +13,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ._native import GrpcBatch, GrpcClient, StatusError
-from .errors import TypedErrors
+from .._native import GrpcBatch, GrpcClient, StatusError
+from ..errors import TypedErrors
+from ..state import F64Array
+from .base import BatchProbe, BatchReport, InTurnBatch
 from .native_calls import NativeSessionCalls
-from .state import F64Array
-from .transport import BatchProbe, BatchReport
 
 _typed_errors = TypedErrors(StatusError)
 
 
-class NativeGrpcBatch:
+class NativeGrpcBatch(InTurnBatch):
     """A batch's round trips as ``ProbeBatch`` / ``ReportBatch`` calls of the Rust client."""
 
     def __init__(self, batch: GrpcBatch) -> None:
@@ -41,19 +41,9 @@ class NativeGrpcBatch:
         with _typed_errors:
             return self._batch.report(request.steps, request.q_values, request.q_references)
 
-    def report_then_probe(
-        self, report: BatchReport, probe: BatchProbe
-    ) -> tuple[F64Array, F64Array]:
-        """The report, then the probe (two round trips; a failed report stops the probe)."""
-        self.report(report)
-        return self.probe(probe)
-
-    def close(self) -> None:
-        """Nothing to release: the sessions stay."""
-
 
 class NativeGrpcTransport(NativeSessionCalls):
-    """The :class:`~esa_client.transport.Transport` over ``esa_client._native.GrpcClient``.
+    """The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.GrpcClient``.
 
     Args:
         address: ``host:port`` or ``unix:/path/to/socket`` (checked by the caller).

@@ -1,10 +1,10 @@
-"""The :class:`~esa_client.transport.Transport` over protobuf messages, for any wire.
+"""The :class:`~esa_client.transports.base.Transport` over protobuf messages, for any wire.
 
 :class:`StubTransport` turns the protocol's calls and arrays into ``esa.v1`` request
 messages and sends them through a *stub*: any object with one callable per RPC in the
 calling convention of the generated ``EsaServiceStub`` (``stub.Probe(request,
-timeout=...)``). gRPC's generated stub is one (:mod:`esa_client.grpc_transport`), the
-Zenoh stub another (:mod:`esa_client.zenoh_transport`). Batches go as ``ProbeBatch`` /
+timeout=...)``). gRPC's generated stub is one (:mod:`esa_client.transports.grpcio`), the
+Zenoh stub another (:mod:`esa_client.transports.zenoh_query`). Batches go as ``ProbeBatch`` /
 ``ReportBatch`` calls, or as ``StepStream`` messages over a :class:`StepExchange`, which
 the wire provides (one bidirectional gRPC stream, or one Zenoh query per message).
 """
@@ -17,10 +17,10 @@ from typing import Protocol, TypeVar
 import grpc
 import numpy as np
 
-from ._proto.esa.v1 import esa_pb2
-from .errors import esa_error
-from .state import F64Array, SessionState
-from .transport import BatchProbe, BatchReport, BatchTransport
+from .._proto.esa.v1 import esa_pb2
+from ..errors import esa_error
+from ..state import F64Array, SessionState
+from .base import BatchProbe, BatchReport, BatchTransport, InTurnBatch
 
 Request = TypeVar("Request", contravariant=True)
 Response = TypeVar("Response", covariant=True)
@@ -168,7 +168,7 @@ class _Batch:
         return _values(response.actions, self._shape)
 
 
-class UnaryBatch(_Batch):
+class UnaryBatch(_Batch, InTurnBatch):
     """A batch's round trips as ``ProbeBatch`` / ``ReportBatch`` calls (two for the pair)."""
 
     def __init__(
@@ -189,16 +189,6 @@ class UnaryBatch(_Batch):
         message = report_batch_request(self._ids, request)
         return self._report_answer(call(self._stub.ReportBatch, message, self._timeout))
 
-    def report_then_probe(
-        self, report: BatchReport, probe: BatchProbe
-    ) -> tuple[F64Array, F64Array]:
-        """Sends the ReportBatch, then the ProbeBatch (two round trips)."""
-        self.report(report)
-        return self.probe(probe)
-
-    def close(self) -> None:
-        """Nothing to release."""
-
 
 def _checked(response: esa_pb2.StepStreamResponse) -> esa_pb2.StepStreamResponse:
     """The response, or its in-band ``error`` raised as the typed exception."""
@@ -207,7 +197,7 @@ def _checked(response: esa_pb2.StepStreamResponse) -> esa_pb2.StepStreamResponse
     return response
 
 
-class StepBatch(_Batch):
+class StepBatch(_Batch, InTurnBatch):
     """A batch's round trips as ``StepStream`` messages; the pair takes one round trip."""
 
     def __init__(self, exchange: StepExchange, ids: Sequence[str], action_dim: int) -> None:
@@ -238,8 +228,7 @@ class StepBatch(_Batch):
         time, so a failed report stops the probe (once per episode end, not per step).
         """
         if probe.episode_starts.all():
-            self.report(report)
-            return self.probe(probe)
+            return super().report_then_probe(report, probe)
         first, second = self._exchange.exchange(
             [
                 esa_pb2.StepStreamRequest(report_batch=report_batch_request(self._ids, report)),
@@ -255,7 +244,7 @@ class StepBatch(_Batch):
 
 
 class StubTransport:
-    """The :class:`~esa_client.transport.Transport` over a :class:`ServiceStub`.
+    """The :class:`~esa_client.transports.base.Transport` over a :class:`ServiceStub`.
 
     Args:
         stub: Sends the unary calls.

@@ -20,9 +20,9 @@ from typing import Any
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from ._proto.esa.v1 import esa_pb2, esa_pb2_grpc
-from .errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
-from .stub_transport import StubTransport
+from .._proto.esa.v1 import esa_pb2, esa_pb2_grpc
+from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
+from .stub import StubTransport
 
 _CHANNEL_OPTIONS: list[tuple[str, int | str]] = [
     # The server is local: never route through an HTTP proxy from the environment.
@@ -130,7 +130,7 @@ _END = object()
 
 
 class GrpcStepStream:
-    """One long-lived ``StepStream``: the :class:`~esa_client.stub_transport.StepExchange` of gRPC.
+    """One long-lived ``StepStream``: the :class:`~esa_client.transports.stub.StepExchange` of gRPC.
 
     gRPC's blocking stream iterator has no per-message deadline, so a reader thread
     moves responses into a queue that the caller waits on with the timeout. After a
@@ -201,7 +201,7 @@ class GrpcStepStream:
 
 
 class GrpcTransport(StubTransport):
-    """The :class:`~esa_client.transport.Transport` over a gRPC channel to one server.
+    """The :class:`~esa_client.transports.base.Transport` over a gRPC channel to one server.
 
     Args:
         address: ``host:port`` or ``unix:/path/to/socket`` (checked by the caller).

@@ -6,7 +6,7 @@ reply error carries a ``StreamError`` (gRPC code number, message and failing bat
 item). A server started with ``--auth-token-file`` wants the token as each query's
 attachment. :class:`ZenohStub` mirrors the generated ``EsaServiceStub`` (one callable
 per RPC, ``stub.Probe(request, timeout=...)``), so :class:`ZenohTransport` is the
-message transport of :mod:`esa_client.stub_transport` over it.
+message transport of :mod:`esa_client.transports.stub` over it.
 
 Exactly one server serves a key, so a query that gets two replies means another
 process answers for it too (a misconfigured deployment, or an impostor on an open
@@ -27,9 +27,9 @@ import grpc
 import zenoh
 from google.protobuf.message import DecodeError, Message
 
-from ._proto.esa.v1 import esa_pb2
-from .errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
-from .stub_transport import StubTransport
+from .._proto.esa.v1 import esa_pb2
+from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
+from .stub import StubTransport
 
 DEFAULT_PREFIX = "esa/v1"
 
@@ -296,7 +296,7 @@ class ZenohStepQueries:
 
 
 class ZenohTransport(StubTransport):
-    """The :class:`~esa_client.transport.Transport` over Zenoh queries to one key prefix.
+    """The :class:`~esa_client.transports.base.Transport` over Zenoh queries to one key prefix.
 
     Batches with ``use_stream=True`` send their messages to the ``StepStream`` key.
 
