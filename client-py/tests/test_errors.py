@@ -3,7 +3,6 @@
 import math
 import uuid
 
-import grpc
 import numpy as np
 import pytest
 
@@ -15,10 +14,11 @@ from esa_client import (
     SessionAlreadyExists,
     SessionConfig,
     SessionNotFound,
+    StatusCode,
     StepMismatch,
 )
 from esa_client._proto.esa.v1 import esa_pb2
-from esa_client.errors import esa_error
+from esa_client.errors import error_for, esa_error
 from esa_client.transports.stub import call
 
 CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
@@ -41,7 +41,7 @@ def raw_config(**change):
 def test_unknown_and_closed_sessions_are_not_found(client):
     with pytest.raises(SessionNotFound) as info:
         client.get_session(unique("missing"))
-    assert info.value.code == grpc.StatusCode.NOT_FOUND and info.value.message
+    assert info.value.code == StatusCode.NOT_FOUND and info.value.message
     session = client.create_session(CONFIG)
     session.close()
     for operation in (lambda: session.probe([0, 0]), session.end_episode, session.state):
@@ -191,10 +191,10 @@ def test_session_limit_is_resource_exhausted(server_bin):
 
 def test_stream_error_codes_map_like_status_codes():
     error = esa_error(esa_pb2.StreamError(code=9, message="step 3 expected"))
-    assert isinstance(error, StepMismatch) and error.code == grpc.StatusCode.FAILED_PRECONDITION
+    assert isinstance(error, StepMismatch) and error.code == StatusCode.FAILED_PRECONDITION
     assert "step 3 expected" in str(error)
     unknown = esa_error(esa_pb2.StreamError(code=13, message="boom"))
-    assert type(unknown) is EsaError and unknown.code == grpc.StatusCode.INTERNAL
+    assert type(unknown) is EsaError and unknown.code == StatusCode.INTERNAL
 
 
 def test_stream_errors_carry_the_item():
@@ -202,3 +202,18 @@ def test_stream_errors_carry_the_item():
     error = esa_error(esa_pb2.StreamError(code=3, message="item 2: bad", item=item))
     assert isinstance(error, InvalidArgument) and error.index == 2
     assert esa_error(esa_pb2.StreamError(code=3, message="bad")).index is None
+
+
+def test_the_clients_status_codes_are_grpcs_canonical_ones():
+    """``StatusCode`` is the client's own enum, with gRPC's names and numbers."""
+    import grpc
+
+    assert {c.name: c.value for c in StatusCode} == {c.name: c.value[0] for c in grpc.StatusCode}
+    assert StatusCode.of(99) is StatusCode.UNKNOWN
+    assert str(error_for(5, "")) == "not_found [NOT_FOUND]"
+
+
+def test_errors_speak_no_grpcio():
+    """In-process and Zenoh errors carry the client's code, never grpcio's."""
+    error = esa_error(esa_pb2.StreamError(code=14, message="gone"))
+    assert type(error.code) is StatusCode and error.code == StatusCode.UNAVAILABLE == 14

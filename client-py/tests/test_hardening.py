@@ -9,7 +9,6 @@ import time
 import uuid
 from pathlib import Path
 
-import grpc
 import numpy as np
 import pytest
 
@@ -19,6 +18,7 @@ from esa_client import (
     ResourceExhausted,
     SessionConfig,
     SessionNotFound,
+    StatusCode,
     Unauthenticated,
 )
 from esa_client._proto.esa.v1 import esa_pb2
@@ -112,7 +112,7 @@ def test_without_the_token_calls_are_unauthenticated(guarded):
     assert stranger.healthy()  # health needs no token
     with pytest.raises(Unauthenticated, match="auth token") as info:
         stranger.create_session(CONFIG)
-    assert info.value.code == grpc.StatusCode.UNAUTHENTICATED
+    assert info.value.code == StatusCode.UNAUTHENTICATED
     with EsaClient(stranger.address, token="wrong") as wrong, pytest.raises(Unauthenticated):
         wrong.create_session(CONFIG)
 

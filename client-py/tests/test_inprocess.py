@@ -13,7 +13,6 @@ import uuid
 from pathlib import Path
 from types import ModuleType
 
-import grpc
 import numpy as np
 import pytest
 
@@ -25,6 +24,7 @@ from esa_client import (
     SessionAlreadyExists,
     SessionConfig,
     SessionNotFound,
+    StatusCode,
     StepMismatch,
 )
 from esa_client._native import Engine
@@ -175,8 +175,8 @@ class Sides:
             # Messages agree where they say what to fix; a missing session's message names
             # what a server has and an engine has not (an idle expiry).
             worded = err.code in (
-                grpc.StatusCode.INVALID_ARGUMENT,
-                grpc.StatusCode.FAILED_PRECONDITION,
+                StatusCode.INVALID_ARGUMENT,
+                StatusCode.FAILED_PRECONDITION,
             )
             return type(err), err.code, err.index, err.message if worded else None
         except (ValueError, TypeError, OverflowError) as err:  # refused before any call
@@ -262,7 +262,7 @@ def test_the_session_limit_is_resource_exhausted(server_bin):
             side.create_session(CONFIG, "b")
             with pytest.raises(ResourceExhausted) as info:
                 side.create_session(CONFIG, "c")
-            assert info.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED
+            assert info.value.code == StatusCode.RESOURCE_EXHAUSTED
             assert side.create_session(CONFIG, "a").id == "a"  # an existing one still answers
         with pytest.raises(SessionAlreadyExists):
             local.create_session(SessionConfig(1, 0.05, 0.2, 10.0, 0.1), "a")

@@ -16,6 +16,7 @@ from esa_client import (
     EsaError,
     ServerUnavailable,
     SessionConfig,
+    StatusCode,
     TlsConfig,
     Unauthenticated,
 )
@@ -81,7 +82,7 @@ def test_clients_that_cannot_speak_tls_with_it_get_the_clients_own_error(tls_ser
         with pytest.raises(ServerUnavailable) as info:
             client.create_session(CONFIG)
     assert isinstance(info.value, EsaError) and not isinstance(info.value, grpc.RpcError)
-    assert info.value.code == grpc.StatusCode.UNAVAILABLE
+    assert info.value.code == StatusCode.UNAVAILABLE
 
 
 def test_a_wrong_server_name_is_refused(tls_server):

@@ -30,6 +30,7 @@ from .errors import (
     ServerUnavailable,
     SessionAlreadyExists,
     SessionNotFound,
+    StatusCode,
     StepMismatch,
     Unauthenticated,
 )
@@ -65,6 +66,7 @@ __all__ = [
     "SessionNotFound",
     "SessionState",
     "ShardedEsaClient",
+    "StatusCode",
     "StepMismatch",
     "TlsConfig",
     "TransportName",

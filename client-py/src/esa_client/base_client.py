@@ -16,11 +16,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
-import grpc
-
 from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
-from .errors import EsaError, ServerUnavailable
+from .errors import EsaError, ServerUnavailable, StatusCode
 from .session import Session, SessionBatch, restore_sessions
 from .sidecar import ServerProcess
 from .state import SessionState, as_batch_configs
@@ -129,7 +127,7 @@ class BaseClient:
                 tail = f"; server output:\n{server.output_tail()}" if server else ""
                 raise ServerUnavailable(
                     f"esa server at {self.address} not healthy within {timeout} s{tail}",
-                    grpc.StatusCode.UNAVAILABLE,
+                    StatusCode.UNAVAILABLE,
                 )
             # Short waits so that a crashed server process is noticed promptly.
             if self.healthy(timeout=min(0.25, remaining), wait_for_ready=True):

@@ -1,28 +1,63 @@
 """Typed exceptions for everything the esa server (or the connection to it) can report.
 
-Every failure surfaces as an :class:`EsaError` subclass carrying the gRPC status
-``code``, the server's ``message`` and, for an error about one item of a batch, the
-item's ``index``. Every transport builds them through :func:`error_for`; :func:`esa_error`
-maps a ``grpc.RpcError`` or a ``StreamError`` message onto them, reading the failing item
-from the error's structured details (never from its message).
+Every failure surfaces as an :class:`EsaError` subclass carrying the status ``code`` (a
+:class:`StatusCode`, the client's own: gRPC's canonical codes, whatever the transport),
+the server's ``message`` and, for an error about one item of a batch, the item's
+``index``. Every transport builds them through :func:`error_for`; :func:`esa_error` maps a
+``StreamError`` message (Zenoh, ``StepStream``) onto them, and the gRPC transports map
+their own failures (:func:`esa_client.transports.stub.rpc_error`), reading the failing
+item from the error's structured data (never from its message).
 """
 
 from __future__ import annotations
 
+import enum
 from types import TracebackType
 from typing import Protocol, cast
 
-import grpc
-from grpc_status import rpc_status
-
 from ._proto.esa.v1 import esa_pb2
+
+
+class StatusCode(enum.IntEnum):
+    """The status codes of the esa contract: gRPC's canonical codes, names and numbers.
+
+    The client's own enum, so that no transport's errors need grpcio: an in-process or
+    Zenoh error carries the same code as a gRPC one. ``int(code)`` is the number sent on
+    the wire (``StreamError.code``).
+    """
+
+    OK = 0
+    CANCELLED = 1
+    UNKNOWN = 2
+    INVALID_ARGUMENT = 3
+    DEADLINE_EXCEEDED = 4
+    NOT_FOUND = 5
+    ALREADY_EXISTS = 6
+    PERMISSION_DENIED = 7
+    RESOURCE_EXHAUSTED = 8
+    FAILED_PRECONDITION = 9
+    ABORTED = 10
+    OUT_OF_RANGE = 11
+    UNIMPLEMENTED = 12
+    INTERNAL = 13
+    UNAVAILABLE = 14
+    DATA_LOSS = 15
+    UNAUTHENTICATED = 16
+
+    @classmethod
+    def of(cls, number: int) -> StatusCode:
+        """The code of ``number``; an unknown number gives ``UNKNOWN``."""
+        try:
+            return cls(number)
+        except ValueError:
+            return cls.UNKNOWN
 
 
 class EsaError(Exception):
     """Base class of all esa client errors.
 
     Attributes:
-        code: The gRPC status code the server (or the transport) reported.
+        code: The :class:`StatusCode` the server (or the transport) reported.
         message: The human-readable message, naming what to fix.
         index: The failing item of a batch (its position in the batch), when the error is
             about one item; None otherwise.
@@ -31,7 +66,7 @@ class EsaError(Exception):
     def __init__(
         self,
         message: str,
-        code: grpc.StatusCode = grpc.StatusCode.UNKNOWN,
+        code: StatusCode = StatusCode.UNKNOWN,
         *,
         index: int | None = None,
     ) -> None:
@@ -83,69 +118,46 @@ class DeadlineExceeded(EsaError, TimeoutError):
     """The server did not answer within the call's deadline (``DEADLINE_EXCEEDED``)."""
 
 
-_BY_CODE: dict[grpc.StatusCode, type[EsaError]] = {
-    grpc.StatusCode.NOT_FOUND: SessionNotFound,
-    grpc.StatusCode.INVALID_ARGUMENT: InvalidArgument,
-    grpc.StatusCode.FAILED_PRECONDITION: StepMismatch,
-    grpc.StatusCode.RESOURCE_EXHAUSTED: ResourceExhausted,
-    grpc.StatusCode.ALREADY_EXISTS: SessionAlreadyExists,
-    grpc.StatusCode.UNAUTHENTICATED: Unauthenticated,
-    grpc.StatusCode.UNAVAILABLE: ServerUnavailable,
-    grpc.StatusCode.DEADLINE_EXCEEDED: DeadlineExceeded,
+_BY_CODE: dict[StatusCode, type[EsaError]] = {
+    StatusCode.NOT_FOUND: SessionNotFound,
+    StatusCode.INVALID_ARGUMENT: InvalidArgument,
+    StatusCode.FAILED_PRECONDITION: StepMismatch,
+    StatusCode.RESOURCE_EXHAUSTED: ResourceExhausted,
+    StatusCode.ALREADY_EXISTS: SessionAlreadyExists,
+    StatusCode.UNAUTHENTICATED: Unauthenticated,
+    StatusCode.UNAVAILABLE: ServerUnavailable,
+    StatusCode.DEADLINE_EXCEEDED: DeadlineExceeded,
 }
-_BY_NUMBER: dict[int, grpc.StatusCode] = {code.value[0]: code for code in grpc.StatusCode}
 
 
-def error_for(code: grpc.StatusCode | int, message: str, index: int | None = None) -> EsaError:
+def error_for(code: StatusCode | int, message: str, index: int | None = None) -> EsaError:
     """The typed exception for a failure, whichever transport reported it.
 
     Args:
-        code: The gRPC status code, or its number (as ``StreamError.code`` and the
-            in-process engine's errors carry it).
+        code: The status code, or its number (as ``StreamError.code``, grpcio's status
+            and the in-process engine's errors carry it).
         message: What went wrong; empty gives the code's name.
         index: The failing batch item, or None.
 
     Returns:
         The matching :class:`EsaError` subclass; unknown codes give a plain :class:`EsaError`.
     """
-    if not isinstance(code, grpc.StatusCode):
-        code = _BY_NUMBER.get(code, grpc.StatusCode.UNKNOWN)
-    return _BY_CODE.get(code, EsaError)(message or code.name.lower(), code, index=index)
+    status = code if isinstance(code, StatusCode) else StatusCode.of(code)
+    return _BY_CODE.get(status, EsaError)(message or status.name.lower(), status, index=index)
 
 
-def esa_error(source: grpc.RpcError | esa_pb2.StreamError) -> EsaError:
-    """Maps a failed gRPC call or a ``StreamError`` to the matching :class:`EsaError` subclass.
+def esa_error(source: esa_pb2.StreamError) -> EsaError:
+    """Maps a ``StreamError`` message to the matching :class:`EsaError` subclass.
 
     Args:
-        source: A ``grpc.RpcError`` raised by a call (it also implements ``grpc.Call``),
-            or a ``StreamError`` message (gRPC code number, message and failing item).
+        source: A ``StreamError`` (status code number, message and failing item), as
+            ``StepStream`` answers in-band and Zenoh replies carry.
 
     Returns:
         The typed exception, ready to raise; unknown codes give a plain :class:`EsaError`.
     """
-    if isinstance(source, grpc.RpcError):
-        if not (hasattr(source, "code") and hasattr(source, "details")):
-            return EsaError(str(source) or "unknown gRPC error")
-        # A failed call raises an RpcError that is also its grpc.Call (stubs cannot say both).
-        call = cast(grpc.Call, source)
-        return error_for(call.code(), call.details() or "", _batch_item(call))
     index = source.item.index if source.HasField("item") else None
     return error_for(source.code, source.message, index)
-
-
-def _batch_item(call: grpc.Call) -> int | None:
-    """The failing item named in a status's details (``esa.v1.BatchItem``), if any."""
-    try:
-        status = rpc_status.from_call(call)
-    except ValueError:  # details that contradict the status: not the server's
-        return None
-    if status is None:
-        return None
-    item = esa_pb2.BatchItem()
-    for detail in status.details:
-        if detail.Unpack(item):
-            return item.index
-    return None
 
 
 class StatusLike(Protocol):

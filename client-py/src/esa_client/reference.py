@@ -12,17 +12,16 @@ from __future__ import annotations
 import uuid
 from collections.abc import Sequence
 
-import grpc
 import numpy as np
 
 from .config import SessionConfig
-from .errors import InvalidArgument, SessionNotFound, StepMismatch
+from .errors import InvalidArgument, SessionNotFound, StatusCode, StepMismatch
 from .state import SessionState, as_batch_configs, check_array, check_indices
 
 
 def _invalid(message: str) -> InvalidArgument:
     # The server's status code, so that callers handle both alike.
-    return InvalidArgument(message, grpc.StatusCode.INVALID_ARGUMENT)
+    return InvalidArgument(message, StatusCode.INVALID_ARGUMENT)
 
 
 class ReferenceBatch:
@@ -110,7 +109,7 @@ class ReferenceBatch:
 
     def _check_open(self) -> None:
         if self._closed:
-            raise SessionNotFound("sessions of this batch were closed", grpc.StatusCode.NOT_FOUND)
+            raise SessionNotFound("sessions of this batch were closed", StatusCode.NOT_FOUND)
 
     def _steps_arg(
         self, steps: np.ndarray | Sequence[int] | None, default: np.ndarray
@@ -192,7 +191,7 @@ class ReferenceBatch:
             i = int(wrong[0])
             raise StepMismatch(
                 f"item {i}: expected step {expected[i]}, got {given[i]}",
-                grpc.StatusCode.FAILED_PRECONDITION,
+                StatusCode.FAILED_PRECONDITION,
             )
         self._end(ends)
         self._next_starts[:] = False
@@ -245,7 +244,7 @@ class ReferenceBatch:
             i = int(wrong[0])
             reason = "no pending probe" if not self._pending[i] else f"expected step {self._t[i]}"
             raise StepMismatch(
-                f"item {i}: {reason}, got step {given[i]}", grpc.StatusCode.FAILED_PRECONDITION
+                f"item {i}: {reason}, got step {given[i]}", StatusCode.FAILED_PRECONDITION
             )
         with np.errstate(invalid="ignore", over="ignore"):
             x = q if q_references is None else q - reference

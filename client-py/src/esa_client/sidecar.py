@@ -26,9 +26,7 @@ from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 
-import grpc
-
-from .errors import EsaError, ServerUnavailable
+from .errors import EsaError, ServerUnavailable, StatusCode
 
 logger = logging.getLogger(__name__)
 
@@ -309,7 +307,7 @@ class ServerProcess:
                 raise ServerUnavailable(
                     f"{self.binary} printed no `listening on` line within {timeout} s; "
                     f"its output:\n{self.output_tail()}",
-                    grpc.StatusCode.UNAVAILABLE,
+                    StatusCode.UNAVAILABLE,
                 )
             # The output goes to a file (so that it never blocks the server): poll it.
             time.sleep(0.01)
@@ -320,7 +318,7 @@ class ServerProcess:
         if code is not None:
             raise ServerUnavailable(
                 f"{self.binary} exited with code {code}; its output:\n{self.output_tail()}",
-                grpc.StatusCode.UNAVAILABLE,
+                StatusCode.UNAVAILABLE,
             )
 
     def stop(self) -> None:

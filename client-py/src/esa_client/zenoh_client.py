@@ -17,11 +17,10 @@ import secrets
 from collections.abc import Sequence
 from typing import TypedDict
 
-import grpc
 import zenoh
 
 from .base_client import BaseClient, check_timeout, connect_spawned, resolve_token
-from .errors import ServerUnavailable
+from .errors import ServerUnavailable, StatusCode
 from .sharding import shard_of, shard_prefix
 from .sidecar import ServerProcess
 from .transports.sharded import ShardedStub, ShardedTransport
@@ -98,7 +97,7 @@ def _spawn_zenoh_server(
         server.stop()
         raise ServerUnavailable(
             f"{server.binary} announced no Zenoh locator; its output:\n{server.output_tail()}",
-            grpc.StatusCode.UNAVAILABLE,
+            StatusCode.UNAVAILABLE,
         )
     return server, locators
 
@@ -382,7 +381,7 @@ class ShardedEsaClient(BaseClient):
             raise ServerUnavailable(
                 f"shard {shard} ({server.binary}) not answering within {timeout} s; "
                 f"its output:\n{server.output_tail()}",
-                grpc.StatusCode.UNAVAILABLE,
+                StatusCode.UNAVAILABLE,
             )
 
     def __repr__(self) -> str:

@@ -39,11 +39,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import grpc
-
 from ..base_client import BaseClient
 from ..client import EsaClient
-from ..errors import EsaError, ServerUnavailable
+from ..errors import EsaError, ServerUnavailable, StatusCode
 from ..sidecar import find_server_binary
 
 SIDECAR_DIR_ENV = "ESA_RLLIB_SIDECAR_DIR"
@@ -88,7 +86,7 @@ def _lock(fd: int, kind: int, deadline: float, what: str) -> None:
         except BlockingIOError:
             if time.monotonic() > deadline:
                 raise ServerUnavailable(
-                    f"timed out waiting for {what}", grpc.StatusCode.UNAVAILABLE
+                    f"timed out waiting for {what}", StatusCode.UNAVAILABLE
                 ) from None
             time.sleep(0.01)
 
@@ -215,7 +213,7 @@ class NodeSidecar:
                     f"the node sidecar in {self.directory} {what}; keeper log:\n"
                     f"{_tail(self.directory / 'keeper.log')}\nserver log:\n"
                     f"{_tail(self.directory / 'server.log')}",
-                    grpc.StatusCode.UNAVAILABLE,
+                    StatusCode.UNAVAILABLE,
                 )
             time.sleep(0.01)
 

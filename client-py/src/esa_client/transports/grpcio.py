@@ -21,8 +21,8 @@ import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from .._proto.esa.v1 import esa_pb2, esa_pb2_grpc
-from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
-from .stub import StubTransport
+from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, StatusCode
+from .stub import StubTransport, rpc_error
 
 _CHANNEL_OPTIONS: list[tuple[str, int | str]] = [
     # The server is local: never route through an HTTP proxy from the environment.
@@ -158,7 +158,7 @@ class GrpcStepStream:
                     responses.put(response)
                 responses.put(ServerUnavailable("the server closed the StepStream"))
             except grpc.RpcError as err:
-                responses.put(esa_error(err))
+                responses.put(rpc_error(err))
 
         threading.Thread(target=read, name="esa-step-stream", daemon=True).start()
         self._requests, self._responses, self._call = requests, responses, stream
@@ -186,7 +186,7 @@ class GrpcStepStream:
                 self._drop()
                 raise DeadlineExceeded(
                     f"no StepStream response within {self._timeout} s",
-                    grpc.StatusCode.DEADLINE_EXCEEDED,
+                    StatusCode.DEADLINE_EXCEEDED,
                 ) from None
             if isinstance(item, EsaError):
                 self._drop()

@@ -18,11 +18,10 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Generic, Protocol, TypeVar
 
-import grpc
 import numpy as np
 
 from .._proto.esa.v1 import esa_pb2
-from ..errors import EsaError, InvalidArgument
+from ..errors import EsaError, InvalidArgument, StatusCode
 from ..sharding import shard_of
 from ..state import F64Array, I64Array, SessionState
 from .base import BatchProbe, BatchReport, BatchTransport, Transport
@@ -92,7 +91,7 @@ class _ToOneShard(Generic[BatchRequest, Response]):
                 f"expected the sessions of a raw batch on one shard, got shards "
                 f"{sorted(owners)}; use a SessionBatch (create_batch) to split batches "
                 "across shards",
-                grpc.StatusCode.INVALID_ARGUMENT,
+                StatusCode.INVALID_ARGUMENT,
             )
         return self._rpc(self._shards[owners.pop() if owners else 0])(request, timeout)
 

@@ -12,13 +12,14 @@ the wire provides (one bidirectional gRPC stream, or one Zenoh query per message
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Protocol, TypeVar
+from typing import Protocol, TypeVar, cast
 
 import grpc
 import numpy as np
+from grpc_status import rpc_status
 
 from .._proto.esa.v1 import esa_pb2
-from ..errors import esa_error
+from ..errors import EsaError, error_for, esa_error
 from ..state import F64Array, SessionState
 from .base import BatchProbe, BatchReport, BatchTransport, InTurnBatch
 
@@ -103,12 +104,43 @@ def call(rpc: UnaryRpc[Request, Answer], request: Request, timeout: float) -> An
         The response message.
 
     Raises:
-        EsaError: The matching subclass for any failure (see :func:`~esa_client.errors.esa_error`).
+        EsaError: The matching subclass for any failure (see :func:`rpc_error`).
     """
     try:
         return rpc(request, timeout=timeout)
     except grpc.RpcError as err:
-        raise esa_error(err) from None
+        raise rpc_error(err) from None
+
+
+def rpc_error(error: grpc.RpcError) -> EsaError:
+    """The typed exception of a failed grpcio call, with the failing item of its details.
+
+    Args:
+        error: A ``grpc.RpcError`` raised by a call (it also implements ``grpc.Call``).
+
+    Returns:
+        The matching :class:`~esa_client.errors.EsaError` subclass, ready to raise.
+    """
+    if not (hasattr(error, "code") and hasattr(error, "details")):
+        return EsaError(str(error) or "unknown gRPC error")
+    # A failed call raises an RpcError that is also its grpc.Call (stubs cannot say both).
+    failed = cast(grpc.Call, error)
+    return error_for(failed.code().value[0], failed.details() or "", _batch_item(failed))
+
+
+def _batch_item(failed: grpc.Call) -> int | None:
+    """The failing item named in a status's details (``esa.v1.BatchItem``), if any."""
+    try:
+        status = rpc_status.from_call(failed)
+    except ValueError:  # details that contradict the status: not the server's
+        return None
+    if status is None:
+        return None
+    item = esa_pb2.BatchItem()
+    for detail in status.details:
+        if detail.Unpack(item):
+            return item.index
+    return None
 
 
 class StepExchange(Protocol):

@@ -23,12 +23,11 @@ import threading
 from collections.abc import Sequence
 from typing import Any, Generic, TypeVar
 
-import grpc
 import zenoh
 from google.protobuf.message import DecodeError, Message
 
 from .._proto.esa.v1 import esa_pb2
-from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, esa_error
+from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, StatusCode, esa_error
 from .stub import StubTransport
 
 DEFAULT_PREFIX = "esa/v1"
@@ -91,7 +90,7 @@ def open_session(config: zenoh.Config, where: str) -> zenoh.Session:
         return zenoh.open(config)
     except zenoh.ZError as err:
         raise ServerUnavailable(
-            f"cannot open a Zenoh session to {where}: {err}", grpc.StatusCode.UNAVAILABLE
+            f"cannot open a Zenoh session to {where}: {err}", StatusCode.UNAVAILABLE
         ) from None
 
 
@@ -187,7 +186,7 @@ class ZenohRpc(Generic[Response]):
         return ServerUnavailable(
             f"no esa server serves {self.key} over Zenoh: it is not running, not connected, "
             "or serves another prefix or shard",
-            grpc.StatusCode.UNAVAILABLE,
+            StatusCode.UNAVAILABLE,
         )
 
     def _decode(self, message_type: type[Decoded], data: bytes) -> Decoded:
@@ -207,7 +206,7 @@ class ZenohRpc(Generic[Response]):
         if text == "Timeout":
             return DeadlineExceeded(
                 f"no answer from {self.key} within {self._timeout} s",
-                grpc.StatusCode.DEADLINE_EXCEEDED,
+                StatusCode.DEADLINE_EXCEEDED,
             )
         return EsaError(f"{self.key}: zenoh error {text!r}")
 
