@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from esa_client import EsaClient, EsaError, SessionConfig
-from esa_client.reference import ReferenceBatch
 from esa_client.sidecar import find_server_binary
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -42,10 +41,10 @@ def test_client_over_tcp_matches_reference(tcp_server):
         action_dim=2, dt=0.04, amplitude=0.2, frequency=[31.4, 15.7], learning_rate=0.3
     )
     rng = np.random.default_rng(0)
-    with EsaClient(tcp_server, timeout=5.0) as client:
+    with EsaClient(tcp_server, timeout=5.0) as client, EsaClient.in_process() as engine:
         client.wait_ready(timeout=10)
         batch = client.create_batch(config, 4, use_stream=True)
-        reference = ReferenceBatch([config] * 4)
+        reference = engine.create_batch(config, 4)  # esa-core in-process: the baseline
         for t in range(50):
             actions = rng.normal(size=(4, 2))
             starts = np.full(4, t == 0)

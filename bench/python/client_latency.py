@@ -13,7 +13,6 @@ N = 1, 8, 64 envs of D = 6 against:
   StepStream message on ``esa/v1/StepStream``;
 - ``EsaClient.in_process()``: esa-core in this process (``esa_client._native``), the
   in-process engine of the SB3 drop-ins;
-- ``esa_client.reference`` in-process (numpy; no server, no network);
 - ``baseline_server.py``, a plain Python grpcio server, through the same client.
 
 Section 1b of CONTRACT.md (``--parts 1b``, written to ``--section-1b-out``): the
@@ -40,13 +39,12 @@ import dataclasses
 import json
 import time
 from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from esa_client import EsaClient, SessionConfig, ZenohEsaClient
-from esa_client.reference import ReferenceClient
 
 from cli import parse_dataclass
 from servers import baseline_server, esa_server_tcp, server_binary
@@ -187,7 +185,6 @@ def targets() -> list[Target]:
         out.append(("python-grpcio", "tcp", api, lambda: client_at(baseline_server())))
     out += native_targets()
     out.append(("esa-native", "in-process", "-", EsaClient.in_process))
-    out.append(("reference", "in-process", "-", lambda: nullcontext(ReferenceClient())))
     return out
 
 
@@ -213,7 +210,6 @@ def section_1b_targets() -> list[Target]:
             ("esa-server", "uds", api, lambda: EsaClient.spawn(server_binary(), timeout=30.0))
         )
     out.append(("esa-native", "in-process", "-", EsaClient.in_process))
-    out.append(("reference", "in-process", "-", lambda: nullcontext(ReferenceClient())))
     return out
 
 

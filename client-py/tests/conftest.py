@@ -1,7 +1,9 @@
 """Fixtures: the real esa-server binary, a shared spawned server, and config generators."""
 
+import importlib.util
 import os
 import subprocess
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -13,6 +15,26 @@ from esa_client import EsaClient, EsaError, SessionConfig
 from esa_client.sidecar import find_server_binary
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def _load_reference_law() -> None:
+    """Makes ``import reference_law`` work in the test modules (the law in numpy).
+
+    ``--import-mode=importlib`` keeps this folder off ``sys.path``, so the module is
+    loaded here, once, before any test module is imported.
+    """
+    if "reference_law" in sys.modules:
+        return
+    spec = importlib.util.spec_from_file_location(
+        "reference_law", Path(__file__).with_name("reference_law.py")
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["reference_law"] = module
+    spec.loader.exec_module(module)
+
+
+_load_reference_law()
 
 
 @pytest.fixture(scope="session")
@@ -113,7 +135,7 @@ def make_config():
 
 
 def same_states(server_states, reference_states) -> None:
-    """Asserts that sessions' states (server vs ``esa_client.reference``) agree to 1e-9."""
+    """Asserts that sessions' states (server vs ``reference_law``) agree to 1e-9."""
     tol = dict(rtol=1e-9, atol=1e-9)
     for got, want in zip(server_states, reference_states, strict=True):
         assert got.config == want.config

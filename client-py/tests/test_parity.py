@@ -1,4 +1,4 @@
-"""The server agrees with esa_client.reference to 1e-9 on random configs and scripts.
+"""The server agrees with reference_law to 1e-9 on random configs and scripts.
 
 Every path is covered: unary Probe/Report, ProbeBatch/ReportBatch and StepStream,
 with episode starts, explicit episode ends, resets, retries, decay and pass-through.
@@ -8,9 +8,9 @@ import uuid
 
 import numpy as np
 import pytest
+from reference_law import ReferenceBatch, ReferenceSession
 
 from esa_client import EsaError, InvalidArgument, StepMismatch
-from esa_client.reference import ReferenceBatch, ReferenceSession
 
 TOL = dict(rtol=1e-9, atol=1e-9)
 

@@ -4,9 +4,9 @@ import math
 
 import numpy as np
 import pytest
+from reference_law import ReferenceBatch, ReferenceSession
 
 from esa_client import InvalidArgument, SessionConfig, SessionNotFound, StepMismatch
-from esa_client.reference import ReferenceBatch, ReferenceSession
 
 
 def literal_episode(config: SessionConfig, actions, qs):

@@ -1,5 +1,5 @@
 """CONTRACT.md section 1b from Python: Algorithm 1's applied action, action scales, paired
-references and deferred (pipelined) reports agree with ``esa_client.reference`` over unary
+references and deferred (pipelined) reports agree with ``reference_law`` over unary
 calls, ProbeBatch/ReportBatch, the StepStream, Zenoh and Zenoh shards; bad values raise
 ``InvalidArgument`` and change nothing.
 """
@@ -8,9 +8,9 @@ import uuid
 
 import numpy as np
 import pytest
+from reference_law import ReferenceBatch, ReferenceSession
 
 from esa_client import InvalidArgument, SessionConfig
-from esa_client.reference import ReferenceBatch, ReferenceSession
 
 TOL = dict(rtol=1e-9, atol=1e-9)
 

@@ -4,9 +4,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
+from reference_law import ReferenceSession
 
 from esa_client import EsaConfig
-from esa_client.reference import ReferenceSession
 from esa_client.wrappers import EsaActionWrapper
 
 

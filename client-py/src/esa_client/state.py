@@ -2,7 +2,7 @@
 
 :class:`SessionState` is what a transport's ``get_session`` returns; the checks turn
 caller arguments into the arrays a transport takes, with the same messages everywhere
-(``esa_client.session`` over a server, ``esa_client.reference`` in-process).
+(``esa_client.session`` over any transport, and the tests' numpy reference of the law).
 """
 
 from __future__ import annotations

@@ -1,10 +1,14 @@
-"""In-process numpy implementation of the ESA update law (CONTRACT.md sections 1 and 1b).
+"""The ESA update law in numpy (CONTRACT.md sections 1 and 1b): the tests' reference.
 
-This is the executable specification the server is cross-checked against, and the
-no-network baseline for benchmarks. :class:`ReferenceBatch` and
-:class:`ReferenceSession` have the same API as :class:`esa_client.SessionBatch` and
-:class:`esa_client.Session` and raise the same typed errors, so either can be
-swapped in; :class:`ReferenceClient` mirrors :class:`esa_client.EsaClient`.
+An executable specification, written independently of esa-core, that the server, the
+in-process engine and every transport are cross-checked against. It lives with the
+tests, not in the package: trainers and benchmarks use the in-process engine
+(``EsaClient.in_process()``). :class:`ReferenceBatch` and :class:`ReferenceSession` have
+the API of :class:`esa_client.SessionBatch` and :class:`esa_client.Session` and raise the
+same typed errors, so either can be swapped in; :class:`ReferenceClient` mirrors a client.
+
+Test modules import it as ``reference_law`` (``conftest.py`` loads it; pytest's
+``--import-mode=importlib`` keeps this folder off ``sys.path``).
 """
 
 from __future__ import annotations
@@ -14,9 +18,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .config import SessionConfig
-from .errors import InvalidArgument, SessionNotFound, StatusCode, StepMismatch
-from .state import SessionState, as_batch_configs, check_array, check_indices
+from esa_client.config import SessionConfig
+from esa_client.errors import InvalidArgument, SessionNotFound, StatusCode, StepMismatch
+from esa_client.state import SessionState, as_batch_configs, check_array, check_indices
 
 
 def _invalid(message: str) -> InvalidArgument:
