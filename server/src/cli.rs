@@ -69,7 +69,7 @@ pub struct Cli {
     pub session_ttl: f64,
 
     /// Most live sessions; creating one more fails with RESOURCE_EXHAUSTED.
-    #[arg(long, value_name = "N", default_value_t = 100_000)]
+    #[arg(long, value_name = "N", default_value_t = esa_store::DEFAULT_MAX_SESSIONS)]
     pub max_sessions: usize,
 
     /// Bytes the live sessions may cost together (a session of D action

@@ -20,15 +20,15 @@ use tonic::codec::{Codec, DecodeBuf, Decoder};
 use tonic::Status;
 use tonic_prost::ProstEncoder;
 
-use crate::error::Error;
+use crate::error::{status, Error};
 use crate::pb;
 
 /// The batch limits are esa-core's, which checks them; the wire decoder bounds repeated fields
 /// by them too.
 pub use esa_core::batch::{MAX_BATCH_ITEMS, MAX_BATCH_VALUES};
 
-/// Longest accepted session id, in bytes.
-pub const MAX_ID_BYTES: usize = 128;
+/// Longest accepted session id, in bytes (esa-store's id rule).
+pub use esa_store::MAX_ID_BYTES;
 
 /// The encoded size of the largest legal request: a ProbeBatch of [`MAX_BATCH_ITEMS`] items with
 /// ids of [`MAX_ID_BYTES`] bytes, steps of 10 varint bytes (the longest), [`MAX_BATCH_VALUES`]
@@ -104,7 +104,7 @@ impl<U: Message + Default + WireLimits> Decoder for BoundedDecoder<U> {
     type Error = Status;
 
     fn decode(&mut self, buf: &mut DecodeBuf<'_>) -> Result<Option<U>, Status> {
-        decode(buf).map(Some).map_err(Status::from)
+        decode(buf).map(Some).map_err(status)
     }
 }
 
@@ -349,7 +349,7 @@ mod tests {
         assert!(decode::<pb::ProbeBatchRequest>(batch.encode_to_vec().as_slice()).is_ok());
         batch.session_ids.push(String::new());
         let err = decode::<pb::ProbeBatchRequest>(batch.encode_to_vec().as_slice()).unwrap_err();
-        assert_eq!(err.code(), tonic::Code::InvalidArgument);
+        assert_eq!(err.code(), crate::error::Code::InvalidArgument);
         assert!(err.to_string().contains("session_ids"), "{err}");
         assert!(err.to_string().contains("65537"), "{err}");
     }
@@ -386,7 +386,7 @@ mod tests {
     fn garbage_is_invalid_argument_naming_the_message() {
         for bytes in [&b"\xff\xff\xff"[..], b"\x0a\x05ab", b"\x0b"] {
             let err = decode::<pb::ProbeBatchRequest>(bytes).unwrap_err();
-            assert_eq!(err.code(), tonic::Code::InvalidArgument, "{err}");
+            assert_eq!(err.code(), crate::error::Code::InvalidArgument, "{err}");
         }
         let err = decode::<pb::ProbeRequest>(&b"\xff\xff\xff"[..]).unwrap_err();
         assert!(err.to_string().contains("ProbeRequest"), "{err}");

@@ -48,7 +48,7 @@ mod tests {
     #[test]
     fn missing_config_is_invalid_argument() {
         let err = config_from_proto(None).unwrap_err();
-        assert_eq!(err.code(), tonic::Code::InvalidArgument);
+        assert_eq!(err.code(), crate::error::Code::InvalidArgument);
         assert!(err.to_string().contains("config"));
     }
 }

@@ -7,7 +7,7 @@ use futures_util::stream::{self, Stream, StreamExt};
 use tokio::sync::watch;
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::error::Error;
+use crate::error::{status, Error};
 use crate::handler::EsaHandler;
 use crate::pb;
 use crate::pb::esa_service_server::EsaService;
@@ -32,7 +32,7 @@ pub(crate) async fn stopped(mut stop: watch::Receiver<bool>) {
 }
 
 fn respond<T>(result: Result<T, Error>) -> Result<Response<T>, Status> {
-    result.map(Response::new).map_err(Status::from)
+    result.map(Response::new).map_err(status)
 }
 
 type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::StepStreamResponse, Status>> + Send>>;

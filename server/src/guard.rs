@@ -24,7 +24,7 @@ use tonic::Status;
 use tower::{Layer, Service};
 
 use crate::connections::Connection;
-use crate::error::Error;
+use crate::error::{status, Error};
 use crate::handler::EsaHandler;
 
 /// A gRPC message header: a compression flag and a big-endian 4-byte length.
@@ -104,7 +104,7 @@ where
 
     fn call(&mut self, request: http::Request<Body>) -> Self::Future {
         if let Err(err) = self.shared.authorize(&request) {
-            return Box::pin(std::future::ready(Ok(Status::from(err).into_http())));
+            return Box::pin(std::future::ready(Ok(status(err).into_http())));
         }
         let call = request
             .extensions()
@@ -266,7 +266,7 @@ impl http_body::Body for RequestBody {
             Poll::Ready(Some(Ok(frame))) => {
                 if let Some(data) = frame.data_ref() {
                     if let Err(err) = this.track(data) {
-                        return Poll::Ready(Some(Err(err.into())));
+                        return Poll::Ready(Some(Err(status(err))));
                     }
                 }
                 Poll::Ready(Some(Ok(frame)))
@@ -280,10 +280,9 @@ impl http_body::Body for RequestBody {
                     return Poll::Pending;
                 }
                 let timeout = this.shared.limits.message_timeout;
-                Poll::Ready(Some(Err(Error::DeadlineExceeded(format!(
+                Poll::Ready(Some(Err(status(Error::DeadlineExceeded(format!(
                     "a request message was begun but not completed within {timeout:?}"
-                ))
-                .into())))
+                ))))))
             }
             done => done,
         }

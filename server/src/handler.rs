@@ -13,7 +13,7 @@ use subtle::ConstantTimeEq as _;
 
 use crate::codec::{self, WireLimits};
 use crate::convert::{config_from_proto, session_snapshot};
-use crate::error::Error;
+use crate::error::{grpc_code, stream_error, Error};
 use crate::metrics::{Metrics, StoreGauges};
 use crate::pb;
 use crate::pb::step_stream_request::Kind as StreamRequest;
@@ -211,7 +211,7 @@ impl EsaHandler {
             )),
         });
         pb::StepStreamResponse {
-            kind: Some(result.unwrap_or_else(|err| StreamResponse::Error(err.into()))),
+            kind: Some(result.unwrap_or_else(|err| StreamResponse::Error(stream_error(err)))),
         }
     }
 
@@ -289,8 +289,9 @@ impl EsaHandler {
         let code = match &result {
             Ok(_) => tonic::Code::Ok,
             Err(err) => {
-                tracing::debug!(rpc = rpc.name(), code = ?err.code(), %err, "request failed");
-                err.code()
+                let code = grpc_code(err);
+                tracing::debug!(rpc = rpc.name(), ?code, %err, "request failed");
+                code
             }
         };
         self.metrics.observe(rpc, code, start.elapsed());

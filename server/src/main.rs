@@ -10,9 +10,9 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::Parser;
+use esa_server::error::io_context;
 use esa_server::metrics_endpoint::serve_metrics;
 use esa_server::resources;
-use esa_server::server::io_context;
 use esa_server::zenoh_transport::ZenohService;
 use esa_server::{Listener, StartError};
 use tracing_subscriber::EnvFilter;

@@ -19,7 +19,7 @@ use tonic_health::server::HealthReporter;
 
 use crate::codec::MAX_REQUEST_BYTES;
 use crate::connections::{ConnectionLimits, Incoming, Registry};
-use crate::error::StartError;
+use crate::error::{io_context, StartError};
 use crate::grpc::{stopped, GrpcService};
 use crate::guard::{GuardLayer, RequestLimits};
 use crate::handler::EsaHandler;
@@ -53,7 +53,7 @@ impl Default for ServerBuilder {
         Self {
             session_ttl: Some(Duration::from_secs(600)),
             sweep_interval: None,
-            max_sessions: 100_000,
+            max_sessions: esa_store::DEFAULT_MAX_SESSIONS,
             max_session_memory: resources::default_session_memory(),
             max_message_bytes: MAX_REQUEST_BYTES,
             max_request_memory: None,
@@ -406,11 +406,6 @@ fn spawn_warning_summaries(handler: Arc<EsaHandler>) -> tokio::task::JoinHandle<
             handler.log_suppressed_warnings();
         }
     })
-}
-
-/// `err` with `context` in front of its message (the kind is kept).
-pub fn io_context(err: io::Error, context: String) -> io::Error {
-    io::Error::new(err.kind(), format!("{context}: {err}"))
 }
 
 struct AbortOnDrop(tokio::task::JoinHandle<()>);

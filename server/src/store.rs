@@ -1,6 +1,9 @@
 //! Concurrent session store: sessions keyed by id in a sharded map, each
 //! behind its own mutex, so requests for different sessions never wait on
-//! each other and the step path takes no global lock.
+//! each other and the step path takes no global lock. What an id means (its
+//! rules, creating an existing one, the session limit, how a batch finds its
+//! sessions) and the errors are esa-store's; this store adds concurrency, the
+//! TTL and the memory budget.
 //!
 //! Idle sessions expire after the TTL. Expiry is checked on every lookup (so
 //! an expired session is NOT_FOUND exactly when its TTL has passed), and a
@@ -18,10 +21,8 @@ use std::time::{Duration, Instant};
 use dashmap::mapref::entry::Entry as MapEntry;
 use dashmap::DashMap;
 use esa_core::{footprint, Session};
+use esa_store::{assign_id, check_same_config, check_session_limit, find, resolve_batch, Error};
 use parking_lot::{Mutex, MutexGuard};
-
-use crate::codec::MAX_ID_BYTES;
-use crate::error::Error;
 
 /// One stored session. parking_lot's mutex does not poison, so a panic in one
 /// request could never make a session unusable for the next.
@@ -104,12 +105,7 @@ impl SessionStore {
     /// its id returned when its config equals the new one; otherwise
     /// ALREADY_EXISTS.
     pub fn create(&self, id: String, session: Session) -> Result<String, Error> {
-        let id = if id.is_empty() {
-            uuid::Uuid::new_v4().to_string()
-        } else {
-            check_id(&id)?;
-            id
-        };
+        let id = assign_id(&id)?;
         let now = self.now();
         let cost = session_cost(&id, session.action_dim());
         let existing = loop {
@@ -131,12 +127,9 @@ impl SessionStore {
         };
         // Compared after releasing the shard lock so that a long batch holding
         // this session's mutex cannot stall other ids of the shard.
-        if existing.session.lock().config() == session.config() {
-            existing.touch(now);
-            Ok(id)
-        } else {
-            Err(Error::AlreadyExists(id))
-        }
+        check_same_config(&id, &existing.session.lock(), &session)?;
+        existing.touch(now);
+        Ok(id)
     }
 
     /// Runs `f` on the session `id` while holding its lock.
@@ -152,42 +145,18 @@ impl SessionStore {
 
     /// Runs `f` on the sessions of `ids` (in request order) while holding all
     /// their locks, so `f` can validate every item before changing any.
-    /// Errors name the item index; an id may appear only once.
+    /// Errors name the item index; an id may appear only once
+    /// ([`resolve_batch`]).
     pub fn with_batch<R>(
         &self,
         ids: &[String],
         f: impl FnOnce(&mut [&mut Session]) -> Result<R, Error>,
     ) -> Result<R, Error> {
         let now = self.now();
-        let slots = ids
-            .iter()
-            .enumerate()
-            .map(|(index, id)| {
-                self.lookup_at(id, now)
-                    .map_err(|err| Error::item(index, err))
-            })
-            .collect::<Result<Vec<_>, _>>()?;
+        let resolved = resolve_batch(ids, |id| self.live_slot(id, now), Arc::as_ptr)?;
+        let (slots, order) = (resolved.items, resolved.order);
         // Locks are taken in address order, the same order for every batch,
-        // so two batches sharing sessions cannot deadlock. The stable sort
-        // keeps repeats of one session in request order, side by side.
-        let mut order: Vec<usize> = (0..slots.len()).collect();
-        order.sort_by_key(|&index| slots.get(index).map(Arc::as_ptr));
-        for pair in order.windows(2) {
-            if let [first, second] = *pair {
-                if let (Some(a), Some(b)) = (slots.get(first), slots.get(second)) {
-                    if Arc::ptr_eq(a, b) {
-                        let id = ids.get(second).map_or("", String::as_str);
-                        return Err(Error::item(
-                            second,
-                            Error::InvalidArgument(format!(
-                                "session id {id:?} also appears at item {first}; \
-                                 a session may appear at most once per batch"
-                            )),
-                        ));
-                    }
-                }
-            }
-        }
+        // so two batches sharing sessions cannot deadlock.
         let mut guards: Vec<Option<MutexGuard<'_, Session>>> = Vec::with_capacity(slots.len());
         guards.resize_with(slots.len(), || None);
         for &index in &order {
@@ -202,11 +171,7 @@ impl SessionStore {
 
     /// Removes the session `id`; NOT_FOUND when it does not exist or expired.
     pub fn close(&self, id: &str) -> Result<(), Error> {
-        check_id(id)?;
-        let (_, slot) = self
-            .sessions
-            .remove(id)
-            .ok_or_else(|| Error::NotFound(id.to_owned()))?;
+        let (_, slot) = find(id, |id| self.sessions.remove(id))?;
         self.release(&slot);
         if self.is_expired(&slot, self.now()) {
             self.expired_total.fetch_add(1, Ordering::Relaxed);
@@ -234,19 +199,20 @@ impl SessionStore {
 
     /// The live session `id`, marked as used now.
     fn lookup(&self, id: &str) -> Result<Arc<Slot>, Error> {
-        self.lookup_at(id, self.now())
+        let now = self.now();
+        find(id, |id| self.live_slot(id, now))
     }
 
-    /// The live session `id`, marked as used at `now`.
-    fn lookup_at(&self, id: &str, now: u64) -> Result<Arc<Slot>, Error> {
-        check_id(id)?;
+    /// The session `id` if it has not expired at `now`, marked as used then;
+    /// an expired one is removed.
+    fn live_slot(&self, id: &str, now: u64) -> Option<Arc<Slot>> {
         match self.sessions.get(id) {
-            None => return Err(Error::NotFound(id.to_owned())),
+            None => return None,
             Some(slot) if !self.is_expired(&slot, now) => {
                 // Touched under the shard's read lock: a sweep (which holds the
                 // write lock) cannot remove it between this check and the use.
                 slot.touch(now);
-                return Ok(Arc::clone(&slot));
+                return Some(Arc::clone(&slot));
             }
             Some(_) => {}
         }
@@ -257,22 +223,18 @@ impl SessionStore {
             self.release(&slot);
             self.expired_total.fetch_add(1, Ordering::Relaxed);
         }
-        Err(Error::NotFound(id.to_owned()))
+        None
     }
 
     /// Counts one more session costing `cost` bytes, or says which limit it would pass.
     fn reserve(&self, cost: usize) -> Result<(), Error> {
         self.live
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
-                (n < self.max_sessions).then_some(n + 1)
+                check_session_limit(n, self.max_sessions)
+                    .ok()
+                    .map(|()| n + 1)
             })
-            .map_err(|n| {
-                Error::ResourceExhausted(format!(
-                    "session limit reached: the server holds {n} live sessions \
-                     (--max-sessions {}); close finished sessions or raise the limit",
-                    self.max_sessions
-                ))
-            })?;
+            .map_err(|n| Error::session_limit(n, self.max_sessions))?;
         self.memory
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |used| {
                 used.checked_add(cost)
@@ -318,17 +280,6 @@ impl Slot {
     fn touch(&self, now: u64) {
         self.last_used.fetch_max(now, Ordering::Relaxed);
     }
-}
-
-/// Session ids are 1 to [`MAX_ID_BYTES`] bytes.
-fn check_id(id: &str) -> Result<(), Error> {
-    if id.is_empty() || id.len() > MAX_ID_BYTES {
-        return Err(Error::InvalidArgument(format!(
-            "session_id: expected 1 to {MAX_ID_BYTES} bytes, got {}",
-            id.len()
-        )));
-    }
-    Ok(())
 }
 
 fn duration_nanos(d: Duration) -> u64 {
@@ -419,7 +370,7 @@ mod tests {
         store.create("a".into(), session()).unwrap();
         store.create("b".into(), session()).unwrap();
         let err = store.create("c".into(), session()).unwrap_err();
-        assert_eq!(err.code(), tonic::Code::ResourceExhausted);
+        assert_eq!(err.code(), esa_store::Code::ResourceExhausted);
         assert!(err.to_string().contains("--max-session-memory"), "{err}");
         assert_eq!((store.live(), store.memory()), (2, 2 * cost));
         store.close("a").unwrap();

@@ -10,8 +10,7 @@ use std::time::Duration;
 
 use tonic::transport::{Certificate, Identity, ServerTlsConfig};
 
-use crate::error::StartError;
-use crate::server::io_context;
+use crate::error::{io_context, StartError};
 
 /// PEM material for TLS on the gRPC listener.
 #[derive(Clone)]

@@ -16,9 +16,8 @@ use zenoh::bytes::Encoding;
 use zenoh::query::{Query, Queryable};
 use zenoh::{Config, Session};
 
-use crate::error::StartError;
+use crate::error::{stream_error, StartError};
 use crate::handler::EsaHandler;
-use crate::pb;
 use esa_proto::Rpc;
 
 /// The key prefix of the contract when none is given.
@@ -221,7 +220,7 @@ async fn answer(handler: Arc<EsaHandler>, rpc: Rpc, query: Query) {
         }
         Err(err) => {
             query
-                .reply_err(pb::StreamError::from(err).encode_to_vec())
+                .reply_err(stream_error(err).encode_to_vec())
                 .encoding(Encoding::APPLICATION_PROTOBUF)
                 .await
         }

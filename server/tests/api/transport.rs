@@ -4,6 +4,7 @@
 
 use std::net::SocketAddr;
 
+use esa_server::error::{grpc_code, stream_error};
 use esa_server::metrics_endpoint::serve_metrics;
 use esa_server::pb;
 use esa_server::{EsaServer, Listener, Rpc};
@@ -246,7 +247,7 @@ async fn encoded_messages_reach_the_same_sessions() {
     let err = handler
         .handle_encoded(Rpc::Probe, b"\xff\xff\xff")
         .unwrap_err();
-    assert_eq!(err.code(), Code::InvalidArgument);
+    assert_eq!(grpc_code(&err), Code::InvalidArgument);
     let err = handler
         .handle_encoded(
             Rpc::GetSession,
@@ -256,8 +257,8 @@ async fn encoded_messages_reach_the_same_sessions() {
             .encode_to_vec(),
         )
         .unwrap_err();
-    assert_eq!(err.code(), Code::NotFound);
-    assert_eq!(pb::StreamError::from(err).code, Code::NotFound as i32);
+    assert_eq!(grpc_code(&err), Code::NotFound);
+    assert_eq!(stream_error(err).code, Code::NotFound as i32);
 
     // StepStream messages answer errors in-band, as on the gRPC stream.
     let answer = handler
