@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use esa_core::{batch, Session};
+use esa_store::unary;
 use prost::Message;
 use subtle::ConstantTimeEq as _;
 
@@ -118,20 +119,17 @@ impl EsaHandler {
     pub fn probe(&self, req: pb::ProbeRequest) -> Result<pb::ProbeResponse, Error> {
         self.observe(Rpc::Probe, || {
             self.store.with_session(&req.session_id, |session| {
-                let mut probe = Vec::with_capacity(session.action_dim());
-                session.probe(
+                let probed = unary::probe(
+                    session,
                     req.step,
                     &req.action,
                     &req.action_scale,
                     req.episode_start,
-                    &mut probe,
                 )?;
-                let mut action = Vec::with_capacity(session.action_dim());
-                session.applied_action(&mut action);
                 Ok(pb::ProbeResponse {
-                    probe,
+                    probe: probed.probe,
                     step: req.step,
-                    action,
+                    action: probed.applied,
                 })
             })
         })
@@ -141,12 +139,10 @@ impl EsaHandler {
     pub fn report(&self, req: pb::ReportRequest) -> Result<pb::ReportResponse, Error> {
         self.observe(Rpc::Report, || {
             self.store.with_session(&req.session_id, |session| {
-                let mut action = Vec::with_capacity(session.action_dim());
-                let outcome =
-                    session.report(req.step, req.q_value, req.q_reference, &mut action)?;
-                self.note_nonfinite(outcome.nonfinite_skipped, &req.session_id);
+                let reported = unary::report(session, req.step, req.q_value, req.q_reference)?;
+                self.note_nonfinite(reported.outcome.nonfinite_skipped, &req.session_id);
                 Ok(pb::ReportResponse {
-                    action,
+                    action: reported.action,
                     step: req.step,
                 })
             })

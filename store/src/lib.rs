@@ -5,7 +5,8 @@
 //! [`MAX_ID_BYTES`]), what creating an id that exists answers ([`check_same_config`]), the
 //! session limit ([`check_session_limit`], [`DEFAULT_MAX_SESSIONS`]), how a batch finds its
 //! sessions ([`resolve_batch`]), and the one [`Error`] every wrapper reports, with its [`Code`]
-//! and its messages (CONTRACT.md section 2). [`Sessions`] puts them together as a single-owner
+//! and its messages (CONTRACT.md section 2), and the unary calls on one session
+//! ([`unary`]). [`Sessions`] puts them together as a single-owner
 //! store; a concurrent store (the server's: a lock per session, TTL, a memory budget) builds on
 //! the same functions. Nothing here knows a network or an async runtime.
 
@@ -13,6 +14,7 @@ mod batch;
 mod error;
 mod ids;
 mod sessions;
+pub mod unary;
 
 pub use batch::{resolve_batch, Resolved};
 pub use error::{Code, Error};

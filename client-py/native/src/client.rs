@@ -16,8 +16,7 @@ use std::time::{Duration, Instant};
 use numpy::IntoPyArray;
 use parking_lot::RwLock;
 use prost::Message;
-use pyo3::create_exception;
-use pyo3::exceptions::{PyException, PyOSError, PyValueError};
+use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 use tokio::runtime::Runtime;
@@ -28,17 +27,11 @@ use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
 
-use crate::{shaped, status_error, Values};
 use esa_proto::v1 as pb;
 use pb::esa_service_client::EsaServiceClient;
 
-create_exception!(
-    esa_client._native,
-    StatusError,
-    PyException,
-    "A failed call to a server. Attributes: code (the gRPC status code number), message (str) \
-     and index (the failing batch item, or None)."
-);
+use crate::arrays::{shaped, Values};
+use crate::errors::{status_error, StatusError};
 
 /// How often the keeper thread answers what arrived while no call was waiting; well within the
 /// server's keepalive timeout (10 s by default).

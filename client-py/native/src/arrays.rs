@@ -1,0 +1,135 @@
+//! numpy at the module's edge: the values of an array argument ([`Values`], borrowed when the
+//! array allows it, else converted by numpy) and the arrays a call returns ([`shaped`]).
+
+use numpy::ndarray::Array2;
+use numpy::{Element, IntoPyArray, PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
+use pyo3::exceptions::{PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::sync::PyOnceLock;
+use pyo3::types::PyDict;
+
+/// The values of an array argument: borrowed from a C-contiguous numpy array of the right dtype,
+/// else converted by numpy (which raises for what it cannot convert).
+pub(crate) enum Values<'py, T: Element> {
+    Array(numpy::PyReadonlyArrayDyn<'py, T>),
+    Owned(Vec<T>),
+}
+
+impl<'py, T: Element + Copy> Values<'py, T> {
+    pub(crate) fn empty() -> Self {
+        Values::Owned(Vec::new())
+    }
+
+    /// Borrows `object` when it is a C-contiguous array of `T`.
+    pub(crate) fn borrow(object: &Bound<'py, PyAny>) -> Option<Self> {
+        let array = object.cast::<PyArrayDyn<T>>().ok()?;
+        if !array.is_c_contiguous() {
+            return None;
+        }
+        array.try_readonly().ok().map(Values::Array)
+    }
+
+    /// Converts `object` with `numpy.ascontiguousarray(object, dtype)`.
+    pub(crate) fn convert(object: &Bound<'py, PyAny>, dtype: &str) -> PyResult<Self> {
+        let py = object.py();
+        let kwargs = PyDict::new(py);
+        kwargs.set_item("dtype", dtype)?;
+        let converted = numpy_function(py, "ascontiguousarray")?.call((object,), Some(&kwargs))?;
+        let array = converted.cast_into::<PyArrayDyn<T>>()?;
+        let values = array.readonly().as_slice().map(<[T]>::to_vec);
+        values
+            .map(Values::Owned)
+            .map_err(|err| PyValueError::new_err(err.to_string()))
+    }
+
+    pub(crate) fn as_slice(&self) -> &[T] {
+        match self {
+            // A C-contiguous array (checked when borrowed) is a slice.
+            Values::Array(array) => array.as_slice().unwrap_or(&[]),
+            Values::Owned(values) => values,
+        }
+    }
+
+    /// The values, owned: what a call that releases the GIL reads, since Python code could
+    /// write to a numpy array meanwhile.
+    pub(crate) fn owned(&self) -> Vec<T> {
+        self.as_slice().to_vec()
+    }
+}
+
+impl<'py> Values<'py, f64> {
+    /// Float values (`actions`, `action_scales`, `q_values`, `q_references`), any shape, C order.
+    pub(crate) fn floats(object: &Bound<'py, PyAny>) -> PyResult<Self> {
+        match Self::borrow(object) {
+            Some(values) => Ok(values),
+            None => Self::convert(object, "float64"),
+        }
+    }
+}
+
+impl<'py> Values<'py, bool> {
+    /// Episode-start flags.
+    pub(crate) fn bools(object: &Bound<'py, PyAny>) -> PyResult<Self> {
+        match Self::borrow(object) {
+            Some(values) => Ok(values),
+            None => Self::convert(object, "bool"),
+        }
+    }
+}
+
+impl<'py> Values<'py, u64> {
+    /// Signed steps as unsigned ones; a negative step is a ValueError (numpy would wrap it).
+    fn unsigned(signed: &[i64]) -> PyResult<Self> {
+        signed
+            .iter()
+            .map(|&step| {
+                u64::try_from(step).map_err(|_| {
+                    PyValueError::new_err(format!("steps: expected integers >= 0, got {step}"))
+                })
+            })
+            .collect::<PyResult<Vec<u64>>>()
+            .map(Values::Owned)
+    }
+
+    /// Steps: unsigned integers; signed ones must not be negative (numpy would wrap them).
+    pub(crate) fn steps(object: &Bound<'py, PyAny>) -> PyResult<Self> {
+        if let Some(values) = Self::borrow(object) {
+            return Ok(values);
+        }
+        // int64 is numpy's default integer: read it without numpy's conversion.
+        if let Some(signed) = Values::<i64>::borrow(object) {
+            return Self::unsigned(signed.as_slice());
+        }
+        let py = object.py();
+        let array = numpy_function(py, "asarray")?.call1((object,))?;
+        let kind: String = array.getattr("dtype")?.getattr("kind")?.extract()?;
+        match kind.as_str() {
+            "u" => Self::convert(&array, "uint64"),
+            "i" => Self::unsigned(Values::<i64>::convert(&array, "int64")?.as_slice()),
+            _ => Err(PyTypeError::new_err(format!(
+                "steps: expected an array of unsigned integers, got dtype kind {kind:?}"
+            ))),
+        }
+    }
+}
+
+fn numpy_function<'py>(py: Python<'py>, name: &str) -> PyResult<Bound<'py, PyAny>> {
+    static NUMPY: PyOnceLock<Py<PyModule>> = PyOnceLock::new();
+    let numpy = NUMPY.get_or_try_init(py, || py.import("numpy").map(Bound::unbind))?;
+    numpy.bind(py).getattr(name)
+}
+
+/// `values` as an (n, dim) array when every item has the same dimension, else flat.
+pub(crate) fn shaped<'py>(
+    py: Python<'py>,
+    values: Vec<f64>,
+    n: usize,
+    dim: Option<usize>,
+) -> PyResult<Bound<'py, PyAny>> {
+    match dim {
+        Some(dim) => Array2::from_shape_vec((n, dim), values)
+            .map(|array| array.into_pyarray(py).into_any())
+            .map_err(|err| PyValueError::new_err(err.to_string())),
+        None => Ok(values.into_pyarray(py).into_any()),
+    }
+}

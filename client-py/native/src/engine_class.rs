@@ -1,0 +1,294 @@
+//! The `Engine` and `BatchHandle` classes: esa-core in-process, over numpy arrays.
+//!
+//! An [`Engine`] holds sessions by id, like an `esa-server` does, and runs the same
+//! all-or-nothing batches (`esa_core::batch`) without a process or a socket in between. A refused
+//! call raises `EngineError` ([`crate::errors`]) and changes nothing.
+
+use numpy::IntoPyArray;
+use parking_lot::{Mutex, MutexGuard};
+use prost::Message;
+use pyo3::prelude::*;
+use pyo3::types::{PyBytes, PyTuple};
+
+use esa_proto::v1 as pb;
+use esa_store::{Error, DEFAULT_MAX_SESSIONS};
+
+use crate::arrays::{shaped, Values};
+use crate::engine;
+use crate::errors::engine_error;
+
+/// By default, batches of more action values than this run with the GIL released (measured:
+/// `native/bench_engine.py --gil`); below it, releasing the GIL and taking it back (and copying the
+/// inputs, which Python threads could write to meanwhile) costs a larger part of the call.
+pub(crate) const DETACH_VALUES: usize = 4096;
+
+/// Sessions by id, each stepped by esa-core; see the module stub for the API.
+#[pyclass(frozen, module = "esa_client._native")]
+pub(crate) struct Engine {
+    inner: Mutex<engine::Engine>,
+    /// Batches of more action values than this release the GIL.
+    detach_values: usize,
+}
+
+/// A list of session ids resolved once (`Engine.resolve`), for batch calls without hashing.
+#[pyclass(frozen, module = "esa_client._native")]
+pub(crate) struct BatchHandle {
+    inner: engine::Handle,
+}
+
+impl Engine {
+    /// The engine's state. A thread that holds the GIL never blocks on the lock: a batch that
+    /// released the GIL may hold it, and it needs no GIL to finish.
+    fn lock<'a>(&'a self, py: Python<'_>) -> MutexGuard<'a, engine::Engine> {
+        loop {
+            if let Some(guard) = self.inner.try_lock() {
+                return guard;
+            }
+            py.detach(|| drop(self.inner.lock()));
+        }
+    }
+}
+
+#[pymethods]
+impl Engine {
+    #[new]
+    #[pyo3(signature = (max_sessions = DEFAULT_MAX_SESSIONS, detach_values = DETACH_VALUES))]
+    fn new(max_sessions: usize, detach_values: usize) -> Self {
+        Self {
+            inner: Mutex::new(engine::Engine::new(max_sessions)),
+            detach_values,
+        }
+    }
+
+    /// Batches of more action values than this release the GIL while they run.
+    #[getter]
+    fn detach_values(&self) -> usize {
+        self.detach_values
+    }
+
+    /// The live-session limit.
+    #[getter]
+    fn max_sessions(&self, py: Python<'_>) -> usize {
+        self.lock(py).max_sessions()
+    }
+
+    fn __len__(&self, py: Python<'_>) -> usize {
+        self.lock(py).live()
+    }
+
+    fn __contains__(&self, py: Python<'_>, session_id: &str) -> bool {
+        self.lock(py).contains(session_id)
+    }
+
+    /// Creates a session from an encoded `esa.v1.SessionConfig`; returns its id.
+    #[pyo3(signature = (session_id, config))]
+    fn create_session(
+        &self,
+        py: Python<'_>,
+        session_id: Option<&str>,
+        config: &[u8],
+    ) -> PyResult<String> {
+        let config = pb::SessionConfig::decode(config).map_err(|err| {
+            engine_error(
+                py,
+                Error::InvalidArgument(format!(
+                    "config: expected an encoded esa.v1.SessionConfig message: {err}"
+                )),
+            )
+        })?;
+        self.lock(py)
+            .create_session(session_id, esa_proto::convert::config_from_proto(config))
+            .map_err(|err| engine_error(py, err))
+    }
+
+    /// An encoded `esa.v1.GetSessionResponse` for the session.
+    fn get_session<'py>(&self, py: Python<'py>, session_id: &str) -> PyResult<Bound<'py, PyBytes>> {
+        let response = self
+            .lock(py)
+            .get_session(session_id)
+            .map_err(|err| engine_error(py, err))?;
+        Ok(PyBytes::new(py, &response.encode_to_vec()))
+    }
+
+    /// Closes the session.
+    fn close_session(&self, py: Python<'_>, session_id: &str) -> PyResult<()> {
+        self.lock(py)
+            .close_session(session_id)
+            .map_err(|err| engine_error(py, err))
+    }
+
+    /// Ends the session's episode; returns its completed episodes.
+    fn end_episode(&self, py: Python<'_>, session_id: &str) -> PyResult<u64> {
+        self.lock(py)
+            .end_episode(session_id)
+            .map_err(|err| engine_error(py, err))
+    }
+
+    /// Probe of one session: returns (probe, applied), each of the session's dimension.
+    #[pyo3(signature = (session_id, step, action, episode_start = false, action_scale = None))]
+    fn probe_one<'py>(
+        &self,
+        py: Python<'py>,
+        session_id: &str,
+        step: u64,
+        action: &Bound<'py, PyAny>,
+        episode_start: bool,
+        action_scale: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let action = Values::<f64>::floats(action)?;
+        let scale = match action_scale {
+            Some(scale) => Values::<f64>::floats(scale)?,
+            None => Values::empty(),
+        };
+        let (probe, applied) = self
+            .lock(py)
+            .probe_one(
+                session_id,
+                step,
+                action.as_slice(),
+                scale.as_slice(),
+                episode_start,
+            )
+            .map_err(|err| engine_error(py, err))?;
+        PyTuple::new(py, [probe.into_pyarray(py), applied.into_pyarray(py)])
+    }
+
+    /// Report of one session: returns the improved action.
+    #[pyo3(signature = (session_id, step, q_value, q_reference = None))]
+    fn report_one<'py>(
+        &self,
+        py: Python<'py>,
+        session_id: &str,
+        step: u64,
+        q_value: f64,
+        q_reference: Option<f64>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let action = self
+            .lock(py)
+            .report_one(session_id, step, q_value, q_reference)
+            .map_err(|err| engine_error(py, err))?;
+        Ok(action.into_pyarray(py).into_any())
+    }
+
+    /// Resolves session ids into a handle for `probe` and `report`.
+    fn resolve(&self, py: Python<'_>, session_ids: Vec<String>) -> PyResult<BatchHandle> {
+        let inner = self
+            .lock(py)
+            .resolve(&session_ids)
+            .map_err(|err| engine_error(py, err))?;
+        Ok(BatchHandle { inner })
+    }
+
+    /// ProbeBatch: returns (probes, applied).
+    #[pyo3(signature = (handle, steps, actions, episode_starts = None, action_scales = None))]
+    fn probe<'py>(
+        &self,
+        py: Python<'py>,
+        handle: &Bound<'py, BatchHandle>,
+        steps: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        episode_starts: Option<&Bound<'py, PyAny>>,
+        action_scales: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let handle = &handle.get().inner;
+        let steps = Values::<u64>::steps(steps)?;
+        let actions = Values::<f64>::floats(actions)?;
+        let starts = match episode_starts {
+            Some(starts) => Values::<bool>::bools(starts)?,
+            None => Values::empty(),
+        };
+        let scales = match action_scales {
+            Some(scales) => Values::<f64>::floats(scales)?,
+            None => Values::empty(),
+        };
+        let output = if handle.values() > self.detach_values {
+            let (steps, actions, starts, scales) = (
+                steps.owned(),
+                actions.owned(),
+                starts.owned(),
+                scales.owned(),
+            );
+            py.detach(|| {
+                self.inner
+                    .lock()
+                    .probe(handle, &steps, &actions, &starts, &scales)
+            })
+        } else {
+            self.lock(py).probe(
+                handle,
+                steps.as_slice(),
+                actions.as_slice(),
+                starts.as_slice(),
+                scales.as_slice(),
+            )
+        }
+        .map_err(|err| engine_error(py, err))?;
+        let n = handle.len();
+        let probes = shaped(py, output.probes, n, output.dim)?;
+        let applied = shaped(py, output.applied, n, output.dim)?;
+        PyTuple::new(py, [probes, applied])
+    }
+
+    /// ReportBatch: returns the improved actions.
+    #[pyo3(signature = (handle, steps, q_values, q_references = None))]
+    fn report<'py>(
+        &self,
+        py: Python<'py>,
+        handle: &Bound<'py, BatchHandle>,
+        steps: &Bound<'py, PyAny>,
+        q_values: &Bound<'py, PyAny>,
+        q_references: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let handle = &handle.get().inner;
+        let steps = Values::<u64>::steps(steps)?;
+        let q_values = Values::<f64>::floats(q_values)?;
+        let references = match q_references {
+            Some(references) => Values::<f64>::floats(references)?,
+            None => Values::empty(),
+        };
+        let output = if handle.values() > self.detach_values {
+            let (steps, q_values, references) =
+                (steps.owned(), q_values.owned(), references.owned());
+            py.detach(|| {
+                self.inner
+                    .lock()
+                    .report(handle, &steps, &q_values, &references)
+            })
+        } else {
+            self.lock(py).report(
+                handle,
+                steps.as_slice(),
+                q_values.as_slice(),
+                references.as_slice(),
+            )
+        }
+        .map_err(|err| engine_error(py, err))?;
+        shaped(py, output.actions, handle.len(), output.dim)
+    }
+
+    fn __repr__(&self, py: Python<'_>) -> String {
+        let engine = self.lock(py);
+        format!(
+            "Engine(live={}, max_sessions={})",
+            engine.live(),
+            engine.max_sessions()
+        )
+    }
+}
+
+#[pymethods]
+impl BatchHandle {
+    /// The session ids, in item order.
+    #[getter]
+    fn ids(&self) -> Vec<String> {
+        self.inner.ids().map(str::to_owned).collect()
+    }
+
+    fn __len__(&self) -> usize {
+        self.inner.len()
+    }
+
+    fn __repr__(&self) -> String {
+        format!("BatchHandle(n={})", self.inner.len())
+    }
+}

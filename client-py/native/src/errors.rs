@@ -1,0 +1,51 @@
+//! The module's exceptions, and how a refused call becomes one: `EngineError` (the in-process
+//! engine) and `StatusError` (a server's answer to `GrpcClient`), both carrying the gRPC status
+//! `code` number, the `message` and the failing batch item's `index`.
+
+use pyo3::create_exception;
+use pyo3::exceptions::PyException;
+use pyo3::prelude::*;
+
+create_exception!(
+    esa_client._native,
+    EngineError,
+    PyException,
+    "A refused call; nothing changed. Attributes: code (the gRPC status code number the server \
+     answers the same case with), message (str) and index (the failing batch item, or None)."
+);
+
+create_exception!(
+    esa_client._native,
+    StatusError,
+    PyException,
+    "A failed call to a server. Attributes: code (the gRPC status code number), message (str) \
+     and index (the failing batch item, or None)."
+);
+
+/// The `EngineError` of a refused engine call: esa-store's code, message and item.
+pub(crate) fn engine_error(py: Python<'_>, err: esa_store::Error) -> PyErr {
+    let message = err.to_string();
+    let exc = EngineError::new_err(message.clone());
+    status_error(py, exc, err.code() as i32, message, err.item_index())
+}
+
+/// `exc` with the attributes of a failed call: its gRPC `code` number, `message` and `index`.
+pub(crate) fn status_error(
+    py: Python<'_>,
+    exc: PyErr,
+    code: i32,
+    message: String,
+    index: Option<usize>,
+) -> PyErr {
+    let value = exc.value(py);
+    let attributes = (|| -> PyResult<()> {
+        value.setattr("code", code)?;
+        value.setattr("message", message)?;
+        value.setattr("index", index)?;
+        Ok(())
+    })();
+    match attributes {
+        Ok(()) => exc,
+        Err(failed) => failed,
+    }
+}
