@@ -4,8 +4,9 @@
 //! [`zenoh_transport`], and any other adapter) and the HTTP metrics endpoint
 //! ([`metrics_endpoint`]) call the transport-independent
 //! [`handler::EsaHandler`], which validates requests and runs them against the
-//! [`store::SessionStore`] of `esa_core::Session`s, counting them in
-//! [`metrics::Metrics`]. [`server::EsaServer`] assembles the gRPC server. The
+//! [`store::SessionStore`] of `esa_core::Session`s (concurrency, TTL and
+//! memory budget over esa-store's sessions by id, whose [`Error`] every
+//! transport reports), counting them in [`metrics::Metrics`]. [`server::EsaServer`] assembles the gRPC server. The
 //! wire types come from the esa-proto crate ([`pb`]).
 
 pub mod codec;
