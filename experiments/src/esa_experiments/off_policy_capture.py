@@ -84,7 +84,7 @@ def gradient_shift(model: SAC, obs: th.Tensor, action: np.ndarray, sigma: np.nda
     a = th.as_tensor(action[None], dtype=th.float32).requires_grad_(True)
     target_mean_q(model, obs, a).sum().backward()
     assert a.grad is not None  # set by backward
-    scaled = a.grad.numpy()[0].astype(np.float64) * sigma
+    scaled: np.ndarray = a.grad.numpy()[0].astype(np.float64) * sigma
     norm = float(np.linalg.norm(scaled))
     return scaled / norm if norm > 0 else scaled
 

@@ -1,4 +1,4 @@
-"""Stable-baselines3 drop-ins: ``ESASAC`` and ``ESAPPO`` take ``esa=EsaConfig(...)``.
+"""Stable-baselines3 drop-ins: ``ESAPPO``, ``ESASAC`` and ``ESATD3`` take ``esa=EsaConfig(...)``.
 
 Switching a script to ESA is one import and one argument::
 
@@ -21,6 +21,7 @@ from ..config import EsaConfig
 if TYPE_CHECKING:
     from .ppo import ESAPPO
     from .sac import ESASAC
+    from .td3 import ESATD3
 
 
 def __getattr__(name: str) -> Any:
@@ -38,7 +39,11 @@ def __getattr__(name: str) -> Any:
         from .sac import ESASAC
 
         return ESASAC
+    if name == "ESATD3":
+        from .td3 import ESATD3
+
+        return ESATD3
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["ESAPPO", "ESASAC", "EsaConfig"]
+__all__ = ["ESAPPO", "ESASAC", "ESATD3", "EsaConfig"]

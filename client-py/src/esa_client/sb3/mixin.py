@@ -72,7 +72,7 @@ class EsaMixin(_Algorithm):
                 limit of the env's ``dt``, per-dimension vectors of the wrong length).
         """
         # Set before the SB3 constructor: it may set up the model, which can read them.
-        self.esa = esa if esa is not None else EsaConfig()
+        self.esa = esa if esa is not None else self._default_esa()
         if not isinstance(self.esa, EsaConfig):
             raise ValueError(f"expected esa to be an EsaConfig, got {self.esa!r}")
         self.esa_address = esa_address
@@ -86,6 +86,11 @@ class EsaMixin(_Algorithm):
             raise ValueError(f"expected a Box action space for ESA, got {space}")
         if self.env is not None:
             self._esa_session_config()
+
+    @staticmethod
+    def _default_esa() -> EsaConfig:
+        """The family's shipped default, used when ``esa`` is not given."""
+        return EsaConfig()
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Bounds of the action space ESA shifts in; None where it is unbounded."""

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
-from typing import Any, cast
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch as th
+import torch.nn.functional as F
 from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
@@ -19,6 +20,14 @@ from stable_baselines3.common.vec_env import VecEnv
 from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from ..config import EsaConfig
 from .mixin import EsaMixin, tile_obs
+
+Mode = Literal["behaviour", "target"]
+"""Where ESA's shift goes: into the executed action, or into the policy update's target."""
+MODES: tuple[str, ...] = ("behaviour", "target")
+
+Shift = Literal["esc", "gradient"]
+"""How the shift is found: ESA's extremum seeking, or the advantage head's gradient."""
+SHIFTS: tuple[str, ...] = ("esc", "gradient")
 
 
 class ESAPPO(EsaMixin, PPO):
@@ -35,7 +44,7 @@ class ESAPPO(EsaMixin, PPO):
     shift in units of it.
 
     The critic ESA probes is an advantage head ``A(s, a) = w(s) . (a - mu) / sigma``
-    (:mod:`esa_client.sb3.advantage_head`), fitted on the normalized GAE advantages of
+    (:mod:`esa_client.common.advantage_head`), fitted on the normalized GAE advantages of
     the last ``esa_head_rollouts`` rollouts. ESA intervenes only while the head passes
     ``EsaConfig.gate``: the rank correlation of its ``A(s, a) - A(s, mu)`` with the GAE
     advantages of a rollout it was not trained on (logged as ``esa/gate_correlation``
@@ -72,6 +81,17 @@ class ESAPPO(EsaMixin, PPO):
         esa_head_epochs: Passes over its data each time the head is fitted.
         esa_head_batch_size: Minibatch size when fitting the head.
         esa_head_rollouts: How many of the latest rollouts the head is fitted on.
+        esa_mode: ``"behaviour"``: the env executes ``a_t + v(t)`` (Algorithm 1).
+            ``"target"``: the env executes the policy's own sample (exact on-policy data)
+            while the sessions still run on it, and a bounded auxiliary loss in PPO's
+            minibatch loop pulls the policy mean toward ``mu_old(s) + v_t``, in units of
+            ``sigma_old`` (dual policy iteration's improve-then-project step): ESA as an
+            improvement target instead of behaviour. Box observations only.
+        esa_shift: ``"esc"`` (ESA's sessions) or ``"gradient"`` (the control: a shift of the
+            trust region's size, ``kappa sigma w(s) / |w(s)|``, along the head's action
+            gradient; no session).
+        esa_target_weight: Weight of the target mode's auxiliary loss (a Huber loss of
+            ``(mu - mu_old) / sigma_old - v_t / sigma_old``, over the samples ESA shifted).
         **kwargs: Any other PPO argument.
 
     Raises:
@@ -91,9 +111,24 @@ class ESAPPO(EsaMixin, PPO):
         esa_head_epochs: int = 5,
         esa_head_batch_size: int = 256,
         esa_head_rollouts: int = 4,
+        esa_mode: Mode = "behaviour",
+        esa_shift: Shift = "esc",
+        esa_target_weight: float = 1.0,
         **kwargs: Any,
     ) -> None:
         """Creates the PPO model and the advantage head."""
+        for option, choice, allowed in (
+            ("esa_mode", esa_mode, MODES),
+            ("esa_shift", esa_shift, SHIFTS),
+        ):
+            if choice not in allowed:
+                raise ValueError(f"expected {option} in {allowed}, got {choice!r}")
+        if not (isinstance(esa_target_weight, (int, float)) and esa_target_weight > 0):
+            raise ValueError(f"expected esa_target_weight > 0, got {esa_target_weight!r}")
+        self.esa_mode = esa_mode
+        self.esa_shift = esa_shift
+        self.esa_target_weight = float(esa_target_weight)
+        self._esa_targets: list[np.ndarray] = []
         for name, value in (
             ("esa_head_hidden", esa_head_hidden),
             ("esa_head_epochs", esa_head_epochs),
@@ -123,6 +158,11 @@ class ESAPPO(EsaMixin, PPO):
                 "expected a policy without squash_output for ESAPPO (the shifted sample "
                 "must have a density under the policy), got squash_output=True"
             )
+        if self.esa_mode == "target" and isinstance(self.observation_space, spaces.Dict):
+            raise ValueError(
+                "expected a Box observation space for esa_mode='target', got "
+                f"{self.observation_space}"
+            )
         features_dim = spaces.flatdim(self.observation_space)
         action_dim = int(np.prod(self.action_space.shape or ()))
         # A forked generator: building the head must not move PPO's random stream.
@@ -141,7 +181,7 @@ class ESAPPO(EsaMixin, PPO):
     def _excluded_save_params(self) -> list[str]:
         # The head's training data are rebuilt from the next rollouts, the scaling from the
         # action space.
-        return [*super()._excluded_save_params(), "_esa_head_data", "_esa_scale"]
+        return [*super()._excluded_save_params(), "_esa_head_data", "_esa_scale", "_esa_targets"]
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
@@ -226,23 +266,34 @@ class ESAPPO(EsaMixin, PPO):
             distribution = policy._get_action_dist_from_latent(latent_pi)
             actions = distribution.get_actions(deterministic=deterministic)
             log_prob = distribution.log_prob(actions)
+            n = len(actions)
             if self._esa_active and not deterministic:
-                n = len(actions)
                 sampled = actions.reshape(n, -1).cpu().numpy().astype(np.float64)
                 gaussian = _gaussian(distribution)
                 mean = gaussian.mean.reshape(n, -1)
                 std = gaussian.stddev.reshape(n, -1)
-                scaled = self._to_esa_units(sampled)
-                half_width = self._esa_scaling()[1]
-                applied = self._esa_runtime().step(
-                    scaled,
-                    np.asarray(self._last_episode_starts, dtype=bool),
-                    self._esa_q_at(self._head_features(obs), mean, std),
-                    std.cpu().numpy() / half_width,
-                )
-                # a_t plus the shift in raw units: exactly a_t when v = 0.
-                shifted = sampled + (applied - scaled) * half_width
-                actions = th.as_tensor(shifted, dtype=actions.dtype, device=actions.device)
+                features = self._head_features(obs)
+                if self.esa_shift == "gradient":
+                    shift = self._gradient_shift(features) * std.cpu().numpy()
+                else:
+                    scaled = self._to_esa_units(sampled)
+                    half_width = self._esa_scaling()[1]
+                    applied = self._esa_runtime().step(
+                        scaled,
+                        np.asarray(self._last_episode_starts, dtype=bool),
+                        self._esa_q_at(features, mean, std),
+                        std.cpu().numpy() / half_width,
+                    )
+                    # The shift in raw units: exactly 0 when v = 0.
+                    shift = (applied - scaled) * half_width
+                if self.esa_mode == "target":
+                    self._esa_targets.append(shift / std.cpu().numpy())
+                else:
+                    actions = th.as_tensor(
+                        sampled + shift, dtype=actions.dtype, device=actions.device
+                    )
+            elif self.esa_mode == "target" and not deterministic:
+                self._esa_targets.append(np.zeros((n, int(np.prod(self._esa_box().shape)))))
             return actions.reshape((-1, *self._esa_box().shape)), values, log_prob
 
         # The hook itself: an instance attribute shadows the policy's forward in this block.
@@ -260,13 +311,87 @@ class ESAPPO(EsaMixin, PPO):
         n_rollout_steps: int,
     ) -> bool:
         """SB3's ``collect_rollouts``, with the ESA step inside the policy's forward pass."""
+        self._esa_targets = []
         with th.no_grad(), self._esa_forward():
             return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
 
+    def _gradient_shift(self, features: th.Tensor) -> np.ndarray:
+        """``kappa w(s) / |w(s)|``: the head's action gradient as a shift in units of sigma.
+
+        The head ``A(s, a) = w(s) . (a - mu) / sigma`` has the gradient ``w(s)`` in units
+        of sigma, so the step needs no autograd; kappa is the trust region (1 when unset).
+        """
+        kappa = self.esa.trust_region if self.esa.trust_region is not None else 1.0
+        with th.no_grad():
+            w = self.esa_head.w(features).cpu().numpy().astype(np.float64)
+        norm = np.linalg.norm(w, axis=1, keepdims=True)
+        unit: np.ndarray = np.divide(w, norm, out=np.zeros_like(w), where=norm > 0)
+        return kappa * unit
+
     def train(self) -> None:
-        """Checks the gate and fits the advantage head on the rollout, then runs PPO's update."""
+        """Checks the gate and fits the advantage head on the rollout, then runs PPO's update.
+
+        In the target mode, PPO's update also pulls the mean toward ``mu_old + v_t``.
+        """
         self._update_esa_head()
-        super().train()
+        targets = self._esa_targets if self.esa_mode == "target" else []
+        if not any(np.any(z != 0) for z in targets):
+            super().train()
+            return
+        with self._esa_target_loss(np.stack(targets)):
+            super().train()
+
+    @contextlib.contextmanager
+    def _esa_target_loss(self, targets: np.ndarray) -> Iterator[None]:
+        """Within the block, each of PPO's optimizer steps also descends the target loss.
+
+        SB3's ``PPO.train`` has no hook for an extra loss term, so two are added for the
+        block: the rollout buffer remembers the indices of the minibatch it last served,
+        and the policy optimizer's ``step`` first back-propagates the target loss on
+        those samples (after PPO's gradient clipping, with a Huber loss that bounds it).
+        """
+        buffer = self.rollout_buffer
+        flatten = RolloutBuffer.swap_and_flatten
+        obs = buffer.to_torch(flatten(buffer.observations))
+        z = buffer.to_torch(flatten(targets.astype(np.float32)))
+        shifted = (z != 0).any(dim=1)
+        with th.no_grad():
+            # The policy that collected the rollout: train() has not updated it yet.
+            old = _gaussian(self.policy.get_distribution(obs))
+            mu_old = old.mean.reshape(len(obs), -1)
+            sigma_old = old.stddev.reshape(len(obs), -1)
+        served: list[np.ndarray] = []
+        get_samples = buffer._get_samples
+        optimizer = self.policy.optimizer
+        step = optimizer.step
+        losses: list[float] = []
+
+        def remembering_get_samples(batch_inds: np.ndarray, env: Any = None) -> Any:
+            served[:] = [batch_inds]
+            return get_samples(batch_inds, env)
+
+        def step_with_target(*args: Any, **kwargs: Any) -> Any:
+            idx = th.as_tensor(served[0], device=obs.device)
+            idx = idx[shifted[idx]]
+            if len(idx):
+                new = _gaussian(self.policy.get_distribution(obs[idx]))
+                moved = (new.mean.reshape(len(idx), -1) - mu_old[idx]) / sigma_old[idx]
+                loss = self.esa_target_weight * F.smooth_l1_loss(moved, z[idx])
+                loss.backward()
+                losses.append(loss.item())
+            return step(*args, **kwargs)
+
+        # Instance attributes shadow the methods for the block (as in _esa_forward).
+        buffer._get_samples = remembering_get_samples  # type: ignore[method-assign]
+        optimizer.step = step_with_target  # type: ignore[method-assign]
+        try:
+            yield
+        finally:
+            del buffer._get_samples
+            del optimizer.step
+            if losses:
+                self.logger.record("esa/target_loss", float(np.mean(losses)))
+            self.logger.record("esa/target_shift_over_std", float(z[shifted].abs().mean()))
 
     def _update_esa_head(self) -> None:
         buffer = self.rollout_buffer

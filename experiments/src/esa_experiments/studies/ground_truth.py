@@ -202,7 +202,8 @@ def _ppo_policy_action(model: BaseAlgorithm, box: gym.spaces.Box) -> PolicyActio
         with th.no_grad():
             dist = gaussian(model, th.as_tensor(obs, dtype=th.float32)[None])
             action: np.ndarray = (dist.mean + dist.stddev * noise).numpy()[0]
-        return np.clip(action, box.low, box.high)
+        clipped: np.ndarray = np.clip(action, box.low, box.high)
+        return clipped
 
     return act
 

@@ -1,0 +1,73 @@
+"""``ESATD3``: stable-baselines3 TD3 whose noisy actions are shifted by ESA."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3 import TD3
+from stable_baselines3.common.noise import NormalActionNoise
+
+from .off_policy import OffPolicyEsaMixin
+
+
+class ESATD3(OffPolicyEsaMixin, TD3):
+    """TD3 with Extremum-Seeking Action selection; a drop-in for ``stable_baselines3.TD3``.
+
+    Each step TD3's deterministic action plus its exploration noise is ``a_t``; ESA probes
+    TD3's critic around it (by default the mean of the target twins) and the env executes
+    ``a_t + v(t)``, which the replay buffer stores. ESA works in the squashed space
+    [-1, 1]. TD3 has no policy distribution, so the action scale sigma is the exploration
+    noise's standard deviation (a ``NormalActionNoise``'s sigma), or ``esa_action_scale``.
+
+    The gate, the gradient control (``esa_shift="gradient"``) and the probe-as-exploration
+    control (``esa_execute="probe"``) are ESASAC's (:class:`OffPolicyEsaMixin`). With
+    ``EsaConfig(learning_rate=0)`` training equals plain TD3 step for step.
+
+    Example::
+
+        model = ESATD3("MlpPolicy", "Pendulum-v1", action_noise=NormalActionNoise(0, 0.1))
+        model.learn(10_000)
+
+    Args:
+        policy: As for TD3.
+        env: As for TD3.
+        esa: The ESA hyperparameters (default ``EsaConfig.off_policy()``).
+        esa_action_scale: sigma in [-1, 1] units (> 0, at most 1); None reads it from a
+            ``NormalActionNoise`` and is 0.1 (RL Zoo's TD3 noise) without one.
+        **kwargs: Any other TD3 or :class:`OffPolicyEsaMixin` argument.
+
+    Raises:
+        ValueError: As for ESASAC, or for an ``esa_action_scale`` outside (0, 1].
+    """
+
+    def __init__(
+        self,
+        policy: Any,
+        env: Any,
+        *args: Any,
+        esa_action_scale: float | None = None,
+        **kwargs: Any,
+    ) -> None:
+        """Creates the TD3 model; the ESA sessions are created when training starts."""
+        if esa_action_scale is not None and not 0 < esa_action_scale <= 1:
+            raise ValueError(f"expected esa_action_scale in (0, 1], got {esa_action_scale!r}")
+        self.esa_action_scale = esa_action_scale
+        super().__init__(policy, env, *args, **kwargs)
+
+    def _sigma(self) -> np.ndarray:
+        """The action scale per dimension."""
+        dim = int(np.prod(self.action_space.shape or ()))
+        if self.esa_action_scale is not None:
+            return np.full(dim, self.esa_action_scale)
+        if isinstance(self.action_noise, NormalActionNoise):
+            return np.broadcast_to(np.asarray(self.action_noise._sigma, dtype=np.float64), (dim,))
+        return np.full(dim, 0.1)
+
+    def _policy_mean_and_std(self, obs: Any) -> tuple[th.Tensor, th.Tensor]:
+        """The actor's action and the exploration noise's sigma, both in [-1, 1] units."""
+        with th.no_grad():
+            mean = self.actor(obs)
+        sigma = th.as_tensor(self._sigma(), dtype=mean.dtype, device=mean.device)
+        return mean, sigma.expand_as(mean).clamp(min=1e-6, max=1.0)
