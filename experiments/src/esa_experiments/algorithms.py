@@ -1,13 +1,21 @@
 """Method name -> model constructor, with hyperparameters from ``configs/algorithms.toml``.
 
-A method is an algorithm family (``ppo``, ``sac``, ``ddpg``) plus an
+A method is an algorithm family (``ppo``, ``sac``, ``td3``, ``ddpg``) plus an
 exploration add-on: none, ESA (``esa_client.sb3``), adaptive parameter noise
-(:mod:`esa_experiments.param_noise`) or Ornstein-Uhlenbeck action noise.
+(:mod:`esa_experiments.param_noise`), Ornstein-Uhlenbeck action noise (DDPG) or pink
+action noise (TD3; Eberhard et al., ICLR 2023). TD3 always explores with action noise,
+Gaussian unless the method says pink; its ESA arms add ESA on top of that noise.
 
-ESA methods use one of three presets, the same on every env (no per-env tuning):
-``default`` is the shipped ``EsaConfig()``, ``null`` the same wiring with learning
-rate 0 (the shift stays 0: it isolates what the data handling alone does), and
-``paper`` is ``EsaConfig.paper()``, the paper's law and settings.
+ESA methods use one preset, the same on every env (no per-env tuning): ``default`` is
+the shipped ``EsaConfig()`` (the PPO family's), ``off_policy`` the off-policy family's
+``EsaConfig.off_policy()``, ``null`` the PPO default with learning rate 0 (the shift
+stays 0: it isolates what the data handling alone does), ``sine`` the off-policy default
+with learning rate 0 (with ``esa_execute='probe'``: exploration by the sinusoid alone),
+``paper`` ``EsaConfig.paper()`` and ``target`` the PPO target mode's setting (picked by
+``target_search`` on InvertedPendulum-v5 tuning seeds). A method's ``options`` are
+further drop-in arguments: the gradient controls (``esa_shift='gradient'``: the same
+bound, normalisation and gate, the shift along the critic's action gradient) and the
+target mode.
 """
 
 from __future__ import annotations
@@ -17,9 +25,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from stable_baselines3 import DDPG, PPO, SAC
+from stable_baselines3 import DDPG, PPO, SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.type_aliases import GymEnv
 
 from esa_experiments.configs import algorithm_hyperparams, lookup
@@ -33,19 +41,21 @@ class Method:
     Attributes:
         label: name in plots and tables.
         family: algorithm family (table name in ``algorithms.toml``).
-        addon: ``none``, ``esa``, ``param_noise`` or ``ou``.
+        addon: ``none``, ``esa``, ``param_noise``, ``ou`` or ``pink``.
         esa: the ESA preset of an ESA method (see :func:`esa_preset`).
+        options: further keyword arguments of the ESA drop-in.
     """
 
     label: str
     family: str
     addon: str
     esa: str = ""
+    options: tuple[tuple[str, Any], ...] = ()
 
     @property
     def off_policy(self) -> bool:
         """True for replay-buffer methods (they get smaller step budgets)."""
-        return self.family in ("sac", "ddpg")
+        return self.family in ("sac", "td3", "ddpg")
 
 
 METHODS: dict[str, Method] = {
@@ -54,9 +64,23 @@ METHODS: dict[str, Method] = {
     "ppo_esa_null": Method("PPO+ESA (lr 0)", "ppo", "esa", "null"),
     "ppo_esa_paper": Method("PPO+ESA (paper law)", "ppo", "esa", "paper"),
     "ppo_paramnoise": Method("PPO+ParamNoise", "ppo", "param_noise"),
+    "ppo_esa_target": Method("PPO+ESA target", "ppo", "esa", "target", (("esa_mode", "target"),)),
+    "ppo_qgrad_target": Method(
+        "PPO+gradient target",
+        "ppo",
+        "esa",
+        "target",
+        (("esa_mode", "target"), ("esa_shift", "gradient")),
+    ),
     "sac": Method("SAC", "sac", "none"),
-    "sac_esa": Method("SAC+ESA", "sac", "esa", "default"),
+    "sac_esa": Method("SAC+ESA", "sac", "esa", "off_policy"),
+    "sac_qgrad": Method("SAC+gradient", "sac", "esa", "off_policy", (("esa_shift", "gradient"),)),
     "sac_paramnoise": Method("SAC+ParamNoise", "sac", "param_noise"),
+    "td3": Method("TD3", "td3", "none"),
+    "td3_esa": Method("TD3+ESA", "td3", "esa", "off_policy"),
+    "td3_sine": Method("TD3+sine", "td3", "esa", "sine", (("esa_execute", "probe"),)),
+    "td3_qgrad": Method("TD3+gradient", "td3", "esa", "off_policy", (("esa_shift", "gradient"),)),
+    "td3_pink": Method("TD3+pink noise", "td3", "pink"),
     "ddpg_ou": Method("DDPG+OU", "ddpg", "ou"),
 }
 
@@ -67,13 +91,32 @@ BASELINE_OF = {
     "ppo_esa": "ppo",
     "ppo_esa_null": "ppo",
     "ppo_esa_paper": "ppo",
+    "ppo_esa_target": "ppo",
+    "ppo_qgrad_target": "ppo",
     "sac_esa": "sac",
+    "sac_qgrad": "sac",
+    "td3_esa": "td3",
+    "td3_sine": "td3",
+    "td3_qgrad": "td3",
+    "td3_pink": "td3",
 }
 """Which method an ESA method is compared with (returns and wall-clock overhead)."""
 
 
+GRADIENT_CONTROL_OF = {
+    "ppo_esa_target": "ppo_qgrad_target",
+    "sac_esa": "sac_qgrad",
+    "td3_esa": "td3_qgrad",
+}
+"""The gradient control of an ESA method: ESC is credited only where it beats it."""
+
+TARGET_TRUST_REGION = 0.5
+TARGET_WEIGHT = 1.0
+"""The PPO target mode's bound (policy stds) and loss weight (``target_search``)."""
+
+
 def esa_preset(name: str) -> dict[str, Any]:
-    """The ``EsaConfig`` fields of an ESA preset (``default``, ``null`` or ``paper``).
+    """The ``EsaConfig`` fields of an ESA preset (see the module docstring).
 
     Resolved from ``esa_client`` itself, so a run's fingerprint changes (and the run
     is redone) whenever the shipped default changes.
@@ -84,6 +127,9 @@ def esa_preset(name: str) -> dict[str, Any]:
         "default": EsaConfig(),
         "null": EsaConfig(learning_rate=0.0),
         "paper": EsaConfig.paper(),
+        "off_policy": EsaConfig.off_policy(),
+        "sine": EsaConfig.off_policy(learning_rate=0.0),
+        "target": EsaConfig(trust_region=TARGET_TRUST_REGION),
     }
     return dataclasses.asdict(lookup(presets, name, "an ESA preset"))
 
@@ -113,6 +159,9 @@ def resolve_hyperparams(
         hp.pop("param_noise", None)
     if spec.addon == "esa":
         hp["esa"] = {**esa_preset(spec.esa), **(esa_overrides or {})}
+        hp["esa_options"] = dict(spec.options)
+        if spec.esa == "target":
+            hp["esa_options"]["esa_target_weight"] = TARGET_WEIGHT
     elif esa_overrides:
         raise ValueError(f"expected ESA overrides only for ESA methods, got them for {method!r}")
     return hp
@@ -141,12 +190,15 @@ def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]
         "device": "cpu",
         "verbose": 0,
     }
+    if spec.family == "td3":
+        kwargs["action_noise"] = _td3_noise(env, spec.addon, hp.pop("noise_sigma"), seed)
     if spec.addon == "esa":
         from esa_client import EsaConfig
-        from esa_client.sb3 import ESAPPO, ESASAC
+        from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
 
-        cls = _of_family({"ppo": ESAPPO, "sac": ESASAC}, spec.family)
+        cls = _of_family({"ppo": ESAPPO, "sac": ESASAC, "td3": ESATD3}, spec.family)
         kwargs["esa"] = EsaConfig(**hp.pop("esa"))
+        kwargs.update(hp.pop("esa_options", {}))
     elif spec.addon == "param_noise":
         cls = _of_family({"ppo": PPOParamNoise, "sac": SACParamNoise}, spec.family)
         kwargs["param_noise"] = hp.pop("param_noise")
@@ -159,5 +211,17 @@ def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]
         )
         cls = DDPG
     else:
-        cls = _of_family({"ppo": PPO, "sac": SAC}, spec.family)
+        cls = _of_family({"ppo": PPO, "sac": SAC, "td3": TD3}, spec.family)
     return cls("MlpPolicy", env, **kwargs, **hp)
+
+
+def _td3_noise(env: GymEnv, addon: str, sigma: float, seed: int) -> Any:
+    """TD3's exploration noise: Gaussian, or pink over one episode's length."""
+    dim = int(np.prod(env.action_space.shape or ()))
+    if addon != "pink":
+        return NormalActionNoise(mean=np.zeros(dim), sigma=sigma * np.ones(dim))
+    from pink import PinkActionNoise
+
+    spec = env.get_attr("spec")[0] if hasattr(env, "get_attr") else env.spec
+    horizon = (spec.max_episode_steps if spec is not None else None) or 1000
+    return PinkActionNoise(sigma, horizon, dim, rng=np.random.default_rng(seed))

@@ -105,6 +105,10 @@ class PeriodicEvaluation(BaseCallback):
         self._eval_seconds = 0.0
         self._since = 0.0
         self._cpu_since = 0.0
+        # Training episodes so far: count, those that ended by termination (a crash:
+        # the fall, flip or exit of the env, not its time limit), summed return and length.
+        self._episodes = {"train_episodes": 0, "train_crashes": 0}
+        self._sums = {"train_return_sum": 0.0, "train_length_sum": 0.0}
 
     def _evaluate(self) -> None:
         self._train_seconds += time.perf_counter() - self._since
@@ -123,6 +127,8 @@ class PeriodicEvaluation(BaseCallback):
                 "train_seconds": self._train_seconds,
                 "train_cpu_seconds": self._train_cpu_seconds,
                 "eval_seconds": self._eval_seconds,
+                **self._episodes,
+                **self._sums,
             }
         )
         self._next_eval = self.num_timesteps + self.settings.every
@@ -134,7 +140,21 @@ class PeriodicEvaluation(BaseCallback):
         self._cpu_since = time.process_time()
         self._evaluate()
 
+    def _count_episodes(self) -> None:
+        """Adds the training episodes that ended this step (Monitor's ``episode`` info)."""
+        for done, info in zip(
+            self.locals.get("dones", ()), self.locals.get("infos", ()), strict=True
+        ):
+            episode = info.get("episode") if done else None
+            if episode is None:
+                continue
+            self._episodes["train_episodes"] += 1
+            self._episodes["train_crashes"] += int(not info.get("TimeLimit.truncated", False))
+            self._sums["train_return_sum"] += float(episode["r"])
+            self._sums["train_length_sum"] += float(episode["l"])
+
     def _on_step(self) -> bool:
+        self._count_episodes()
         if self.num_timesteps >= self._next_eval:
             self._evaluate()
         if self.progress is not None:

@@ -97,9 +97,20 @@ def statistics(
     return pd.DataFrame(rows)
 
 
-def reliability_section(store: RunStore, envs: Sequence[str], methods: Sequence[str]) -> str:
+def reliability_section(
+    store: RunStore,
+    envs: Sequence[str],
+    methods: Sequence[str],
+    labels: Mapping[str, str] | None = None,
+    baselines: Mapping[str, str] | None = None,
+) -> str:
     """The Markdown statistics table of a study (also written to ``statistics.md``)."""
-    table = to_markdown(statistics(store.load(), envs, methods))
+    frame = store.load()
+    table = to_markdown(
+        statistics(
+            frame, envs, methods, {**LABELS, **(labels or {})}, {**BASELINE_OF, **(baselines or {})}
+        )
+    )
     text = (
         "Per env, over seeds (`rliable`, 95 % stratified-bootstrap CIs, "
         f"{REPS} resamples, seed {SEED}); AUC = average evaluation return over training; "

@@ -220,6 +220,15 @@ class RunStore:
             )
         return pd.concat(frames, ignore_index=True)
 
+    def load_meta(self) -> pd.DataFrame:
+        """One row per finished run: its sidecar's fields (the run's config left out)."""
+        rows = []
+        for meta_file in sorted(self.runs_dir.glob("*.json")):
+            if meta_file.with_suffix(".csv").is_file():
+                meta = json.loads(meta_file.read_text())
+                rows.append({k: v for k, v in meta.items() if k != "config"})
+        return pd.DataFrame(rows)
+
     def relative(self, path: Path) -> str:
         """``path`` relative to the folder holding RESULTS.md, for Markdown links."""
         return path.relative_to(self.base).as_posix()

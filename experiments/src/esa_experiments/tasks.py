@@ -38,6 +38,7 @@ TASKS: dict[str, Task] = {
     "InvertedPendulum-v5": Task("InvertedPendulum-v5", threshold=950.0),
     "Hopper-v5": Task("Hopper-v5", threshold=1000.0),
     "Walker2d-v5": Task("Walker2d-v5", threshold=500.0),
+    "InvertedDoublePendulum-v5": Task("InvertedDoublePendulum-v5", threshold=5000.0),
     "Quadrotor-circle": Task("esa_experiments/Quadrotor-v0", {"path": "circle"}, threshold=450.0),
     "Quadrotor-eight": Task("esa_experiments/Quadrotor-v0", {"path": "eight"}, threshold=450.0),
 }

@@ -55,6 +55,7 @@ SMOKE_BUDGET = StepBudget(
     overrides={
         "ppo": {"n_steps": 32, "batch_size": 64, "n_epochs": 2},
         "sac": {"learning_starts": 100, "batch_size": 64},
+        "td3": {"learning_starts": 100, "batch_size": 64},
         "ddpg": {"learning_starts": 100, "batch_size": 64},
     },
 )
@@ -127,7 +128,7 @@ def trained(spec: RunSpec, progress: ProgressFn) -> Iterator[tuple[RunResult, Ba
         means = {
             f"mean {key}": float(log[key].mean())
             for key in log.columns
-            if key.startswith(("esa/", "param_noise/"))
+            if key.startswith(("esa/", "param_noise/")) or key == "train/approx_kl"
         }
         yield RunResult(frame, means, {"log": log}), model
     finally:

@@ -34,6 +34,8 @@ STUDY_NAMES = (
     "campaign",
     "default_search",
     "ground_truth",
+    "target_search",
+    "confirmation",
 )
 
 
