@@ -19,6 +19,7 @@ from typing import TypeVar
 from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
 from .errors import EsaError, ServerUnavailable, StatusCode
+from .reconnect import DEFAULT_RECONNECT_TIMEOUT, Reconnect
 from .session import Session, SessionBatch, restore_sessions
 from .sidecar import ServerProcess
 from .state import SessionState, as_batch_configs
@@ -101,6 +102,10 @@ class BaseClient:
             else None.
         sessions_restored: How many sessions :meth:`restore_sessions` (or a batch's
             :meth:`~esa_client.SessionBatch.restore`) recreated.
+        reconnect_timeout: How long a batch keeps retrying when the server is unreachable
+            (down, restarting, stalled, or the connection or stream broke), in seconds,
+            before it raises ``ServerUnavailable``; 0 raises the first failure. Set by
+            ``connect``/``spawn`` (default 60); read by :meth:`create_batch`.
     """
 
     def __init__(self, transport: Transport, *, address: str, timeout: float) -> None:
@@ -110,6 +115,7 @@ class BaseClient:
         self.timeout = timeout
         self.server: ServerProcess | None = None
         self.sessions_restored = 0
+        self.reconnect_timeout = DEFAULT_RECONNECT_TIMEOUT
         self._closers: list[Callable[[], None]] = []
         self._closed = False
 
@@ -207,6 +213,13 @@ class BaseClient:
             use_stream: Carry probes and reports over one persistent ``StepStream``
                 instead of ``ProbeBatch`` / ``ReportBatch`` calls.
 
+        The batch rides out a lost server for up to :attr:`reconnect_timeout` seconds:
+        it repeats the failed step with capped exponential backoff and jitter; once the
+        server answers again, it sends what the server has not applied (by the
+        sessions' step numbers, so no report is applied twice) and recreates sessions a
+        restarted server lost, which then start a new episode (losing that episode's
+        shift, the episode count and the response's mean square).
+
         Returns:
             The batch. If creating one of the sessions fails, those already created
             are closed before the error is raised.
@@ -231,6 +244,7 @@ class BaseClient:
             per_session,
             use_stream=use_stream,
             on_restore=self._count_restored,
+            reconnect=Reconnect(self.address, self.reconnect_timeout),
         )
 
     def restore_sessions(

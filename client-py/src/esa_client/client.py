@@ -21,6 +21,7 @@ from functools import partial
 from typing import TYPE_CHECKING, Literal, get_args
 
 from .base_client import BaseClient, check_timeout, connect_spawned, resolve_token
+from .reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
 from .sidecar import ServerProcess
 from .transports.grpcio import GrpcTransport, TlsConfig
 from .transports.stub import ServiceStub
@@ -168,6 +169,7 @@ class EsaClient(BaseClient):
         prefix: str | None = None,
         zenoh_config: zenoh.Config | None = None,
         wait_ready: bool | None = None,
+        reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
     ) -> BaseClient:
         """A client of the running server(s) at ``address``, over ``transport``.
 
@@ -196,6 +198,9 @@ class EsaClient(BaseClient):
                 built from ``address`` (e.g. client mode to a ``zenohd`` router).
             wait_ready: Wait (up to ``timeout``) until every server answers before
                 returning. None: Zenoh waits, gRPC connects lazily on the first call.
+            reconnect_timeout: How long the client's batches retry (capped exponential
+                backoff with jitter) when the server is unreachable, restarting or
+                stalled, before they raise ``ServerUnavailable``; 0: raise at once.
 
         Returns:
             An :class:`EsaClient` for gRPC; for Zenoh a ``ZenohEsaClient`` (one server)
@@ -206,6 +211,7 @@ class EsaClient(BaseClient):
             ServerUnavailable: ``wait_ready`` and no server answered in time.
         """
         _check_transport(transport, shards=shards, prefix=prefix, zenoh_config=zenoh_config)
+        reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
         if transport == "zenoh":
             if tls is not None:
                 raise ValueError("expected tls=None with transport='zenoh' (use zenoh_config)")
@@ -215,7 +221,7 @@ class EsaClient(BaseClient):
             zenoh_client = (
                 ZenohEsaClient if shards is None else partial(ShardedEsaClient, shards=shards)
             )
-            return zenoh_client(
+            zenoh_made: BaseClient = zenoh_client(
                 address,
                 prefix=DEFAULT_PREFIX if prefix is None else prefix,
                 timeout=timeout,
@@ -224,6 +230,8 @@ class EsaClient(BaseClient):
                 token=token,
                 token_file=token_file,
             )
+            zenoh_made.reconnect_timeout = reconnect_timeout
+            return zenoh_made
         if not isinstance(address, str):
             raise ValueError(f"expected one 'host:port' or 'unix:/path' address, got {address!r}")
         client: BaseClient = cls(
@@ -234,6 +242,7 @@ class EsaClient(BaseClient):
             tls=tls,
             native=transport == "native",
         )
+        client.reconnect_timeout = reconnect_timeout
         if wait_ready:
             try:
                 client.wait_ready(client.timeout)
@@ -257,6 +266,7 @@ class EsaClient(BaseClient):
         startup_timeout: float = 30.0,
         prefix: str | None = None,
         native: bool = False,
+        reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
     ) -> BaseClient:
         """Starts a private esa-server and returns a client connected to it.
 
@@ -287,6 +297,7 @@ class EsaClient(BaseClient):
             startup_timeout: Seconds to wait for the server to report healthy.
             prefix: Zenoh only: the ``--zenoh-prefix`` to serve and use.
             native: Deprecated (kept for one release): ``transport="native"``.
+            reconnect_timeout: As for :meth:`connect`.
 
         Returns:
             An :class:`EsaClient` for gRPC; for Zenoh a ``ZenohEsaClient`` or, with
@@ -301,6 +312,37 @@ class EsaClient(BaseClient):
         if native:
             transport = "native"
         _check_transport(transport, shards=shards, prefix=prefix)
+        reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
+        client = cls._spawn(
+            binary,
+            transport,
+            shards,
+            session_ttl,
+            max_sessions,
+            max_session_memory,
+            extra_args,
+            timeout,
+            startup_timeout,
+            prefix,
+        )
+        client.reconnect_timeout = reconnect_timeout
+        return client
+
+    @classmethod
+    def _spawn(
+        cls,
+        binary: str | os.PathLike[str] | None,
+        transport: TransportName,
+        shards: int | None,
+        session_ttl: float | None,
+        max_sessions: int | None,
+        max_session_memory: int | None,
+        extra_args: Sequence[str],
+        timeout: float,
+        startup_timeout: float,
+        prefix: str | None,
+    ) -> BaseClient:
+        """What :meth:`spawn` starts and connects, before its reconnect deadline is set."""
         if transport == "zenoh":
             from .transports.zenoh_query import DEFAULT_PREFIX
             from .zenoh_client import ShardedEsaClient, ZenohEsaClient

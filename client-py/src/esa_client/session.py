@@ -24,7 +24,8 @@ import numpy as np
 import numpy.typing as npt
 
 from .config import SessionConfig
-from .errors import SessionNotFound
+from .errors import SessionNotFound, StatusCode, StepMismatch
+from .reconnect import Reconnect
 from .state import (
     F64Array,
     I64Array,
@@ -197,6 +198,7 @@ class SessionBatch:
         *,
         use_stream: bool = False,
         on_restore: Callable[[int], None] | None = None,
+        reconnect: Reconnect | None = None,
     ) -> None:
         """Binds to existing sessions (use :meth:`EsaClient.create_batch`).
 
@@ -206,6 +208,8 @@ class SessionBatch:
             configs: Their configs (one action dimension).
             use_stream: Ask the transport for one persistent stream for the round trips.
             on_restore: Told how many sessions each :meth:`restore` recreated.
+            reconnect: How to ride out a lost server (see :meth:`probe_applied`); None
+                raises the wire's first error.
         """
         self._transport = transport
         self.ids = tuple(ids)
@@ -217,6 +221,11 @@ class SessionBatch:
         self._next_starts = np.zeros(self.n, dtype=bool)
         # A report sent with the next probe (``report(..., defer=True)``).
         self._deferred: BatchReport | None = None
+        self._reconnect = reconnect
+        # The last probe sent: replayed into recreated sessions before a lone report.
+        self._last_probe: BatchProbe | None = None
+        self.sessions_restored = 0
+        """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
 
     @property
     def steps(self) -> I64Array:
@@ -277,14 +286,100 @@ class SessionBatch:
         if action_scales is not None:
             scales = np.broadcast_to(np.asarray(action_scales, np.float64), shape)
         request = BatchProbe(step, a, starts, scales)
-        if self._deferred is None:
-            answer = self._batch.probe(request)
+        deferred = self._deferred
+        if self._reconnect is None:
+            if deferred is None:
+                answer = self._batch.probe(request)
+            else:
+                answer = self._batch.report_then_probe(deferred, request)
         else:
-            answer = self._batch.report_then_probe(self._deferred, request)
-            self._deferred = None
-        self._steps = step
+            request, answer = self._reconnect.run(
+                lambda retrying: self._probe_attempt(deferred, request, retrying)
+            )
+        self._deferred = None
+        self._steps = request.steps
+        self._last_probe = request
         self._next_starts[:] = False
         return answer
+
+    def _probe_attempt(
+        self, deferred: BatchReport | None, request: BatchProbe, retrying: bool
+    ) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
+        """One attempt of a probe (with the deferred report); returns what it sent.
+
+        After a failure of the wire (``retrying``), the server may have applied the
+        report, the report and the probe, or nothing, and it may have lost the sessions
+        (a restart). The sessions' steps (``GetSession``) tell which: reports still
+        missing are sent on their own, an applied episode-start probe is not repeated
+        (that would count one more empty episode), and lost sessions are recreated and
+        start a new episode with this probe, so no update is ever applied twice.
+        """
+        if retrying:
+            try:
+                deferred, request = self._reconcile(deferred, request)
+            except SessionNotFound:
+                return self._restart(request)
+        try:
+            if deferred is None:
+                return request, self._batch.probe(request)
+            return request, self._batch.report_then_probe(deferred, request)
+        except SessionNotFound:
+            if not retrying:
+                raise
+            return self._restart(request)
+
+    def _reconcile(
+        self, deferred: BatchReport | None, request: BatchProbe
+    ) -> tuple[BatchReport | None, BatchProbe]:
+        """What is left to send of ``deferred`` and ``request`` after a broken exchange."""
+        states = [self._transport.get_session(i) for i in self.ids]
+        episode_ends = request.episode_starts
+        starts = episode_ends.copy()
+        for i, state in enumerate(states):
+            if starts[i] and state.step == 0 and state.probe_pending:
+                # This episode-start probe (or an earlier one of step 0) was applied:
+                # replacing the pending probe ends no further episode.
+                starts[i] = False
+        request = request._replace(episode_starts=starts)
+        if deferred is None:
+            return None, request
+        for i, state in enumerate(states):
+            step = int(deferred.steps[i])
+            if episode_ends[i]:
+                # The report's episode ends with this probe: v and the filter restart, so
+                # a report lost with it changes nothing that lasts.
+                continue
+            if state.step == step + 1:
+                continue  # applied
+            if state.step == step and state.probe_pending:
+                reference = None if deferred.q_references is None else deferred.q_references[i]
+                self._transport.report(
+                    self.ids[i],
+                    step,
+                    float(deferred.q_values[i]),
+                    None if reference is None else float(reference),
+                )
+                continue
+            raise StepMismatch(
+                f"session {self.ids[i]!r} is at step {state.step} (probe pending: "
+                f"{state.probe_pending}) after a broken exchange, expected step {step} or "
+                f"{step + 1}",
+                StatusCode.FAILED_PRECONDITION,
+                index=i,
+            )
+        return None, request
+
+    def _restart(self, request: BatchProbe) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
+        """Recreates lost sessions and sends ``request`` as every session's episode start."""
+        self.restore()
+        restart = request._replace(
+            steps=np.zeros(self.n, dtype=np.int64),
+            episode_starts=np.ones(self.n, dtype=bool),
+        )
+        answer = self._batch.probe(restart)
+        self._next_starts[:] = False
+        self._last_probe = restart
+        return restart, answer
 
     def report(
         self,
@@ -330,8 +425,8 @@ class SessionBatch:
             self._deferred = request
             self._steps = step + 1
             return None
-        improved = self._batch.report(request)
-        self._steps = step + 1
+        sent, improved = self._send_report(request)
+        self._steps = sent.steps + 1
         return improved
 
     def flush(self) -> None:
@@ -341,8 +436,31 @@ class SessionBatch:
             EsaError: The report's error; it then stays pending.
         """
         if self._deferred is not None:
-            self._batch.report(self._deferred)
+            sent, _ = self._send_report(self._deferred)
             self._deferred = None
+            self._steps = sent.steps + 1
+
+    def _send_report(self, request: BatchReport) -> tuple[BatchReport, F64Array]:
+        """Sends a report on its own (riding out a lost server); returns what it sent."""
+        if self._reconnect is None:
+            return request, self._batch.report(request)
+        return self._reconnect.run(lambda retrying: self._report_attempt(request, retrying))
+
+    def _report_attempt(self, request: BatchReport, retrying: bool) -> tuple[BatchReport, F64Array]:
+        """One attempt of a lone report.
+
+        Repeating an applied report returns its answer again and updates nothing
+        (CONTRACT.md section 2). Sessions lost meanwhile are recreated; the last probe is
+        replayed into them as an episode start, and the report answers it.
+        """
+        try:
+            return request, self._batch.report(request)
+        except SessionNotFound:
+            if not retrying or self._last_probe is None:
+                raise
+        probe, _ = self._restart(self._last_probe)
+        request = request._replace(steps=probe.steps)
+        return request, self._batch.report(request)
 
     def restore(self) -> int:
         """Recreates the sessions the server lost, and starts a new episode in every session.
@@ -357,6 +475,7 @@ class SessionBatch:
         """
         self._deferred = None
         restored = restore_sessions(self._transport, self.ids, self.configs)
+        self.sessions_restored += restored
         if self._on_restore is not None:
             self._on_restore(restored)
         self._steps[:] = 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Callable
 from typing import Any, Literal, Protocol, get_args
 
@@ -12,7 +13,15 @@ from ..base_client import BaseClient
 from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
-from ..errors import EsaError, SessionNotFound
+from ..errors import EsaError, ServerUnavailable, SessionNotFound
+from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
+
+_log = logging.getLogger("esa_client")
+
+OnUnavailable = Literal["raise", "skip"]
+"""What a learner does once the server stayed unreachable past ``reconnect_timeout``."""
+
+ON_UNAVAILABLE: tuple[OnUnavailable, ...] = get_args(OnUnavailable)
 
 Engine = Literal["inprocess", "sidecar"]
 """Where the sessions of a learner live: this process's engine, or an esa-server."""
@@ -45,11 +54,25 @@ def choose_engine(
     return engine
 
 
-def open_client(engine: Engine, address: str | None, spawn: dict[str, Any] | None) -> BaseClient:
+def open_client(
+    engine: Engine,
+    address: str | None,
+    spawn: dict[str, Any] | None,
+    reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
+) -> BaseClient:
     """A client of ``engine``: in-process, the server at ``address``, or a spawned one."""
     if engine == "inprocess":
         return EsaClient.in_process()
-    return EsaClient.spawn(**(spawn or {})) if address is None else EsaClient.connect(address)
+    if address is None:
+        return EsaClient.spawn(**{"reconnect_timeout": reconnect_timeout, **(spawn or {})})
+    return EsaClient.connect(address, reconnect_timeout=reconnect_timeout)
+
+
+def check_on_unavailable(on_unavailable: str) -> OnUnavailable:
+    """Returns ``on_unavailable`` if it is ``"raise"`` or ``"skip"``."""
+    if on_unavailable not in ON_UNAVAILABLE:
+        raise ValueError(f"expected on_unavailable in {ON_UNAVAILABLE}, got {on_unavailable!r}")
+    return on_unavailable
 
 
 SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
@@ -87,7 +110,12 @@ class EsaRuntime:
 
     Sessions the server loses (a restart, a TTL expiry during a long pause) are
     recreated and restarted at the next step, and counted (``esa/sessions_restored``):
-    what is lost is the shift of the episodes then running.
+    what is lost is the shift of the episodes then running. A server that is down,
+    restarting or stalled is waited for, retrying with backoff, for up to
+    ``reconnect_timeout`` seconds; then ``on_unavailable`` decides: ``"raise"`` ends
+    training with ``ServerUnavailable``, ``"skip"`` applies the sampled actions unchanged
+    (no ESA) until the next episode start of any env, where it tries the server once again
+    (steps without ESA are counted as ``esa/unavailable_steps``, one per env).
 
     Args:
         esa: The ESA hyperparameters.
@@ -106,7 +134,12 @@ class EsaRuntime:
             ``max_sessions``, ``max_session_memory``, ``extra_args``, ...).
         engine: ``"inprocess"`` (this process's engine) or ``"sidecar"`` (an esa-server);
             None chooses as :func:`choose_engine` does.
+        reconnect_timeout: Seconds to keep retrying an unreachable server (default 60).
+        on_unavailable: ``"raise"`` (default) or ``"skip"``, see above.
     """
+
+    on_unavailable: OnUnavailable
+    """``"raise"`` or ``"skip"``: what a step does once the server stayed unreachable."""
 
     def __init__(
         self,
@@ -121,13 +154,20 @@ class EsaRuntime:
         improvement_every: int = 8,
         spawn: dict[str, Any] | None = None,
         engine: Engine | None = None,
+        reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
+        on_unavailable: OnUnavailable = "raise",
     ) -> None:
         """Opens the engine (or connects, or spawns the server); one session per env."""
         if improvement_every < 1:
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
+        skip = check_on_unavailable(on_unavailable)
+        reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
         config = esa.session_config(clip_low.size, env_dt(vec_env, esa.dt), low, high)
-        client = open_client(choose_engine(engine, address, spawn), address, spawn)
+        client = open_client(
+            choose_engine(engine, address, spawn), address, spawn, reconnect_timeout
+        )
         self._attach(esa, client, config, vec_env.num_envs, clip_low, clip_high, improvement_every)
+        self.on_unavailable = skip
 
     @classmethod
     def on_client(
@@ -140,6 +180,7 @@ class EsaRuntime:
         clip_high: np.ndarray,
         *,
         improvement_every: int = 8,
+        on_unavailable: OnUnavailable = "raise",
     ) -> EsaRuntime:
         """A runtime on a client opened elsewhere, for trainers without an SB3 VecEnv.
 
@@ -152,12 +193,16 @@ class EsaRuntime:
             clip_low: As for the constructor.
             clip_high: As for the constructor.
             improvement_every: As for the constructor.
+            on_unavailable: As for the constructor (the client's ``reconnect_timeout``
+                sets how long it waits first).
         """
-        if improvement_every < 1:
+        if improvement_every < 1 or on_unavailable not in ON_UNAVAILABLE:
             client.close()
+            check_on_unavailable(on_unavailable)
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
         runtime = cls.__new__(cls)
         runtime._attach(esa, client, config, n_envs, clip_low, clip_high, improvement_every)
+        runtime.on_unavailable = on_unavailable
         return runtime
 
     def _attach(
@@ -179,9 +224,15 @@ class EsaRuntime:
             client.close()
             raise
         self._clip = (clip_low.reshape(1, -1), clip_high.reshape(1, -1))
+        low = -np.inf if config.action_low is None else config.action_low
+        high = np.inf if config.action_high is None else config.action_high
+        self._bounds = (np.asarray(low, np.float64), np.asarray(high, np.float64))
         self._improvement_every = improvement_every
         self._stats = _Stats()
         self._calls = 0
+        self.on_unavailable = "raise"
+        # True while ESA is off after the server stayed unreachable (on_unavailable="skip").
+        self._skipping = False
 
     def step(
         self,
@@ -211,11 +262,34 @@ class EsaRuntime:
             # trust region and the scaled step then keep v at 0 there, as sigma = 0 means.
             policy_std = np.maximum(policy_std, SMALLEST_SCALE)
         scale = policy_std if self.esa.use_policy_std else None
+        restored = self.batch.sessions_restored
         try:
-            probes, applied = self.batch.probe_applied(a, episode_starts, action_scales=scale)
-        except SessionNotFound:
-            self._stats.add_restored(self.batch.restore())
-            probes, applied = self.batch.probe_applied(a, action_scales=scale)
+            if self._skipping:
+                if not np.any(episode_starts):
+                    return self._without_esa(a)
+                # An episode starts: try the server once more; every session restarts.
+                self.batch.restore()
+                self._skipping = False
+                _log.warning("esa server at %s reachable again: ESA resumes", self.client.address)
+                probes, applied = self.batch.probe_applied(a, action_scales=scale)
+            else:
+                try:
+                    probes, applied = self.batch.probe_applied(
+                        a, episode_starts, action_scales=scale
+                    )
+                except SessionNotFound:
+                    self.batch.restore()
+                    probes, applied = self.batch.probe_applied(a, action_scales=scale)
+        except ServerUnavailable as err:
+            if self.on_unavailable == "raise":
+                raise
+            if not self._skipping:
+                _log.warning("%s; continuing without ESA until the next episode start", err.message)
+            self._skipping = True
+            return self._without_esa(a)
+        finally:
+            if self.batch.sessions_restored > restored:
+                self._stats.add_count("sessions_restored", self.batch.sessions_restored - restored)
         # Kept for trainers that execute the probe itself (exploration by the sinusoid).
         self.last_probes = probes
         n = len(a)
@@ -228,6 +302,13 @@ class EsaRuntime:
             both = np.asarray(q_fn(np.concatenate([a, applied])), dtype=np.float64)
             self._stats.add_improvement(float((both[n:] - both[:n]).mean()))
         self._calls += 1
+        return applied
+
+    def _without_esa(self, sampled: np.ndarray) -> np.ndarray:
+        """The sampled actions, clipped to the sessions' bounds: a step without ESA."""
+        self._stats.add_count("unavailable_steps", len(sampled))
+        applied: np.ndarray = np.asarray(np.clip(sampled, *self._bounds), dtype=np.float64)
+        self.last_probes = applied
         return applied
 
     def record(self, logger: LoggerLike) -> None:
@@ -304,10 +385,10 @@ class _Stats:
     def add_improvement(self, value: float) -> None:
         self._add("improvement", np.array([value]))
 
-    def add_restored(self, sessions: int) -> None:
+    def add_count(self, key: str, count: int) -> None:
         # A count since the last record, not a mean.
-        self.sums["sessions_restored"] = self.sums.get("sessions_restored", 0.0) + sessions
-        self.counts["sessions_restored"] = 1
+        self.sums[key] = self.sums.get(key, 0.0) + count
+        self.counts[key] = 1
 
     def means(self) -> dict[str, float]:
         self._fold()

@@ -8,9 +8,16 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from ..common.runtime import Engine, EsaRuntime, choose_engine
+from ..common.runtime import (
+    Engine,
+    EsaRuntime,
+    OnUnavailable,
+    check_on_unavailable,
+    choose_engine,
+)
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
+from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
 
 if TYPE_CHECKING:
     # The mixin is always combined with an SB3 algorithm (ESAPPO, ESASAC): checked as one.
@@ -48,6 +55,8 @@ class EsaMixin(_Algorithm):
         esa_address: str | None = None,
         esa_spawn: dict[str, Any] | None = None,
         esa_engine: Engine | None = None,
+        esa_reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
+        esa_on_unavailable: OnUnavailable = "raise",
         **kwargs: Any,
     ) -> None:
         """Creates the SB3 model; the ESA sessions are created when training starts.
@@ -64,6 +73,12 @@ class EsaMixin(_Algorithm):
                 no server, nothing shared) or ``"sidecar"`` (an esa-server: ``esa_address``,
                 else a private one). None: the server that ``esa_address`` or ``esa_spawn``
                 describe, else ``"inprocess"`` (README "Choosing the engine").
+            esa_reconnect_timeout: Seconds a rollout waits for an unreachable server
+                (restarting, stalled, connection lost), retrying with backoff, before
+                ``esa_on_unavailable`` applies.
+            esa_on_unavailable: ``"raise"`` (end training with ``ServerUnavailable``) or
+                ``"skip"`` (no ESA until the next episode start; counted in the logger
+                as ``esa/unavailable_steps``).
             **kwargs: Any other argument of the SB3 algorithm.
 
         Raises:
@@ -79,6 +94,8 @@ class EsaMixin(_Algorithm):
         self.esa_spawn = dict(esa_spawn or {})
         choose_engine(esa_engine, esa_address, self.esa_spawn)  # a bad choice fails here
         self.esa_engine = esa_engine
+        self.esa_reconnect_timeout = check_reconnect_timeout(esa_reconnect_timeout)
+        self.esa_on_unavailable = check_on_unavailable(esa_on_unavailable)
         self._esa = None
         super().__init__(policy, env, *args, **kwargs)
         space = self.action_space
@@ -127,6 +144,9 @@ class EsaMixin(_Algorithm):
                 clip_high,
                 spawn=self.esa_spawn,
                 engine=self.esa_engine,
+                # Models saved before these existed load without them.
+                reconnect_timeout=getattr(self, "esa_reconnect_timeout", DEFAULT_RECONNECT_TIMEOUT),
+                on_unavailable=getattr(self, "esa_on_unavailable", "raise"),
             )
         return self._esa
 

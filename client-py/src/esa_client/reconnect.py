@@ -1,0 +1,101 @@
+"""Riding out a lost server: retries with capped exponential backoff and jitter.
+
+A call that fails with :class:`~esa_client.errors.ServerUnavailable` (the server is down,
+restarting, or the connection or StepStream broke) or
+:class:`~esa_client.errors.DeadlineExceeded` (the server stalled) is repeated, after a
+pause that doubles from ``initial_backoff`` up to ``max_backoff`` (each pause drawn
+between half and all of it, so that many trainers do not reconnect in lockstep), until it
+succeeds or ``timeout`` seconds have passed since the first failure. Repeating is safe by
+the contract's step numbers (CONTRACT.md section 2, "Retries are safe"); what the batch
+does between two attempts (look at the sessions' steps, recreate lost sessions) is
+:class:`~esa_client.session.SessionBatch`'s business.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TypeVar
+
+from .errors import DeadlineExceeded, EsaError, ServerUnavailable, StatusCode
+
+__all__ = ["DEFAULT_RECONNECT_TIMEOUT", "Reconnect", "RetriableErrors", "check_reconnect_timeout"]
+
+DEFAULT_RECONNECT_TIMEOUT = 60.0
+"""How long a client keeps trying to reach a lost server before it gives up, in seconds."""
+
+RetriableErrors = (ServerUnavailable, DeadlineExceeded)
+"""The failures of the wire, not of the request: repeating the request may succeed."""
+
+_T = TypeVar("_T")
+
+
+def check_reconnect_timeout(timeout: float) -> float:
+    """Returns ``timeout`` as a float if it is a number of seconds >= 0 (0: never retry)."""
+    if not timeout >= 0:
+        raise ValueError(f"expected reconnect_timeout >= 0 seconds, got {timeout}")
+    return float(timeout)
+
+
+@dataclass(frozen=True)
+class Reconnect:
+    """How long, and how often, to repeat a call that the wire failed.
+
+    Args:
+        address: The server(s), for the message of the final error.
+        timeout: Seconds from the first failure after which the last error is raised
+            (as ``ServerUnavailable`` naming the address and the time waited); 0 raises
+            the first error at once.
+        initial_backoff: The first pause, in seconds.
+        max_backoff: The cap of the doubling pause, in seconds.
+    """
+
+    address: str
+    timeout: float = DEFAULT_RECONNECT_TIMEOUT
+    initial_backoff: float = 0.05
+    max_backoff: float = 1.0
+
+    def run(
+        self,
+        attempt: Callable[[bool], _T],
+        *,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> _T:
+        """Returns ``attempt(retrying)``, repeated while the wire fails, up to the deadline.
+
+        Args:
+            attempt: The call; its argument is False the first time and True on every
+                repetition (after a failure of the wire: the state of the sessions is
+                then unknown, and the attempt may first look at it).
+            sleep: How to pause (tests replace it).
+
+        Raises:
+            ServerUnavailable: Still failing after ``timeout`` seconds (the message names
+                the address and how long it waited; the last error is its cause).
+            EsaError: Any other error of ``attempt``, at once.
+        """
+        start = time.monotonic()
+        pause = self.initial_backoff
+        retrying = False
+        while True:
+            try:
+                return attempt(retrying)
+            except RetriableErrors as err:
+                if self.timeout <= 0:
+                    raise
+                waited = time.monotonic() - start
+                if waited >= self.timeout:
+                    raise self.gave_up(waited, err) from err
+                sleep(min(pause * random.uniform(0.5, 1.0), self.timeout - waited))
+                pause = min(pause * 2, self.max_backoff)
+                retrying = True
+
+    def gave_up(self, waited: float, last: EsaError) -> ServerUnavailable:
+        """The error raised once the deadline has passed."""
+        return ServerUnavailable(
+            f"esa server at {self.address} unreachable: gave up after {waited:.1f} s of "
+            f"retrying (reconnect_timeout={self.timeout:g} s); last error: {last}",
+            StatusCode.UNAVAILABLE,
+        )

@@ -1,0 +1,402 @@
+"""Chaos: trainers on one esa-server survive its restart, a stall and a cut connection.
+
+Every test runs the real server binary on a fixed loopback port (so a restart comes back
+on the same address) and several trainers at once, each a thread with its own client.
+A trainer must finish with all its steps, and its sessions' step counters on the server
+(``GetSession``) must equal the trainer's own: a report applied twice, or one lost
+without the trainer knowing, would leave them apart.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from esa_client import EsaClient, EsaConfig, EsaError, ServerUnavailable, SessionConfig
+from esa_client.common.runtime import EsaRuntime
+from esa_client.sidecar import find_server_binary
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+CONFIG = SessionConfig(
+    action_dim=2,
+    dt=0.02,
+    amplitude=0.2,
+    frequency=[31.4, 15.7],
+    learning_rate=0.05,
+    normalize_response=True,
+    trust_region=1.0,
+)
+N_ENVS = 2
+EPISODE = 40
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+class Server:
+    """One esa-server on a fixed loopback port, to kill, restart, stop and continue."""
+
+    def __init__(self) -> None:
+        try:
+            self.binary = str(find_server_binary(checkout=REPO_ROOT, build=False))
+        except EsaError as err:
+            pytest.fail(str(err))
+        self.address = f"127.0.0.1:{_free_port()}"
+        self.process: subprocess.Popen[str] | None = None
+        self.start()
+
+    def start(self) -> None:
+        deadline = time.monotonic() + 10
+        while True:
+            process = subprocess.Popen(
+                [self.binary, "--listen", self.address],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                text=True,
+            )
+            assert process.stdout is not None
+            line = process.stdout.readline()
+            if line.startswith("listening on "):
+                self.process = process
+                return
+            process.wait()  # the port may linger a moment after a kill
+            assert time.monotonic() < deadline, f"server did not restart: {line!r}"
+            time.sleep(0.05)
+
+    def signal(self, number: int) -> None:
+        assert self.process is not None
+        self.process.send_signal(number)
+
+    def kill(self) -> None:
+        self.signal(signal.SIGKILL)
+        assert self.process is not None
+        self.process.wait()
+
+    def close(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.send_signal(signal.SIGCONT)
+            self.process.kill()
+            self.process.wait()
+
+
+@pytest.fixture
+def server() -> Iterator[Server]:
+    running = Server()
+    yield running
+    running.close()
+
+
+class Proxy:
+    """A loopback TCP proxy to ``upstream`` whose connections can all be cut at once."""
+
+    def __init__(self, upstream: str) -> None:
+        host, port = upstream.rsplit(":", 1)
+        self._upstream = (host, int(port))
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.address = f"127.0.0.1:{self._listener.getsockname()[1]}"
+        self._sockets: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self.cuts = 0
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self._listener.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(self._upstream)
+            with self._lock:
+                self._sockets += [client, upstream]
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pump(source: socket.socket, sink: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while data := source.recv(65536):
+                sink.sendall(data)
+        for sock in (source, sink):
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
+
+    def cut(self) -> None:
+        """Breaks every open connection (the server keeps its sessions)."""
+        with self._lock:
+            sockets, self._sockets = self._sockets, []
+            self.cuts += 1
+        for sock in sockets:
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
+            sock.close()
+
+    def close(self) -> None:
+        self._listener.close()
+        self.cut()
+
+
+def _q(probes: np.ndarray) -> np.ndarray:
+    return -np.sum((probes - 0.3) ** 2, axis=1)
+
+
+class BatchTrainer(threading.Thread):
+    """A trainer on the raw SessionBatch API: Algorithm 1, one pipelined round trip a step."""
+
+    def __init__(
+        self,
+        address: str,
+        steps: int,
+        *,
+        seed: int,
+        use_stream: bool = True,
+        **connect: object,
+    ) -> None:
+        super().__init__(daemon=True)
+        self.client = EsaClient.connect(address, **connect)  # type: ignore[arg-type]
+        self.batch = self.client.create_batch(CONFIG, N_ENVS, use_stream=use_stream)
+        self.steps, self.done = steps, 0
+        self.rng = np.random.default_rng(seed)
+        self.error: BaseException | None = None
+        self.wall = 0.0
+
+    def run(self) -> None:
+        start = time.monotonic()
+        try:
+            for t in range(self.steps):
+                actions = self.rng.normal(size=(N_ENVS, 2))
+                starts = np.full(N_ENVS, t % EPISODE == 0)
+                probes, applied = self.batch.probe_applied(actions, starts)
+                q = _q(np.concatenate([probes, applied]))
+                self.batch.report(q[:N_ENVS], q_references=q[N_ENVS:], defer=True)
+                self.done += 1
+                time.sleep(0.004)
+            self.batch.flush()
+        except BaseException as err:  # noqa: BLE001 (reported by the test)
+            self.error = err
+        self.wall = time.monotonic() - start
+
+    def check(self) -> None:
+        """Every step done, and the server's step counters are the trainer's."""
+        assert self.error is None, repr(self.error)
+        assert self.done == self.steps
+        states = self.batch.states()
+        assert [s.step for s in states] == self.batch.steps.tolist()
+        assert not any(s.probe_pending for s in states)
+
+    def close(self) -> None:
+        with contextlib.suppress(EsaError):
+            self.batch.close()
+        self.client.close()
+
+
+def _run(trainers: list[BatchTrainer], chaos: Callable[[], None], limit: float) -> None:
+    for trainer in trainers:
+        trainer.start()
+    try:
+        chaos()
+        for trainer in trainers:
+            trainer.join(timeout=limit)
+            assert not trainer.is_alive(), "a trainer hangs"
+        for trainer in trainers:
+            trainer.check()
+    finally:
+        for trainer in trainers:
+            trainer.close()
+
+
+@pytest.mark.parametrize("transport", ["grpc", "grpc-unary", "native"])
+def test_sigkill_and_restart_under_three_batch_trainers(server, transport):
+    wire: dict[str, object] = {"use_stream": transport == "grpc"}
+    if transport == "native":
+        wire["transport"] = "native"
+    trainers = [
+        BatchTrainer(
+            server.address, 250, seed=i, timeout=1.0, reconnect_timeout=20, **wire
+        )
+        for i in range(3)
+    ]
+
+    def chaos() -> None:
+        time.sleep(0.4)
+        server.kill()
+        time.sleep(1.5)
+        server.start()
+
+    _run(trainers, chaos, limit=25)
+    for trainer in trainers:
+        # The restarted server had none of the sessions: each was recreated once.
+        assert trainer.batch.sessions_restored == N_ENVS
+
+
+def test_sigstop_stall_then_sigcont(server):
+    trainers = [
+        BatchTrainer(server.address, 200, seed=i, timeout=0.5, reconnect_timeout=20)
+        for i in range(3)
+    ]
+
+    def chaos() -> None:
+        time.sleep(0.3)
+        server.signal(signal.SIGSTOP)
+        time.sleep(2.0)  # past every call's 0.5 s deadline
+        server.signal(signal.SIGCONT)
+
+    _run(trainers, chaos, limit=25)
+    for trainer in trainers:
+        assert trainer.batch.sessions_restored == 0  # the sessions never left
+
+
+def test_connection_cut_mid_step_stream(server):
+    proxy = Proxy(server.address)
+    trainers = [
+        BatchTrainer(proxy.address, 250, seed=i, timeout=1.0, reconnect_timeout=20)
+        for i in range(2)
+    ]
+
+    def chaos() -> None:
+        for _ in range(3):
+            time.sleep(0.25)
+            proxy.cut()
+
+    try:
+        _run(trainers, chaos, limit=25)
+    finally:
+        proxy.close()
+    for trainer in trainers:
+        assert trainer.batch.sessions_restored == 0
+
+
+def test_gives_up_after_the_deadline_naming_the_address(server):
+    with EsaClient.connect(
+        server.address, timeout=0.5, reconnect_timeout=1.5
+    ) as client:
+        batch = client.create_batch(CONFIG, N_ENVS, use_stream=True)
+        batch.probe_applied(np.zeros((N_ENVS, 2)), np.ones(N_ENVS, dtype=bool))
+        batch.report(np.zeros(N_ENVS), defer=True)
+        server.kill()
+        start = time.monotonic()
+        with pytest.raises(ServerUnavailable, match=f"{server.address}.*gave up after"):
+            batch.probe_applied(np.zeros((N_ENVS, 2)))
+        # The deadline, plus at most one call's own deadline.
+        assert time.monotonic() - start < 1.5 + 0.5 + 0.5
+
+
+def test_runtime_skips_esa_until_the_next_episode_then_resumes(server):
+    client = EsaClient.connect(server.address, timeout=0.5, reconnect_timeout=0.5)
+    low, high = np.full(2, -1.0), np.full(2, 1.0)
+    runtime = EsaRuntime.on_client(
+        EsaConfig(gate=None),
+        client,
+        EsaConfig(gate=None).session_config(2, 0.02, low, high),
+        N_ENVS,
+        low,
+        high,
+        on_unavailable="skip",
+    )
+    rng = np.random.default_rng(0)
+
+    def q_fn(points: np.ndarray) -> np.ndarray:
+        return _q(points)
+
+    logged: dict[str, float] = {}
+
+    class Logger:
+        def record(self, key: str, value: float) -> None:
+            logged[key] = value
+
+    try:
+        starts = np.ones(N_ENVS, dtype=bool)
+        for _ in range(5):
+            runtime.step(rng.uniform(-0.5, 0.5, (N_ENVS, 2)), starts, q_fn)
+            starts[:] = False
+        server.kill()
+        sampled = rng.uniform(-0.5, 0.5, (N_ENVS, 2))
+        np.testing.assert_array_equal(runtime.step(sampled, starts, q_fn), sampled)
+        server.start()
+        client.wait_ready(5)
+        # Mid-episode: still without ESA, at no cost of waiting.
+        start = time.monotonic()
+        np.testing.assert_array_equal(runtime.step(sampled, starts, q_fn), sampled)
+        assert time.monotonic() - start < 0.1
+        starts[0] = True  # an episode starts: ESA resumes on recreated sessions
+        runtime.step(sampled, starts, q_fn)
+        assert [s.step for s in runtime.batch.states()] == [1] * N_ENVS
+        runtime.record(Logger())
+        assert logged["esa/unavailable_steps"] == 2 * N_ENVS
+        assert logged["esa/sessions_restored"] == N_ENVS
+    finally:
+        runtime.close()
+
+
+def test_sigkill_and_restart_under_two_esappo_trainers(server, tmp_path):
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("stable_baselines3")
+    from esa_client.sb3 import ESAPPO
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.logger import configure
+
+    torch.set_num_threads(1)
+    n_steps, rollouts = 64, 8
+    models = [
+        ESAPPO(
+            "MlpPolicy",
+            make_vec_env("Pendulum-v1", n_envs=N_ENVS, seed=i),
+            esa=EsaConfig(gate=None),
+            esa_address=server.address,
+            esa_reconnect_timeout=20,
+            n_steps=n_steps,
+            batch_size=64,
+            n_epochs=1,
+            policy_kwargs=dict(net_arch=[16]),
+            seed=i,
+        )
+        for i in range(2)
+    ]
+    errors: list[BaseException] = []
+    for i, model in enumerate(models):
+        model.set_logger(configure(str(tmp_path / str(i)), ["csv"]))
+
+    def learn(model: ESAPPO) -> None:
+        try:
+            model.learn(n_steps * N_ENVS * rollouts)
+        except BaseException as err:  # noqa: BLE001 (reported by the test)
+            errors.append(err)
+
+    threads = [threading.Thread(target=learn, args=(m,), daemon=True) for m in models]
+    for thread in threads:
+        thread.start()
+    # ESA steps from the second rollout on (its advantage head is fitted on the first).
+    deadline = time.monotonic() + 20
+    while not all(m._esa is not None for m in models):
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(0.3)
+    server.kill()
+    time.sleep(1.5)
+    server.start()
+    for thread in threads:
+        thread.join(timeout=40)
+        assert not thread.is_alive(), "a trainer hangs"
+    assert errors == []
+    for i, model in enumerate(models):
+        assert model.num_timesteps == n_steps * N_ENVS * rollouts
+        runtime = model._esa
+        assert runtime is not None
+        assert runtime.batch.sessions_restored == N_ENVS
+        states = runtime.batch.states()
+        assert [s.step for s in states] == runtime.batch.steps.tolist()
+        log = (tmp_path / str(i) / "progress.csv").read_text()
+        assert "esa/sessions_restored" in log
+        model.esa_close()
