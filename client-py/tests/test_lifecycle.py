@@ -104,7 +104,8 @@ def test_unreachable_server_fails_fast():
 
 @pytest.mark.parametrize("path", ["unary", "batch", "stream"])
 def test_killed_server_gives_server_unavailable_quickly(server_bin, path):
-    client = EsaClient.spawn(server_bin, timeout=5.0)
+    # reconnect_timeout=0: a batch raises the first failure (tests/test_chaos.py: retries).
+    client = EsaClient.spawn(server_bin, timeout=5.0, reconnect_timeout=0)
     if path == "unary":
         session = client.create_session(CONFIG)
         session.probe([0.0], episode_start=True)
@@ -124,7 +125,7 @@ def test_killed_server_gives_server_unavailable_quickly(server_bin, path):
 
 @pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
 def test_frozen_server_hits_the_deadline_then_recovers(server_bin, use_stream):
-    with EsaClient.spawn(server_bin, timeout=0.5) as client:
+    with EsaClient.spawn(server_bin, timeout=0.5, reconnect_timeout=0) as client:
         batch = client.create_batch(CONFIG, 2, use_stream=use_stream)
         batch.probe(np.zeros((2, 1)), [True, True])
         freeze(client.server.pid)

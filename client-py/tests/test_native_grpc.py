@@ -130,7 +130,7 @@ def test_a_dead_server_is_unavailable(server_bin, monkeypatch):
         with pytest.raises(ServerUnavailable) as info:
             nobody.create_session(CONFIG)
         assert info.value.code == StatusCode.UNAVAILABLE
-    with EsaClient.spawn(server_bin, native=True) as client:
+    with EsaClient.spawn(server_bin, native=True, reconnect_timeout=0) as client:
         batch = client.create_batch(CONFIG, 2)
         batch.probe(np.zeros((2, 2)), [True, True])
         assert client.server is not None

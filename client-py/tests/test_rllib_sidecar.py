@@ -125,3 +125,55 @@ def test_service_settings_are_checked():
         EsaService(timeout=0)
     assert EsaService().uses_sidecar
     assert not EsaService(zenoh=["tcp/127.0.0.1:7447"], shards=2).uses_sidecar
+
+
+def test_runners_follow_a_sidecar_killed_mid_training(sidecar_dir):
+    import threading
+
+    import numpy as np
+
+    from esa_client import SessionConfig
+
+    config = SessionConfig(
+        action_dim=2, dt=0.02, amplitude=0.2, frequency=[31.4, 15.7], learning_rate=0.05
+    )
+    service = EsaService(sidecar_dir=str(sidecar_dir), timeout=1.0, reconnect_timeout=20)
+    clients = [service.connect() for _ in range(2)]
+    batches = [c.create_batch(config, 2, use_stream=True) for c in clients]
+    errors, steps = [], 250
+
+    def train(batch, seed):
+        rng = np.random.default_rng(seed)
+        try:
+            for t in range(steps):
+                probes, applied = batch.probe_applied(rng.normal(size=(2, 2)), [t % 40 == 0] * 2)
+                batch.report(-np.sum(probes**2, axis=1), defer=True)
+                time.sleep(0.004)
+            batch.flush()
+        except BaseException as err:  # noqa: BLE001 (reported below)
+            errors.append(err)
+
+    threads = [threading.Thread(target=train, args=(b, i)) for i, b in enumerate(batches)]
+    for thread in threads:
+        thread.start()
+    time.sleep(0.4)
+    server = json.loads((sidecar_dir / "server.json").read_text())["server_pid"]
+    os.kill(server, signal.SIGKILL)  # its keeper exits; a runner starts the next one
+    for thread in threads:
+        thread.join(timeout=30)
+        assert not thread.is_alive(), "a runner hangs"
+    assert errors == []
+    for client, batch in zip(clients, batches, strict=True):
+        assert batch.sessions_restored == 2
+        assert [s.step for s in batch.states()] == batch.steps.tolist()
+        assert client.transport.generation == 1
+    addresses = {c.transport.sidecar.address for c in clients}
+    assert len(addresses) == 1  # both follow the one new sidecar
+    successor = json.loads((sidecar_dir / "server.json").read_text())["keeper_pid"]
+    for client in clients:
+        client.close()
+    deadline = time.monotonic() + 15  # the new sidecar stops once both let go
+    while _alive(successor) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(successor)
+    assert not (sidecar_dir / "server.json").exists()

@@ -244,7 +244,9 @@ class BaseClient:
             per_session,
             use_stream=use_stream,
             on_restore=self._count_restored,
-            reconnect=Reconnect(self.address, self.reconnect_timeout),
+            reconnect=Reconnect(
+                self.address, self.reconnect_timeout, closed=lambda: self._closed
+            ),
         )
 
     def restore_sessions(

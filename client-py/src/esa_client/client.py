@@ -61,7 +61,9 @@ class EsaClient(BaseClient):
     """A client of an esa server: build one with :meth:`connect`, :meth:`spawn`, :meth:`in_process`.
 
     Every call has a deadline of ``timeout`` seconds; a lost connection raises
-    :class:`~esa_client.errors.ServerUnavailable` at once instead of waiting.
+    :class:`~esa_client.errors.ServerUnavailable` at once instead of waiting, except in a
+    batch (:meth:`create_batch`), which retries for up to ``reconnect_timeout`` seconds
+    (set by :meth:`connect` and :meth:`spawn`, default 60) and then raises it.
 
     Example::
 

@@ -50,12 +50,15 @@ class Reconnect:
             the first error at once.
         initial_backoff: The first pause, in seconds.
         max_backoff: The cap of the doubling pause, in seconds.
+        closed: True once retrying is pointless (the client was closed): the error is
+            then raised at once.
     """
 
     address: str
     timeout: float = DEFAULT_RECONNECT_TIMEOUT
     initial_backoff: float = 0.05
     max_backoff: float = 1.0
+    closed: Callable[[], bool] = lambda: False
 
     def run(
         self,
@@ -83,7 +86,7 @@ class Reconnect:
             try:
                 return attempt(retrying)
             except RetriableErrors as err:
-                if self.timeout <= 0:
+                if self.timeout <= 0 or self.closed():
                     raise
                 waited = time.monotonic() - start
                 if waited >= self.timeout:

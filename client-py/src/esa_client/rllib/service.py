@@ -35,14 +35,21 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
+from .._proto.esa.v1 import esa_pb2
 from ..base_client import BaseClient
 from ..client import EsaClient
 from ..errors import EsaError, ServerUnavailable, StatusCode
+from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
 from ..sidecar import find_server_binary
+from ..state import F64Array, SessionState
+from ..transports.base import BatchProbe, BatchReport, BatchTransport, Transport
+
+_T = TypeVar("_T")
 
 SIDECAR_DIR_ENV = "ESA_RLLIB_SIDECAR_DIR"
 """Overrides the default node sidecar directory (``$TMPDIR/esa-rllib-<uid>``)."""
@@ -217,6 +224,18 @@ class NodeSidecar:
                 )
             time.sleep(0.01)
 
+    def serving(self) -> bool:
+        """True while the server this runner joined still runs (its record names it)."""
+        try:
+            info = json.loads((self.directory / "server.json").read_text())
+        except (OSError, ValueError):
+            return False
+        return (
+            info.get("address") == self.address
+            and _alive(int(info.get("keeper_pid", 0)))
+            and _alive(int(info.get("server_pid", 0)))
+        )
+
     def release(self) -> None:
         """Stops using the sidecar (it stops once no process on the node uses it)."""
         if self._users is not None:
@@ -227,6 +246,151 @@ class NodeSidecar:
         """Releases the hold."""
         with contextlib.suppress(Exception):
             self.release()
+
+
+class SidecarTransport:
+    """A :class:`~esa_client.transports.base.Transport` to the node's sidecar that follows it.
+
+    A sidecar that dies (killed, out of memory) is replaced: after a call fails with
+    ``ServerUnavailable`` and the sidecar's record no longer names a live server, this
+    runner joins the node's sidecar again (:class:`NodeSidecar` starts a new one, or
+    finds the one another runner started) and connects to its new socket; the failed
+    call's error is then raised, and the batch's reconnect loop repeats the step against
+    the new server, recreating the sessions it lacks (``SessionNotFound``).
+
+    Args:
+        join: Joins the node's sidecar (a new :class:`NodeSidecar`).
+        connect: A client of the sidecar at an address.
+    """
+
+    def __init__(
+        self,
+        join: Callable[[], NodeSidecar],
+        connect: Callable[[str], BaseClient],
+    ) -> None:
+        """Joins the sidecar and connects."""
+        self._join, self._connect = join, connect
+        self.sidecar = join()
+        try:
+            self.client = connect(self.sidecar.address)
+        except BaseException:
+            self.sidecar.release()
+            raise
+        self.generation = 0
+        """How many times this runner followed a replaced sidecar."""
+
+    def _call(self, call: Callable[[Transport], _T]) -> _T:
+        try:
+            return call(self.client.transport)
+        except ServerUnavailable:
+            self.follow()
+            raise
+
+    def follow(self) -> bool:
+        """Joins a new sidecar if the one in use is gone; True if it did."""
+        if self.sidecar.serving():
+            return False
+        sidecar = self._join()
+        try:
+            client = self._connect(sidecar.address)
+        except BaseException:
+            sidecar.release()
+            raise
+        old_client, old_sidecar = self.client, self.sidecar
+        self.client, self.sidecar = client, sidecar
+        self.generation += 1
+        with contextlib.suppress(EsaError):
+            old_client.close()
+        old_sidecar.release()
+        return True
+
+    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
+        """``CreateSession`` on the current sidecar."""
+        return self._call(lambda t: t.create_session(session_id, config))
+
+    def get_session(self, session_id: str) -> SessionState:
+        """``GetSession`` on the current sidecar."""
+        return self._call(lambda t: t.get_session(session_id))
+
+    def close_session(self, session_id: str) -> None:
+        """``CloseSession`` on the current sidecar."""
+        self._call(lambda t: t.close_session(session_id))
+
+    def end_episode(self, session_id: str) -> int:
+        """``EndEpisode`` on the current sidecar."""
+        return self._call(lambda t: t.end_episode(session_id))
+
+    def probe(
+        self,
+        session_id: str,
+        step: int,
+        action: F64Array,
+        episode_start: bool,
+        action_scale: F64Array | None,
+    ) -> tuple[F64Array, F64Array]:
+        """``Probe`` on the current sidecar."""
+        return self._call(lambda t: t.probe(session_id, step, action, episode_start, action_scale))
+
+    def report(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None
+    ) -> F64Array:
+        """``Report`` on the current sidecar."""
+        return self._call(lambda t: t.report(session_id, step, q_value, q_reference))
+
+    def open_batch(
+        self, ids: Sequence[str], action_dim: int, *, use_stream: bool
+    ) -> BatchTransport:
+        """A batch that reopens itself on the current sidecar's transport."""
+        return _SidecarBatch(self, ids, action_dim, use_stream)
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
+        """True if the current sidecar answers as serving."""
+        return self.client.healthy(timeout=timeout, wait_for_ready=wait_for_ready)
+
+    def close(self) -> None:
+        """Closes the client and lets go of the sidecar."""
+        self.client.close()
+        self.sidecar.release()
+
+
+class _SidecarBatch:
+    """A batch over :class:`SidecarTransport`: reopened on the sidecar that replaced one."""
+
+    def __init__(
+        self, owner: SidecarTransport, ids: Sequence[str], action_dim: int, use_stream: bool
+    ) -> None:
+        self._owner = owner
+        self._open = (tuple(ids), action_dim, use_stream)
+        self._generation = owner.generation
+        self._batch = owner.client.transport.open_batch(ids, action_dim, use_stream=use_stream)
+
+    def _current(self) -> BatchTransport:
+        if self._generation != self._owner.generation:
+            with contextlib.suppress(EsaError):
+                self._batch.close()
+            ids, action_dim, use_stream = self._open
+            transport = self._owner.client.transport
+            self._batch = transport.open_batch(ids, action_dim, use_stream=use_stream)
+            self._generation = self._owner.generation
+        return self._batch
+
+    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
+        """``ProbeBatch``."""
+        return self._owner._call(lambda _: self._current().probe(request))
+
+    def report(self, request: BatchReport) -> F64Array:
+        """``ReportBatch``."""
+        return self._owner._call(lambda _: self._current().report(request))
+
+    def report_then_probe(
+        self, report: BatchReport, probe: BatchProbe
+    ) -> tuple[F64Array, F64Array]:
+        """The report, then the probe, as the current sidecar's batch sends them."""
+        return self._owner._call(lambda _: self._current().report_then_probe(report, probe))
+
+    def close(self) -> None:
+        """Closes the batch's stream, if any."""
+        self._batch.close()
 
 
 @dataclass(frozen=True)
@@ -252,6 +416,9 @@ class EsaService:
         sidecar_args: Extra ``esa-server`` arguments for the node sidecar, e.g.
             ``("--session-ttl", "3600")`` (the first runner of a node starts it).
         startup_timeout: Seconds to wait for the node sidecar (or a server) to be ready.
+        reconnect_timeout: Seconds a runner's batch keeps retrying a lost server (a node
+            sidecar that died is restarted, or the one another runner restarted joined)
+            before it raises ``ServerUnavailable``.
     """
 
     address: str | None = None
@@ -263,6 +430,7 @@ class EsaService:
     sidecar_dir: str | None = None
     sidecar_args: tuple[str, ...] = field(default_factory=tuple)
     startup_timeout: float = 60.0
+    reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT
 
     def __post_init__(self) -> None:
         """Checks that the fields describe one kind of service."""
@@ -277,6 +445,7 @@ class EsaService:
                 f"expected timeout and startup_timeout > 0, got {self.timeout}, "
                 f"{self.startup_timeout}"
             )
+        check_reconnect_timeout(self.reconnect_timeout)
         object.__setattr__(self, "sidecar_args", tuple(str(a) for a in self.sidecar_args))
         if self.zenoh is not None and not isinstance(self.zenoh, str):
             object.__setattr__(self, "zenoh", tuple(self.zenoh))
@@ -301,29 +470,48 @@ class EsaService:
                 prefix=self.zenoh_prefix,
                 timeout=self.timeout,
                 token_file=self.token_file,
+                reconnect_timeout=self.reconnect_timeout,
             )
-        sidecar = None
         if self.address is None:
-            sidecar = NodeSidecar(
-                self.sidecar_dir,
-                server_args=self.sidecar_args,
-                startup_timeout=self.startup_timeout,
-            )
-        try:
-            address = sidecar.address if sidecar is not None else self.address
-            assert address is not None  # set above when there is no sidecar
-            # The sidecar is this user's own, on a private socket: it has no token.
-            token_file = self.token_file if sidecar is None else None
-            client = EsaClient.connect(address, timeout=self.timeout, token_file=token_file)
-        except BaseException:
-            if sidecar is not None:
-                sidecar.release()
-            raise
-        if sidecar is not None:
-            client.on_close(sidecar.release)
+            return self._connect_sidecar()
+        client = EsaClient.connect(
+            self.address,
+            timeout=self.timeout,
+            token_file=self.token_file,
+            reconnect_timeout=self.reconnect_timeout,
+        )
         try:
             client.wait_ready(self.startup_timeout)
         except BaseException:
             client.close()
             raise
+        return client
+
+    def _connect_sidecar(self) -> BaseClient:
+        """A client of the node's sidecar that follows it when it is replaced."""
+
+        def join() -> NodeSidecar:
+            return NodeSidecar(
+                self.sidecar_dir,
+                server_args=self.sidecar_args,
+                startup_timeout=self.startup_timeout,
+            )
+
+        def connect(address: str) -> BaseClient:
+            # The sidecar is this user's own, on a private socket: it has no token.
+            client = EsaClient.connect(address, timeout=self.timeout, token_file=None)
+            try:
+                client.wait_ready(self.startup_timeout)
+            except BaseException:
+                client.close()
+                raise
+            return client
+
+        transport = SidecarTransport(join, connect)
+        client = BaseClient(
+            transport,
+            address=f"the node sidecar in {transport.sidecar.directory}",
+            timeout=self.timeout,
+        )
+        client.reconnect_timeout = self.reconnect_timeout
         return client
