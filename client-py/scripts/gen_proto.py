@@ -5,6 +5,10 @@ Usage::
     python scripts/gen_proto.py          # rewrite src/esa_client/_proto/esa/v1/
     python scripts/gen_proto.py --check  # exit 1 if the committed stubs are stale
 
+The generator is pinned (``GENERATOR``): the oldest grpcio-tools whose output sets the
+package's dependency floors (grpcio, protobuf). It conflicts with newer protobuf runtimes,
+so ``make proto`` / ``make proto-check`` run this script in a venv of its own (.venv-proto).
+
 The proto is compiled with ``-I proto`` so the descriptor keeps its canonical
 name ``esa/v1/esa.proto`` (the name reflection and other languages use). protoc
 then writes ``from esa.v1 import esa_pb2`` into the gRPC module, which would
@@ -17,6 +21,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from importlib import metadata
 from pathlib import Path
 
 from grpc_tools import protoc
@@ -28,10 +33,15 @@ STUB_DIR = CLIENT_ROOT / "src" / "esa_client" / "_proto" / "esa" / "v1"
 GENERATED = ("esa_pb2.py", "esa_pb2.pyi", "esa_pb2_grpc.py")
 ABSOLUTE_IMPORT = "from esa.v1 import esa_pb2 as"
 RELATIVE_IMPORT = "from . import esa_pb2 as"
+# Keep in step with the floors in pyproject.toml (grpcio>=, protobuf>= its protoc's runtime).
+GENERATOR = "1.49.1"
 
 
 def generate() -> dict[str, str]:
     """Compile the proto and return the generated files by name, imports fixed."""
+    version = metadata.version("grpcio-tools")
+    if version != GENERATOR:
+        raise SystemExit(f"grpcio-tools {version}, not {GENERATOR}: run `make proto`")
     with tempfile.TemporaryDirectory() as out:
         args = [
             "grpc_tools.protoc",

@@ -1,17 +1,21 @@
 """The committed stubs are exactly what scripts/gen_proto.py produces from the proto."""
 
 import subprocess
-import sys
 from pathlib import Path
+
+import pytest
 
 from esa_client._proto.esa.v1 import esa_pb2, esa_pb2_grpc
 
 CLIENT_ROOT = Path(__file__).resolve().parents[1]
+# The pinned generator's venv (make proto / make proto-check; make lint creates it).
+PROTO_PYTHON = CLIENT_ROOT.parent / ".venv-proto" / "bin" / "python"
 
 
+@pytest.mark.skipif(not PROTO_PYTHON.exists(), reason="no .venv-proto: run make proto-check")
 def test_regenerating_gives_identical_files():
     result = subprocess.run(
-        [sys.executable, str(CLIENT_ROOT / "scripts" / "gen_proto.py"), "--check"],
+        [str(PROTO_PYTHON), str(CLIENT_ROOT / "scripts" / "gen_proto.py"), "--check"],
         capture_output=True,
         text=True,
         check=False,

@@ -1,193 +1,198 @@
 from google.protobuf.internal import containers as _containers
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
-from collections.abc import Iterable as _Iterable, Mapping as _Mapping
-from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+from typing import ClassVar as _ClassVar, Iterable as _Iterable, Mapping as _Mapping, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
-class SessionConfig(_message.Message):
-    __slots__ = ("action_dim", "dt", "amplitude", "frequency", "learning_rate", "highpass_cutoff", "disable_highpass", "action_low", "action_high", "shift_limit", "lr_decay", "max_episodes", "normalize_response", "response_rms_rate", "response_clip", "shift_leak", "trust_region")
-    ACTION_DIM_FIELD_NUMBER: _ClassVar[int]
-    DT_FIELD_NUMBER: _ClassVar[int]
-    AMPLITUDE_FIELD_NUMBER: _ClassVar[int]
-    FREQUENCY_FIELD_NUMBER: _ClassVar[int]
-    LEARNING_RATE_FIELD_NUMBER: _ClassVar[int]
-    HIGHPASS_CUTOFF_FIELD_NUMBER: _ClassVar[int]
-    DISABLE_HIGHPASS_FIELD_NUMBER: _ClassVar[int]
-    ACTION_LOW_FIELD_NUMBER: _ClassVar[int]
-    ACTION_HIGH_FIELD_NUMBER: _ClassVar[int]
-    SHIFT_LIMIT_FIELD_NUMBER: _ClassVar[int]
-    LR_DECAY_FIELD_NUMBER: _ClassVar[int]
-    MAX_EPISODES_FIELD_NUMBER: _ClassVar[int]
-    NORMALIZE_RESPONSE_FIELD_NUMBER: _ClassVar[int]
-    RESPONSE_RMS_RATE_FIELD_NUMBER: _ClassVar[int]
-    RESPONSE_CLIP_FIELD_NUMBER: _ClassVar[int]
-    SHIFT_LEAK_FIELD_NUMBER: _ClassVar[int]
-    TRUST_REGION_FIELD_NUMBER: _ClassVar[int]
-    action_dim: int
-    dt: float
-    amplitude: _containers.RepeatedScalarFieldContainer[float]
-    frequency: _containers.RepeatedScalarFieldContainer[float]
-    learning_rate: _containers.RepeatedScalarFieldContainer[float]
-    highpass_cutoff: float
-    disable_highpass: bool
-    action_low: _containers.RepeatedScalarFieldContainer[float]
-    action_high: _containers.RepeatedScalarFieldContainer[float]
-    shift_limit: float
-    lr_decay: float
-    max_episodes: int
-    normalize_response: bool
-    response_rms_rate: float
-    response_clip: float
-    shift_leak: float
-    trust_region: float
-    def __init__(self, action_dim: _Optional[int] = ..., dt: _Optional[float] = ..., amplitude: _Optional[_Iterable[float]] = ..., frequency: _Optional[_Iterable[float]] = ..., learning_rate: _Optional[_Iterable[float]] = ..., highpass_cutoff: _Optional[float] = ..., disable_highpass: _Optional[bool] = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., shift_limit: _Optional[float] = ..., lr_decay: _Optional[float] = ..., max_episodes: _Optional[int] = ..., normalize_response: _Optional[bool] = ..., response_rms_rate: _Optional[float] = ..., response_clip: _Optional[float] = ..., shift_leak: _Optional[float] = ..., trust_region: _Optional[float] = ...) -> None: ...
+class BatchItem(_message.Message):
+    __slots__ = ["index"]
+    INDEX_FIELD_NUMBER: _ClassVar[int]
+    index: int
+    def __init__(self, index: _Optional[int] = ...) -> None: ...
 
-class CreateSessionRequest(_message.Message):
-    __slots__ = ("session_id", "config")
-    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
-    CONFIG_FIELD_NUMBER: _ClassVar[int]
-    session_id: str
-    config: SessionConfig
-    def __init__(self, session_id: _Optional[str] = ..., config: _Optional[_Union[SessionConfig, _Mapping]] = ...) -> None: ...
-
-class CreateSessionResponse(_message.Message):
-    __slots__ = ("session_id",)
+class CloseSessionRequest(_message.Message):
+    __slots__ = ["session_id"]
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
+class CloseSessionResponse(_message.Message):
+    __slots__ = []
+    def __init__(self) -> None: ...
+
+class CreateSessionRequest(_message.Message):
+    __slots__ = ["config", "session_id"]
+    CONFIG_FIELD_NUMBER: _ClassVar[int]
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    config: SessionConfig
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ..., config: _Optional[_Union[SessionConfig, _Mapping]] = ...) -> None: ...
+
+class CreateSessionResponse(_message.Message):
+    __slots__ = ["session_id"]
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class EndEpisodeRequest(_message.Message):
+    __slots__ = ["session_id"]
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class EndEpisodeResponse(_message.Message):
+    __slots__ = ["episodes_completed"]
+    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
+    episodes_completed: int
+    def __init__(self, episodes_completed: _Optional[int] = ...) -> None: ...
+
+class GetSessionRequest(_message.Message):
+    __slots__ = ["session_id"]
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class GetSessionResponse(_message.Message):
+    __slots__ = ["config", "episodes_completed", "probe_pending", "response_mean_square", "shift", "step"]
+    CONFIG_FIELD_NUMBER: _ClassVar[int]
+    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
+    PROBE_PENDING_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_MEAN_SQUARE_FIELD_NUMBER: _ClassVar[int]
+    SHIFT_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    config: SessionConfig
+    episodes_completed: int
+    probe_pending: bool
+    response_mean_square: float
+    shift: _containers.RepeatedScalarFieldContainer[float]
+    step: int
+    def __init__(self, config: _Optional[_Union[SessionConfig, _Mapping]] = ..., step: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., shift: _Optional[_Iterable[float]] = ..., probe_pending: bool = ..., response_mean_square: _Optional[float] = ...) -> None: ...
+
+class ProbeBatchRequest(_message.Message):
+    __slots__ = ["action_scales", "actions", "episode_starts", "session_ids", "steps"]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    ACTION_SCALES_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_STARTS_FIELD_NUMBER: _ClassVar[int]
+    SESSION_IDS_FIELD_NUMBER: _ClassVar[int]
+    STEPS_FIELD_NUMBER: _ClassVar[int]
+    action_scales: _containers.RepeatedScalarFieldContainer[float]
+    actions: _containers.RepeatedScalarFieldContainer[float]
+    episode_starts: _containers.RepeatedScalarFieldContainer[bool]
+    session_ids: _containers.RepeatedScalarFieldContainer[str]
+    steps: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., actions: _Optional[_Iterable[float]] = ..., episode_starts: _Optional[_Iterable[bool]] = ..., action_scales: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class ProbeBatchResponse(_message.Message):
+    __slots__ = ["actions", "probes"]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    PROBES_FIELD_NUMBER: _ClassVar[int]
+    actions: _containers.RepeatedScalarFieldContainer[float]
+    probes: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class ProbeRequest(_message.Message):
-    __slots__ = ("session_id", "step", "action", "episode_start", "action_scale")
+    __slots__ = ["action", "action_scale", "episode_start", "session_id", "step"]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    ACTION_SCALE_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_START_FIELD_NUMBER: _ClassVar[int]
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
-    ACTION_FIELD_NUMBER: _ClassVar[int]
-    EPISODE_START_FIELD_NUMBER: _ClassVar[int]
-    ACTION_SCALE_FIELD_NUMBER: _ClassVar[int]
+    action: _containers.RepeatedScalarFieldContainer[float]
+    action_scale: _containers.RepeatedScalarFieldContainer[float]
+    episode_start: bool
     session_id: str
     step: int
-    action: _containers.RepeatedScalarFieldContainer[float]
-    episode_start: bool
-    action_scale: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., action: _Optional[_Iterable[float]] = ..., episode_start: _Optional[bool] = ..., action_scale: _Optional[_Iterable[float]] = ...) -> None: ...
+    def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., action: _Optional[_Iterable[float]] = ..., episode_start: bool = ..., action_scale: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ProbeResponse(_message.Message):
-    __slots__ = ("probe", "step", "action")
+    __slots__ = ["action", "probe", "step"]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
     PROBE_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
-    ACTION_FIELD_NUMBER: _ClassVar[int]
+    action: _containers.RepeatedScalarFieldContainer[float]
     probe: _containers.RepeatedScalarFieldContainer[float]
     step: int
-    action: _containers.RepeatedScalarFieldContainer[float]
     def __init__(self, probe: _Optional[_Iterable[float]] = ..., step: _Optional[int] = ..., action: _Optional[_Iterable[float]] = ...) -> None: ...
 
+class ReportBatchRequest(_message.Message):
+    __slots__ = ["q_references", "q_values", "session_ids", "steps"]
+    Q_REFERENCES_FIELD_NUMBER: _ClassVar[int]
+    Q_VALUES_FIELD_NUMBER: _ClassVar[int]
+    SESSION_IDS_FIELD_NUMBER: _ClassVar[int]
+    STEPS_FIELD_NUMBER: _ClassVar[int]
+    q_references: _containers.RepeatedScalarFieldContainer[float]
+    q_values: _containers.RepeatedScalarFieldContainer[float]
+    session_ids: _containers.RepeatedScalarFieldContainer[str]
+    steps: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., q_values: _Optional[_Iterable[float]] = ..., q_references: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class ReportBatchResponse(_message.Message):
+    __slots__ = ["actions"]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    actions: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, actions: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class ReportRequest(_message.Message):
-    __slots__ = ("session_id", "step", "q_value", "q_reference")
+    __slots__ = ["q_reference", "q_value", "session_id", "step"]
+    Q_REFERENCE_FIELD_NUMBER: _ClassVar[int]
+    Q_VALUE_FIELD_NUMBER: _ClassVar[int]
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
-    Q_VALUE_FIELD_NUMBER: _ClassVar[int]
-    Q_REFERENCE_FIELD_NUMBER: _ClassVar[int]
+    q_reference: float
+    q_value: float
     session_id: str
     step: int
-    q_value: float
-    q_reference: float
     def __init__(self, session_id: _Optional[str] = ..., step: _Optional[int] = ..., q_value: _Optional[float] = ..., q_reference: _Optional[float] = ...) -> None: ...
 
 class ReportResponse(_message.Message):
-    __slots__ = ("action", "step")
+    __slots__ = ["action", "step"]
     ACTION_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
     action: _containers.RepeatedScalarFieldContainer[float]
     step: int
     def __init__(self, action: _Optional[_Iterable[float]] = ..., step: _Optional[int] = ...) -> None: ...
 
-class EndEpisodeRequest(_message.Message):
-    __slots__ = ("session_id",)
-    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
-    session_id: str
-    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
-
-class EndEpisodeResponse(_message.Message):
-    __slots__ = ("episodes_completed",)
-    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
-    episodes_completed: int
-    def __init__(self, episodes_completed: _Optional[int] = ...) -> None: ...
-
-class CloseSessionRequest(_message.Message):
-    __slots__ = ("session_id",)
-    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
-    session_id: str
-    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
-
-class CloseSessionResponse(_message.Message):
-    __slots__ = ()
-    def __init__(self) -> None: ...
-
-class GetSessionRequest(_message.Message):
-    __slots__ = ("session_id",)
-    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
-    session_id: str
-    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
-
-class GetSessionResponse(_message.Message):
-    __slots__ = ("config", "step", "episodes_completed", "shift", "probe_pending", "response_mean_square")
-    CONFIG_FIELD_NUMBER: _ClassVar[int]
-    STEP_FIELD_NUMBER: _ClassVar[int]
-    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
-    SHIFT_FIELD_NUMBER: _ClassVar[int]
-    PROBE_PENDING_FIELD_NUMBER: _ClassVar[int]
-    RESPONSE_MEAN_SQUARE_FIELD_NUMBER: _ClassVar[int]
-    config: SessionConfig
-    step: int
-    episodes_completed: int
-    shift: _containers.RepeatedScalarFieldContainer[float]
-    probe_pending: bool
-    response_mean_square: float
-    def __init__(self, config: _Optional[_Union[SessionConfig, _Mapping]] = ..., step: _Optional[int] = ..., episodes_completed: _Optional[int] = ..., shift: _Optional[_Iterable[float]] = ..., probe_pending: _Optional[bool] = ..., response_mean_square: _Optional[float] = ...) -> None: ...
-
-class ProbeBatchRequest(_message.Message):
-    __slots__ = ("session_ids", "steps", "actions", "episode_starts", "action_scales")
-    SESSION_IDS_FIELD_NUMBER: _ClassVar[int]
-    STEPS_FIELD_NUMBER: _ClassVar[int]
-    ACTIONS_FIELD_NUMBER: _ClassVar[int]
-    EPISODE_STARTS_FIELD_NUMBER: _ClassVar[int]
-    ACTION_SCALES_FIELD_NUMBER: _ClassVar[int]
-    session_ids: _containers.RepeatedScalarFieldContainer[str]
-    steps: _containers.RepeatedScalarFieldContainer[int]
-    actions: _containers.RepeatedScalarFieldContainer[float]
-    episode_starts: _containers.RepeatedScalarFieldContainer[bool]
-    action_scales: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., actions: _Optional[_Iterable[float]] = ..., episode_starts: _Optional[_Iterable[bool]] = ..., action_scales: _Optional[_Iterable[float]] = ...) -> None: ...
-
-class ProbeBatchResponse(_message.Message):
-    __slots__ = ("probes", "actions")
-    PROBES_FIELD_NUMBER: _ClassVar[int]
-    ACTIONS_FIELD_NUMBER: _ClassVar[int]
-    probes: _containers.RepeatedScalarFieldContainer[float]
-    actions: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ...) -> None: ...
-
-class ReportBatchRequest(_message.Message):
-    __slots__ = ("session_ids", "steps", "q_values", "q_references")
-    SESSION_IDS_FIELD_NUMBER: _ClassVar[int]
-    STEPS_FIELD_NUMBER: _ClassVar[int]
-    Q_VALUES_FIELD_NUMBER: _ClassVar[int]
-    Q_REFERENCES_FIELD_NUMBER: _ClassVar[int]
-    session_ids: _containers.RepeatedScalarFieldContainer[str]
-    steps: _containers.RepeatedScalarFieldContainer[int]
-    q_values: _containers.RepeatedScalarFieldContainer[float]
-    q_references: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., q_values: _Optional[_Iterable[float]] = ..., q_references: _Optional[_Iterable[float]] = ...) -> None: ...
-
-class ReportBatchResponse(_message.Message):
-    __slots__ = ("actions",)
-    ACTIONS_FIELD_NUMBER: _ClassVar[int]
-    actions: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, actions: _Optional[_Iterable[float]] = ...) -> None: ...
+class SessionConfig(_message.Message):
+    __slots__ = ["action_dim", "action_high", "action_low", "amplitude", "disable_highpass", "dt", "frequency", "highpass_cutoff", "learning_rate", "lr_decay", "max_episodes", "normalize_response", "response_clip", "response_rms_rate", "shift_leak", "shift_limit", "trust_region"]
+    ACTION_DIM_FIELD_NUMBER: _ClassVar[int]
+    ACTION_HIGH_FIELD_NUMBER: _ClassVar[int]
+    ACTION_LOW_FIELD_NUMBER: _ClassVar[int]
+    AMPLITUDE_FIELD_NUMBER: _ClassVar[int]
+    DISABLE_HIGHPASS_FIELD_NUMBER: _ClassVar[int]
+    DT_FIELD_NUMBER: _ClassVar[int]
+    FREQUENCY_FIELD_NUMBER: _ClassVar[int]
+    HIGHPASS_CUTOFF_FIELD_NUMBER: _ClassVar[int]
+    LEARNING_RATE_FIELD_NUMBER: _ClassVar[int]
+    LR_DECAY_FIELD_NUMBER: _ClassVar[int]
+    MAX_EPISODES_FIELD_NUMBER: _ClassVar[int]
+    NORMALIZE_RESPONSE_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_CLIP_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_RMS_RATE_FIELD_NUMBER: _ClassVar[int]
+    SHIFT_LEAK_FIELD_NUMBER: _ClassVar[int]
+    SHIFT_LIMIT_FIELD_NUMBER: _ClassVar[int]
+    TRUST_REGION_FIELD_NUMBER: _ClassVar[int]
+    action_dim: int
+    action_high: _containers.RepeatedScalarFieldContainer[float]
+    action_low: _containers.RepeatedScalarFieldContainer[float]
+    amplitude: _containers.RepeatedScalarFieldContainer[float]
+    disable_highpass: bool
+    dt: float
+    frequency: _containers.RepeatedScalarFieldContainer[float]
+    highpass_cutoff: float
+    learning_rate: _containers.RepeatedScalarFieldContainer[float]
+    lr_decay: float
+    max_episodes: int
+    normalize_response: bool
+    response_clip: float
+    response_rms_rate: float
+    shift_leak: float
+    shift_limit: float
+    trust_region: float
+    def __init__(self, action_dim: _Optional[int] = ..., dt: _Optional[float] = ..., amplitude: _Optional[_Iterable[float]] = ..., frequency: _Optional[_Iterable[float]] = ..., learning_rate: _Optional[_Iterable[float]] = ..., highpass_cutoff: _Optional[float] = ..., disable_highpass: bool = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., shift_limit: _Optional[float] = ..., lr_decay: _Optional[float] = ..., max_episodes: _Optional[int] = ..., normalize_response: bool = ..., response_rms_rate: _Optional[float] = ..., response_clip: _Optional[float] = ..., shift_leak: _Optional[float] = ..., trust_region: _Optional[float] = ...) -> None: ...
 
 class StepStreamRequest(_message.Message):
-    __slots__ = ("probe_batch", "report_batch")
+    __slots__ = ["probe_batch", "report_batch"]
     PROBE_BATCH_FIELD_NUMBER: _ClassVar[int]
     REPORT_BATCH_FIELD_NUMBER: _ClassVar[int]
     probe_batch: ProbeBatchRequest
@@ -195,27 +200,21 @@ class StepStreamRequest(_message.Message):
     def __init__(self, probe_batch: _Optional[_Union[ProbeBatchRequest, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchRequest, _Mapping]] = ...) -> None: ...
 
 class StepStreamResponse(_message.Message):
-    __slots__ = ("probe_batch", "report_batch", "error")
+    __slots__ = ["error", "probe_batch", "report_batch"]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
     PROBE_BATCH_FIELD_NUMBER: _ClassVar[int]
     REPORT_BATCH_FIELD_NUMBER: _ClassVar[int]
-    ERROR_FIELD_NUMBER: _ClassVar[int]
+    error: StreamError
     probe_batch: ProbeBatchResponse
     report_batch: ReportBatchResponse
-    error: StreamError
     def __init__(self, probe_batch: _Optional[_Union[ProbeBatchResponse, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchResponse, _Mapping]] = ..., error: _Optional[_Union[StreamError, _Mapping]] = ...) -> None: ...
 
 class StreamError(_message.Message):
-    __slots__ = ("code", "message", "item")
+    __slots__ = ["code", "item", "message"]
     CODE_FIELD_NUMBER: _ClassVar[int]
-    MESSAGE_FIELD_NUMBER: _ClassVar[int]
     ITEM_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
     code: int
-    message: str
     item: BatchItem
+    message: str
     def __init__(self, code: _Optional[int] = ..., message: _Optional[str] = ..., item: _Optional[_Union[BatchItem, _Mapping]] = ...) -> None: ...
-
-class BatchItem(_message.Message):
-    __slots__ = ("index",)
-    INDEX_FIELD_NUMBER: _ClassVar[int]
-    index: int
-    def __init__(self, index: _Optional[int] = ...) -> None: ...
