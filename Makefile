@@ -56,6 +56,7 @@ lint: venv ## rustfmt, clippy -D warnings, ruff, mypy --strict
 	$(VENV)/bin/ruff check $(PY_LINT)
 	$(VENV)/bin/ruff format --check $(PY_LINT)
 	$(VENV)/bin/mypy  # mypy.ini: --strict over client-py/src and experiments/src
+	$(MAKE) proto-check
 
 fmt: venv ## apply rustfmt and ruff format
 	$(CARGO) fmt --all
@@ -68,16 +69,51 @@ soak: setup ## a few minutes of load with floods and faults -> the soak section 
 	PY=$(PY) CARGO=$(CARGO) bash bench/soak.sh
 
 .PHONY: wheel
-# The wheel carries esa_client, its extension esa_client._native and an esa-server built with the
+# What would be uploaded to PyPI, in dist/: the sdist and one manylinux wheel. The wheel carries
+# esa_client, its extension esa_client._native (maturin) and an esa-server built with the
 # size-optimised cargo profile `dist`, copied into the package only while the wheel is built.
-wheel: ## build dist/esa_client-<version>-<platform>.whl (extension + bundled esa-server)
+# Both binaries are linked against this machine's glibc, so the tag is the oldest manylinux that
+# both fit (auditwheel show checks every ELF file in the wheel, the bundled server included);
+# maturin refuses to write the wheel if the extension needs a newer glibc than MANYLINUX.
+MANYLINUX ?= manylinux_2_34
+wheel: venv ## build dist/: the sdist and the manylinux wheel (extension + bundled esa-server), checked
 	$(CARGO) build --profile dist -p esa-server
-	rm -rf client-py/src/esa_client/_bin dist/esa_client-*.whl
+	rm -rf client-py/src/esa_client/_bin dist/esa_client-*
 	install -D -m 755 $(or $(CARGO_TARGET_DIR),target)/dist/esa-server \
 		client-py/src/esa_client/_bin/esa-server
-	$(PYTHON) -m pip wheel --no-deps --wheel-dir dist ./client-py; status=$$?; \
-		rm -rf client-py/src/esa_client/_bin; exit $$status
-	@ls -l dist/esa_client-*.whl
+	$(VENV)/bin/maturin build --quiet -m client-py/pyproject.toml --compatibility $(MANYLINUX) \
+		--out dist; status=$$?; rm -rf client-py/src/esa_client/_bin; exit $$status
+	$(VENV)/bin/maturin sdist -m client-py/pyproject.toml --out dist
+	$(VENV)/bin/auditwheel show dist/esa_client-*.whl | tee dist/auditwheel.txt
+	grep -q '"$(MANYLINUX)_x86_64"' dist/auditwheel.txt
+	rm dist/auditwheel.txt
+	$(VENV)/bin/twine check --strict dist/esa_client-*
+	@ls -l dist/esa_client-*
+
+.PHONY: sdist-check
+# Not part of `make test`: builds the extension from the sdist (cargo, a few minutes) in a clean venv.
+sdist-check: ## make wheel, then pip install the sdist (built from source with cargo) in a clean venv and import it
+	$(MAKE) wheel
+	$(PYTHON) client-py/scripts/sdist_check.py
+
+.PHONY: proto proto-check deps-check
+# The Python stubs' generator is pinned (scripts/gen_proto.py GENERATOR): the oldest grpcio-tools,
+# whose output sets the dependency floors. It wants protobuf < 5, so it lives in its own venv.
+PROTO_VENV := .venv-proto
+$(PROTO_VENV)/.installed: client-py/scripts/gen_proto.py
+	test -x $(PROTO_VENV)/bin/python || $(PYTHON) -m venv $(PROTO_VENV)
+	$(PROTO_VENV)/bin/python -m pip install --quiet "grpcio-tools==$$(sed -n 's/^GENERATOR = "\(.*\)"/\1/p' $<)"
+	touch $@
+
+proto: $(PROTO_VENV)/.installed ## regenerate client-py's committed gRPC stubs with the pinned generator
+	$(PROTO_VENV)/bin/python client-py/scripts/gen_proto.py
+
+proto-check: $(PROTO_VENV)/.installed ## fail if the committed gRPC stubs differ from the generator's output
+	$(PROTO_VENV)/bin/python client-py/scripts/gen_proto.py --check
+
+# Not part of `make test`: downloads from PyPI (the oldest grpcio/protobuf; tensorboard, wandb).
+deps-check: ## the client's tests at the declared dependency minimums; resolves beside tensorboard + wandb
+	$(PYTHON) client-py/scripts/deps_check.py
 
 .PHONY: wheel-check
 # Not part of `make test`: the clean venv downloads torch and stable-baselines3 from PyPI.

@@ -19,6 +19,8 @@ deprecated. Stable-baselines3 drop-ins live in :mod:`esa_client.sb3`, RLlib's in
 :mod:`esa_client.rllib`, a gymnasium wrapper in :mod:`esa_client.wrappers`.
 """
 
+from importlib import metadata as _metadata
+
 from .base_client import BaseClient
 from .client import EsaClient, TransportName
 from .config import EsaConfig, SessionConfig
@@ -74,4 +76,8 @@ __all__ = [
     "ZenohEsaClient",
 ]
 
-__version__ = "0.1.0"
+try:
+    # One version source: the Cargo workspace's version, which maturin writes into the metadata.
+    __version__: str = _metadata.version("esa-client")
+except _metadata.PackageNotFoundError:  # pragma: no cover - imported from a bare source tree
+    __version__ = "0+unknown"
