@@ -1,0 +1,117 @@
+//! The control-loop example against a spawned esa-server, and the client's typed errors.
+
+#[allow(dead_code)]
+#[path = "../examples/control_loop.rs"]
+mod example;
+
+use esa_client::{pb, Client, Kind, Options};
+
+fn server() -> Option<example::Server> {
+    if example::server_binary().is_none() {
+        eprintln!("skipped: no esa-server (set ESA_SERVER_BIN or build target/release)");
+        return None;
+    }
+    Some(example::Server::spawn().expect("esa-server starts"))
+}
+
+#[tokio::test]
+async fn the_example_moves_the_action_toward_the_critics_best() {
+    let Some(server) = server() else { return };
+    let mean = example::run(&server.address, 300).await.unwrap();
+    assert!(
+        mean > 0.2,
+        "ESA executed {mean}, expected a shift toward 0.7"
+    );
+}
+
+#[tokio::test]
+async fn errors_are_typed_with_the_batch_item() {
+    let Some(server) = server() else { return };
+    let client = Client::connect(&server.address, Options::default())
+        .await
+        .unwrap();
+    assert!(
+        client
+            .healthy(std::time::Duration::from_secs(5), true)
+            .await
+    );
+    let err = client.end_episode("nobody").await.unwrap_err();
+    assert_eq!(err.kind(), Kind::SessionNotFound);
+
+    let config = pb::SessionConfig {
+        action_dim: 1,
+        dt: 0.04,
+        amplitude: vec![0.2],
+        frequency: vec![31.4],
+        learning_rate: vec![0.5],
+        ..Default::default()
+    };
+    let id = client.create_session("mine", config.clone()).await.unwrap();
+    // The same id and config again is a safe retry; another config is a conflict.
+    assert_eq!(
+        client.create_session("mine", config.clone()).await.unwrap(),
+        id
+    );
+    let changed = pb::SessionConfig {
+        amplitude: vec![0.3],
+        ..config.clone()
+    };
+    let err = client.create_session("mine", changed).await.unwrap_err();
+    assert_eq!(err.kind(), Kind::SessionAlreadyExists);
+    let other = client.create_session("", config).await.unwrap();
+
+    // The second item's action has the wrong length: the whole batch is refused for item 1.
+    let request = pb::ProbeBatchRequest {
+        session_ids: vec![id.clone(), other.clone()],
+        steps: vec![0, 0],
+        actions: vec![0.0, 0.0, 0.0],
+        episode_starts: vec![true, true],
+        action_scales: vec![],
+    };
+    let err = client.probe_batch(request.clone()).await.unwrap_err();
+    assert_eq!(err.kind(), Kind::InvalidArgument);
+    assert_eq!(err.index(), Some(1), "{err}");
+    // The same on a StepStream, which stays open after the refusal.
+    let mut stream = client.step_stream().await.unwrap();
+    let streamed = stream.probe_batch(request).await.unwrap_err();
+    assert_eq!(streamed.kind(), Kind::InvalidArgument);
+    assert_eq!(streamed.index(), err.index());
+    let ok = pb::ProbeBatchRequest {
+        session_ids: vec![id.clone(), other],
+        steps: vec![0, 0],
+        actions: vec![0.0, 0.0],
+        episode_starts: vec![true, true],
+        action_scales: vec![],
+    };
+    assert_eq!(stream.probe_batch(ok).await.unwrap().probes.len(), 2);
+
+    // A report for the wrong step: FAILED_PRECONDITION.
+    let err = client
+        .report(pb::ReportRequest {
+            session_id: id,
+            step: 5,
+            q_value: 0.0,
+            q_reference: None,
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(err.kind(), Kind::StepMismatch);
+}
+
+#[tokio::test]
+async fn no_server_is_unavailable_and_retryable() {
+    let client = Client::connect_lazy("127.0.0.1:9", Options::default()).unwrap();
+    let err = client.end_episode("x").await.unwrap_err();
+    assert_eq!(err.kind(), Kind::ServerUnavailable, "{err}");
+    assert!(err.is_retryable());
+}
+
+#[test]
+fn the_blocking_client_makes_the_same_calls() {
+    let Some(server) = server() else { return };
+    let client =
+        esa_client::blocking::Client::connect(&server.address, Options::default()).unwrap();
+    assert!(client.healthy(std::time::Duration::from_secs(5), true));
+    let err = client.close_session("nobody".into()).unwrap_err();
+    assert_eq!(err.kind(), Kind::SessionNotFound);
+}
