@@ -1,0 +1,177 @@
+"""``EsaVectorWrapper``: ESA for a gymnasium vector env, one batched critic call per step.
+
+The wrapper wraps the ``VectorEnv`` itself, not its sub-envs: the critic and the ESA sessions
+stay in the trainer's process, so it is safe with ``AsyncVectorEnv`` (whose sub-envs live in
+worker processes that never see the critic) as with ``SyncVectorEnv``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import numpy.typing as npt
+
+from .base_client import BaseClient
+from .client import EsaClient
+from .config import EsaConfig
+from .errors import EsaError
+
+BatchQFunction = Callable[[Any, np.ndarray], npt.ArrayLike]
+"""``q_fn(obs_batch, actions_batch) -> (M,)``: the critic at M state-action pairs at once.
+
+``obs_batch`` holds M observations (the vector env's batched observation, stacked twice when
+the response is paired), ``actions_batch`` has shape ``(M, *single_action_shape)``.
+"""
+
+BatchActionScale = float | np.ndarray | Callable[[Any], npt.ArrayLike]
+"""sigma: a scalar, one value per action dimension, one row per env, or ``f(obs_batch)``."""
+
+
+def _stack_obs(obs: Any) -> Any:
+    """The batched observation twice along axis 0 (dicts and tuples item by item)."""
+    if isinstance(obs, dict):
+        return {key: _stack_obs(value) for key, value in obs.items()}
+    if isinstance(obs, tuple):
+        return tuple(_stack_obs(value) for value in obs)
+    array = np.asarray(obs)
+    return np.concatenate([array, array], axis=0)
+
+
+class EsaVectorWrapper(gym.vector.VectorWrapper):
+    """Improves the actions of all N envs of a vector env with ESA, one critic call per step.
+
+    Each ``step(actions)`` probes the N sessions in one batch, evaluates
+    ``q_fn(obs_batch, actions_batch)`` once (at the N probes, and with ``paired_response``
+    at the N applied actions as well: 2N rows in one call), reports, and steps the vector env
+    with Algorithm 1's actions ``a_t + v(t)``, returned as ``info["esa_action"]`` (shape
+    ``(N, *single_action_shape)``) so that a learner stores what the envs executed.
+
+    Episodes follow the vector env's autoreset mode: an env that ends starts a new ESA
+    episode with its next real action (in ``NEXT_STEP`` mode, the step after the reset step,
+    whose action the env ignores).
+
+    Example::
+
+        envs = gym.make_vec("Pendulum-v1", num_envs=8, vectorization_mode="async")
+        envs = EsaVectorWrapper(envs, q_fn=lambda obs, act: critic(obs, act))
+
+    Args:
+        env: A vector env with a ``Box`` single action space.
+        q_fn: ``q_fn(obs_batch, actions_batch) -> (M,)``, called once per step.
+        esa_config: ESA hyperparameters (default ``EsaConfig()``).
+        client: The client to create the sessions on; None = ``EsaClient.in_process()``
+            (esa-core in this process, no server), closed by ``close()``.
+        action_scale: sigma (the policy's standard deviation if the learner has one): a
+            scalar, one value per action dimension, ``(N, D)``, or ``f(obs_batch)``.
+        dt: The envs' control period; None = ``esa_config.dt``, else the first sub-env's
+            ``dt`` attribute (read with ``get_attr``), else 0.05.
+    """
+
+    def __init__(
+        self,
+        env: gym.vector.VectorEnv,
+        q_fn: BatchQFunction,
+        esa_config: EsaConfig | None = None,
+        client: BaseClient | None = None,
+        action_scale: BatchActionScale | None = None,
+        dt: float | None = None,
+    ) -> None:
+        """Creates one ESA session per env."""
+        super().__init__(env)
+        space = env.single_action_space
+        if not isinstance(space, gym.spaces.Box):
+            raise ValueError(f"expected a Box single action space, got {space}")
+        esa = esa_config if esa_config is not None else EsaConfig()
+        config = esa.session_config(
+            int(np.prod(space.shape)),
+            self._dt(env, esa, dt),
+            space.low.reshape(-1),
+            space.high.reshape(-1),
+        )
+        self._owns_client = client is None
+        self._client: BaseClient = EsaClient.in_process() if client is None else client
+        try:
+            self._batch = self._client.create_batch(config, env.num_envs)
+        except BaseException:
+            if self._owns_client:
+                self._client.close()
+            raise
+        self._space = space
+        self._q_fn = q_fn
+        self._paired = esa.paired_response
+        self.action_scale = action_scale
+        """sigma for the next steps; trainers whose policy std changes set it before ``step``."""
+        self._next_step = env.metadata.get("autoreset_mode") in (
+            None,
+            gym.vector.AutoresetMode.NEXT_STEP,
+        )
+        self._obs: Any = None
+        self._starts = np.ones(env.num_envs, dtype=bool)
+        self._resetting = np.zeros(env.num_envs, dtype=bool)
+
+    @staticmethod
+    def _dt(env: gym.vector.VectorEnv, esa: EsaConfig, dt: float | None) -> float:
+        if dt is not None:
+            return float(dt)
+        if esa.dt is not None:
+            return float(esa.dt)
+        with contextlib.suppress(Exception):
+            return float(env.get_attr("dt")[0])  # type: ignore[attr-defined]
+        return 0.05
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Resets the envs; every env's next action starts a new ESA episode."""
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._obs = obs
+        self._starts[:] = True
+        self._resetting[:] = False
+        return obs, info
+
+    def improve(self, actions: Any) -> np.ndarray:
+        """Returns the actions to execute, ``clip(a_t + v(t))`` of each env, shape ``(N, ...)``."""
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        n, shape = self.num_envs, self._space.shape
+        sampled = np.asarray(actions, dtype=np.float64).reshape(n, -1)
+        scale = self.action_scale
+        scales = scale(self._obs) if callable(scale) else scale
+        probes, applied = self._batch.probe_applied(
+            sampled, self._starts, action_scales=None if scales is None else np.asarray(scales)
+        )
+        points = np.concatenate([probes, applied]) if self._paired else probes
+        obs = _stack_obs(self._obs) if self._paired else self._obs
+        q = np.asarray(
+            self._q_fn(obs, points.reshape(-1, *shape).astype(self._space.dtype)),
+            dtype=np.float64,
+        ).reshape(-1)
+        if self._paired:
+            self._batch.report(q[:n], q_references=q[n:])
+        else:
+            self._batch.report(q)
+        return applied.reshape(n, *shape).astype(self._space.dtype)
+
+    def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Steps the envs with the improved actions (also ``info["esa_action"]``)."""
+        applied = self.improve(actions)
+        obs, rewards, terminations, truncations, info = self.env.step(applied)
+        done = np.logical_or(terminations, truncations)
+        # NEXT_STEP: this step's action was ignored by an env that reset now; its first real
+        # action comes next, so a new ESA episode starts there again.
+        self._starts = done | self._resetting if self._next_step else done.copy()
+        self._resetting = done if self._next_step else np.zeros_like(done)
+        self._obs = obs
+        return obs, rewards, terminations, truncations, {**info, "esa_action": applied}
+
+    def close(self, **kwargs: Any) -> None:
+        """Closes the sessions (and the client, if this wrapper made it) and the envs."""
+        with contextlib.suppress(EsaError):
+            self._batch.close()
+        if self._owns_client:
+            self._client.close()
+        super().close(**kwargs)
