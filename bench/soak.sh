@@ -11,4 +11,22 @@ CARGO=${CARGO:-cargo}
 
 "$CARGO" build --release -p esa-server -p esa-bench
 target/release/esa-soak --server target/release/esa-server --json bench/results/soak.json "$@"
+# The long fuzz run (server/tests/fuzz.rs), recorded in soak.json for the report.
+FUZZ_CASES=${ESA_SOAK_FUZZ_CASES:-1000000}
+start=$(date +%s)
+if ESA_FUZZ_CASES=$FUZZ_CASES "$CARGO" test --release -p esa-server --test fuzz; then
+    fuzz_result=passed
+else
+    fuzz_result=FAILED
+fi
+"$PY" - "$FUZZ_CASES" "$fuzz_result" "$(( $(date +%s) - start ))" <<'PYEOF'
+import json, sys
+from pathlib import Path
+path = Path("bench/results/soak.json")
+soak = json.loads(path.read_text())
+soak["fuzz"] = {"cases": int(sys.argv[1]), "properties": 2, "result": sys.argv[2],
+                "seconds": float(sys.argv[3])}
+path.write_text(json.dumps(soak, indent=2) + "\n")
+PYEOF
 "$PY" bench/soak_report.py --results bench/results/soak.json --out BENCHMARKS.md
+[ "$fuzz_result" = passed ]
