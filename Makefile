@@ -76,18 +76,25 @@ soak: setup ## a few minutes of load with floods and faults -> the soak section 
 # both fit (auditwheel show checks every ELF file in the wheel, the bundled server included);
 # maturin refuses to write the wheel if the extension needs a newer glibc than MANYLINUX.
 MANYLINUX ?= manylinux_2_34
-wheel: venv ## build dist/: the sdist and the manylinux wheel (extension + bundled esa-server), checked
+# The release tools live in a venv of their own: building a wheel touches nothing in .venv.
+RELEASE_VENV := .venv-release
+$(RELEASE_VENV)/.installed:
+	test -x $(RELEASE_VENV)/bin/python || $(PYTHON) -m venv $(RELEASE_VENV)
+	$(RELEASE_VENV)/bin/python -m pip install --quiet "maturin>=1.9.4,<2" "auditwheel>=6" "twine>=6"
+	touch $@
+
+wheel: $(RELEASE_VENV)/.installed ## build dist/: the sdist and the manylinux wheel (extension + bundled esa-server), checked
 	$(CARGO) build --profile dist -p esa-server
 	rm -rf client-py/src/esa_client/_bin dist/esa_client-*
 	install -D -m 755 $(or $(CARGO_TARGET_DIR),target)/dist/esa-server \
 		client-py/src/esa_client/_bin/esa-server
-	$(VENV)/bin/maturin build --quiet -m client-py/pyproject.toml --compatibility $(MANYLINUX) \
-		--out dist; status=$$?; rm -rf client-py/src/esa_client/_bin; exit $$status
-	$(VENV)/bin/maturin sdist -m client-py/pyproject.toml --out dist
-	$(VENV)/bin/auditwheel show dist/esa_client-*.whl | tee dist/auditwheel.txt
+	cd client-py && $(CURDIR)/$(RELEASE_VENV)/bin/maturin build --compatibility $(MANYLINUX) \
+		--out $(CURDIR)/dist; status=$$?; rm -rf src/esa_client/_bin; exit $$status
+	cd client-py && $(CURDIR)/$(RELEASE_VENV)/bin/maturin sdist --out $(CURDIR)/dist
+	$(RELEASE_VENV)/bin/auditwheel show dist/esa_client-*.whl | tee dist/auditwheel.txt
 	grep -q '"$(MANYLINUX)_x86_64"' dist/auditwheel.txt
 	rm dist/auditwheel.txt
-	$(VENV)/bin/twine check --strict dist/esa_client-*
+	$(RELEASE_VENV)/bin/twine check --strict dist/esa_client-*
 	@ls -l dist/esa_client-*
 
 .PHONY: sdist-check
