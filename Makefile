@@ -57,6 +57,7 @@ lint: venv ## rustfmt, clippy -D warnings, ruff, mypy --strict
 	$(VENV)/bin/ruff format --check $(PY_LINT)
 	$(VENV)/bin/mypy  # mypy.ini: --strict over client-py/src and experiments/src
 	$(MAKE) proto-check
+	$(MAKE) k8s-check
 
 fmt: venv ## apply rustfmt and ruff format
 	$(CARGO) fmt --all
@@ -121,6 +122,25 @@ proto-check: $(PROTO_VENV)/.installed ## fail if the committed gRPC stubs differ
 # Not part of `make test`: downloads from PyPI (the oldest grpcio/protobuf; tensorboard, wandb).
 deps-check: ## the client's tests at the declared dependency minimums; resolves beside tensorboard + wandb
 	$(PYTHON) client-py/scripts/deps_check.py
+
+.PHONY: container container-check k8s-check
+CONTAINER_IMAGE ?= localhost/esa-server:$(shell sed -n '/^\[workspace.package\]/,/^\[/s/^version = "\(.*\)"/\1/p' Cargo.toml)
+# podman: run the image; chroot: only its filesystem, for sandboxes that refuse to start containers.
+CONTAINER_MODE ?= podman
+container: ## build the FROM scratch esa-server image with podman (deploy/container/build.sh)
+	deploy/container/build.sh $(CONTAINER_IMAGE)
+
+container-check: container venv ## start the image, check health SERVING, a Probe/Report round trip, metrics, uid
+	$(PY) deploy/container/smoke_test.py --image $(CONTAINER_IMAGE) --mode $(CONTAINER_MODE)
+
+$(RELEASE_VENV)/.k8s: $(RELEASE_VENV)/.installed
+	$(RELEASE_VENV)/bin/python -m pip install --quiet "kubernetes-validate>=1.30"
+	touch $@
+
+# The oldest Kubernetes the manifests support (the pod-index label) and the newest schema known.
+k8s-check: $(RELEASE_VENV)/.k8s ## validate deploy/k8s/*.yaml strictly against the Kubernetes schemas
+	$(RELEASE_VENV)/bin/kubernetes-validate --quiet --strict -k 1.28.0 deploy/k8s/*.yaml
+	$(RELEASE_VENV)/bin/kubernetes-validate --quiet --strict deploy/k8s/*.yaml
 
 .PHONY: wheel-check
 # Not part of `make test`: the clean venv downloads torch and stable-baselines3 from PyPI.
