@@ -14,7 +14,7 @@ export ESA_SERVER_BIN := $(SERVER_BIN)
 export MUJOCO_GL ?= egl
 
 PY_PACKAGES := client-py experiments tests
-PY_LINT := $(PY_PACKAGES) bench
+PY_LINT := $(PY_PACKAGES) bench deploy/container
 # rllib: Ray RLlib, so that make test also runs the RLlib tests (client-py/tests/test_rllib*.py).
 PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,dev]" -e "experiments[dev]"
 
