@@ -27,10 +27,10 @@ ENVS = (ENV,)
 DEFAULT_SEEDS = "100-103"
 
 VARIANTS: dict[str, tuple[float, float]] = {
+    "k0.25_w0.03": (0.25, 0.03),
     "k0.25_w0.3": (0.25, 0.3),
-    "k0.25_w1": (0.25, 1.0),
+    "k1_w0.03": (1.0, 0.03),
     "k1_w0.3": (1.0, 0.3),
-    "k1_w1": (1.0, 1.0),
 }
 """Variant -> (trust region kappa, loss weight)."""
 
