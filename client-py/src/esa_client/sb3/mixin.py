@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -51,7 +53,7 @@ class EsaMixin(_Algorithm):
         policy: Any,
         env: Any,
         *args: Any,
-        esa: EsaConfig | None = None,
+        esa: EsaConfig | Mapping[str, Any] | None = None,
         esa_address: str | None = None,
         esa_spawn: dict[str, Any] | None = None,
         esa_engine: Engine | None = None,
@@ -65,7 +67,10 @@ class EsaMixin(_Algorithm):
             policy: As for the SB3 algorithm.
             env: As for the SB3 algorithm.
             *args: Further positional arguments of the SB3 algorithm.
-            esa: The ESA hyperparameters (default ``EsaConfig()``).
+            esa: The ESA hyperparameters: an ``EsaConfig``, or a dict of ``EsaConfig`` fields
+                (an RL Zoo yaml file's ``esa: {amplitude: 0.2}``) applied over the family's
+                default, checked like ``EsaConfig`` (``ValueError``); ``"preset": "paper"``
+                starts from ``EsaConfig.paper()`` instead. None: the family's default.
             esa_address: An esa-server address; None spawns a private server.
             esa_spawn: Arguments of :meth:`EsaClient.spawn` for that private server, e.g.
                 ``{"session_ttl": 3600}`` when rollouts are far apart.
@@ -87,9 +92,7 @@ class EsaMixin(_Algorithm):
                 limit of the env's ``dt``, per-dimension vectors of the wrong length).
         """
         # Set before the SB3 constructor: it may set up the model, which can read them.
-        self.esa = esa if esa is not None else self._default_esa()
-        if not isinstance(self.esa, EsaConfig):
-            raise ValueError(f"expected esa to be an EsaConfig, got {self.esa!r}")
+        self.esa = self._esa_config(esa)
         self.esa_address = esa_address
         self.esa_spawn = dict(esa_spawn or {})
         choose_engine(esa_engine, esa_address, self.esa_spawn)  # a bad choice fails here
@@ -98,7 +101,8 @@ class EsaMixin(_Algorithm):
         self.esa_on_unavailable = check_on_unavailable(esa_on_unavailable)
         self._esa = None
         super().__init__(policy, env, *args, **kwargs)
-        space = self.action_space
+        # Model.load(path) without an env constructs the model with none: no action space yet.
+        space = getattr(self, "action_space", None)
         if space is not None and not isinstance(space, spaces.Box):
             raise ValueError(f"expected a Box action space for ESA, got {space}")
         if self.env is not None:
@@ -108,6 +112,29 @@ class EsaMixin(_Algorithm):
     def _default_esa() -> EsaConfig:
         """The family's shipped default, used when ``esa`` is not given."""
         return EsaConfig()
+
+    @classmethod
+    def _esa_config(cls, esa: EsaConfig | Mapping[str, Any] | None) -> EsaConfig:
+        """``esa`` as an ``EsaConfig``: a dict's fields over the family's default (or a preset)."""
+        if esa is None:
+            return cls._default_esa()
+        if isinstance(esa, EsaConfig):
+            return esa
+        if not isinstance(esa, Mapping):
+            raise ValueError(f"expected esa to be an EsaConfig or a dict, got {esa!r}")
+        values = dict(esa)
+        preset = values.pop("preset", "default")
+        if preset not in ("default", "paper"):
+            raise ValueError(f"esa: preset must be 'default' or 'paper', got {preset!r}")
+        names = {field.name for field in dataclasses.fields(EsaConfig)}
+        unknown = sorted(str(key) for key in values if key not in names)
+        if unknown:
+            raise ValueError(
+                f"esa: unknown EsaConfig field(s) {', '.join(unknown)}; "
+                f"the fields are {', '.join(sorted(names))}"
+            )
+        base = EsaConfig.paper() if preset == "paper" else cls._default_esa()
+        return dataclasses.replace(base, **values)  # __post_init__ checks every field
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Bounds of the action space ESA shifts in; None where it is unbounded."""
@@ -162,7 +189,10 @@ class EsaMixin(_Algorithm):
         super().set_env(env, force_reset)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_esa"]
+        # Where the sessions live belongs to the machine that trains, not to the model (a
+        # spawn's arguments may hold a token): a loaded model takes them as load kwargs,
+        # ``Model.load(path, env, esa_address=...)``, else runs in-process.
+        return [*super()._excluded_save_params(), "_esa", "esa_address", "esa_spawn"]
 
     def dump_logs(self, *args: Any, **kwargs: Any) -> None:
         """Records the ESA statistics, then dumps the logs as SB3 does."""
