@@ -1,5 +1,8 @@
 """Chaos: trainers on one esa-server survive its restart, a stall and a cut connection.
 
+Over gRPC (grpcio StepStream and unary batches, the native Rust client), SB3's ESAPPO, and
+Zenoh (one server, or one of two shards killed and restarted).
+
 Every test runs the real server binary on a fixed loopback port (so a restart comes back
 on the same address) and several trainers at once, each a thread with its own client.
 A trainer must finish with all its steps, and its sessions' step counters on the server
@@ -22,6 +25,7 @@ import numpy as np
 import pytest
 from esa_client import EsaClient, EsaConfig, EsaError, ServerUnavailable, SessionConfig
 from esa_client.common.runtime import EsaRuntime
+from esa_client.sharding import shard_of
 from esa_client.sidecar import find_server_binary
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -359,7 +363,7 @@ def test_sigkill_and_restart_under_two_esappo_trainers(server, tmp_path):
             n_steps=n_steps,
             batch_size=64,
             n_epochs=1,
-            policy_kwargs=dict(net_arch=[16]),
+            policy_kwargs={"net_arch": [16]},
             seed=i,
         )
         for i in range(2)
@@ -400,3 +404,61 @@ def test_sigkill_and_restart_under_two_esappo_trainers(server, tmp_path):
         log = (tmp_path / str(i) / "progress.csv").read_text()
         assert "esa/sessions_restored" in log
         model.esa_close()
+
+
+@pytest.mark.parametrize("shards", [1, 2])
+def test_zenoh_server_or_shard_killed_and_restarted(shards):
+    pytest.importorskip("zenoh")
+    try:
+        executable = str(find_server_binary(checkout=REPO_ROOT, build=False))
+    except EsaError as err:
+        pytest.fail(str(err))
+    endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(shards)]
+
+    def start(i: int) -> subprocess.Popen[str]:
+        shard = ["--shard", f"{i}/{shards}"] if shards > 1 else []
+        args = [
+            "--listen",
+            "127.0.0.1:0",
+            "--zenoh",
+            "--zenoh-listen",
+            endpoints[i],
+            *shard,
+        ]
+        process = subprocess.Popen(
+            [executable, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+        assert process.stdout is not None
+        for _ in range(4):
+            if "zenoh listening" in process.stdout.readline():
+                return process
+        process.kill()
+        pytest.fail("esa-server --zenoh did not start")
+
+    servers = [start(i) for i in range(shards)]
+    wire = {"transport": "zenoh", "shards": shards if shards > 1 else None}
+    trainers = [
+        BatchTrainer(endpoints, 250, seed=i, timeout=1.0, reconnect_timeout=20, **wire)
+        for i in range(2)
+    ]
+
+    # The shard that holds the first trainer's first session.
+    victim = shard_of(trainers[0].batch.ids[0], shards)
+
+    def chaos() -> None:
+        time.sleep(0.4)
+        servers[victim].kill()
+        servers[victim].wait()
+        time.sleep(1.5)
+        servers[victim] = start(victim)
+
+    try:
+        _run(trainers, chaos, limit=30)
+    finally:
+        for process in servers:
+            process.kill()
+            process.wait()
+    assert trainers[0].batch.sessions_restored > 0
