@@ -18,7 +18,7 @@ PY_LINT := $(PY_PACKAGES) bench deploy/container
 # rllib: Ray RLlib, so that make test also runs the RLlib tests (client-py/tests/test_rllib*.py).
 PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,dev]" -e "experiments[dev]"
 
-.PHONY: help setup build venv demo test test-rust test-python lint fmt bench soak clean
+.PHONY: help setup build venv demo test test-rust test-python test-node lint buf fmt bench soak clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-12s %s\n", $$1, $$2}'
@@ -39,7 +39,7 @@ $(VENV)/.installed: client-py/pyproject.toml experiments/pyproject.toml
 demo: setup ## train PPO vs ESAPPO on InvertedPendulum-v5, plot and tabulate
 	$(PY) client-py/examples/demo.py
 
-test: venv test-rust test-python ## set up, then run every Rust and Python test
+test: venv test-rust test-python test-node ## set up, then run every Rust, Python and Node test
 
 # `cargo test` also builds target/release/esa-server, which the Python tests use. A
 # separate `cargo build` first would compile zenoh and its dependents twice: the test
@@ -50,6 +50,29 @@ test-rust:
 test-python:
 	$(PY) -m pytest $(PY_PACKAGES)
 
+# A second language: examples/node (@grpc/grpc-js) runs a session against the server built
+# above. Skipped, saying so, where node or npm is missing.
+test-node:
+	@if command -v node >/dev/null && command -v npm >/dev/null; then \
+		cd examples/node && npm ci --no-audit --no-fund --silent && node session.js; \
+	else echo "test-node: SKIPPED: node/npm not found (Node.js >= 18 runs examples/node)"; fi
+
+# The proto as a public API: buf lint (STANDARD) and buf breaking against the image of the last
+# release's proto (tools/buf/esa-v1-release.binpb; at a release: make buf-baseline). buf comes
+# from npm (tools/buf/package-lock.json); skipped, saying so, where npm is missing.
+BUF := tools/buf/node_modules/.bin/buf
+buf:
+	@if command -v npm >/dev/null; then \
+		(cd tools/buf && npm ci --no-audit --no-fund --silent) && \
+		$(BUF) lint && $(BUF) breaking --against tools/buf/esa-v1-release.binpb && \
+		echo "buf: lint and breaking-change check passed"; \
+	else echo "buf: SKIPPED: npm not found (it installs @bufbuild/buf)"; fi
+
+.PHONY: buf-baseline
+buf-baseline: ## at a release: the proto as released becomes buf breaking's baseline
+	cd tools/buf && npm ci --no-audit --no-fund --silent
+	$(BUF) build -o tools/buf/esa-v1-release.binpb
+
 lint: venv ## rustfmt, clippy -D warnings, ruff, mypy --strict
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy --release --workspace --all-targets -- -D warnings
@@ -58,6 +81,7 @@ lint: venv ## rustfmt, clippy -D warnings, ruff, mypy --strict
 	$(VENV)/bin/mypy  # mypy.ini: --strict over client-py/src and experiments/src
 	$(MAKE) proto-check
 	$(MAKE) k8s-check
+	$(MAKE) buf
 
 fmt: venv ## apply rustfmt and ruff format
 	$(CARGO) fmt --all
