@@ -1,13 +1,16 @@
-"""PPO vs ESAPPO on InvertedPendulum-v5: learning curves, a PNG and a small table.
+"""PPO vs ESAPPO on InvertedPendulum-v5 over a few seeds: curves, spread and the campaign's word.
 
-This is what ``make demo`` runs. Both agents get identical PPO hyperparameters and
-seeds; ESAPPO adds ESA with the shipped default ``EsaConfig()`` (and a private
-esa-server it starts and stops by itself). Every ``eval_every`` steps the deterministic policy is
-evaluated on separate envs.
+This is what ``make demo`` runs. One seed can mislead (seed 0 alone once showed ESAPPO
+slower, others faster), so the demo trains both agents on ``seeds`` seeds with identical
+PPO hyperparameters (the reproduction suite's: 4 envs x 256 steps, 64-64 MLPs), plots
+every seed and the mean, prints each seed's AUC (mean evaluation return over training)
+and the spread, and ends with one line of what the 20-seed confirmation campaign found
+(``experiments/results/confirmation/verdicts.md``, when the checkout has it). ESAPPO
+uses the PPO family's shipped default ``EsaConfig()`` on the in-process engine.
 
 Usage::
 
-    python client-py/examples/demo.py [--total-timesteps 60000] [--out-dir demo-results]
+    python client-py/examples/demo.py [--seeds 3] [--total-timesteps 30720] [--out-dir demo-results]
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,14 +43,17 @@ class Args:
     """Demo settings (all overridable on the command line)."""
 
     env_id: str = "InvertedPendulum-v5"
-    total_timesteps: int = 60_000
+    total_timesteps: int = 30_720
     n_envs: int = 4
-    n_steps: int = 512
-    eval_every: int = 5_000
+    n_steps: int = 256
+    eval_every: int = 2_048
     eval_episodes: int = 5
     threshold: float = 950.0
-    seed: int = 0
+    seeds: int = 3
     out_dir: str = "demo-results"
+
+
+VERDICTS = Path(__file__).resolve().parents[2] / "experiments/results/confirmation/verdicts.md"
 
 
 def parse_args() -> Args:
@@ -85,17 +92,24 @@ class Evaluate(BaseCallback):
             self._evaluate()
 
 
-def train(name: str, args: Args) -> dict:
-    """Trains one agent with periodic evaluation; returns its curve and timings."""
-    env = make_vec_env(args.env_id, n_envs=args.n_envs, seed=args.seed)
-    eval_env = make_vec_env(args.env_id, n_envs=1, seed=args.seed + 1000)
+def train(name: str, seed: int, args: Args) -> dict:
+    """Trains one agent on one seed with periodic evaluation; returns its curve and timings."""
+    env = make_vec_env(args.env_id, n_envs=args.n_envs, seed=seed)
+    eval_env = make_vec_env(args.env_id, n_envs=1, seed=seed + 1000)
     evaluation = Evaluate(eval_env, args.eval_every, args.eval_episodes)
-    common = dict(n_steps=args.n_steps, batch_size=64, seed=args.seed, device="cpu", verbose=0)
+    common = dict(
+        n_steps=args.n_steps,
+        batch_size=64,
+        seed=seed,
+        device="cpu",
+        verbose=0,
+        policy_kwargs=dict(net_arch=[64, 64]),
+    )
     if name == "ESAPPO":
         model = ESAPPO("MlpPolicy", env, esa=EsaConfig(), **common)
     else:
         model = PPO("MlpPolicy", env, **common)
-    print(f"training {name} for {args.total_timesteps} steps on {args.env_id}")
+    print(f"training {name} (seed {seed}) for {args.total_timesteps} steps on {args.env_id}")
     start = time.perf_counter()
     model.learn(args.total_timesteps, callback=evaluation, progress_bar=True)
     seconds = time.perf_counter() - start - evaluation.seconds
@@ -106,8 +120,10 @@ def train(name: str, args: Args) -> dict:
     reached = np.flatnonzero(returns >= args.threshold)
     return {
         "name": name,
+        "seed": seed,
         "timesteps": steps.tolist(),
         "mean_return": returns.tolist(),
+        "auc": float(np.trapezoid(returns, steps) / (steps[-1] - steps[0])),
         "final_return": float(returns[-1]) if returns.size else float("nan"),
         "steps_to_threshold": int(steps[reached[0]]) if reached.size else None,
         "train_seconds": seconds,
@@ -115,14 +131,18 @@ def train(name: str, args: Args) -> dict:
 
 
 def plot(results: list[dict], args: Args, path: Path) -> None:
-    """Writes the learning curves of all agents to ``path``."""
+    """Writes every seed's curve (thin) and each agent's mean over seeds (bold) to ``path``."""
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for result in results:
-        ax.plot(result["timesteps"], result["mean_return"], marker="o", label=result["name"])
+    for color, name in (("tab:blue", "PPO"), ("tab:orange", "ESAPPO")):
+        runs = [r for r in results if r["name"] == name]
+        for r in runs:
+            ax.plot(r["timesteps"], r["mean_return"], color=color, alpha=0.3, linewidth=1)
+        mean = np.mean([r["mean_return"] for r in runs], axis=0)
+        ax.plot(runs[0]["timesteps"], mean, color=color, linewidth=2.5, label=f"{name} (mean)")
     ax.axhline(args.threshold, color="gray", linestyle="--", linewidth=1, label="threshold")
     ax.set_xlabel("environment steps")
     ax.set_ylabel(f"mean eval return ({args.eval_episodes} episodes)")
-    ax.set_title(f"{args.env_id}: PPO vs ESAPPO (seed {args.seed})")
+    ax.set_title(f"{args.env_id}: PPO vs ESAPPO, {args.seeds} seeds (thin: each seed)")
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -131,32 +151,68 @@ def plot(results: list[dict], args: Args, path: Path) -> None:
 
 
 def print_table(results: list[dict], args: Args) -> None:
-    """Prints final return, steps to threshold and training time per agent."""
+    """Prints each seed's AUC, final return and time, then each agent's mean and spread."""
     to_threshold = f"steps to {args.threshold:g}"
-    header = f"{'agent':<8} {'final return':>13} {to_threshold:>16} {'train time':>11}"
+    header = (
+        f"{'agent':<8} {'seed':>4} {'AUC':>7} {'final':>7} {to_threshold:>16} {'train time':>11}"
+    )
     print(header)
     print("-" * len(header))
     for r in results:
         steps = r["steps_to_threshold"]
         reached = "not reached" if steps is None else str(steps)
-        row = f"{r['name']:<8} {r['final_return']:>13.1f} {reached:>16}"
-        print(f"{row} {r['train_seconds']:>10.1f}s")
+        row = f"{r['name']:<8} {r['seed']:>4} {r['auc']:>7.1f} {r['final_return']:>7.1f}"
+        print(f"{row} {reached:>16} {r['train_seconds']:>10.1f}s")
+    print()
+    for name in ("PPO", "ESAPPO"):
+        auc = np.array([r["auc"] for r in results if r["name"] == name])
+        print(f"{name:<8} AUC {auc.mean():.1f} (min {auc.min():.1f}, max {auc.max():.1f})")
+    print(
+        f"With {args.seeds} seeds a difference inside that spread is noise; the campaign "
+        "below uses 20 seeds per arm."
+    )
+
+
+def campaign_line() -> str:
+    """One line of the confirmation campaign's verdicts, counted from its committed table."""
+    if not VERDICTS.is_file():
+        return "campaign: no committed results in this checkout (experiments/RESULTS.md)."
+    counts: dict[str, dict[str, int]] = {}
+    for line in VERDICTS.read_text().splitlines():
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        # Each family's shipped default against its baseline: "PPO+ESA" vs "PPO (baseline)".
+        if len(cells) < 9 or cells[3] != f"{cells[2].removesuffix('+ESA')} (baseline)":
+            continue
+        word = re.sub(r"\*", "", cells[-1])
+        family = counts.setdefault(cells[0].upper(), {"better": 0, "equal": 0, "worse": 0})
+        family[word] = family.get(word, 0) + 1
+    parts = [
+        f"{family}+ESA better on {c['better']}, equal on {c['equal']}, worse on {c['worse']}"
+        for family, c in counts.items()
+    ]
+    return (
+        "campaign (experiments/RESULTS.md; envs where each family's default is better, equal "
+        "or worse than its baseline, Holm-corrected): "
+        + ("; ".join(parts) if parts else "no finished comparison yet")
+        + "."
+    )
 
 
 def main() -> None:
-    """Trains both agents, then writes the plot and the JSON results and prints the table."""
+    """Trains both agents on every seed, writes the plot and the JSON, prints the table."""
     args = parse_args()
     # Tiny MLPs train fastest single-threaded; extra threads only contend on small machines.
     th.set_num_threads(1)
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    results = [train(name, args) for name in ("PPO", "ESAPPO")]
+    results = [train(name, seed, args) for seed in range(args.seeds) for name in ("PPO", "ESAPPO")]
     plot(results, args, out / "learning_curve.png")
     (out / "results.json").write_text(
         json.dumps({"args": dataclasses.asdict(args), "results": results}, indent=2)
     )
     print()
     print_table(results, args)
+    print(campaign_line())
     print(f"\nlearning curve: {out / 'learning_curve.png'}; raw numbers: {out / 'results.json'}")
 
 
