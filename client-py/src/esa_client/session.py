@@ -333,24 +333,21 @@ class SessionBatch:
     ) -> tuple[BatchReport | None, BatchProbe]:
         """What is left to send of ``deferred`` and ``request`` after a broken exchange."""
         states = [self._transport.get_session(i) for i in self.ids]
-        episode_ends = request.episode_starts
-        starts = episode_ends.copy()
+        starts = request.episode_starts.copy()
         for i, state in enumerate(states):
             if starts[i] and state.step == 0 and state.probe_pending:
-                # This episode-start probe (or an earlier one of step 0) was applied:
-                # replacing the pending probe ends no further episode.
+                # This episode-start probe was applied (with the report before it, if
+                # any): replacing its pending probe ends no further episode. (With a
+                # report of step 0, the state cannot tell whether anything was applied;
+                # the probe then replaces the pending one and the report is dropped,
+                # which at most skips one update of the response's mean square.)
                 starts[i] = False
-        request = request._replace(episode_starts=starts)
-        if deferred is None:
-            return None, request
-        for i, state in enumerate(states):
-            step = int(deferred.steps[i])
-            if episode_ends[i]:
-                # The report's episode ends with this probe: v and the filter restart, so
-                # a report lost with it changes nothing that lasts.
                 continue
+            if deferred is None:
+                continue
+            step = int(deferred.steps[i])
             if state.step == step + 1:
-                continue  # applied
+                continue  # the report was applied (and maybe the probe after it)
             if state.step == step and state.probe_pending:
                 reference = None if deferred.q_references is None else deferred.q_references[i]
                 self._transport.report(
@@ -367,6 +364,7 @@ class SessionBatch:
                 StatusCode.FAILED_PRECONDITION,
                 index=i,
             )
+        request = request._replace(episode_starts=starts)
         return None, request
 
     def _restart(self, request: BatchProbe) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
