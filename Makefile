@@ -16,7 +16,7 @@ export MUJOCO_GL ?= egl
 PY_PACKAGES := client-py experiments tests
 PY_LINT := $(PY_PACKAGES) bench deploy/container
 # rllib: Ray RLlib, so that make test also runs the RLlib tests (client-py/tests/test_rllib*.py).
-PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,dev]" -e "experiments[dev]"
+PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,dev,docs]" -e "experiments[dev]"
 
 .PHONY: help setup build venv demo test test-rust test-python test-node lint buf fmt bench soak clean
 
@@ -81,6 +81,7 @@ lint: venv ## rustfmt, clippy -D warnings, ruff, mypy --strict
 	$(VENV)/bin/mypy  # mypy.ini: --strict over client-py/src and experiments/src
 	$(MAKE) proto-check
 	$(MAKE) k8s-check
+	$(MAKE) docs
 	$(MAKE) buf
 
 fmt: venv ## apply rustfmt and ruff format
@@ -146,6 +147,10 @@ proto-check: $(PROTO_VENV)/.installed ## fail if the committed gRPC stubs differ
 # Not part of `make test`: downloads from PyPI (the oldest grpcio/protobuf; tensorboard, wandb).
 deps-check: ## the client's tests at the declared dependency minimums; resolves beside tensorboard + wandb
 	$(PYTHON) client-py/scripts/deps_check.py
+
+.PHONY: docs
+docs: venv ## build the docs site into site/ (mkdocs build --strict; mkdocs.yml)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
 
 .PHONY: container container-check k8s-check
 CONTAINER_IMAGE ?= localhost/esa-server:$(shell sed -n '/^\[workspace.package\]/,/^\[/s/^version = "\(.*\)"/\1/p' Cargo.toml)
