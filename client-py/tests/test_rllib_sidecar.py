@@ -169,6 +169,7 @@ def test_runners_follow_a_sidecar_killed_mid_training(sidecar_dir):
         assert client.transport.generation == 1
     addresses = {c.transport.sidecar.address for c in clients}
     assert len(addresses) == 1  # both follow the one new sidecar
+    assert {c.address for c in clients} == addresses
     successor = json.loads((sidecar_dir / "server.json").read_text())["keeper_pid"]
     for client in clients:
         client.close()

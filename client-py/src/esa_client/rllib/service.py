@@ -278,6 +278,8 @@ class SidecarTransport:
             raise
         self.generation = 0
         """How many times this runner followed a replaced sidecar."""
+        self.on_follow: Callable[[str], None] | None = None
+        """Told the new sidecar's address whenever this runner follows one."""
 
     def _call(self, call: Callable[[Transport], _T]) -> _T:
         try:
@@ -302,6 +304,8 @@ class SidecarTransport:
         with contextlib.suppress(EsaError):
             old_client.close()
         old_sidecar.release()
+        if self.on_follow is not None:
+            self.on_follow(sidecar.address)
         return True
 
     def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
@@ -508,10 +512,7 @@ class EsaService:
             return client
 
         transport = SidecarTransport(join, connect)
-        client = BaseClient(
-            transport,
-            address=f"the node sidecar in {transport.sidecar.directory}",
-            timeout=self.timeout,
-        )
+        client = BaseClient(transport, address=transport.sidecar.address, timeout=self.timeout)
+        transport.on_follow = lambda address: setattr(client, "address", address)
         client.reconnect_timeout = self.reconnect_timeout
         return client
