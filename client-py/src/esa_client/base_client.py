@@ -244,9 +244,7 @@ class BaseClient:
             per_session,
             use_stream=use_stream,
             on_restore=self._count_restored,
-            reconnect=Reconnect(
-                self.address, self.reconnect_timeout, closed=lambda: self._closed
-            ),
+            reconnect=Reconnect(self.address, self.reconnect_timeout, closed=lambda: self._closed),
         )
 
     def restore_sessions(
