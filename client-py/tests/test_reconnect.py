@@ -9,7 +9,7 @@ bit for bit.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pytest
@@ -38,12 +38,18 @@ def lost(what: str) -> ServerUnavailable:
 class FlakyBatch:
     """Fails the round trips that ``plan`` names: ``call number -> mode``."""
 
-    def __init__(self, inner: BatchTransport, plan: dict[int, str]) -> None:
-        self.inner, self.plan, self.calls = inner, plan, 0
+    def __init__(
+        self, inner: BatchTransport, plan: dict[int, str], restart: Callable[[], None]
+    ) -> None:
+        self.inner, self.plan, self.calls, self.restart = inner, plan, 0, restart
 
     def _mode(self) -> str | None:
         self.calls += 1
-        return self.plan.get(self.calls)
+        mode = self.plan.get(self.calls)
+        if mode == "restart":
+            self.restart()  # the server restarts: its sessions are gone
+            raise lost("server restarting")
+        return mode
 
     def probe(self, request: BatchProbe) -> tuple[np.ndarray, np.ndarray]:
         mode = self._mode()
@@ -88,13 +94,19 @@ class FlakyTransport:
 
     def __init__(self, inner: object, plan: dict[int, str]) -> None:
         self._inner, self._plan = inner, plan
+        self.ids: Sequence[str] = ()
+
+    def _restart(self) -> None:
+        for session_id in self.ids:
+            self._inner.close_session(session_id)  # type: ignore[attr-defined]
 
     def __getattr__(self, name: str) -> object:
         return getattr(self._inner, name)
 
     def open_batch(self, ids: Sequence[str], action_dim: int, *, use_stream: bool) -> FlakyBatch:
         inner = self._inner.open_batch(ids, action_dim, use_stream=use_stream)  # type: ignore[attr-defined]
-        return FlakyBatch(inner, self._plan)
+        self.ids = ids
+        return FlakyBatch(inner, self._plan, self._restart)
 
 
 def train(batch: SessionBatch, steps: int, *, pipelined: bool) -> None:
@@ -134,6 +146,27 @@ def test_a_retried_step_ends_where_an_undisturbed_one_does(mode, pipelined):
         train(flaky, steps, pipelined=pipelined)
         assert final_states(flaky) == final_states(clean)
         assert flaky.sessions_restored == 0
+
+
+@pytest.mark.parametrize("pipelined", [True, False], ids=["pipelined", "in-turn"])
+def test_sessions_a_restart_lost_are_recreated_and_the_step_replayed(pipelined):
+    steps = 30
+    with EsaClient.in_process() as engine:
+        # Restarts on a probe (call 9) and, in turn, on a lone report (call 20).
+        plan = {9: "restart", 20: "restart"}
+        flaky = SessionBatch(
+            FlakyTransport(engine.transport, plan),  # type: ignore[arg-type]
+            [f"restart-{i}" for i in range(3)],
+            [CONFIG] * 3,
+            reconnect=Reconnect("in-process", 5.0, initial_backoff=0.001, max_backoff=0.002),
+        )
+        for session_id in flaky.ids:
+            engine.transport.create_session(session_id, CONFIG.to_proto())
+        train(flaky, steps, pipelined=pipelined)
+        assert flaky.sessions_restored == 2 * 3
+        states = flaky.states()
+        assert [s.step for s in states] == flaky.steps.tolist()
+        assert not any(s.probe_pending for s in states)
 
 
 def test_backoff_doubles_with_jitter_up_to_the_cap_then_gives_up():
