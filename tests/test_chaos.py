@@ -386,7 +386,7 @@ def test_sigkill_and_restart_under_two_esappo_trainers(server, tmp_path):
     while not all(m._esa is not None for m in models):
         assert time.monotonic() < deadline
         time.sleep(0.05)
-    time.sleep(0.3)
+    time.sleep(0.1)  # into the rollout, well before the last one
     server.kill()
     time.sleep(1.5)
     server.start()
