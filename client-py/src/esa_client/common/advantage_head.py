@@ -22,6 +22,7 @@ its ``A(s, a) - A(s, mu(s)) = w(s) . z`` and the GAE advantage of the action tak
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import torch as th
@@ -51,7 +52,20 @@ class AdvantageHead(nn.Module):
 
     def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
         """Returns A for policy-normalized actions ``z``, shape ``(batch,)``."""
-        return self.advantage(self.w(features), z)
+        return self.advantage(self.weights(features), z)
+
+    def weights(self, features: th.Tensor) -> th.Tensor:
+        """``w(features)``: ``self.w``'s forward pass without its six module calls.
+
+        The same kernels on the same tensors as ``self.w(features)`` (``nn.Linear`` is
+        ``F.linear``, ``nn.Tanh`` is ``th.tanh``), so the same bits and the same autograd
+        graph; the module calls' Python overhead was a third of the per-step cost of the
+        head (``bench/profiles/README.md``).
+        """
+        first, second, third = (cast(nn.Linear, self.w[i]) for i in (0, 2, 4))
+        hidden = th.tanh(F.linear(features, first.weight, first.bias))
+        hidden = th.tanh(F.linear(hidden, second.weight, second.bias))
+        return F.linear(hidden, third.weight, third.bias)
 
     @staticmethod
     def advantage(w: th.Tensor, z: th.Tensor) -> th.Tensor:

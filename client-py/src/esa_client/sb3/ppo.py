@@ -218,11 +218,11 @@ class ESAPPO(EsaMixin, PPO):
             return th.cat([pre[key].flatten(1).float() for key in sorted(pre)], dim=1)
         return pre.flatten(1).float()
 
-    def _esa_q_at(self, features: th.Tensor, mean: th.Tensor, std: th.Tensor) -> Any:
+    def _esa_q_at(self, features: th.Tensor, mean: th.Tensor, std: th.Tensor | np.ndarray) -> Any:
         """The head at the current observations, for actions in ESA units."""
         center, half_width = self._esa_scaling()
         mean_np = mean.cpu().numpy()
-        std_np = std.cpu().numpy()
+        std_np = std.cpu().numpy() if isinstance(std, th.Tensor) else std
         # w(s) of the features tiled `reps` times, per reps: the sampled step's second call
         # (esa/improvement) reuses the first's. Tiled, not broadcast, because a matrix
         # product's rounding depends on its row count.
@@ -236,7 +236,9 @@ class ESAPPO(EsaMixin, PPO):
             z = (raw.reshape(reps, *mean_np.shape) - mean_np) / std_np
             with th.no_grad():
                 if reps not in weights:
-                    weights[reps] = self.esa_head.w(tile_obs(features, reps))
+                    # reps = 1 (every step): the features themselves, not a tiled copy.
+                    tiled = features if reps == 1 else cast(th.Tensor, tile_obs(features, reps))
+                    weights[reps] = self.esa_head.weights(tiled)
                 z_t = th.from_numpy(z.reshape(len(actions), -1)).to(self.device)
                 values: np.ndarray = AdvantageHead.advantage(weights[reps], z_t).cpu().numpy()
                 return values
@@ -273,10 +275,10 @@ class ESAPPO(EsaMixin, PPO):
                 sampled = actions.reshape(n, -1).cpu().numpy().astype(np.float64)
                 gaussian = _gaussian(distribution)
                 mean = gaussian.mean.reshape(n, -1)
-                std = gaussian.stddev.reshape(n, -1)
+                std = gaussian.stddev.reshape(n, -1).cpu().numpy()
                 features = self._head_features(obs)
                 if self.esa_shift == "gradient":
-                    shift = self._gradient_shift(features) * std.cpu().numpy()
+                    shift = self._gradient_shift(features) * std
                 else:
                     scaled = self._to_esa_units(sampled)
                     half_width = self._esa_scaling()[1]
@@ -284,12 +286,12 @@ class ESAPPO(EsaMixin, PPO):
                         scaled,
                         np.asarray(self._last_episode_starts, dtype=bool),
                         self._esa_q_at(features, mean, std),
-                        std.cpu().numpy() / half_width,
+                        std / half_width,
                     )
                     # The shift in raw units: exactly 0 when v = 0.
                     shift = (applied - scaled) * half_width
                 if self.esa_mode == "target":
-                    self._esa_targets.append(shift / std.cpu().numpy())
+                    self._esa_targets.append(shift / std)
                 else:
                     actions = th.as_tensor(
                         sampled + shift, dtype=actions.dtype, device=actions.device
@@ -325,7 +327,7 @@ class ESAPPO(EsaMixin, PPO):
         """
         kappa = self.esa.trust_region if self.esa.trust_region is not None else 1.0
         with th.no_grad():
-            w = self.esa_head.w(features).cpu().numpy().astype(np.float64)
+            w = self.esa_head.weights(features).cpu().numpy().astype(np.float64)
         norm = np.linalg.norm(w, axis=1, keepdims=True)
         unit: np.ndarray = np.divide(w, norm, out=np.zeros_like(w), where=norm > 0)
         return kappa * unit
