@@ -110,8 +110,8 @@ GRADIENT_CONTROL_OF = {
 }
 """The gradient control of an ESA method: ESC is credited only where it beats it."""
 
-TARGET_TRUST_REGION = 0.5
-TARGET_WEIGHT = 1.0
+TARGET_TRUST_REGION = 1.0
+TARGET_WEIGHT = 0.03
 """The PPO target mode's bound (policy stds) and loss weight (``target_search``)."""
 
 
