@@ -1,0 +1,111 @@
+"""CPU-time ratio ESAPPO / PPO, measured in one process with alternating runs.
+
+For a loaded host, where wall-clock ratios mean little: each run's ``learn()`` is timed
+with ``time.process_time()`` (this process's CPU seconds, all threads) and, for a spawned
+sidecar, the esa-server's CPU seconds too (read from ``/proc`` just before it is
+stopped). PPO and the ESAPPO variants run in turn, ``--repeats`` times per env count, so
+slow phases of the host hit all alike. Settings as ``bench/profiles/run_one.py``:
+InvertedPendulum-v5, SB3's default PPO hyperparameters, torch on one thread, the shipped
+``EsaConfig()``.
+
+Usage::
+
+    python bench/python/cpu_ratio.py [--n-envs 1,8] [--repeats 3] \
+        [--engines inprocess,sidecar-native]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch as th
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "profiles"))
+from run_one import build  # noqa: E402
+
+
+def children_cpu_seconds() -> float:
+    """User + system CPU seconds of this process's live child processes (a sidecar)."""
+    total = 0.0
+    tick = os.sysconf("SC_CLK_TCK")
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            pids = (task / "children").read_text().split()
+        except OSError:
+            continue
+        for pid in pids:
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+            except OSError:
+                continue
+            total += (int(fields[11]) + int(fields[12])) / tick
+    return total
+
+
+def run(agent: str, engine: str, n_envs: int, steps: int) -> tuple[float, float]:
+    """One training; the trainer's CPU seconds of learn() and the sidecar's CPU seconds."""
+    model = build(agent, engine, n_envs, ungated=False)
+    cpu = time.process_time()
+    model.learn(steps)
+    cpu = time.process_time() - cpu
+    server = children_cpu_seconds()
+    if agent != "PPO":
+        model.esa_close()  # type: ignore[attr-defined]
+    model.get_env().close()
+    return cpu, server
+
+
+def main() -> None:
+    """Alternates PPO and the ESAPPO engines; prints and writes the median ratios."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n-envs", default="1,8")
+    parser.add_argument("--engines", default="inprocess,sidecar-native")
+    parser.add_argument("--steps", type=int, default=12_288)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default="")
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
+    configs = [("PPO", "inprocess")] + [("ESAPPO", e) for e in args.engines.split(",")]
+    results = []
+    for n_envs in (int(n) for n in args.n_envs.split(",")):
+        cpu: dict[str, list[float]] = {}
+        for _ in range(args.repeats):
+            for agent, engine in configs:
+                name = agent if agent == "PPO" else f"{agent} [{engine}]"
+                trainer, server = run(agent, engine, n_envs, args.steps)
+                cpu.setdefault(name, []).append(trainer + server)
+                print(
+                    f"{n_envs} env(s) {name:<26} cpu {trainer:6.2f} s + server {server:5.2f} s",
+                    flush=True,
+                )
+        for name, seconds in cpu.items():
+            if name == "PPO":
+                continue
+            ratios = np.asarray(seconds) / np.asarray(cpu["PPO"])
+            results.append(
+                {
+                    "n_envs": n_envs,
+                    "agent": name,
+                    "cpu": seconds,
+                    "ppo_cpu": cpu["PPO"],
+                    "ratio_median": float(np.median(ratios)),
+                    "ratios": ratios.tolist(),
+                }
+            )
+            print(
+                f"{n_envs} env(s) {name} / PPO CPU-time ratio: "
+                f"median {np.median(ratios):.3f} {ratios.round(3)}"
+            )
+    if args.out:
+        Path(args.out).write_text(json.dumps({"args": vars(args), "rows": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
