@@ -1,11 +1,24 @@
-//! Request metrics kept in lock-free counters, rendered in the Prometheus text
-//! exposition format (served by [`crate::metrics_endpoint`]).
+//! Request, connection, store and process metrics in a `prometheus-client`
+//! registry, encoded in the OpenMetrics text format (served by
+//! [`crate::metrics_endpoint`]).
+//!
+//! The store's figures and the process's (CPU, memory, file descriptors,
+//! threads, start time, read from `/proc/self` on Linux) are sampled when the
+//! registry is encoded; everything else is counted as it happens.
 
-use std::fmt::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use esa_proto::Rpc;
+use parking_lot::Mutex;
+use prometheus_client::encoding::text::encode;
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::Histogram;
+use prometheus_client::metrics::info::Info;
+use prometheus_client::registry::{Registry, Unit};
 use tonic::Code;
 
 /// Upper bounds of the latency histogram buckets, in seconds. Handler time of
@@ -35,14 +48,47 @@ const CODE_NAMES: [&str; 17] = [
     "UNAUTHENTICATED",
 ];
 
-/// Counters of one server.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RequestLabels {
+    rpc: &'static str,
+    code: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RpcLabels {
+    rpc: &'static str,
+}
+
+type FloatCounter = Counter<f64, AtomicU64>;
+type FloatGauge = Gauge<f64, AtomicU64>;
+
+/// The metrics of one server.
 pub struct Metrics {
-    requests: [[AtomicU64; CODE_NAMES.len()]; Rpc::ALL.len()],
-    latency: [Histogram; Rpc::ALL.len()],
-    nonfinite_skipped: AtomicU64,
-    connections_open: AtomicU64,
-    connections_evicted: AtomicU64,
-    connections_refused: AtomicU64,
+    registry: Registry,
+    requests: Family<RequestLabels, Counter>,
+    latency: Family<RpcLabels, Histogram>,
+    nonfinite_skipped: Counter,
+    connections_open: Gauge,
+    connections_evicted: Counter,
+    connections_refused: Counter,
+    sampled: Sampled,
+    /// One encoder at a time: sampling sets gauges and advances counters.
+    render_lock: Mutex<()>,
+}
+
+/// Figures sampled at encoding time.
+#[derive(Default)]
+struct Sampled {
+    sessions_live: Gauge,
+    sessions_expired: Counter,
+    session_memory_bytes: Gauge,
+    cpu_seconds: FloatCounter,
+    resident_memory_bytes: Gauge,
+    virtual_memory_bytes: Gauge,
+    open_fds: Gauge,
+    max_fds: Gauge,
+    threads: Gauge,
+    start_time_seconds: FloatGauge,
 }
 
 /// The store's figures at the time of rendering.
@@ -52,22 +98,120 @@ pub struct StoreGauges {
     pub session_memory_bytes: usize,
 }
 
-#[derive(Default)]
-struct Histogram {
-    buckets: [AtomicU64; BUCKETS.len()],
-    sum_nanos: AtomicU64,
-    count: AtomicU64,
-}
-
 impl Default for Metrics {
     fn default() -> Self {
+        let mut registry = Registry::default();
+        let requests = Family::<RequestLabels, Counter>::default();
+        let latency = Family::<RpcLabels, Histogram>::new_with_constructor(
+            (|| Histogram::new(BUCKETS)) as fn() -> Histogram,
+        );
+        let nonfinite_skipped = Counter::default();
+        let connections_open = Gauge::default();
+        let connections_evicted = Counter::default();
+        let connections_refused = Counter::default();
+        let sampled = Sampled::default();
+
+        registry.register(
+            "esa_build",
+            "The esa-server build: its version",
+            Info::new(vec![("version", env!("CARGO_PKG_VERSION"))]),
+        );
+        registry.register(
+            "esa_sessions_live",
+            "Sessions currently held by the server",
+            sampled.sessions_live.clone(),
+        );
+        registry.register(
+            "esa_sessions_expired",
+            "Sessions removed after being idle longer than the TTL",
+            sampled.sessions_expired.clone(),
+        );
+        registry.register(
+            "esa_session_memory_bytes",
+            "Bytes the live sessions cost, as charged to --max-session-memory",
+            sampled.session_memory_bytes.clone(),
+        );
+        registry.register(
+            "esa_connections_open",
+            "gRPC connections currently held",
+            connections_open.clone(),
+        );
+        registry.register(
+            "esa_connections_evicted",
+            "Idle gRPC connections closed to make room for new ones at --max-connections",
+            connections_evicted.clone(),
+        );
+        registry.register(
+            "esa_connections_refused",
+            "gRPC connections refused at --max-connections because every held one had a call in flight",
+            connections_refused.clone(),
+        );
+        registry.register(
+            "esa_nonfinite_updates_skipped",
+            "Reports whose shift update would have been non-finite and was skipped",
+            nonfinite_skipped.clone(),
+        );
+        registry.register(
+            "esa_requests",
+            "Requests handled, by RPC and gRPC status code (StepStream counts each stream message)",
+            requests.clone(),
+        );
+        registry.register(
+            "esa_request_duration_seconds",
+            "Time spent handling a request inside the server, excluding the transport",
+            latency.clone(),
+        );
+        // The process metrics every Prometheus client library exports, same names.
+        registry.register_with_unit(
+            "process_cpu",
+            "Total user and system CPU time spent",
+            Unit::Seconds,
+            sampled.cpu_seconds.clone(),
+        );
+        registry.register_with_unit(
+            "process_resident_memory",
+            "Resident memory size",
+            Unit::Bytes,
+            sampled.resident_memory_bytes.clone(),
+        );
+        registry.register_with_unit(
+            "process_virtual_memory",
+            "Virtual memory size",
+            Unit::Bytes,
+            sampled.virtual_memory_bytes.clone(),
+        );
+        registry.register(
+            "process_open_fds",
+            "Open file descriptors",
+            sampled.open_fds.clone(),
+        );
+        registry.register(
+            "process_max_fds",
+            "Maximum number of open file descriptors (the soft limit)",
+            sampled.max_fds.clone(),
+        );
+        registry.register(
+            "process_threads",
+            "OS threads of the process",
+            sampled.threads.clone(),
+        );
+        registry.register_with_unit(
+            "process_start_time",
+            "Start time of the process since the Unix epoch",
+            Unit::Seconds,
+            sampled.start_time_seconds.clone(),
+        );
+
         Self {
-            requests: std::array::from_fn(|_| std::array::from_fn(|_| AtomicU64::new(0))),
-            latency: std::array::from_fn(|_| Histogram::default()),
-            nonfinite_skipped: AtomicU64::new(0),
-            connections_open: AtomicU64::new(0),
-            connections_evicted: AtomicU64::new(0),
-            connections_refused: AtomicU64::new(0),
+            registry,
+            requests,
+            latency,
+            nonfinite_skipped,
+            connections_open,
+            connections_evicted,
+            connections_refused,
+            sampled,
+            render_lock: Mutex::new(()),
         }
     }
 }
@@ -75,137 +219,127 @@ impl Default for Metrics {
 impl Metrics {
     /// Records one handled request.
     pub fn observe(&self, rpc: Rpc, code: Code, elapsed: Duration) {
-        if let Some(counter) = self
-            .requests
-            .get(rpc as usize)
-            .and_then(|by_code| by_code.get(code as usize))
-        {
-            counter.fetch_add(1, Ordering::Relaxed);
-        }
-        if let Some(histogram) = self.latency.get(rpc as usize) {
-            histogram.observe(elapsed);
-        }
+        let rpc = rpc.name();
+        let code = CODE_NAMES.get(code as usize).copied().unwrap_or("UNKNOWN");
+        self.requests
+            .get_or_create(&RequestLabels { rpc, code })
+            .inc();
+        self.latency
+            .get_or_create(&RpcLabels { rpc })
+            .observe(elapsed.as_secs_f64());
     }
 
     /// Records reports whose shift update was skipped as non-finite.
     pub fn add_nonfinite_skipped(&self, n: u64) {
-        self.nonfinite_skipped.fetch_add(n, Ordering::Relaxed);
+        self.nonfinite_skipped.inc_by(n);
     }
 
     pub fn connection_opened(&self) {
-        self.connections_open.fetch_add(1, Ordering::Relaxed);
+        self.connections_open.inc();
     }
 
     pub fn connection_closed(&self) {
-        self.connections_open.fetch_sub(1, Ordering::Relaxed);
+        self.connections_open.dec();
     }
 
     /// Records an idle connection closed to make room for a new one.
     pub fn connection_evicted(&self) {
-        self.connections_evicted.fetch_add(1, Ordering::Relaxed);
+        self.connections_evicted.inc();
     }
 
     /// Records a connection refused because every held one had a call in flight.
     pub fn connection_refused(&self) {
-        self.connections_refused.fetch_add(1, Ordering::Relaxed);
+        self.connections_refused.inc();
     }
 
-    /// The Prometheus text exposition of all metrics.
+    /// The OpenMetrics text exposition of all metrics.
     pub fn render(&self, store: &StoreGauges) -> String {
-        let mut out = String::with_capacity(4096);
+        let _one_at_a_time = self.render_lock.lock();
+        let sampled = &self.sampled;
+        sampled
+            .sessions_live
+            .set(i64::try_from(store.sessions_live).unwrap_or(i64::MAX));
+        advance_to(&sampled.sessions_expired, store.sessions_expired);
+        sampled
+            .session_memory_bytes
+            .set(i64::try_from(store.session_memory_bytes).unwrap_or(i64::MAX));
+        if let Some(process) = process::sample() {
+            let cpu = &sampled.cpu_seconds;
+            let delta = process.cpu_seconds - cpu.get();
+            if delta > 0.0 {
+                cpu.inc_by(delta);
+            }
+            sampled.resident_memory_bytes.set(process.resident_bytes);
+            sampled.virtual_memory_bytes.set(process.virtual_bytes);
+            sampled.open_fds.set(process.open_fds);
+            sampled.max_fds.set(process.max_fds);
+            sampled.threads.set(process.threads);
+            sampled.start_time_seconds.set(process.start_time_seconds);
+        }
+        let mut out = String::with_capacity(8192);
         // Writing to a String cannot fail.
-        let _ = self.write_to(&mut out, store);
+        let _ = encode(&mut out, &self.registry);
         out
-    }
-
-    fn write_to(&self, out: &mut String, store: &StoreGauges) -> std::fmt::Result {
-        let gauges = [
-            ("esa_sessions_live", "gauge", "Sessions currently held by the server.", store.sessions_live as u64),
-            ("esa_sessions_expired_total", "counter", "Sessions removed after being idle longer than the TTL.", store.sessions_expired),
-            ("esa_session_memory_bytes", "gauge", "Bytes the live sessions cost, as charged to --max-session-memory.", store.session_memory_bytes as u64),
-            ("esa_connections_open", "gauge", "gRPC connections currently held.", self.connections_open.load(Ordering::Relaxed)),
-            ("esa_connections_evicted_total", "counter", "Idle gRPC connections closed to make room for new ones at --max-connections.", self.connections_evicted.load(Ordering::Relaxed)),
-            ("esa_connections_refused_total", "counter", "gRPC connections refused at --max-connections because every held one had a call in flight.", self.connections_refused.load(Ordering::Relaxed)),
-        ];
-        for (name, kind, help, value) in gauges {
-            writeln!(out, "# HELP {name} {help}")?;
-            writeln!(out, "# TYPE {name} {kind}")?;
-            writeln!(out, "{name} {value}")?;
-        }
-        writeln!(
-            out,
-            "# HELP esa_nonfinite_updates_skipped_total Reports whose shift update would have been non-finite and was skipped."
-        )?;
-        writeln!(out, "# TYPE esa_nonfinite_updates_skipped_total counter")?;
-        writeln!(
-            out,
-            "esa_nonfinite_updates_skipped_total {}",
-            self.nonfinite_skipped.load(Ordering::Relaxed)
-        )?;
-
-        writeln!(out, "# HELP esa_requests_total Requests handled, by RPC and gRPC status code (StepStream counts each stream message).")?;
-        writeln!(out, "# TYPE esa_requests_total counter")?;
-        for (rpc, by_code) in Rpc::ALL.iter().zip(&self.requests) {
-            for (code, counter) in CODE_NAMES.iter().zip(by_code) {
-                let n = counter.load(Ordering::Relaxed);
-                if n > 0 {
-                    writeln!(
-                        out,
-                        "esa_requests_total{{rpc=\"{}\",code=\"{code}\"}} {n}",
-                        rpc.name()
-                    )?;
-                }
-            }
-        }
-
-        writeln!(out, "# HELP esa_request_duration_seconds Time spent handling a request inside the server, excluding the transport.")?;
-        writeln!(out, "# TYPE esa_request_duration_seconds histogram")?;
-        for (rpc, histogram) in Rpc::ALL.iter().zip(&self.latency) {
-            let count = histogram.count.load(Ordering::Relaxed);
-            if count == 0 {
-                continue;
-            }
-            let rpc = rpc.name();
-            let mut cumulative = 0;
-            for (bound, bucket) in BUCKETS.iter().zip(&histogram.buckets) {
-                cumulative += bucket.load(Ordering::Relaxed);
-                writeln!(
-                    out,
-                    "esa_request_duration_seconds_bucket{{rpc=\"{rpc}\",le=\"{bound:e}\"}} {cumulative}"
-                )?;
-            }
-            writeln!(
-                out,
-                "esa_request_duration_seconds_bucket{{rpc=\"{rpc}\",le=\"+Inf\"}} {count}"
-            )?;
-            let sum = histogram.sum_nanos.load(Ordering::Relaxed) as f64 * 1e-9;
-            writeln!(
-                out,
-                "esa_request_duration_seconds_sum{{rpc=\"{rpc}\"}} {sum:e}"
-            )?;
-            writeln!(
-                out,
-                "esa_request_duration_seconds_count{{rpc=\"{rpc}\"}} {count}"
-            )?;
-        }
-        Ok(())
     }
 }
 
-impl Histogram {
-    fn observe(&self, elapsed: Duration) {
-        let seconds = elapsed.as_secs_f64();
-        // Buckets hold non-cumulative counts; the exposition accumulates them.
-        if let Some(bucket) = BUCKETS
-            .iter()
-            .zip(&self.buckets)
-            .find_map(|(bound, bucket)| (seconds <= *bound).then_some(bucket))
-        {
-            bucket.fetch_add(1, Ordering::Relaxed);
+/// Raises a counter that mirrors a monotonic total kept elsewhere.
+fn advance_to(counter: &Counter, total: u64) {
+    let current = counter.get();
+    if total > current {
+        counter.inc_by(total - current);
+    }
+}
+
+/// This process's figures from `/proc/self` (Linux); `None` elsewhere.
+mod process {
+    pub struct Process {
+        pub cpu_seconds: f64,
+        pub resident_bytes: i64,
+        pub virtual_bytes: i64,
+        pub open_fds: i64,
+        pub max_fds: i64,
+        pub threads: i64,
+        pub start_time_seconds: f64,
+    }
+
+    pub fn sample() -> Option<Process> {
+        let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+        // Fields after the parenthesised command name, which may hold spaces.
+        let fields: Vec<&str> = stat.get(stat.rfind(')')? + 2..)?.split(' ').collect();
+        // `man 5 proc`: field n (1-based) is fields[n - 3] here.
+        let field = |n: usize| -> Option<f64> { fields.get(n - 3)?.parse().ok() };
+        // SAFETY: sysconf only reads configuration values.
+        let ticks = unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64;
+        // SAFETY: as above.
+        let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) } as f64;
+        if ticks <= 0.0 || page <= 0.0 {
+            return None;
         }
-        let nanos = u64::try_from(elapsed.as_nanos()).unwrap_or(u64::MAX);
-        self.sum_nanos.fetch_add(nanos, Ordering::Relaxed);
-        self.count.fetch_add(1, Ordering::Relaxed);
+        let boot_time: f64 = std::fs::read_to_string("/proc/stat")
+            .ok()?
+            .lines()
+            .find_map(|line| line.strip_prefix("btime ")?.trim().parse().ok())?;
+        let open_fds = std::fs::read_dir("/proc/self/fd").ok()?.count() as i64;
+        let mut limit = libc::rlimit {
+            rlim_cur: 0,
+            rlim_max: 0,
+        };
+        // SAFETY: getrlimit writes into the struct it is given.
+        let max_fds = if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) } == 0 {
+            i64::try_from(limit.rlim_cur).unwrap_or(i64::MAX)
+        } else {
+            -1
+        };
+        Some(Process {
+            cpu_seconds: (field(14)? + field(15)?) / ticks,
+            threads: field(20)? as i64,
+            start_time_seconds: boot_time + field(22)? / ticks,
+            virtual_bytes: field(23)? as i64,
+            resident_bytes: (field(24)? * page) as i64,
+            open_fds,
+            max_fds,
+        })
     }
 }
 
@@ -214,7 +348,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn exposition_has_counters_and_cumulative_buckets() {
+    fn exposition_has_counters_cumulative_buckets_build_and_process_metrics() {
         let metrics = Metrics::default();
         metrics.observe(Rpc::Probe, Code::Ok, Duration::from_micros(3));
         metrics.observe(Rpc::Probe, Code::Ok, Duration::from_millis(2));
@@ -225,17 +359,36 @@ mod tests {
             sessions_expired: 1,
             session_memory_bytes: 3000,
         });
-        assert!(text.contains("esa_sessions_live 4\n"));
-        assert!(text.contains("esa_sessions_expired_total 1\n"));
-        assert!(text.contains("esa_session_memory_bytes 3000\n"));
-        assert!(text.contains("# TYPE esa_connections_open gauge\nesa_connections_open 1\n"));
-        assert!(text.contains("esa_requests_total{rpc=\"Probe\",code=\"OK\"} 2\n"));
-        assert!(text.contains("esa_requests_total{rpc=\"Probe\",code=\"NOT_FOUND\"} 1\n"));
-        assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"5e-6\"} 1\n"));
-        assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"5e-3\"} 2\n"));
-        assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"1e0\"} 2\n"));
-        assert!(text.contains("esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"+Inf\"} 3\n"));
-        assert!(text.contains("esa_request_duration_seconds_count{rpc=\"Probe\"} 3\n"));
+        for line in [
+            "esa_sessions_live 4\n",
+            "esa_sessions_expired_total 1\n",
+            "esa_session_memory_bytes 3000\n",
+            "# TYPE esa_connections_open gauge\nesa_connections_open 1\n",
+            "esa_requests_total{rpc=\"Probe\",code=\"OK\"} 2\n",
+            "esa_requests_total{rpc=\"Probe\",code=\"NOT_FOUND\"} 1\n",
+            "esa_request_duration_seconds_bucket{le=\"0.000005\",rpc=\"Probe\"} 1\n",
+            "esa_request_duration_seconds_bucket{le=\"0.005\",rpc=\"Probe\"} 2\n",
+            "esa_request_duration_seconds_bucket{le=\"1.0\",rpc=\"Probe\"} 2\n",
+            "esa_request_duration_seconds_bucket{le=\"+Inf\",rpc=\"Probe\"} 3\n",
+            "esa_request_duration_seconds_count{rpc=\"Probe\"} 3\n",
+            &format!(
+                "esa_build_info{{version=\"{}\"}} 1\n",
+                env!("CARGO_PKG_VERSION")
+            ),
+            "# TYPE process_cpu_seconds counter\n",
+            "# TYPE process_resident_memory_bytes gauge\n",
+            "# EOF\n",
+        ] {
+            assert!(text.contains(line), "missing {line:?} in:\n{text}");
+        }
         assert!(!text.contains("rpc=\"Report\""));
+        // A total kept elsewhere only moves the counter forward.
+        let text = metrics.render(&StoreGauges {
+            sessions_live: 0,
+            sessions_expired: 3,
+            session_memory_bytes: 0,
+        });
+        assert!(text.contains("esa_sessions_expired_total 3\n"), "{text}");
+        assert!(text.contains("process_open_fds "), "{text}");
     }
 }

@@ -1,6 +1,6 @@
 //! The opt-in HTTP endpoint (`--metrics-listen`): `GET /metrics` answers the
-//! handler's [`crate::metrics::Metrics`] in the Prometheus text exposition
-//! format. Like the transports, it only reads through [`EsaHandler`].
+//! handler's [`crate::metrics::Metrics`] in the OpenMetrics text format
+//! (which Prometheus scrapes natively). Like the transports, it only reads through [`EsaHandler`].
 
 use std::sync::Arc;
 
@@ -27,7 +27,7 @@ async fn metrics_page(State(handler): State<Arc<EsaHandler>>) -> impl IntoRespon
     (
         [(
             header::CONTENT_TYPE,
-            "text/plain; version=0.0.4; charset=utf-8",
+            "application/openmetrics-text; version=1.0.0; charset=utf-8",
         )],
         handler.render_metrics(),
     )

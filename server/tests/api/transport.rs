@@ -179,7 +179,10 @@ async fn metrics_endpoint_serves_prometheus_text() {
 
     let response = http_get(metrics_addr, "/metrics").await;
     assert!(response.starts_with("HTTP/1.1 200"), "{response}");
-    assert!(response.contains("text/plain"), "{response}");
+    assert!(
+        response.contains("application/openmetrics-text"),
+        "{response}"
+    );
     for line in [
         "esa_sessions_live 1\n",
         "esa_requests_total{rpc=\"CreateSession\",code=\"OK\"} 1\n",
@@ -187,7 +190,7 @@ async fn metrics_endpoint_serves_prometheus_text() {
         "esa_requests_total{rpc=\"Probe\",code=\"FAILED_PRECONDITION\"} 1\n",
         "esa_requests_total{rpc=\"GetSession\",code=\"NOT_FOUND\"} 1\n",
         "# TYPE esa_request_duration_seconds histogram\n",
-        "esa_request_duration_seconds_bucket{rpc=\"Probe\",le=\"+Inf\"} 2\n",
+        "esa_request_duration_seconds_bucket{le=\"+Inf\",rpc=\"Probe\"} 2\n",
         "esa_request_duration_seconds_count{rpc=\"Probe\"} 2\n",
         "esa_request_duration_seconds_sum{rpc=\"Probe\"} ",
     ] {
