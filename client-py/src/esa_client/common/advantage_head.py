@@ -49,6 +49,9 @@ class AdvantageHead(nn.Module):
             nn.Tanh(),
             nn.Linear(hidden, action_dim),
         )
+        # The three layers, for weights(): indexing a Sequential costs microseconds. A
+        # tuple is not registered as a submodule, so the state_dict keeps its keys.
+        self._linears = tuple(cast(nn.Linear, self.w[i]) for i in (0, 2, 4))
 
     def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
         """Returns A for policy-normalized actions ``z``, shape ``(batch,)``."""
@@ -62,7 +65,7 @@ class AdvantageHead(nn.Module):
         graph; the module calls' Python overhead was a third of the per-step cost of the
         head (``bench/profiles/README.md``).
         """
-        first, second, third = (cast(nn.Linear, self.w[i]) for i in (0, 2, 4))
+        first, second, third = self._linears
         hidden = th.tanh(F.linear(features, first.weight, first.bias))
         hidden = th.tanh(F.linear(hidden, second.weight, second.bias))
         return F.linear(hidden, third.weight, third.bias)

@@ -19,7 +19,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from ..config import EsaConfig
-from .mixin import EsaMixin, tile_obs
+from .mixin import EsaMixin
 
 Mode = Literal["behaviour", "target"]
 """Where ESA's shift goes: into the executed action, or into the policy update's target."""
@@ -238,8 +238,8 @@ class ESAPPO(EsaMixin, PPO):
             z = (raw.reshape(reps, *mean_np.shape) - mean_np) / std_np
             with th.no_grad():
                 if reps not in weights:
-                    # reps = 1 (every step): the features themselves, not a tiled copy.
-                    tiled = features if reps == 1 else cast(th.Tensor, tile_obs(features, reps))
+                    # The features are (N, F): tile_obs's repeat without its generality.
+                    tiled = features if reps == 1 else features.repeat(reps, 1)
                     weights[reps] = self.esa_head.weights(tiled)
                 z_t = th.from_numpy(z.reshape(len(actions), -1)).to(self.device)
                 values: np.ndarray = AdvantageHead.advantage(weights[reps], z_t).cpu().numpy()
