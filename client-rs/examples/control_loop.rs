@@ -35,12 +35,18 @@ pub struct Server {
 impl Server {
     /// Starts the server binary `ESA_SERVER_BIN` names, or the workspace's build.
     pub fn spawn() -> Result<Self, String> {
+        Self::spawn_with(&[])
+    }
+
+    /// The same with more server flags (`--auth-token-file`, `--tls-cert`, ...).
+    pub fn spawn_with(flags: &[&str]) -> Result<Self, String> {
         let binary = server_binary().ok_or(
             "no esa-server: set ESA_SERVER_BIN or run `cargo build --release -p esa-server`",
         )?;
         let mut child = Command::new(&binary)
             .args(["--listen", "127.0.0.1:0", "--parent-pid"])
             .arg(std::process::id().to_string())
+            .args(flags)
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()

@@ -60,22 +60,33 @@ async fn errors_are_typed_with_the_batch_item() {
     assert_eq!(err.kind(), Kind::SessionAlreadyExists);
     let other = client.create_session("", config).await.unwrap();
 
-    // The second item's action has the wrong length: the whole batch is refused for item 1.
+    // The second item names no session: the whole batch is refused for item 1.
     let request = pb::ProbeBatchRequest {
+        session_ids: vec![id.clone(), "nobody".into()],
+        steps: vec![0, 0],
+        actions: vec![0.0, 0.0],
+        episode_starts: vec![true, true],
+        action_scales: vec![],
+    };
+    let err = client.probe_batch(request.clone()).await.unwrap_err();
+    assert_eq!(err.kind(), Kind::SessionNotFound, "{err}");
+    assert_eq!(err.index(), Some(1), "{err}");
+    // The same on a StepStream, which stays open after the refusal.
+    let mut stream = client.step_stream().await.unwrap();
+    let streamed = stream.probe_batch(request).await.unwrap_err();
+    assert_eq!(streamed.kind(), Kind::SessionNotFound);
+    assert_eq!(streamed.index(), Some(1));
+    // A batch-level error names no item.
+    let short = pb::ProbeBatchRequest {
         session_ids: vec![id.clone(), other.clone()],
         steps: vec![0, 0],
         actions: vec![0.0, 0.0, 0.0],
         episode_starts: vec![true, true],
         action_scales: vec![],
     };
-    let err = client.probe_batch(request.clone()).await.unwrap_err();
+    let err = client.probe_batch(short).await.unwrap_err();
     assert_eq!(err.kind(), Kind::InvalidArgument);
-    assert_eq!(err.index(), Some(1), "{err}");
-    // The same on a StepStream, which stays open after the refusal.
-    let mut stream = client.step_stream().await.unwrap();
-    let streamed = stream.probe_batch(request).await.unwrap_err();
-    assert_eq!(streamed.kind(), Kind::InvalidArgument);
-    assert_eq!(streamed.index(), err.index());
+    assert_eq!(err.index(), None);
     let ok = pb::ProbeBatchRequest {
         session_ids: vec![id.clone(), other],
         steps: vec![0, 0],
