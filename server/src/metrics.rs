@@ -6,7 +6,7 @@
 //! threads, start time, read from `/proc/self` on Linux) are sampled when the
 //! registry is encoded; everything else is counted as it happens.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::AtomicU64;
 use std::time::Duration;
 
 use esa_proto::Rpc;
