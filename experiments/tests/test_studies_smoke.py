@@ -17,6 +17,7 @@ from esa_client import EsaError
 from esa_client.sidecar import BINARY_ENV, find_server_binary
 
 from esa_experiments.commands import main
+from esa_experiments.off_policy_capture import branch_names
 from esa_experiments.runs import RunStore
 from esa_experiments.studies import STUDY_NAMES, load_study
 
@@ -48,14 +49,30 @@ def check_rl_run(frame: pd.DataFrame, total_steps: int) -> None:
         "train_seconds",
         "train_cpu_seconds",
         "eval_seconds",
+        "train_episodes",
+        "train_crashes",
+        "train_return_sum",
+        "train_length_sum",
     ]
     assert frame.step.iloc[0] == 0 and frame.step.iloc[-1] == total_steps
+    # Training episodes are counted cumulatively; a crash is one of them.
+    for column in ("train_episodes", "train_crashes", "train_length_sum"):
+        assert frame[column].is_monotonic_increasing, column
+    assert (frame.train_crashes <= frame.train_episodes).all()
+    assert frame.train_length_sum.iloc[-1] <= total_steps * 4  # at most n_envs episodes a step
     assert frame.step.is_monotonic_increasing and frame.train_seconds.is_monotonic_increasing
     assert np.isfinite(frame.to_numpy(float)).all()
     assert (frame.length_mean >= 1).all()
 
 
-def check_ground_truth_run(frame: pd.DataFrame, states: int) -> None:
+def check_ground_truth_run(frame: pd.DataFrame, states: int, method: str) -> None:
+    if method == "sac":
+        names = branch_names()
+        assert list(frame.columns) == ["state", "return_sampled"] + [
+            f"{kind} {name}" for name in names for kind in ("delta", "predicted", "size")
+        ]
+        assert len(frame) == states and np.isfinite(frame.to_numpy(float)).all()
+        return
     assert list(frame.columns) == [
         "state",
         "return_sampled",
@@ -100,7 +117,7 @@ def test_smoke_budget(name, root, capsys):
         if name == "example1":
             check_example1_run(frame, spec.config["total_steps"], spec.env, spec.method)
         elif name == "ground_truth":
-            check_ground_truth_run(frame, spec.config["states"])
+            check_ground_truth_run(frame, spec.config["states"], spec.method)
             check_rl_run(
                 pd.read_csv(store.table_path(spec, "training")), spec.config["total_steps"]
             )
@@ -113,9 +130,12 @@ def test_smoke_budget(name, root, capsys):
     table = (store.dir / "table.md").read_text()
     summary_table = table.split("\n\n")[0]
     rows = [line for line in summary_table.splitlines() if line.startswith("| ")][1:]
-    # ground_truth compares two shifts (the shipped bound, one std) per run.
-    rows_per_run = len(study.BRANCHES) if name == "ground_truth" else 1
-    assert len(rows) == rows_per_run * len(specs)
+    # ground_truth compares two shifts per PPO run (the shipped bound, one std) and, per SAC
+    # run, ESA and the gradient at each trust region.
+    if name == "ground_truth":
+        assert len(rows) == sum(len(study._branches(spec.method)) for spec in specs)
+    else:
+        assert len(rows) == len(specs)
     section = (store.dir / "section.md").read_text()
     for png in pngs:
         assert f"results-smoke/{name}/{png.name}" in section
