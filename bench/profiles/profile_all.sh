@@ -1,7 +1,7 @@
 #!/bin/bash
 # usage: prof_all.sh OUTDIR
 set -u
-cd /work/main
+cd "$(dirname "$0")/../.."
 export OMP_NUM_THREADS=1
 out=$1
 for cfg in "PPO inprocess 1" "ESAPPO inprocess 1" "ESAPPO sidecar-native 1" "PPO inprocess 8" "ESAPPO inprocess 8" "ESAPPO sidecar-native 8"; do

@@ -16,11 +16,12 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import time
 
 import torch as th
-from esa_client.sb3 import ESAPPO, EsaConfig
+from esa_client.sb3 import ESAPPO
 from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -31,8 +32,15 @@ ENGINES = {
 }
 
 
-def build(agent: str, engine: str, n_envs: int, ungated: bool, seed: int = 0) -> PPO:
-    """The model: plain PPO or ESAPPO on ``engine``."""
+def build(
+    agent: str, engine: str, n_envs: int, ungated: bool, seed: int = 0, package: str = "esa_client"
+) -> PPO:
+    """The model: plain PPO or ESAPPO on ``engine``.
+
+    ``package``: the esa_client package to take ESAPPO from; another name (a copy of an
+    earlier version, see ``cpu_ratio.py --before``) compares two versions in one process.
+    """
+    sb3 = importlib.import_module(f"{package}.sb3")
     env = make_vec_env("InvertedPendulum-v5", n_envs=n_envs, seed=seed)
     # 2048-step rollouts whatever the env count (SB3's default with 1 env): with 8 envs
     # SB3's n_steps=2048 would collect 16,384 steps before the first update, so ESAPPO's
@@ -40,8 +48,9 @@ def build(agent: str, engine: str, n_envs: int, ungated: bool, seed: int = 0) ->
     common = dict(n_steps=2048 // n_envs, seed=seed, device="cpu", verbose=0)
     if agent == "PPO":
         return PPO("MlpPolicy", env, **common)
-    esa = EsaConfig(gate=None) if ungated else EsaConfig()
-    return ESAPPO("MlpPolicy", env, esa=esa, **common, **ENGINES[engine])
+    esa = sb3.EsaConfig(gate=None) if ungated else sb3.EsaConfig()
+    model: PPO = sb3.ESAPPO("MlpPolicy", env, esa=esa, **common, **ENGINES[engine])
+    return model
 
 
 def main() -> None:

@@ -1,8 +1,9 @@
 """Summarizes py-spy ``--format raw`` profiles of ``run_one.py``: ESA's buckets, top frames.
 
 Only samples under ``learn()`` count. Each sample goes to the first bucket whose frame is
-on its stack (``BUCKETS``, in order); ESAPPO's forward pass is split at the policy's
-``log_prob`` (ppo.py, before: PPO's own forward; after: ESA's glue in the forward).
+on its stack (``BUCKETS``, in order); in ESAPPO's forward pass, the policy's own calls
+(``POLICY_CALLS``) count as PPO's, the rest (and the forward's own lines: numpy and
+tensor conversions) as ESA's glue.
 
 Usage::
 
@@ -36,8 +37,16 @@ BUCKETS: list[tuple[str, str]] = [
     ("ESA logging", r"^(dump_logs) \(.*mixin\.py:"),
 ]
 FORWARD = re.compile(r"^forward \(.*sb3/ppo\.py:(\d+)\)$")
-LOG_PROB_LINE = 270
-"""ppo.py's line of ``log_prob = distribution.log_prob(actions)`` in ``_esa_forward``."""
+POLICY_CALLS = (
+    "extract_features (",
+    "_wrapped_call_impl (",
+    "forward_actor (",
+    "forward_critic (",
+    "_get_action_dist_from_latent (",
+    "get_actions (",
+    "log_prob (",
+)
+"""What ``_esa_forward`` calls that PPO's own forward calls too; the rest is ESA's."""
 
 
 def short(frame: str) -> str:
@@ -66,10 +75,11 @@ def bucket(frames: list[str]) -> str:
         regex = re.compile(pattern)
         if any(regex.match(frame) for frame in frames):
             return name
-    for frame in frames:
-        m = FORWARD.match(frame)
-        if m and int(m.group(1)) > LOG_PROB_LINE:
-            return "ESA glue in forward (head features, conversions)"
+    for i, frame in enumerate(frames):
+        if FORWARD.match(frame):
+            child = frames[i + 1] if i + 1 < len(frames) else ""
+            if not child.startswith(POLICY_CALLS):
+                return "ESA glue in forward (head features, conversions)"
     if any(f.startswith("collect_rollouts (") for f in frames):
         return "PPO: collect_rollouts (policy forward, env step, buffer)"
     if any(f.startswith("train (") for f in frames):

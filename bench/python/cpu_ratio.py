@@ -11,7 +11,11 @@ InvertedPendulum-v5, SB3's default PPO hyperparameters, torch on one thread, the
 Usage::
 
     python bench/python/cpu_ratio.py [--n-envs 1,8] [--repeats 3] \
-        [--engines inprocess,sidecar-native]
+        [--engines inprocess,sidecar-native] [--before DIR]
+
+With ``--before DIR`` (``DIR/esa_client_before``: e.g. ``cp -r client-py/src/esa_client``
+of an earlier commit), the earlier ESAPPO runs in the same alternation: a before/after
+comparison in one process.
 """
 
 from __future__ import annotations
@@ -48,9 +52,11 @@ def children_cpu_seconds() -> float:
     return total
 
 
-def run(agent: str, engine: str, n_envs: int, steps: int) -> tuple[float, float]:
+def run(
+    agent: str, engine: str, n_envs: int, steps: int, package: str = "esa_client"
+) -> tuple[float, float]:
     """One training; the trainer's CPU seconds of learn() and the sidecar's CPU seconds."""
-    model = build(agent, engine, n_envs, ungated=False)
+    model = build(agent, engine, n_envs, ungated=False, package=package)
     cpu = time.process_time()
     model.learn(steps)
     cpu = time.process_time() - cpu
@@ -69,17 +75,28 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=12_288)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default="")
+    parser.add_argument(
+        "--before",
+        default="",
+        help="a folder holding a copy of an earlier esa_client named esa_client_before: "
+        "its ESAPPO runs alternate with the current one's",
+    )
     args = parser.parse_args()
     th.set_num_threads(1)
     os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
-    configs = [("PPO", "inprocess")] + [("ESAPPO", e) for e in args.engines.split(",")]
+    configs = [("PPO", "inprocess", "")] + [("ESAPPO", e, "") for e in args.engines.split(",")]
+    if args.before:
+        # A copy of an earlier esa_client renamed esa_client_before, found on sys.path.
+        sys.path.insert(0, args.before)
+        configs += [("ESAPPO", e, "esa_client_before") for e in args.engines.split(",")]
     results = []
     for n_envs in (int(n) for n in args.n_envs.split(",")):
         cpu: dict[str, list[float]] = {}
         for _ in range(args.repeats):
-            for agent, engine in configs:
+            for agent, engine, package in configs:
                 name = agent if agent == "PPO" else f"{agent} [{engine}]"
-                trainer, server = run(agent, engine, n_envs, args.steps)
+                name += " before" if package else ""
+                trainer, server = run(agent, engine, n_envs, args.steps, package or "esa_client")
                 cpu.setdefault(name, []).append(trainer + server)
                 print(
                     f"{n_envs} env(s) {name:<26} cpu {trainer:6.2f} s + server {server:5.2f} s",
