@@ -73,7 +73,7 @@ buf-baseline: ## at a release: the proto as released becomes buf breaking's base
 	cd tools/buf && npm ci --no-audit --no-fund --silent
 	$(BUF) build -o tools/buf/esa-v1-release.binpb
 
-lint: venv ## rustfmt, clippy -D warnings, ruff, mypy --strict
+lint: venv ## rustfmt, clippy -D warnings, ruff, mypy --strict, gRPC stubs, k8s schemas, docs --strict
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy --release --workspace --all-targets -- -D warnings
 	$(VENV)/bin/ruff check $(PY_LINT)
@@ -178,4 +178,4 @@ wheel-check: ## make wheel, install only it (+ sb3 extra) in a clean venv, run a
 
 clean: ## remove build outputs and the venv
 	$(CARGO) clean
-	rm -rf $(VENV)
+	rm -rf $(VENV) .venv-proto .venv-release site dist deploy/container/rootfs
