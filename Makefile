@@ -68,6 +68,12 @@ buf:
 		echo "buf: lint and breaking-change check passed"; \
 	else echo "buf: SKIPPED: npm not found (it installs @bufbuild/buf)"; fi
 
+.PHONY: crates-check
+# esa-proto needs esa-core and esa-client needs esa-proto from crates.io once published; until
+# then cargo packages and verifies them together (publish in this order). Not in make test.
+crates-check: ## cargo package (and verify) the publishable crates esa-core, esa-proto, esa-client
+	$(CARGO) package -p esa-core -p esa-proto -p esa-client
+
 .PHONY: buf-baseline
 buf-baseline: ## at a release: the proto as released becomes buf breaking's baseline
 	cd tools/buf && npm ci --no-audit --no-fund --silent
