@@ -137,7 +137,11 @@ def main() -> None:
         url = f"http://127.0.0.1:{metrics_port}/metrics"
         metrics = urllib.request.urlopen(url, timeout=5).read().decode()
         assert 'esa_requests_total{rpc="Probe",code="OK"} 1' in metrics, metrics
-        print("metrics: esa_requests_total counted the Probe")
+        for name in ("esa_build_info{version=", "process_resident_memory_bytes "):
+            assert name in metrics, f"no {name} in {metrics}"
+        print(
+            "metrics: esa_requests_total counted the Probe; build info and process metrics"
+        )
         if process is not None:
             uid = (
                 Path(f"/proc/{process.pid}/status")
