@@ -1,4 +1,4 @@
-"""Training wall-clock with and without ESA: PPO vs ESAPPO and SAC vs ESASAC.
+"""Training wall-clock with and without ESA: PPO, SAC and TD3 against their ESA drop-ins.
 
 Each pair trains for the same number of steps on InvertedPendulum-v5, the same seed
 and hyperparameters, torch on one thread, with one env by default (SB3's default, how
@@ -12,9 +12,13 @@ for the ESA agents that includes opening the engine or spawning the server, the 
 trips, the critic evaluations and ESAPPO's advantage head.
 The pairs run alternately ``repeats`` times so background load hits both alike.
 
-The ESA agents run the shipped ``EsaConfig()`` and, to price ESA when it is on at every
-step, ``EsaConfig(gate=None)``: the gate keeps ESA off while the critic is poor, so the
-default's cost depends on the run.
+The ESA agents run each family's shipped default (``EsaConfig()`` for ESAPPO,
+``EsaConfig.off_policy()`` for ESASAC and ESATD3) and, to price ESA when it is on at every
+step, the same with ``gate=None``: the gate keeps ESA off while the critic is poor, so the
+default's cost depends on the run. The modes of the campaign are priced too: ESAPPO's
+improvement target (``esa_mode="target"``) and the gradient controls
+(``esa_shift="gradient"``: autograd in the trainer, no engine, so they run once, on no
+engine).
 
 To tell the service's share from the algorithm's, the ESA agents' time is also split
 by wrapping methods with timers: the round trips (``SessionBatch.probe_applied``, which
@@ -24,6 +28,7 @@ round trips plus critic evaluations) and ESAPPO's advantage-head fit and gate.
 Usage::
 
     python bench/python/training_overhead.py [--ppo-steps 12288] [--sac-steps 8000] [--n-envs 1]
+        [--agents "ESAPPO,ESATD3 qgrad"] [--engines inprocess]
 """
 
 from __future__ import annotations
@@ -42,12 +47,49 @@ import numpy as np
 import torch as th
 from esa_client import SessionBatch
 from esa_client.common.runtime import EsaRuntime
-from esa_client.sb3 import ESAPPO, ESASAC, EsaConfig
-from stable_baselines3 import PPO, SAC
+from esa_client.sb3 import ESAPPO, ESASAC, ESATD3, EsaConfig
+from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
 from cli import parse_dataclass
 from servers import server_binary
+
+
+@dataclass(frozen=True)
+class Agent:
+    """An ESA agent of the bench.
+
+    Attributes:
+        plain: Its algorithm without ESA (``PPO``, ``SAC`` or ``TD3``).
+        esa: Its ``esa=`` (None: the family's shipped default).
+        options: Its other ESA keyword arguments (mode, shift).
+        engine_free: True for the gradient controls: no session, so no engine to compare.
+    """
+
+    plain: str
+    esa: EsaConfig | None = None
+    options: tuple[tuple[str, str], ...] = ()
+    engine_free: bool = False
+
+
+GRADIENT = (("esa_shift", "gradient"),)
+TARGET = (("esa_mode", "target"),)
+AGENTS = {
+    "ESAPPO": Agent("PPO"),
+    "ESAPPO ungated": Agent("PPO", EsaConfig(gate=None)),
+    "ESAPPO target": Agent("PPO", options=TARGET),
+    "ESAPPO qgrad target": Agent("PPO", options=TARGET + GRADIENT, engine_free=True),
+    "ESASAC": Agent("SAC"),
+    "ESASAC ungated": Agent("SAC", EsaConfig.off_policy(gate=None)),
+    "ESASAC qgrad": Agent("SAC", options=GRADIENT, engine_free=True),
+    "ESATD3": Agent("TD3"),
+    "ESATD3 qgrad": Agent("TD3", options=GRADIENT, engine_free=True),
+}
+"""ESA agent name -> what it runs."""
+PLAIN = {"PPO": PPO, "SAC": SAC, "TD3": TD3}
+DROP_IN = {"PPO": ESAPPO, "SAC": ESASAC, "TD3": ESATD3}
+ENGINE_FREE = "none"
+"""The engine column of the engine-free agents."""
 
 
 @dataclass
@@ -61,7 +103,7 @@ class Args:
     sac_steps: int = 8_000
     sac_learning_starts: int = 800
     repeats: int = 2
-    agents: str = "ESAPPO,ESAPPO ungated,ESASAC,ESASAC ungated"
+    agents: str = ",".join(AGENTS)
     engines: str = "inprocess,sidecar,sidecar-native"
     seed: int = 0
     out: str = "bench/results/training.json"
@@ -81,14 +123,6 @@ ENGINES = {
     "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"native": True}},
 }
 """Engine name -> the ESA agent's arguments that choose it."""
-
-AGENTS = {
-    "ESAPPO": ("PPO", EsaConfig()),
-    "ESAPPO ungated": ("PPO", EsaConfig(gate=None)),
-    "ESASAC": ("SAC", EsaConfig()),
-    "ESASAC ungated": ("SAC", EsaConfig(gate=None)),
-}
-"""ESA agent -> (its plain algorithm, its ESA settings)."""
 
 
 @contextmanager
@@ -124,42 +158,39 @@ def agent_name(agent: str, engine: str) -> str:
 def train_seconds(
     name: str, n_envs: int, args: Args, engine: str | None = None
 ) -> tuple[float, dict[str, float]]:
-    """Builds agent ``name`` (``PPO``, ``SAC`` or a key of ``AGENTS``) and times ``learn()``.
+    """Builds agent ``name`` (``PPO``, ``SAC``, ``TD3`` or a key of ``AGENTS``), times ``learn()``.
 
     Args:
         name: The agent.
         n_envs: How many envs.
         args: The benchmark settings.
-        engine: The ESA agent's engine, a key of ``ENGINES`` (None for the plain ones).
+        engine: The ESA agent's engine, a key of ``ENGINES`` or ``ENGINE_FREE`` (None for
+            the plain ones).
 
     Returns:
         The wall-clock seconds and the seconds spent in each ``TIMED`` bucket.
     """
     env = make_vec_env(args.env_id, n_envs=n_envs, seed=args.seed)
-    common = dict(seed=args.seed, device="cpu", verbose=0)
-    family, esa = AGENTS.get(name, (name, None))
-    chosen = {} if esa is None or engine is None else ENGINES[engine]
+    common: dict = dict(seed=args.seed, device="cpu", verbose=0)
+    if name in PLAIN:
+        family, cls = name, PLAIN[name]
+    else:
+        agent = AGENTS[name]
+        family, cls = agent.plain, DROP_IN[agent.plain]
+        common.update(agent.options, **ENGINES.get(engine or ENGINE_FREE, {}))
+        if agent.esa is not None:
+            common["esa"] = agent.esa
     if family == "PPO":
-        kwargs = dict(n_steps=args.ppo_n_steps, batch_size=64, **common)
-        model = (
-            PPO("MlpPolicy", env, **kwargs)
-            if esa is None
-            else ESAPPO("MlpPolicy", env, esa=esa, **chosen, **kwargs)
-        )
+        model = cls("MlpPolicy", env, n_steps=args.ppo_n_steps, batch_size=64, **common)
         steps = args.ppo_steps
     else:
-        kwargs = dict(learning_starts=args.sac_learning_starts, **common)
-        model = (
-            SAC("MlpPolicy", env, **kwargs)
-            if esa is None
-            else ESASAC("MlpPolicy", env, esa=esa, **chosen, **kwargs)
-        )
+        model = cls("MlpPolicy", env, learning_starts=args.sac_learning_starts, **common)
         steps = args.sac_steps
     with timed_methods() as buckets:
         start = time.perf_counter()
         model.learn(steps)
         seconds = time.perf_counter() - start
-    if isinstance(model, (ESAPPO, ESASAC)):
+    if isinstance(model, (ESAPPO, ESASAC, ESATD3)):
         model.esa_close()
     env.close()
     return seconds, dict(buckets)
@@ -174,8 +205,14 @@ def main() -> None:
     rows = []
     agents = args.agents.split(",")
     engines = args.engines.split(",")
-    runs = [(plain, plain, None) for plain in sorted({AGENTS[a][0] for a in agents})]
-    runs += [(agent_name(a, e), a, e) for a in agents for e in engines]
+    runs: list[tuple[str, str, str | None]] = [
+        (plain, plain, None) for plain in sorted({AGENTS[a].plain for a in agents})
+    ]
+    runs += [
+        (agent_name(a, e), a, e)
+        for a in agents
+        for e in ([ENGINE_FREE] if AGENTS[a].engine_free else engines)
+    ]
     for n_envs in (int(n) for n in args.n_envs.split(",")):
         seconds: dict[str, list[float]] = {name: [] for name, _, _ in runs}
         buckets: dict[str, list[dict[str, float]]] = {name: [] for name, _, _ in runs}
@@ -189,7 +226,7 @@ def main() -> None:
         for esa, agent, engine in runs:
             if engine is None:
                 continue
-            plain = AGENTS[agent][0]
+            plain = AGENTS[agent].plain
             ratios = np.asarray(seconds[esa]) / np.asarray(seconds[plain])
             rows.append(
                 {
