@@ -20,6 +20,12 @@ The seed rule, fixed before any result: seeds 0-19 for every arm, all run, no op
 stopping; the report gives all 20 and the halves 0-9 and 10-19. Runs are ordered
 seed-major, so a campaign cut short (or run across sessions) compares every arm on the
 seeds it finished, and finished runs combine (:class:`~esa_experiments.runs.RunStore`).
+
+On 2 cores the whole campaign is about 30 CPU-hours. Sessions without a lent 16-core
+machine run it group by group, cheapest first, each group to all 20 seeds (``--envs`` and
+``--methods`` pick the group; the order was fixed by cost before any of these runs was
+read): PPO on InvertedPendulum-v5, SAC on the quadrotor, then seed-major over the rest.
+A verdict is only reported on the seeds both of its arms finished.
 """
 
 from __future__ import annotations
