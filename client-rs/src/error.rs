@@ -97,13 +97,14 @@ impl Error {
 
     /// The error of a failed call, with the batch item its details name.
     ///
-    /// Two of tonic's own statuses get the contract's code (and grpcio's): a passed deadline is
-    /// CANCELLED in tonic, and a connection lost mid-call UNKNOWN with the transport error as its
-    /// source (a status the server sent has none).
+    /// Tonic's own statuses get the contract's code (and grpcio's): a passed deadline is
+    /// CANCELLED in tonic; a connection lost mid-call is UNKNOWN, and bytes that are not HTTP/2
+    /// (a plaintext client at a TLS port, whose alert it reads) are INTERNAL, each with the
+    /// transport error as its source (a status the server sent has none): both are UNAVAILABLE.
     pub fn from_status(status: &Status) -> Self {
         let index = esa_proto::details::batch_item(status.details()).map(|index| index as usize);
         let (code, message) = match std::error::Error::source(status) {
-            Some(source) if status.code() == Code::Unknown => (
+            Some(source) if matches!(status.code(), Code::Unknown | Code::Internal) => (
                 Code::Unavailable,
                 format!("{}: {}", status.message(), chain(source)),
             ),
@@ -169,4 +170,33 @@ fn chain(error: &(dyn std::error::Error + 'static)) -> String {
         next = source.source();
     }
     text
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+
+    fn with_transport_source(code: Code) -> Status {
+        let mut status = Status::new(code, "h2 protocol error: http2 error");
+        status.set_source(Arc::new(std::io::Error::other("not HTTP/2")));
+        status
+    }
+
+    #[test]
+    fn a_transport_failure_is_unavailable_whatever_code_tonic_gave_it() {
+        for code in [Code::Unknown, Code::Internal] {
+            let err = Error::from_status(&with_transport_source(code));
+            assert_eq!(err.kind(), Kind::ServerUnavailable, "{code:?}");
+            assert!(err.message().ends_with(": not HTTP/2"), "{err}");
+        }
+    }
+
+    #[test]
+    fn a_status_the_server_sent_keeps_its_code() {
+        for code in [Code::Unknown, Code::Internal, Code::NotFound] {
+            assert_eq!(Error::from_status(&Status::new(code, "x")).code(), code);
+        }
+    }
 }
