@@ -98,20 +98,29 @@ impl Error {
     /// The error of a failed call, with the batch item its details name.
     ///
     /// Tonic's own statuses get the contract's code (and grpcio's): a passed deadline is
-    /// CANCELLED in tonic; a connection lost mid-call is UNKNOWN, and bytes that are not HTTP/2
-    /// (a plaintext client at a TLS port, whose alert it reads) are INTERNAL, each with the
-    /// transport error as its source (a status the server sent has none): both are UNAVAILABLE.
+    /// CANCELLED in tonic; a connection lost mid-call is UNKNOWN, a connection that closes
+    /// before the call is sent (a failed mutual-TLS handshake) is CANCELLED, and bytes that are
+    /// not HTTP/2 (a plaintext client at a TLS port, whose alert it reads) are INTERNAL, each
+    /// with the transport error as its source (a status the server sent has none): all three
+    /// are UNAVAILABLE.
     pub fn from_status(status: &Status) -> Self {
         let index = esa_proto::details::batch_item(status.details()).map(|index| index as usize);
         let (code, message) = match std::error::Error::source(status) {
-            Some(source) if matches!(status.code(), Code::Unknown | Code::Internal) => (
-                Code::Unavailable,
-                format!("{}: {}", status.message(), chain(source)),
-            ),
             _ if status.code() == Code::Cancelled
                 && status.message() == TimeoutExpired(()).to_string() =>
             {
                 (Code::DeadlineExceeded, status.message().to_string())
+            }
+            Some(source)
+                if matches!(
+                    status.code(),
+                    Code::Unknown | Code::Internal | Code::Cancelled
+                ) =>
+            {
+                (
+                    Code::Unavailable,
+                    format!("{}: {}", status.message(), chain(source)),
+                )
             }
             _ => (status.code(), status.message().to_string()),
         };
@@ -186,7 +195,7 @@ mod tests {
 
     #[test]
     fn a_transport_failure_is_unavailable_whatever_code_tonic_gave_it() {
-        for code in [Code::Unknown, Code::Internal] {
+        for code in [Code::Unknown, Code::Internal, Code::Cancelled] {
             let err = Error::from_status(&with_transport_source(code));
             assert_eq!(err.kind(), Kind::ServerUnavailable, "{code:?}");
             assert!(err.message().ends_with(": not HTTP/2"), "{err}");
@@ -195,7 +204,12 @@ mod tests {
 
     #[test]
     fn a_status_the_server_sent_keeps_its_code() {
-        for code in [Code::Unknown, Code::Internal, Code::NotFound] {
+        for code in [
+            Code::Unknown,
+            Code::Internal,
+            Code::Cancelled,
+            Code::NotFound,
+        ] {
             assert_eq!(Error::from_status(&Status::new(code, "x")).code(), code);
         }
     }
