@@ -1,7 +1,8 @@
 """Chaos: trainers on one esa-server survive its restart, a stall and a cut connection.
 
-Over gRPC (grpcio StepStream and unary batches, the native Rust client), SB3's ESAPPO, and
-Zenoh (one server, or one of two shards killed and restarted).
+Over gRPC (grpcio StepStream and unary batches, the native Rust client), SB3's ESAPPO, a
+custom loop on the gymnasium wrapper, and Zenoh (one server, or one of two shards killed
+and restarted).
 
 Every test runs the real server binary on a fixed loopback port (so a restart comes back
 on the same address) and several trainers at once, each a thread with its own client.
@@ -404,6 +405,62 @@ def test_sigkill_and_restart_under_two_esappo_trainers(server, tmp_path):
         log = (tmp_path / str(i) / "progress.csv").read_text()
         assert "esa/sessions_restored" in log
         model.esa_close()
+
+
+def test_sigkill_and_restart_under_two_gymnasium_wrapper_loops(server):
+    gym = pytest.importorskip("gymnasium")
+    from esa_client.wrappers import EsaActionWrapper
+
+    steps = 250
+    clients = [
+        EsaClient.connect(server.address, timeout=1.0, reconnect_timeout=20)
+        for _ in "ab"
+    ]
+    envs = [
+        EsaActionWrapper(
+            gym.make("Pendulum-v1", max_episode_steps=EPISODE),
+            lambda obs, action: float(-np.sum((action - 0.3) ** 2)),
+            EsaConfig(gate=None),
+            client,
+        )
+        for client in clients
+    ]
+    done, errors = [0, 0], []
+
+    def loop(i: int) -> None:
+        env = envs[i]
+        try:
+            env.reset(seed=i)
+            for _ in range(steps):
+                _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+                done[i] += 1
+                if terminated or truncated:
+                    env.reset()
+                time.sleep(0.004)
+        except BaseException as err:  # noqa: BLE001 (reported by the test)
+            errors.append(err)
+
+    threads = [threading.Thread(target=loop, args=(i,), daemon=True) for i in range(2)]
+    for thread in threads:
+        thread.start()
+    try:
+        time.sleep(0.4)
+        server.kill()
+        time.sleep(1.5)
+        server.start()
+        for thread in threads:
+            thread.join(timeout=25)
+            assert not thread.is_alive(), "a loop hangs"
+        assert errors == []
+        assert done == [steps, steps]
+        for env in envs:
+            batch = env._batch
+            assert batch.sessions_restored == 1
+            assert [s.step for s in batch.states()] == batch.steps.tolist()
+    finally:
+        for env, client in zip(envs, clients, strict=True):
+            env.close()
+            client.close()
 
 
 @pytest.mark.parametrize("shards", [1, 2])

@@ -36,7 +36,7 @@ from ray.rllib.core.distribution.torch.torch_distribution import (  # noqa: E402
 from ray.tune.registry import register_env  # noqa: E402
 
 from esa_client import EsaConfig  # noqa: E402
-from esa_client.rllib import ESA_SHIFT, EsaModuleToEnv, with_esa  # noqa: E402
+from esa_client.rllib import ESA_SHIFT, EsaModuleToEnv, EsaService, with_esa  # noqa: E402
 
 # The env creator below travels to the Ray workers by value (this module is not importable
 # there under pytest's importlib mode).
@@ -242,6 +242,34 @@ def test_ppo_two_runners_store_applied_actions_and_behaviour_logp(ray_session):
         for k in [*head, "esa_active"]:
             np.testing.assert_array_equal(s["state"][k], learner[k])
     check_shared_sidecar(ray_session, samples)
+
+
+def test_a_runner_goes_on_without_esa_once_its_server_stays_away(ray_session, server_bin):
+    """``EsaService(on_unavailable="skip")``: the server dies for good, training goes on."""
+    server = subprocess.Popen(
+        [server_bin, "--listen", "127.0.0.1:0"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        line = server.stdout.readline()
+        assert line.startswith("listening on "), line
+        service = EsaService(
+            address=line.split()[-1], timeout=0.5, reconnect_timeout=0.5, on_unavailable="skip"
+        )
+        algo = with_esa(sac_config(runners=0), UNGATED, service=service).build_algo()
+        try:
+            # ESA acts once the learner has trained (SAC's first steps are random).
+            results = [algo.train()["env_runners"] for _ in range(3)]
+            assert results[-1]["esa/mean_abs_shift"] > 0
+            server.kill()
+            server.wait()
+            result = algo.train()["env_runners"]
+            assert result["esa/unavailable_steps"] > 0
+            assert result["num_env_steps_sampled"] > 0
+        finally:
+            algo.stop()
+    finally:
+        server.kill()
+        server.wait()
 
 
 def weights(algo):

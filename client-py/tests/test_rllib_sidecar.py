@@ -123,6 +123,8 @@ def test_service_settings_are_checked():
         EsaService(address="127.0.0.1:50051", shards=2)
     with pytest.raises(ValueError, match="timeout"):
         EsaService(timeout=0)
+    with pytest.raises(ValueError, match="on_unavailable"):
+        EsaService(on_unavailable="retry")
     assert EsaService().uses_sidecar
     assert not EsaService(zenoh=["tcp/127.0.0.1:7447"], shards=2).uses_sidecar
 

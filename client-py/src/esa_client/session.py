@@ -65,6 +65,10 @@ def restore_sessions(
 class Session:
     """One ESA session; created by :meth:`EsaClient.create_session`.
 
+    The unary calls, each raising the wire's error at once: a loop that should ride out
+    a server restart or stall steps a :class:`SessionBatch` instead (one env:
+    ``create_batch(config, 1)``), as the gymnasium wrapper and the drop-ins do.
+
     Attributes:
         id: The session id.
         config: The session config.

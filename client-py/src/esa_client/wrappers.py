@@ -31,6 +31,10 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     ``a_t + v(t)``. ``info["esa_action"]`` holds that applied action, so a learner can
     store it, as the paper does. Each ``reset`` starts a new ESA episode.
 
+    The session is a one-env :class:`~esa_client.session.SessionBatch`, so a server
+    that restarts or stalls is ridden out as for the SB3 drop-ins (for up to the
+    client's ``reconnect_timeout``, the lost episode's shift restarting from 0).
+
     Example::
 
         env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn=lambda o, a: critic(o, a))
@@ -74,7 +78,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         self._owns_client = client is None
         self._client: BaseClient = EsaClient.spawn() if client is None else client
         try:
-            self._session = self._client.create_session(config)
+            self._batch = self._client.create_batch(config, 1)
         except BaseException:
             if self._owns_client:
                 self._client.close()
@@ -98,16 +102,17 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         scale = self._action_scale
         if callable(scale):
             scale = scale(self._obs)
-        probe, applied = self._session.probe_applied(
-            sampled, episode_start=self._episode_start, action_scale=scale
+        probes, applied = self._batch.probe_applied(
+            sampled[None], [self._episode_start], action_scales=scale
         )
         self._episode_start = False
 
         def q(point: np.ndarray) -> float:
             return float(self._q_fn(self._obs, point.reshape(space.shape).astype(space.dtype)))
 
-        self._session.report(q(probe), q_reference=q(applied) if self._paired else None)
-        return applied.reshape(space.shape).astype(space.dtype)
+        reference = [q(applied[0])] if self._paired else None
+        self._batch.report([q(probes[0])], q_references=reference)
+        return applied[0].reshape(space.shape).astype(space.dtype)
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         """Steps the env with the improved action (also returned as ``info["esa_action"]``)."""
@@ -119,7 +124,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     def close(self) -> None:
         """Closes the session (and the private server, if this wrapper spawned it) and the env."""
         with contextlib.suppress(EsaError):
-            self._session.close()
+            self._batch.close()
         if self._owns_client:
             self._client.close()
         super().close()

@@ -27,8 +27,9 @@ equals the applied action and the update moves nothing, so the episode's first r
 action is the session's step 1. Starting it there, and not again one step later, keeps
 the session's episode count (``lr_decay``, ``max_episodes``) equal to the env's.
 An EnvRunner that is recreated builds a new connector, hence new sessions; one whose
-server became unreachable reconnects once (a node sidecar is restarted) and starts new
-sessions.
+server stayed unreachable past ``reconnect_timeout`` reconnects once more (a node sidecar
+is restarted) and starts new sessions, or, with ``EsaService(on_unavailable="skip")``, goes
+on without ESA until an episode starts.
 """
 
 from __future__ import annotations
@@ -257,6 +258,7 @@ class EsaModuleToEnv(ConnectorV2):
             clip_low,
             clip_high,
             improvement_every=self.improvement_every,
+            on_unavailable=self.service.on_unavailable,
         )
         self._finalizer = weakref.finalize(self, runtime.close)
         self._runtime = runtime
@@ -331,7 +333,8 @@ class EsaModuleToEnv(ConnectorV2):
         try:
             applied = runtime.step(sampled, starts, q_fn, scale)
         except ServerUnavailable:
-            # The server is gone (e.g. the node sidecar was killed): reconnect once.
+            # The server stayed away (on_unavailable="raise"): reconnect once more, e.g. to
+            # a node sidecar started since.
             self.close()
             self.reconnects += 1
             if metrics is not None:

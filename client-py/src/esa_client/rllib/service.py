@@ -43,6 +43,7 @@ from typing import TypeVar
 from .._proto.esa.v1 import esa_pb2
 from ..base_client import BaseClient
 from ..client import EsaClient
+from ..common.runtime import OnUnavailable, check_on_unavailable
 from ..errors import EsaError, ServerUnavailable, StatusCode
 from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
 from ..sidecar import find_server_binary
@@ -422,7 +423,12 @@ class EsaService:
         startup_timeout: Seconds to wait for the node sidecar (or a server) to be ready.
         reconnect_timeout: Seconds a runner's batch keeps retrying a lost server (a node
             sidecar that died is restarted, or the one another runner restarted joined)
-            before it raises ``ServerUnavailable``.
+            before ``on_unavailable`` applies.
+        on_unavailable: ``"raise"`` (default): the runner's step raises
+            ``ServerUnavailable`` after one more reconnection, and the runner fails as for
+            any error of its env; ``"skip"``: its envs execute the sampled actions without
+            ESA until an episode of one of them starts, where the server is tried again
+            (counted as ``env_runners/esa/unavailable_steps``).
     """
 
     address: str | None = None
@@ -435,6 +441,7 @@ class EsaService:
     sidecar_args: tuple[str, ...] = field(default_factory=tuple)
     startup_timeout: float = 60.0
     reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT
+    on_unavailable: OnUnavailable = "raise"
 
     def __post_init__(self) -> None:
         """Checks that the fields describe one kind of service."""
@@ -450,6 +457,7 @@ class EsaService:
                 f"{self.startup_timeout}"
             )
         check_reconnect_timeout(self.reconnect_timeout)
+        check_on_unavailable(self.on_unavailable)
         object.__setattr__(self, "sidecar_args", tuple(str(a) for a in self.sidecar_args))
         if self.zenoh is not None and not isinstance(self.zenoh, str):
             object.__setattr__(self, "zenoh", tuple(self.zenoh))
