@@ -112,7 +112,8 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
 
         reference = [q(applied[0])] if self._paired else None
         self._batch.report([q(probes[0])], q_references=reference)
-        return applied[0].reshape(space.shape).astype(space.dtype)
+        executed: np.ndarray = applied[0].reshape(space.shape).astype(space.dtype)
+        return executed
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         """Steps the env with the improved action (also returned as ``info["esa_action"]``)."""
