@@ -402,16 +402,18 @@ fn scaled_steps(dim: usize) -> impl Strategy<Value = Vec<ScaledStep>> {
 }
 
 /// Runs `steps` with Q scaled by `c1` and offset by `c0`, reporting a paired reference when `paired`;
-/// returns every applied action (Algorithm 1's and the report's).
+/// returns every applied action (Algorithm 1's and the report's) and the smallest response mean
+/// square m the session held (infinite if it never held one).
 fn run_scaled(
     config: &SessionConfig,
     steps: &[ScaledStep],
     c1: f64,
     c0: f64,
     paired: bool,
-) -> Vec<f64> {
+) -> (Vec<f64>, f64) {
     let mut session = Session::new(config.clone()).expect("valid config");
     let (mut probe, mut actions) = (Vec::new(), Vec::new());
+    let mut smallest_m = f64::INFINITY;
     let q = |level: f64, u: &[f64]| {
         c1 * (level - u.iter().map(|x| (x - 0.3) * (x - 0.3)).sum::<f64>()) + c0
     };
@@ -428,8 +430,11 @@ fn run_scaled(
         session
             .report(at, q(step.state_level, &probe), reference, &mut actions)
             .expect("report");
+        if let Some(m) = session.response_mean_square() {
+            smallest_m = smallest_m.min(m);
+        }
     }
-    actions
+    (actions, smallest_m)
 }
 
 proptest! {
@@ -443,15 +448,19 @@ proptest! {
             let dim = c.action_dim as usize;
             (Just(c), scaled_steps(dim))
         }),
-        // From 0.1 up: at smaller scales h^2 nears the contract's 1e-12 guard, which the invariance
-        // explicitly excludes.
+        // From 0.1 up: at smaller scales h^2 nears the contract's 1e-12 guard more often (see below).
         c1 in prop_oneof![1e-1..1e4f64, Just(1.0)],
         c0 in -1e3..1e3f64,
         paired in prop::bool::ANY,
     ) {
         let offset = if paired || !config.disable_highpass { c0 } else { 0.0 };
-        let base = run_scaled(&config, &steps, 1.0, 0.0, paired);
-        let scaled = run_scaled(&config, &steps, c1, offset, paired);
+        let (base, base_m) = run_scaled(&config, &steps, 1.0, 0.0, paired);
+        let (scaled, scaled_m) = run_scaled(&config, &steps, c1, offset, paired);
+        // The guard moves g = h / sqrt(m + 1e-12) by about 1e-12 / (2 m) relative, and the shift feeds that
+        // back into later probes (about 10x over a run): the invariance holds where m stays above 1e-4 in
+        // both runs. A response near 0 at Q's scale 1 (an action near the quadratic's optimum) leaves it:
+        // about 1.4 % of cases, each seen failing at 1e-6.
+        prop_assume!(base_m.min(scaled_m) > 1e-4);
         for (i, (a, b)) in base.iter().zip(&scaled).enumerate() {
             prop_assert!((a - b).abs() <= 1e-6 * (1.0 + a.abs()), "action value {}: {} vs {} (c1 {}, c0 {})", i, a, b, c1, offset);
         }
