@@ -19,7 +19,7 @@ import socket
 import subprocess
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +89,12 @@ class Server:
         self.signal(signal.SIGKILL)
         assert self.process is not None
         self.process.wait()
+
+    def restart(self, down: float = 1.5) -> None:
+        """SIGKILL, ``down`` seconds without a server, then a new one on the same address."""
+        self.kill()
+        time.sleep(down)
+        self.start()
 
     def close(self) -> None:
         if self.process is not None and self.process.poll() is None:
@@ -207,14 +213,19 @@ class BatchTrainer(threading.Thread):
         self.client.close()
 
 
+def _join(threads: Sequence[threading.Thread], limit: float) -> None:
+    """Waits for every trainer thread, failing if one is still running after ``limit`` s."""
+    for thread in threads:
+        thread.join(timeout=limit)
+        assert not thread.is_alive(), "a trainer hangs"
+
+
 def _run(trainers: list[BatchTrainer], chaos: Callable[[], None], limit: float) -> None:
     for trainer in trainers:
         trainer.start()
     try:
         chaos()
-        for trainer in trainers:
-            trainer.join(timeout=limit)
-            assert not trainer.is_alive(), "a trainer hangs"
+        _join(trainers, limit)
         for trainer in trainers:
             trainer.check()
     finally:
@@ -236,9 +247,7 @@ def test_sigkill_and_restart_under_three_batch_trainers(server, transport):
 
     def chaos() -> None:
         time.sleep(0.4)
-        server.kill()
-        time.sleep(1.5)
-        server.start()
+        server.restart()
 
     _run(trainers, chaos, limit=25)
     for trainer in trainers:
@@ -388,12 +397,8 @@ def test_sigkill_and_restart_under_two_esappo_trainers(server, tmp_path):
         assert time.monotonic() < deadline
         time.sleep(0.05)
     time.sleep(0.1)  # into the rollout, well before the last one
-    server.kill()
-    time.sleep(1.5)
-    server.start()
-    for thread in threads:
-        thread.join(timeout=40)
-        assert not thread.is_alive(), "a trainer hangs"
+    server.restart()
+    _join(threads, 40)
     assert errors == []
     for i, model in enumerate(models):
         assert model.num_timesteps == n_steps * N_ENVS * rollouts
@@ -445,12 +450,8 @@ def test_sigkill_and_restart_under_two_gymnasium_wrapper_loops(server):
         thread.start()
     try:
         time.sleep(0.4)
-        server.kill()
-        time.sleep(1.5)
-        server.start()
-        for thread in threads:
-            thread.join(timeout=25)
-            assert not thread.is_alive(), "a loop hangs"
+        server.restart()
+        _join(threads, 25)
         assert errors == []
         assert done == [steps, steps]
         for env in envs:
