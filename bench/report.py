@@ -497,8 +497,7 @@ def python_section(python: dict) -> list[str]:
         "(`use_stream=False`, the default), `stream` = the StepStream. `uds` is "
         '`EsaClient.spawn()`, what the SB3 drop-ins use with `esa_engine="sidecar"`; '
         "`esa-native` = `EsaClient.in_process()` (esa-core in-process, their default). "
-        "`reference` = "
-        "`esa_client.reference` in-process; `python-grpcio` = `bench/python/baseline_server.py`. "
+        "`python-grpcio` = `bench/python/baseline_server.py`. "
         "`zenoh` = `ZenohEsaClient.spawn()` (esa-server `--zenoh` on loopback): `batch` = "
         "queries on `esa/v1/ProbeBatch`/`ReportBatch`, `stream` = one query per StepStream "
         "message on `esa/v1/StepStream`.",
