@@ -217,3 +217,19 @@ def test_errors_speak_no_grpcio():
     """In-process and Zenoh errors carry the client's code, never grpcio's."""
     error = esa_error(esa_pb2.StreamError(code=14, message="gone"))
     assert type(error.code) is StatusCode and error.code == StatusCode.UNAVAILABLE == 14
+
+
+def test_errors_pickle_with_their_code_and_item():
+    """Ray and multiprocessing re-raise pickled copies: the code and the item survive."""
+    import pickle
+
+    for code in StatusCode:
+        error = error_for(code.value, "what to fix", index=3)
+        copy = pickle.loads(pickle.dumps(error))
+        assert type(copy) is type(error)
+        assert (copy.code, copy.message, copy.index, str(copy)) == (
+            error.code,
+            error.message,
+            3,
+            str(error),
+        )

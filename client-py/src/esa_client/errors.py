@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import enum
 from types import TracebackType
-from typing import Protocol, cast
+from typing import Any, Protocol, cast
 
 from ._proto.esa.v1 import esa_pb2
 
@@ -75,6 +75,15 @@ class EsaError(Exception):
         self.code = code
         self.message = message
         self.index = index
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickles the message, code and index (Ray and multiprocessing re-raise copies)."""
+        return (_rebuild, (type(self), self.message, self.code, self.index))
+
+
+def _rebuild(cls: type[EsaError], message: str, code: StatusCode, index: int | None) -> EsaError:
+    """The error :meth:`EsaError.__reduce__` describes (keyword ``index``)."""
+    return cls(message, code, index=index)
 
 
 class SessionNotFound(EsaError, LookupError):

@@ -156,7 +156,9 @@ class GrpcStepStream:
             try:
                 for response in stream:
                     responses.put(response)
-                responses.put(ServerUnavailable("the server closed the StepStream"))
+                responses.put(
+                    ServerUnavailable("the server closed the StepStream", StatusCode.UNAVAILABLE)
+                )
             except grpc.RpcError as err:
                 responses.put(rpc_error(err))
 
