@@ -10,9 +10,12 @@ few messages per second per job.
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing as mp
 import os
 import queue
+import signal
+import sys
 import time
 import traceback
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -74,6 +77,19 @@ def _init_worker() -> None:
     import torch
 
     torch.set_num_threads(1)
+    _die_with_runner()
+
+
+def _die_with_runner() -> None:
+    """Linux: the worker is killed when the runner dies.
+
+    Otherwise a killed runner's workers finish their runs in flight beside a restarted
+    runner, which starts the same runs again (harmless, as writes are atomic and runs
+    deterministic, but it costs their cores), and then wait forever.
+    """
+    if sys.platform.startswith("linux"):
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
 
 
 Messages = queue.Queue[tuple[int, int]]
