@@ -1,4 +1,4 @@
-"""CPU-time ratio ESAPPO / PPO, measured in one process with alternating runs.
+"""CPU-time and wall-clock ratios ESAPPO / PPO, measured in one process with alternating runs.
 
 For a loaded host, where wall-clock ratios mean little: each run's ``learn()`` is timed
 with ``time.process_time()`` (this process's CPU seconds, all threads) and, for a spawned
@@ -6,7 +6,8 @@ sidecar, the esa-server's CPU seconds too (read from ``/proc`` just before it is
 stopped). PPO and the ESAPPO variants run in turn, ``--repeats`` times per env count, so
 slow phases of the host hit all alike. Settings as ``bench/profiles/run_one.py``:
 InvertedPendulum-v5, SB3's default PPO hyperparameters, torch on one thread, the shipped
-``EsaConfig()``.
+``EsaConfig()``. Wall-clock is reported beside CPU time: ESAPPO fits its head on a
+thread beside PPO's update, which shortens the wall-clock, not the CPU time.
 
 Usage::
 
@@ -54,17 +55,17 @@ def children_cpu_seconds() -> float:
 
 def run(
     agent: str, engine: str, n_envs: int, steps: int, package: str = "esa_client"
-) -> tuple[float, float]:
-    """One training; the trainer's CPU seconds of learn() and the sidecar's CPU seconds."""
+) -> tuple[float, float, float]:
+    """One training: the trainer's CPU seconds of learn(), the sidecar's, learn()'s wall seconds."""
     model = build(agent, engine, n_envs, ungated=False, package=package)
-    cpu = time.process_time()
+    cpu, wall = time.process_time(), time.perf_counter()
     model.learn(steps)
-    cpu = time.process_time() - cpu
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     server = children_cpu_seconds()
     if agent != "PPO":
         model.esa_close()  # type: ignore[attr-defined]
     model.get_env().close()
-    return cpu, server
+    return cpu, server, wall
 
 
 def main() -> None:
@@ -92,20 +93,26 @@ def main() -> None:
     results = []
     for n_envs in (int(n) for n in args.n_envs.split(",")):
         cpu: dict[str, list[float]] = {}
+        walls: dict[str, list[float]] = {}
         for _ in range(args.repeats):
             for agent, engine, package in configs:
                 name = agent if agent == "PPO" else f"{agent} [{engine}]"
                 name += " before" if package else ""
-                trainer, server = run(agent, engine, n_envs, args.steps, package or "esa_client")
+                trainer, server, wall = run(
+                    agent, engine, n_envs, args.steps, package or "esa_client"
+                )
                 cpu.setdefault(name, []).append(trainer + server)
+                walls.setdefault(name, []).append(wall)
                 print(
-                    f"{n_envs} env(s) {name:<26} cpu {trainer:6.2f} s + server {server:5.2f} s",
+                    f"{n_envs} env(s) {name:<26} cpu {trainer:6.2f} s + server {server:5.2f} s"
+                    f", wall {wall:6.2f} s",
                     flush=True,
                 )
         for name, seconds in cpu.items():
             if name == "PPO":
                 continue
             ratios = np.asarray(seconds) / np.asarray(cpu["PPO"])
+            wall_ratios = np.asarray(walls[name]) / np.asarray(walls["PPO"])
             results.append(
                 {
                     "n_envs": n_envs,
@@ -114,11 +121,16 @@ def main() -> None:
                     "ppo_cpu": cpu["PPO"],
                     "ratio_median": float(np.median(ratios)),
                     "ratios": ratios.tolist(),
+                    "wall": walls[name],
+                    "ppo_wall": walls["PPO"],
+                    "wall_ratio_median": float(np.median(wall_ratios)),
+                    "wall_ratios": wall_ratios.tolist(),
                 }
             )
             print(
                 f"{n_envs} env(s) {name} / PPO CPU-time ratio: "
-                f"median {np.median(ratios):.3f} {ratios.round(3)}"
+                f"median {np.median(ratios):.3f} {ratios.round(3)}; wall-clock ratio: "
+                f"median {np.median(wall_ratios):.3f} {wall_ratios.round(3)}"
             )
     if args.out:
         Path(args.out).write_text(json.dumps({"args": vars(args), "rows": results}, indent=2))
