@@ -242,25 +242,6 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
     assert not loaded_server.running()
 
 
-def head_parameters(model):
-    return th.cat([p.detach().reshape(-1) for p in model.esa_head.parameters()])
-
-
-def test_the_head_fits_beside_ppos_update_and_a_save_waits_for_it(tmp_path):
-    model = ESAPPO(
-        "MlpPolicy", "InvertedPendulum-v5", n_steps=256, batch_size=64, n_epochs=2, seed=0
-    )
-    model.learn(256)
-    assert model._esa_fitting is None, "learn() returns once the head's fit has finished"
-    fitted_once = head_parameters(model)
-    model.train()  # the second fit starts on the head's thread and is still running
-    model.save(tmp_path / "esappo.zip")
-    refitted = head_parameters(model)
-    assert model._esa_fitting is None and not th.equal(refitted, fitted_once)
-    loaded = ESAPPO.load(tmp_path / "esappo.zip")
-    assert th.equal(head_parameters(loaded), refitted), "the save holds the head after its fit"
-
-
 def parameters(model):
     return th.cat([p.detach().reshape(-1) for p in model.policy.parameters()])
 

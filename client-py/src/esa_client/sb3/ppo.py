@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, Literal, TypeVar, cast
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch as th
@@ -30,8 +29,6 @@ Shift = Literal["esc", "gradient"]
 """How the shift is found: ESA's extremum seeking, or the advantage head's gradient."""
 SHIFTS: tuple[str, ...] = ("esc", "gradient")
 
-SelfESAPPO = TypeVar("SelfESAPPO", bound="ESAPPO")
-
 
 class ESAPPO(EsaMixin, PPO):
     """PPO with Extremum-Seeking Action selection; a drop-in for ``stable_baselines3.PPO``.
@@ -51,9 +48,7 @@ class ESAPPO(EsaMixin, PPO):
     the last ``esa_head_rollouts`` rollouts. ESA intervenes only while the head passes
     ``EsaConfig.gate``: the rank correlation of its ``A(s, a) - A(s, mu)`` with the GAE
     advantages of a rollout it was not trained on (logged as ``esa/gate_correlation``
-    and ``esa/active``). The head is fitted on a thread of its own while PPO updates the
-    policy (the same bits as fitting it in line: neither touches the other's tensors or
-    random streams); the next rollout, a save and the end of ``learn()`` wait for it.
+    and ``esa/active``).
 
     With ``EsaConfig(learning_rate=0)`` the shift stays 0 and training is bit for bit
     plain PPO with the same seed: the executed and stored actions, their log-probabilities
@@ -154,8 +149,6 @@ class ESAPPO(EsaMixin, PPO):
         self.esa_head_rollouts = esa_head_rollouts
         self._esa_head_data: list[Rollout] = []
         self._esa_head_fitted = False
-        self._esa_fitter: ThreadPoolExecutor | None = None
-        self._esa_fitting: Future[float] | None = None
         self._esa_active = False
         self._esa_scale: tuple[np.ndarray, np.ndarray] | None = None
         super().__init__(policy, env, *args, esa=esa, esa_address=esa_address, **kwargs)
@@ -185,30 +178,14 @@ class ESAPPO(EsaMixin, PPO):
         )
         self._esa_rng = np.random.default_rng(self.seed)
 
-    def learn(self: SelfESAPPO, *args: Any, **kwargs: Any) -> SelfESAPPO:
-        """PPO's ``learn``; on return the head's last fit has finished."""
-        try:
-            return super().learn(*args, **kwargs)
-        finally:
-            self._esa_join_fit()
-
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        # A save (or get_parameters) sees the head after its fit, never during it.
-        self._esa_join_fit()
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "esa_head", "esa_head_optimizer"], variables
 
     def _excluded_save_params(self) -> list[str]:
         # The head's training data are rebuilt from the next rollouts, the scaling from the
         # action space.
-        return [
-            *super()._excluded_save_params(),
-            "_esa_head_data",
-            "_esa_scale",
-            "_esa_targets",
-            "_esa_fitter",
-            "_esa_fitting",
-        ]
+        return [*super()._excluded_save_params(), "_esa_head_data", "_esa_scale", "_esa_targets"]
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
@@ -340,7 +317,6 @@ class ESAPPO(EsaMixin, PPO):
         n_rollout_steps: int,
     ) -> bool:
         """SB3's ``collect_rollouts``, with the ESA step inside the policy's forward pass."""
-        self._esa_join_fit()
         self._esa_targets = []
         with th.no_grad(), self._esa_forward():
             return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
@@ -447,15 +423,8 @@ class ESAPPO(EsaMixin, PPO):
             quality = critic_quality(self.esa_head, rollout, advantages)
             self.logger.record("esa/gate_correlation", quality)
             self._esa_active = gate is None or quality >= gate
-        self.logger.record("esa/active", float(self._esa_active))
         self._esa_head_data = [*self._esa_head_data, rollout][-self.esa_head_rollouts :]
-        # The fit runs beside PPO's update, which neither reads nor writes the head; the
-        # next rollout, a save or the end of learn() waits for it (_esa_join_fit). The fit
-        # draws from its own generator, so the result is the same bits as a fit in line.
-        if self._esa_fitter is None:
-            self._esa_fitter = ThreadPoolExecutor(1, thread_name_prefix="esa-head-fit")
-        self._esa_fitting = self._esa_fitter.submit(
-            fit,
+        loss = fit(
             self.esa_head,
             self.esa_head_optimizer,
             self._esa_head_data,
@@ -463,17 +432,11 @@ class ESAPPO(EsaMixin, PPO):
             batch_size=self.esa_head_batch_size,
             rng=self._esa_rng,
         )
-
-    def _esa_join_fit(self) -> None:
-        """Waits for the head's fit started by ``train()``, if any, and logs its loss."""
-        if self._esa_fitting is None:
-            return
-        fitting, self._esa_fitting = self._esa_fitting, None
-        self.logger.record("esa/head_loss", fitting.result())
-        if not self._esa_head_fitted:
-            self._esa_active = self.esa.gate is None
-            self._esa_head_fitted = True
-            self.logger.record("esa/active", float(self._esa_active))
+        self.logger.record("esa/head_loss", loss)
+        if not self._esa_head_fitted and gate is None:
+            self._esa_active = True
+        self._esa_head_fitted = True
+        self.logger.record("esa/active", float(self._esa_active))
 
 
 def _gaussian(distribution: Distribution) -> th.distributions.Normal:
