@@ -6,8 +6,8 @@ sidecar, the esa-server's CPU seconds too (read from ``/proc`` just before it is
 stopped). PPO and the ESAPPO variants run in turn, ``--repeats`` times per env count, so
 slow phases of the host hit all alike. Settings as ``bench/profiles/run_one.py``:
 InvertedPendulum-v5, SB3's default PPO hyperparameters, torch on one thread, the shipped
-``EsaConfig()``. Wall-clock is reported beside CPU time: ESAPPO fits its head on a
-thread beside PPO's update, which shortens the wall-clock, not the CPU time.
+``EsaConfig()``. Wall-clock ratios are reported beside the CPU-time ones: on a quiet host
+they are what a user sees, and work moved onto other threads shows only there.
 
 Usage::
 
