@@ -99,6 +99,7 @@ else
 
   run "$PY" bench/python/client_latency.py --out "$RESULTS/python.json" \
     --section-1b-out "$RESULTS/section_1b.json" "${PY_ARGS[@]}"
+  run "$PY" bench/python/throughput_ab.py --out "$RESULTS/throughput_ab.json" "${PY_ARGS[@]}"
   run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TRAIN_ARGS[@]}"
   # The wheel and the binaries as the last builds left them (`make wheel` builds the wheel).
   run "$PY" bench/python/artifact_sizes.py --out "$RESULTS/sizes.json"
