@@ -53,6 +53,8 @@ class Args:
     out_dir: str = "demo-results"
 
 
+# The confirmation campaign's seeds per arm (0-19): a comparison counts once it has them all.
+CAMPAIGN_SEEDS = 20
 VERDICTS = Path(__file__).resolve().parents[2] / "experiments/results/confirmation/verdicts.md"
 
 
@@ -174,7 +176,10 @@ def print_table(results: list[dict], args: Args) -> None:
 
 
 def campaign_line() -> str:
-    """One line of the confirmation campaign's verdicts, counted from its committed table."""
+    """One line of the confirmation campaign's verdicts, counted from its committed table.
+
+    Only comparisons with all their seeds count; the others are named as in progress.
+    """
     if not VERDICTS.is_file():
         return "campaign: no committed results in this checkout (experiments/RESULTS.md)."
     counts: dict[str, dict[str, int]] = {}
@@ -183,16 +188,17 @@ def campaign_line() -> str:
         # Each family's shipped default against its baseline: "PPO+ESA" vs "PPO (baseline)".
         if len(cells) < 9 or cells[3] != f"{cells[2].removesuffix('+ESA')} (baseline)":
             continue
-        word = re.sub(r"\*", "", cells[-1])
+        word = re.sub(r"\*", "", cells[-1]) if cells[4] == str(CAMPAIGN_SEEDS) else "in progress"
         family = counts.setdefault(cells[0].upper(), {"better": 0, "equal": 0, "worse": 0})
         family[word] = family.get(word, 0) + 1
     parts = [
         f"{family}+ESA better on {c['better']}, equal on {c['equal']}, worse on {c['worse']}"
+        + (f" ({c['in progress']} more in progress)" if c.get("in progress") else "")
         for family, c in counts.items()
     ]
     return (
-        "campaign (experiments/RESULTS.md; envs where each family's default is better, equal "
-        "or worse than its baseline, Holm-corrected): "
+        f"campaign (experiments/RESULTS.md; envs where each family's default, with all "
+        f"{CAMPAIGN_SEEDS} seeds, is better, equal or worse than its baseline, Holm-corrected): "
         + ("; ".join(parts) if parts else "no finished comparison yet")
         + "."
     )
