@@ -5,8 +5,9 @@ compares at batch 64 meet different moments of a noisy host: on this 2-vCPU VM t
 code gave 8.1x, 10.1x and 14.5x in three runs. Here both servers run side by side and
 the same Python client drives them in turn, one short window each per round (the order
 rotating), so a slow phase of the host hits both; the ratio is taken per round and its
-median reported. The pair is ``client_latency``'s (``batch.probe`` + the critic +
-``batch.report``), N = ``--envs`` sessions of D = ``--dim``:
+median reported. Each window is ``client_latency``'s measurement (its pair,
+``batch.probe`` + the critic + ``batch.report``, after a warm-up; session-steps/s from
+the mean pair time), N = ``--envs`` sessions of D = ``--dim``:
 
 - esa-server on a Unix socket through the Rust client (``EsaClient.spawn(native=True)``,
   the fastest path from Python in ``client_latency``'s table);
@@ -25,12 +26,12 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from client_latency import section_1_step, session_config
+from client_latency import Args as LatencyArgs
+from client_latency import measure, session_config
 from esa_client import EsaClient
 
 from cli import parse_dataclass
@@ -49,27 +50,10 @@ class Args:
     out: str = "bench/results/throughput_ab.json"
 
 
-def pairs_within(step, seconds: float) -> tuple[int, float]:  # type: ignore[no-untyped-def]
-    """Runs ``step`` for ``seconds``; returns the pairs done and the seconds they took."""
-    pairs, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        step()
-        pairs += 1
-    return pairs, time.perf_counter() - start
-
-
-def steps_per_second(batch, actions: np.ndarray, args: Args) -> float:  # type: ignore[no-untyped-def]
-    """Session-steps per second of ``batch``'s pair over one window, after a warm-up."""
-    step = section_1_step(batch, actions)
-    pairs_within(step, args.warmup)
-    pairs, seconds = pairs_within(step, args.window)
-    return batch.n * pairs / seconds
-
-
 def main() -> None:
     """Runs the rounds, prints each, writes the medians to ``--out``."""
     args = parse_dataclass(Args, __doc__.splitlines()[0])
-    actions = np.random.default_rng(0).uniform(-0.5, 0.5, size=(args.envs, args.dim))
+    window = LatencyArgs(dim=args.dim, warmup=args.warmup, window=args.window)
     config = session_config(args.dim)
     with contextlib.ExitStack() as stack:
         esa = stack.enter_context(EsaClient.spawn(server_binary(), timeout=30.0, native=True))
@@ -84,7 +68,7 @@ def main() -> None:
         ratios = []
         for r in range(args.rounds):
             for name in names[r % len(names) :] + names[: r % len(names)]:
-                rates[name].append(steps_per_second(batches[name], actions, args))
+                rates[name].append(measure(batches[name], window)["session_steps_per_s"])
             esa_rate = rates[names[0]][-1]
             best_base = max(rates[name][-1] for name in names[1:])
             ratios.append(esa_rate / best_base)
