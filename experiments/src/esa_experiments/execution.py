@@ -73,16 +73,16 @@ def pin_server_binary() -> str:
     return path
 
 
-def _init_worker() -> None:
+def _init_worker(studies: list[str]) -> None:
     import torch
 
     torch.set_num_threads(1)
     _die_with_runner()
-    _import_run_code()
+    _import_run_code(studies)
 
 
-def _import_run_code() -> None:
-    """Imports the trainers and every study when the worker starts, not at its first run.
+def _import_run_code(studies: list[str]) -> None:
+    """Imports the trainers and the runs' studies when the worker starts, not at its first run.
 
     Their imports are otherwise lazy, so a runner going for hours would load code from the
     working tree as it is at each worker's first run of a kind: once, nine runs failed at
@@ -90,9 +90,9 @@ def _import_run_code() -> None:
     """
     import esa_client.sb3  # noqa: F401
 
-    from esa_experiments.studies import STUDY_NAMES, load_study
+    from esa_experiments.studies import load_study
 
-    for name in STUDY_NAMES:
+    for name in studies:
         load_study(name)
 
 
@@ -178,7 +178,12 @@ def execute(
     with (
         ctx.Manager() as manager,
         Progress(*columns, console=console) as progress,
-        ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_init_worker) as pool,
+        ProcessPoolExecutor(
+            jobs,
+            mp_context=ctx,
+            initializer=_init_worker,
+            initargs=(sorted({spec.study for spec in specs}),),
+        ) as pool,
     ):
         messages = manager.Queue()
         overall = progress.add_task("[bold]all runs", total=len(specs))
