@@ -62,6 +62,11 @@ ENVS_OF = {
 ENVS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Quadrotor-eight", "Hopper-v5")
 METHODS = tuple(method for arms in ARMS.values() for method in arms)
 DEFAULT_SEEDS = "0-19"
+SEED_COUNT = 20
+SHIPPED = {"ppo": "ppo_esa", "sac": "sac_esa", "td3": "td3_esa"}
+"""Each family's shipped default (``EsaConfig()`` / ``EsaConfig.off_policy()``): the goal's arms."""
+GOAL_BETTER = 3
+GOAL_ENV = "Quadrotor-eight"
 HALVES = ((0, 9), (10, 19))
 
 COMPARISONS = tuple(
@@ -123,10 +128,61 @@ run = run_training
 """One run: train with periodic evaluation (and the training episodes' outcomes)."""
 
 
-def _verdicts(frame: pd.DataFrame, seeds: tuple[int, int] | None = None) -> str:
+def _verdicts(frame: pd.DataFrame, seeds: tuple[int, int] | None = None) -> pd.DataFrame:
     chosen = None if seeds is None else list(range(seeds[0], seeds[1] + 1))
-    table = verdict_table(frame, ENVS, COMPARISONS, LABELS, chosen)
-    return to_markdown(table) if not table.empty else "(no comparison has two common seeds yet)"
+    return verdict_table(frame, ENVS, COMPARISONS, LABELS, chosen)
+
+
+def _markdown(verdicts: pd.DataFrame) -> str:
+    return (
+        to_markdown(verdicts) if not verdicts.empty else "(no comparison has two common seeds yet)"
+    )
+
+
+def _goal(verdicts: pd.DataFrame) -> str:
+    """The issue's goal, checked on the shipped defaults' rows of the all-seed verdicts.
+
+    Never significantly worse than the baseline on any (family, env), significantly better
+    on at least ``GOAL_BETTER`` of them, one on ``GOAL_ENV``. A row is final only with all
+    ``SEED_COUNT`` seeds, and the Holm correction spans the family's envs, so the goal is
+    open until every shipped-default row is final.
+    """
+    if verdicts.empty:
+        return "(no comparison has two common seeds yet)\n"
+    rows, better, worse, final = [], [], [], 0
+    for family, method in SHIPPED.items():
+        label = LABELS[method]
+        for env in ENVS_OF[family]:
+            row = {"family": family, "env": env, "shipped default": label}
+            for kind in ("baseline", "gradient control"):
+                if not any(c.method == method and c.kind == kind for c in COMPARISONS):
+                    row[f"vs {kind}"] = "no control"
+                    continue
+                hit = verdicts[
+                    (verdicts.env == env)
+                    & (verdicts.method == label)
+                    & verdicts.against.str.endswith(f"({kind})")
+                ]
+                if hit.empty:
+                    row[f"vs {kind}"] = "not run yet"
+                    continue
+                seeds, verdict = int(hit.seeds.iloc[0]), str(hit.verdict.iloc[0])
+                complete = seeds >= SEED_COUNT
+                row[f"vs {kind}"] = verdict if complete else f"{verdict} (interim, {seeds} seeds)"
+                if kind == "baseline":
+                    final += complete
+                    better += [env] if "better" in verdict else []
+                    worse += [env] if "worse" in verdict else []
+            rows.append(row)
+    reached = len(better) >= GOAL_BETTER and GOAL_ENV in better and not worse
+    state = "reached" if reached else "not reached"
+    if final < len(rows):
+        state = f"open ({final} of {len(rows)} rows have all {SEED_COUNT} seeds)"
+    return (
+        f"{to_markdown(pd.DataFrame(rows))}\n\n"
+        f"Goal (never worse; better on >= {GOAL_BETTER} pairs, one on {GOAL_ENV}): "
+        f"{state}. So far better on {len(better)}, worse on {len(worse)}.\n"
+    )
 
 
 def report(store: RunStore, args: Args) -> str:
@@ -138,15 +194,18 @@ def report(store: RunStore, args: Args) -> str:
     ]
     section = rl_section(store, panels, ENVS, METHODS, ncols=4, per_seed=True)
     frame = store.load()
-    verdicts = _verdicts(frame)
+    table = _verdicts(frame)
+    verdicts = _markdown(table)
     atomic_write_text(store.artifact("verdicts.md"), verdicts + "\n")
     halves = "\n\n".join(
-        f"Seeds {low}-{high}:\n\n{_verdicts(frame, (low, high))}" for low, high in HALVES
+        f"Seeds {low}-{high}:\n\n{_markdown(_verdicts(frame, (low, high)))}" for low, high in HALVES
     )
     aggregate = aggregate_table(frame, ENVS_OF, COMPARISONS, LABELS)
     diagnostics = diagnostics_table(frame, store.load_meta(), ENVS, METHODS, LABELS)
     return (
         f"{section}\n"
+        "The shipped defaults against the goal (from the verdicts below, all seeds):\n\n"
+        f"{_goal(table)}\n"
         "Verdicts (AUC; P(arm better) with its stratified-bootstrap 95 % CI; two-sided "
         "Mann-Whitney p-values Holm-corrected within each family; better / worse when the "
         "corrected p < 0.05):\n\n"
