@@ -575,7 +575,8 @@ def training_section(training: dict) -> list[str]:
         "engine (`esa_engine`): `[inprocess]` = esa-core in the trainer's process, `[sidecar]` = a "
         "private esa-server (Unix socket, grpcio StepStream, one pipelined round trip per "
         "step), `[sidecar-native]` = the same server through the Rust client of "
-        '`esa_client._native` (`esa_spawn={"native": True}`: unary batch calls). '
+        '`esa_client._native` (`esa_spawn={"native": True}`: its own StepStream, one '
+        "pipelined round trip per step). "
         f"PPO rollouts of `n_steps={args['ppo_n_steps']}` per env. Wall-clock "
         f"of `learn()`, {args['repeats']} alternating repeats; ratio = median of the "
         "per-repeat ratios.",

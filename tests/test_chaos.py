@@ -233,11 +233,18 @@ def _run(trainers: list[BatchTrainer], chaos: Callable[[], None], limit: float) 
             trainer.close()
 
 
-@pytest.mark.parametrize("transport", ["grpc", "grpc-unary", "native"])
+WIRES: dict[str, dict[str, object]] = {
+    "grpc": {"use_stream": True},
+    "grpc-unary": {"use_stream": False},
+    "native": {"use_stream": True, "transport": "native"},
+    "native-unary": {"use_stream": False, "transport": "native"},
+}
+"""The ways a batch reaches the server: grpcio or the Rust client, StepStream or unary calls."""
+
+
+@pytest.mark.parametrize("transport", list(WIRES))
 def test_sigkill_and_restart_under_three_batch_trainers(server, transport):
-    wire: dict[str, object] = {"use_stream": transport == "grpc"}
-    if transport == "native":
-        wire["transport"] = "native"
+    wire = WIRES[transport]
     trainers = [
         BatchTrainer(
             server.address, 250, seed=i, timeout=1.0, reconnect_timeout=20, **wire
@@ -255,9 +262,17 @@ def test_sigkill_and_restart_under_three_batch_trainers(server, transport):
         assert trainer.batch.sessions_restored == N_ENVS
 
 
-def test_sigstop_stall_then_sigcont(server):
+@pytest.mark.parametrize("transport", ["grpc", "native"])
+def test_sigstop_stall_then_sigcont(server, transport):
     trainers = [
-        BatchTrainer(server.address, 200, seed=i, timeout=0.5, reconnect_timeout=20)
+        BatchTrainer(
+            server.address,
+            200,
+            seed=i,
+            timeout=0.5,
+            reconnect_timeout=20,
+            **WIRES[transport],
+        )
         for i in range(3)
     ]
 
@@ -272,10 +287,18 @@ def test_sigstop_stall_then_sigcont(server):
         assert trainer.batch.sessions_restored == 0  # the sessions never left
 
 
-def test_connection_cut_mid_step_stream(server):
+@pytest.mark.parametrize("transport", ["grpc", "native"])
+def test_connection_cut_mid_step_stream(server, transport):
     proxy = Proxy(server.address)
     trainers = [
-        BatchTrainer(proxy.address, 250, seed=i, timeout=1.0, reconnect_timeout=20)
+        BatchTrainer(
+            proxy.address,
+            250,
+            seed=i,
+            timeout=1.0,
+            reconnect_timeout=20,
+            **WIRES[transport],
+        )
         for i in range(2)
     ]
 

@@ -202,12 +202,26 @@ def native_targets() -> list[Target]:
 
 
 def section_1b_targets() -> list[Target]:
-    """The transports of the section 1b rows: esa-server (TCP, Unix socket) and in-process."""
+    """The transports of the section 1b rows: esa-server (TCP, Unix socket) and in-process.
+
+    esa-server through grpcio (``batch``: unary calls, ``stream``: the StepStream) and, on
+    the Unix socket, through the Rust client (``native``: unary calls, ``native-stream``:
+    the pipelined pair on its own StepStream).
+    """
     out: list[Target] = []
     for api in ("batch", "stream"):
         out.append(("esa-server", "tcp", api, lambda: client_at(esa_server_tcp())))
         out.append(
             ("esa-server", "uds", api, lambda: EsaClient.spawn(server_binary(), timeout=30.0))
+        )
+    for api in ("native", "native-stream"):
+        out.append(
+            (
+                "esa-server",
+                "uds",
+                api,
+                lambda: EsaClient.spawn(server_binary(), timeout=30.0, native=True),
+            )
         )
     out.append(("esa-native", "in-process", "-", EsaClient.in_process))
     return out
@@ -245,10 +259,10 @@ def section_1b_rows(args: Args) -> list[dict]:
         with connect() as client:
             for n in envs:
                 for law, mode in SECTION_1B_ROWS:
-                    if mode == "pipelined" and api == "batch":
+                    if mode == "pipelined" and api in ("batch", "native"):
                         continue  # two unary round trips: the same as the pair
                     config = session_config(args.dim) if law == "1" else section_1b_config(args.dim)
-                    batch = client.create_batch(config, n, use_stream=api == "stream")
+                    batch = client.create_batch(config, n, use_stream=api.endswith("stream"))
                     result = measure(batch, args, law, mode)
                     batch.close()
                     row = {

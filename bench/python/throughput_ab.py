@@ -30,11 +30,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from client_latency import Args as LatencyArgs
-from client_latency import measure, session_config
 from esa_client import EsaClient
 
 from cli import parse_dataclass
+from client_latency import Args as LatencyArgs
+from client_latency import measure, session_config
 from servers import baseline_server, server_binary
 
 

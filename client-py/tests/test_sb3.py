@@ -25,6 +25,7 @@ from esa_client.common import runtime
 from esa_client.common.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
 from esa_client.sb3 import ESAPPO, ESASAC
 from esa_client.transports.in_process import InProcessTransport
+from esa_client.transports.native import NativeGrpcTransport
 
 N_ENVS = 4
 pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")
@@ -425,16 +426,22 @@ def test_esa_spawn_arguments_are_checked_when_the_server_starts(server_bin, monk
 
 
 def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
-    """The in-process engine and a private server give the same actions with the same seed."""
+    """The in-process engine and a private server (through grpcio's StepStream and the Rust
+    client's) give the same actions with the same seed."""
     monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
     runs = {}
-    for engine in ("inprocess", "sidecar"):
+    for name, engine, spawn in (
+        ("inprocess", "inprocess", None),
+        ("sidecar", "sidecar", None),
+        ("sidecar-native", "sidecar", {"native": True}),
+    ):
         env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=4, wrapper_class=RecordActions)
         model = ESAPPO(
             "MlpPolicy",
             env,
             esa=UNGATED,
             esa_engine=engine,
+            esa_spawn=spawn,
             n_steps=64,
             batch_size=64,
             n_epochs=2,
@@ -445,14 +452,17 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
         assert model._esa is not None and model._esa_active
         in_process = isinstance(model._esa.client.transport, InProcessTransport)
         assert in_process == (engine == "inprocess")
+        native = isinstance(model._esa.client.transport, NativeGrpcTransport)
+        assert native == (spawn is not None)
         assert (model._esa.client.server is None) == in_process
-        runs[engine] = ([np.stack(e.actions) for e in env.envs], parameters(model))
+        runs[name] = ([np.stack(e.actions) for e in env.envs], parameters(model))
         model.esa_close()
-    (local_actions, local_parameters), (server_actions, server_parameters) = runs.values()
+    local_actions, local_parameters = runs.pop("inprocess")
     assert len(local_actions[0]) == 5 * 64
-    for here, there in zip(local_actions, server_actions, strict=True):
-        np.testing.assert_array_equal(here, there)
-    assert th.equal(local_parameters, server_parameters)
+    for server_actions, server_parameters in runs.values():
+        for here, there in zip(local_actions, server_actions, strict=True):
+            np.testing.assert_array_equal(here, there)
+        assert th.equal(local_parameters, server_parameters)
 
 
 def test_the_default_engine_is_in_process_unless_a_server_is_named():

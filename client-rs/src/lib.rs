@@ -523,6 +523,32 @@ impl StepStream {
             Answer::Probe(_) => Err(out_of_order()),
         }
     }
+
+    /// A ReportBatch and the next step's ProbeBatch, both sent before either answer is read:
+    /// one round trip (CONTRACT.md section 1b's pipelined step). The report's failure is
+    /// returned before the probe's; both answers are read, so a refused request leaves the
+    /// stream in step. After an error of the wire ([`Error::is_retryable`]) the stream is out
+    /// of step: open a new one.
+    pub async fn report_then_probe(
+        &mut self,
+        report: pb::ReportBatchRequest,
+        probe: pb::ProbeBatchRequest,
+    ) -> Result<pb::ProbeBatchResponse> {
+        self.send(Step::Report(report)).await?;
+        self.send(Step::Probe(probe)).await?;
+        let report = self.next().await;
+        if let Err(error) = &report {
+            if error.is_retryable() {
+                return Err(error.clone());
+            }
+        }
+        let probe = self.next().await;
+        report?;
+        match probe? {
+            Answer::Probe(response) => Ok(response),
+            Answer::Report(_) => Err(out_of_order()),
+        }
+    }
 }
 
 fn out_of_order() -> Error {

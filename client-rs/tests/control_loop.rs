@@ -126,3 +126,55 @@ fn the_blocking_client_makes_the_same_calls() {
     let err = client.close_session("nobody".into()).unwrap_err();
     assert_eq!(err.kind(), Kind::SessionNotFound);
 }
+
+#[tokio::test]
+async fn a_pipelined_pair_fails_with_its_report_and_the_stream_stays_in_step() {
+    let Some(server) = server() else { return };
+    let client = Client::connect(&server.address, Options::default())
+        .await
+        .unwrap();
+    let config = pb::SessionConfig {
+        action_dim: 1,
+        dt: 0.04,
+        amplitude: vec![0.2],
+        frequency: vec![31.4],
+        learning_rate: vec![0.5],
+        ..Default::default()
+    };
+    let ids = vec![
+        client.create_session("", config.clone()).await.unwrap(),
+        client.create_session("", config).await.unwrap(),
+    ];
+    let probe = |step: u64| pb::ProbeBatchRequest {
+        session_ids: ids.clone(),
+        steps: vec![step; 2],
+        actions: vec![0.1, -0.1],
+        episode_starts: vec![step == 0; 2],
+        action_scales: vec![],
+    };
+    let report = |q_values: Vec<f64>| pb::ReportBatchRequest {
+        session_ids: ids.clone(),
+        steps: vec![0, 0],
+        q_values,
+        q_references: vec![],
+    };
+    let mut stream = client.step_stream().await.unwrap();
+    stream.probe_batch(probe(0)).await.unwrap();
+    // Item 1's Q is not finite: the report is refused, and so the probe of step 1, which
+    // would need it; the report's error is the pair's.
+    let err = stream
+        .report_then_probe(report(vec![1.0, f64::NAN]), probe(1))
+        .await
+        .unwrap_err();
+    assert_eq!(err.kind(), Kind::InvalidArgument, "{err}");
+    assert_eq!(err.index(), Some(1), "{err}");
+    assert_eq!(stream.pending(), 0);
+    // Both answers were read: the same stream carries the repaired pair.
+    let answer = stream
+        .report_then_probe(report(vec![1.0, 2.0]), probe(1))
+        .await
+        .unwrap();
+    assert_eq!(answer.probes.len(), 2);
+    let state = client.get_session(ids[1].clone()).await.unwrap();
+    assert_eq!(state.step, 1, "{state:?}");
+}

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use numpy::IntoPyArray;
-use parking_lot::RwLock;
+use parking_lot::{Mutex, RwLock};
 use prost::Message;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -14,7 +14,7 @@ use pyo3::types::{PyBytes, PyTuple};
 use tonic::Code;
 
 use esa_client::blocking::Client as Remote;
-use esa_client::Options;
+use esa_client::{Answer, Options, StepStream};
 use esa_proto::v1 as pb;
 
 use crate::arrays::{shaped, Values};
@@ -170,12 +170,15 @@ impl GrpcClient {
         Ok(response.action.into_pyarray(py).into_any())
     }
 
-    /// The ProbeBatch / ReportBatch calls of the sessions `session_ids`, answers `(N, dim)`.
-    fn batch(slf: Py<Self>, session_ids: Vec<String>, dim: usize) -> GrpcBatch {
+    /// The batch calls of the sessions `session_ids`, answers `(N, dim)`: ProbeBatch /
+    /// ReportBatch calls, or with `use_stream` messages of a StepStream of the batch's own.
+    #[pyo3(signature = (session_ids, dim, use_stream = false))]
+    fn batch(slf: Py<Self>, session_ids: Vec<String>, dim: usize, use_stream: bool) -> GrpcBatch {
         GrpcBatch {
             client: slf,
             session_ids,
             dim,
+            stream: use_stream.then(|| Mutex::new(None)),
         }
     }
 
@@ -210,6 +213,119 @@ pub(crate) struct GrpcBatch {
     client: Py<GrpcClient>,
     session_ids: Vec<String>,
     dim: usize,
+    /// With `use_stream`, the StepStream that carries every call: opened by the first, dropped
+    /// after a failure of the wire (the next call opens a new one; the server accepts a
+    /// repeated step).
+    stream: Option<Mutex<Option<StepStream>>>,
+}
+
+/// What a batch sends over its StepStream.
+enum Exchange {
+    Probe(pb::ProbeBatchRequest),
+    Report(pb::ReportBatchRequest),
+    /// A report and the next probe, both sent before either answer is read.
+    ReportThenProbe(pb::ReportBatchRequest, pb::ProbeBatchRequest),
+}
+
+impl Exchange {
+    async fn over(self, stream: &mut StepStream) -> esa_client::Result<Answer> {
+        match self {
+            Self::Probe(probe) => stream.probe_batch(probe).await.map(Answer::Probe),
+            Self::Report(report) => stream.report_batch(report).await.map(Answer::Report),
+            Self::ReportThenProbe(report, probe) => stream
+                .report_then_probe(report, probe)
+                .await
+                .map(Answer::Probe),
+        }
+    }
+}
+
+impl GrpcBatch {
+    fn probe_request(
+        &self,
+        steps: &Bound<'_, PyAny>,
+        actions: &Bound<'_, PyAny>,
+        episode_starts: &Bound<'_, PyAny>,
+        action_scales: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<pb::ProbeBatchRequest> {
+        Ok(pb::ProbeBatchRequest {
+            session_ids: self.session_ids.clone(),
+            steps: Values::<u64>::steps(steps)?.owned(),
+            actions: Values::<f64>::floats(actions)?.owned(),
+            episode_starts: Values::<bool>::bools(episode_starts)?.owned(),
+            action_scales: optional_floats(action_scales)?,
+        })
+    }
+
+    fn report_request(
+        &self,
+        steps: &Bound<'_, PyAny>,
+        q_values: &Bound<'_, PyAny>,
+        q_references: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<pb::ReportBatchRequest> {
+        Ok(pb::ReportBatchRequest {
+            session_ids: self.session_ids.clone(),
+            steps: Values::<u64>::steps(steps)?.owned(),
+            q_values: Values::<f64>::floats(q_values)?.owned(),
+            q_references: optional_floats(q_references)?,
+        })
+    }
+
+    /// Sends `exchange` without the GIL: over the batch's StepStream (opened here when there
+    /// is none), or as unary calls when the batch has no stream.
+    fn send(&self, py: Python<'_>, exchange: Exchange) -> PyResult<Answer> {
+        let remote = self.client.get().remote(py)?;
+        call(py, &remote, |remote| match &self.stream {
+            Some(slot) => {
+                let mut slot = slot.lock();
+                let answer = remote.block_on(async {
+                    let stream = match slot.as_mut() {
+                        Some(stream) => stream,
+                        None => slot.insert(remote.client().step_stream().await?),
+                    };
+                    exchange.over(stream).await
+                });
+                if answer.as_ref().is_err_and(esa_client::Error::is_retryable) {
+                    *slot = None;
+                }
+                answer
+            }
+            None => match exchange {
+                Exchange::Probe(probe) => remote.probe_batch(probe).map(Answer::Probe),
+                Exchange::Report(report) => remote.report_batch(report).map(Answer::Report),
+                Exchange::ReportThenProbe(report, probe) => {
+                    remote.report_batch(report)?;
+                    remote.probe_batch(probe).map(Answer::Probe)
+                }
+            },
+        })
+    }
+
+    fn probe_answer<'py>(&self, py: Python<'py>, answer: Answer) -> PyResult<Bound<'py, PyTuple>> {
+        let Answer::Probe(response) = answer else {
+            return Err(out_of_order(py));
+        };
+        let n = self.session_ids.len();
+        PyTuple::new(
+            py,
+            [
+                shaped(py, response.probes, n, Some(self.dim))?,
+                shaped(py, response.actions, n, Some(self.dim))?,
+            ],
+        )
+    }
+}
+
+/// An answer of the other kind than the request's (a server bug, never expected).
+fn out_of_order(py: Python<'_>) -> PyErr {
+    let message = "a StepStream answer out of order";
+    status_error(
+        py,
+        StatusError::new_err(message),
+        Code::Internal as i32,
+        message.into(),
+        None,
+    )
 }
 
 #[pymethods]
@@ -224,23 +340,9 @@ impl GrpcBatch {
         episode_starts: &Bound<'py, PyAny>,
         action_scales: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyTuple>> {
-        let request = pb::ProbeBatchRequest {
-            session_ids: self.session_ids.clone(),
-            steps: Values::<u64>::steps(steps)?.owned(),
-            actions: Values::<f64>::floats(actions)?.owned(),
-            episode_starts: Values::<bool>::bools(episode_starts)?.owned(),
-            action_scales: optional_floats(action_scales)?,
-        };
-        let remote = self.client.get().remote(py)?;
-        let response = call(py, &remote, |r| r.probe_batch(request))?;
-        let n = self.session_ids.len();
-        PyTuple::new(
-            py,
-            [
-                shaped(py, response.probes, n, Some(self.dim))?,
-                shaped(py, response.actions, n, Some(self.dim))?,
-            ],
-        )
+        let probe = self.probe_request(steps, actions, episode_starts, action_scales)?;
+        let answer = self.send(py, Exchange::Probe(probe))?;
+        self.probe_answer(py, answer)
     }
 
     /// ReportBatch: returns the improved actions, `(N, dim)`.
@@ -252,15 +354,41 @@ impl GrpcBatch {
         q_values: &Bound<'py, PyAny>,
         q_references: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let request = pb::ReportBatchRequest {
-            session_ids: self.session_ids.clone(),
-            steps: Values::<u64>::steps(steps)?.owned(),
-            q_values: Values::<f64>::floats(q_values)?.owned(),
-            q_references: optional_floats(q_references)?,
+        let report = self.report_request(steps, q_values, q_references)?;
+        let Answer::Report(response) = self.send(py, Exchange::Report(report))? else {
+            return Err(out_of_order(py));
         };
-        let remote = self.client.get().remote(py)?;
-        let response = call(py, &remote, |r| r.report_batch(request))?;
         shaped(py, response.actions, self.session_ids.len(), Some(self.dim))
+    }
+
+    /// ReportBatch, then the next step's ProbeBatch: returns the probe's (probes, applied).
+    /// On a stream both are sent before either answer is read (one round trip); the report's
+    /// error is raised first.
+    #[allow(clippy::too_many_arguments)] // the two requests' arrays, as probe() and report()
+    #[pyo3(signature = (
+        report_steps, q_values, q_references, steps, actions, episode_starts, action_scales = None
+    ))]
+    fn report_then_probe<'py>(
+        &self,
+        py: Python<'py>,
+        report_steps: &Bound<'py, PyAny>,
+        q_values: &Bound<'py, PyAny>,
+        q_references: Option<&Bound<'py, PyAny>>,
+        steps: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        episode_starts: &Bound<'py, PyAny>,
+        action_scales: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let report = self.report_request(report_steps, q_values, q_references)?;
+        let probe = self.probe_request(steps, actions, episode_starts, action_scales)?;
+        let answer = self.send(py, Exchange::ReportThenProbe(report, probe))?;
+        self.probe_answer(py, answer)
+    }
+
+    /// Ends the batch's StepStream, if one is open; the sessions stay. Idempotent.
+    fn close(&self, py: Python<'_>) {
+        let stream = self.stream.as_ref().and_then(|slot| slot.lock().take());
+        py.detach(|| drop(stream));
     }
 
     fn __len__(&self) -> usize {

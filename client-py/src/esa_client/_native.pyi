@@ -228,7 +228,7 @@ class StatusError(Exception):
     index: int | None
 
 class GrpcBatch:
-    """The ``ProbeBatch`` / ``ReportBatch`` calls of N sessions, from :meth:`GrpcClient.batch`.
+    """The batch calls of N sessions (unary, or on a StepStream), from :meth:`GrpcClient.batch`.
 
     Arrays are read as :meth:`Engine.probe` reads them; answers are float64[N, D].
     """
@@ -260,6 +260,29 @@ class GrpcBatch:
             StatusError: As :meth:`probe`.
             ValueError: As :meth:`probe`.
         """
+
+    def report_then_probe(
+        self,
+        report_steps: npt.ArrayLike,
+        q_values: npt.ArrayLike,
+        q_references: npt.ArrayLike | None,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None = None,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """ReportBatch, then the next step's ProbeBatch; returns the probe's ``(probes, applied)``.
+
+        On a batch with a stream both are sent before either answer is read: one round trip.
+
+        Raises:
+            StatusError: The report's error if it failed (the probe then changed nothing
+                unless it started every session's episode), else the probe's; or the wire's.
+            ValueError: As :meth:`probe`.
+        """
+
+    def close(self) -> None:
+        """Ends the batch's ``StepStream``, if one is open; the sessions stay. Idempotent."""
 
     def __len__(self) -> int:
         """N, the number of sessions."""
@@ -317,8 +340,13 @@ class GrpcClient:
             OverflowError: ``step`` is negative or above 2^64 - 1.
         """
 
-    def batch(self, session_ids: Sequence[str], dim: int) -> GrpcBatch:
-        """The batch calls of these sessions (in item order), all of action dimension ``dim``."""
+    def batch(self, session_ids: Sequence[str], dim: int, use_stream: bool = False) -> GrpcBatch:
+        """The batch calls of these sessions (in item order), all of action dimension ``dim``.
+
+        With ``use_stream`` every call is a message of a ``StepStream`` of the batch's own
+        (opened by its first call, and again after a failure of the wire), and
+        :meth:`GrpcBatch.report_then_probe` takes one round trip; else they are unary calls.
+        """
 
     def healthy(self, timeout: float, wait_for_ready: bool = False) -> bool:
         """Whether the server's health service answers SERVING within ``timeout`` seconds.

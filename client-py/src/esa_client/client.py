@@ -92,7 +92,7 @@ class EsaClient(BaseClient):
             token then travels encrypted. None: plaintext (loopback or a Unix socket).
         native: Call through the Rust gRPC client of ``esa_client._native``
             (:class:`~esa_client.transports.native.NativeGrpcTransport`: several times
-            faster per round trip, no TLS, no ``StepStream``) instead of grpcio.
+            faster per round trip, ``StepStream`` batches, no TLS) instead of grpcio.
 
     Attributes:
         address: The gRPC target.
@@ -186,7 +186,7 @@ class EsaClient(BaseClient):
                 ``unix:/path/to/socket``. Zenoh: the endpoint(s) of the server or router,
                 e.g. ``tcp/127.0.0.1:7447``.
             transport: ``"grpc"`` (grpcio: TLS, ``StepStream``), ``"native"`` (the Rust
-                gRPC client: faster per round trip, no TLS, no ``StepStream``) or
+                gRPC client: faster per round trip, ``StepStream``, no TLS) or
                 ``"zenoh"`` (extra ``esa-client[zenoh]``).
             timeout: Deadline in seconds for every call (and, over Zenoh, connecting).
             token: The servers' auth token (``--auth-token-file``).

@@ -116,6 +116,29 @@ class InTurnBatch(ABC):
         """Nothing to release: the sessions stay."""
 
 
+class PipelinedBatch(InTurnBatch):
+    """An :class:`InTurnBatch` whose wire carries the report and the next probe at once.
+
+    The pair is sent in one go (one round trip), except when the probe starts a new
+    episode for every session: that probe would succeed even after its report failed,
+    leaving the report unrecoverable, so that pair goes in turn and a failed report stops
+    the probe (once per episode end, not per step). Subclasses implement
+    :meth:`_pipelined`.
+    """
+
+    @abstractmethod
+    def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
+        """Sends both before reading either answer; raises the report's error first."""
+
+    def report_then_probe(
+        self, report: BatchReport, probe: BatchProbe
+    ) -> tuple[F64Array, F64Array]:
+        """The report and the probe in one round trip (in turn at an all-sessions start)."""
+        if probe.episode_starts.all():
+            return super().report_then_probe(report, probe)
+        return self._pipelined(report, probe)
+
+
 class Transport(Protocol):
     """One way of reaching esa sessions: the calls of ``esa.v1.EsaService``.
 

@@ -5,8 +5,11 @@ calling thread drives itself, with the GIL released while a call waits: a round 
 no thread hand-off and no Python-level message building (numpy arrays go straight into the
 request). It speaks the same ``esa.v1`` calls as :class:`~esa_client.transports.grpcio.
 GrpcTransport` and raises the same :class:`~esa_client.errors.EsaError` subclasses with the
-same failing item. It has no TLS and no ``StepStream``: a batch's round trips are
-``ProbeBatch`` / ``ReportBatch`` calls, whose pair costs less than grpcio's pipelined stream.
+same failing item. It has no TLS. A batch opened with ``use_stream`` sends its calls as
+messages of a ``StepStream`` of its own, and the pipelined pair (a deferred report and the
+next probe) as two messages before reading either answer: one round trip, about a third of
+the two unary calls' time on a Unix socket (``bench/NOTES.md``). A batch without a stream
+makes ``ProbeBatch`` / ``ReportBatch`` calls.
 """
 
 from __future__ import annotations
@@ -16,14 +19,14 @@ from collections.abc import Sequence
 from .._native import GrpcBatch, GrpcClient, StatusError
 from ..errors import TypedErrors
 from ..state import F64Array
-from .base import BatchProbe, BatchReport, InTurnBatch
+from .base import BatchProbe, BatchReport, InTurnBatch, PipelinedBatch
 from .native_calls import NativeSessionCalls
 
 _typed_errors = TypedErrors(StatusError)
 
 
 class NativeGrpcBatch(InTurnBatch):
-    """A batch's round trips as ``ProbeBatch`` / ``ReportBatch`` calls of the Rust client."""
+    """A batch's round trips through the Rust client (unary calls, or its StepStream)."""
 
     def __init__(self, batch: GrpcBatch) -> None:
         """Sends through ``batch`` (its ids and action dimension fixed)."""
@@ -40,6 +43,26 @@ class NativeGrpcBatch(InTurnBatch):
         """Sends one ReportBatch."""
         with _typed_errors:
             return self._batch.report(request.steps, request.q_values, request.q_references)
+
+    def close(self) -> None:
+        """Ends the batch's StepStream, if it has one; the sessions stay."""
+        self._batch.close()
+
+
+class NativeGrpcStepBatch(NativeGrpcBatch, PipelinedBatch):
+    """A :class:`NativeGrpcBatch` on a ``StepStream``, whose pair takes one round trip."""
+
+    def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
+        with _typed_errors:
+            return self._batch.report_then_probe(
+                report.steps,
+                report.q_values,
+                report.q_references,
+                probe.steps,
+                probe.actions,
+                probe.episode_starts,
+                probe.action_scales,
+            )
 
 
 class NativeGrpcTransport(NativeSessionCalls):
@@ -62,8 +85,9 @@ class NativeGrpcTransport(NativeSessionCalls):
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool
     ) -> NativeGrpcBatch:
-        """A :class:`NativeGrpcBatch`; ``use_stream`` is ignored (no ``StepStream`` here)."""
-        return NativeGrpcBatch(self.client.batch(list(ids), action_dim))
+        """A :class:`NativeGrpcStepBatch` with ``use_stream``, else a :class:`NativeGrpcBatch`."""
+        batch = self.client.batch(list(ids), action_dim, use_stream)
+        return NativeGrpcStepBatch(batch) if use_stream else NativeGrpcBatch(batch)
 
     def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
         """Asks the server's ``grpc.health.v1.Health`` service whether it is serving.

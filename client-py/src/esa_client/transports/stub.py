@@ -21,7 +21,7 @@ from grpc_status import rpc_status
 from .._proto.esa.v1 import esa_pb2
 from ..errors import EsaError, error_for, esa_error
 from ..state import F64Array, SessionState
-from .base import BatchProbe, BatchReport, BatchTransport, InTurnBatch
+from .base import BatchProbe, BatchReport, BatchTransport, InTurnBatch, PipelinedBatch
 
 Request = TypeVar("Request", contravariant=True)
 Response = TypeVar("Response", covariant=True)
@@ -229,7 +229,7 @@ def _checked(response: esa_pb2.StepStreamResponse) -> esa_pb2.StepStreamResponse
     return response
 
 
-class StepBatch(_Batch, InTurnBatch):
+class StepBatch(_Batch, PipelinedBatch):
     """A batch's round trips as ``StepStream`` messages; the pair takes one round trip."""
 
     def __init__(self, exchange: StepExchange, ids: Sequence[str], action_dim: int) -> None:
@@ -250,17 +250,8 @@ class StepBatch(_Batch, InTurnBatch):
         message = esa_pb2.StepStreamRequest(report_batch=report_batch_request(self._ids, request))
         return self._report_answer(self._round_trip(message).report_batch)
 
-    def report_then_probe(
-        self, report: BatchReport, probe: BatchProbe
-    ) -> tuple[F64Array, F64Array]:
-        """Sends the ReportBatch and the ProbeBatch as two messages; raises the first error.
-
-        A probe that starts a new episode for every session would succeed even after its
-        report failed, leaving the report unrecoverable: that pair goes one message at a
-        time, so a failed report stops the probe (once per episode end, not per step).
-        """
-        if probe.episode_starts.all():
-            return super().report_then_probe(report, probe)
+    def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
+        """Sends the ReportBatch and the ProbeBatch as two messages; raises the first error."""
         first, second = self._exchange.exchange(
             [
                 esa_pb2.StepStreamRequest(report_batch=report_batch_request(self._ids, report)),
