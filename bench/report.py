@@ -549,8 +549,8 @@ def throughput_ab_section(ab: dict) -> list[str]:
         "",
         f"`bench/python/throughput_ab.py`: batch {args['envs']}, D = {args['dim']}, "
         f"{args['rounds']} rounds of one {args['window']} s window per server and api (the "
-        "order rotating), both servers running throughout; each round's ratio is esa-server "
-        "over the faster baseline api. Session-steps/s:",
+        "order rotating), both servers running throughout; each round's ratio is the faster "
+        "esa-server api over the faster baseline api. Session-steps/s:",
         "",
         table(["round", *names, "ratio"], rows),
         "",
@@ -582,6 +582,13 @@ def training_section(training: dict) -> list[str]:
         "per-repeat ratios.",
         "",
     ]
+    if again := training.get("remeasured"):
+        lines += [
+            f"Re-measured later ({again['why']}), with their baselines re-timed beside them: "
+            + ", ".join(f"`{name}`" for name in again["rows"])
+            + ".",
+            "",
+        ]
     rows = []
     for r in training["rows"]:
         split = r.get("esa_buckets") or [{}]
