@@ -573,10 +573,10 @@ def training_section(training: dict) -> list[str]:
         'critic exists), ESAPPO\'s improvement target (`esa_mode="target"`) and the gradient '
         'controls (`esa_shift="gradient"`, `[none]`: no engine), each ESC agent on every '
         "engine (`esa_engine`): `[inprocess]` = esa-core in the trainer's process, `[sidecar]` = a "
-        "private esa-server (Unix socket, grpcio StepStream, one pipelined round trip per "
-        "step), `[sidecar-native]` = the same server through the Rust client of "
-        '`esa_client._native` (`esa_spawn={"native": True}`: its own StepStream, one '
-        "pipelined round trip per step). "
+        'private esa-server through grpcio (Unix socket, `esa_spawn={"transport": "grpc"}`, '
+        "StepStream, one pipelined round trip per step), `[sidecar-native]` = the same "
+        "server through the Rust client of `esa_client._native` (a spawned server's default "
+        "client: its own StepStream, one pipelined round trip per step). "
         f"PPO rollouts of `n_steps={args['ppo_n_steps']}` per env. Wall-clock "
         f"of `learn()`, {args['repeats']} alternating repeats; ratio = median of the "
         "per-repeat ratios.",

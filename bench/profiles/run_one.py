@@ -5,7 +5,8 @@ SB3's default PPO hyperparameters (2048-step rollouts: ``n_steps=2048 // n_envs`
 thread, ``--steps`` env steps over ``--n-envs`` envs in a ``DummyVecEnv``; the ESA agent
 with the shipped ``EsaConfig()`` (``--ungated``: ``EsaConfig(gate=None)``) on
 ``--engine`` ``inprocess`` (the default engine), ``sidecar`` (a spawned esa-server,
-grpcio) or ``sidecar-native`` (``esa_spawn={"native": True}``). Prints the trainer
+grpcio: ``esa_spawn={"transport": "grpc"}``) or ``sidecar-native`` (the Rust client,
+the default for a spawned server). Prints the trainer
 process's CPU seconds of ``learn()``.
 
 Usage::
@@ -27,8 +28,8 @@ from stable_baselines3.common.env_util import make_vec_env
 
 ENGINES = {
     "inprocess": {"esa_engine": "inprocess"},
-    "sidecar": {"esa_engine": "sidecar"},
-    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"native": True}},
+    "sidecar": {"esa_engine": "sidecar", "esa_spawn": {"transport": "grpc"}},
+    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"transport": "native"}},
 }
 
 

@@ -5,9 +5,10 @@ and hyperparameters, torch on one thread, with one env by default (SB3's default
 most users run it; ``--n-envs 1,8`` adds 8 envs in a ``DummyVecEnv``), PPO with SB3's
 default 2048-step rollouts. Every ESA agent runs once per
 engine (``esa_engine``): ``inprocess`` (esa-core in the trainer's process),
-``sidecar`` (a private esa-server, Unix socket, grpcio StepStream) and
-``sidecar-native`` (the same server called through the Rust client of
-``esa_client._native``: ``esa_spawn={"native": True}``). Only ``learn()`` is timed;
+``sidecar`` (a private esa-server, Unix socket, grpcio StepStream:
+``esa_spawn={"transport": "grpc"}``) and ``sidecar-native`` (the same server called
+through the Rust client of ``esa_client._native``, the drop-ins' default for a spawned
+server). Only ``learn()`` is timed;
 for the ESA agents that includes opening the engine or spawning the server, the round
 trips, the critic evaluations and ESAPPO's advantage head.
 The pairs run alternately ``repeats`` times so background load hits both alike.
@@ -119,8 +120,8 @@ TIMED = [
 
 ENGINES = {
     "inprocess": {"esa_engine": "inprocess"},
-    "sidecar": {"esa_engine": "sidecar"},
-    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"native": True}},
+    "sidecar": {"esa_engine": "sidecar", "esa_spawn": {"transport": "grpc"}},
+    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"transport": "native"}},
 }
 """Engine name -> the ESA agent's arguments that choose it."""
 

@@ -432,8 +432,8 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
     runs = {}
     for name, engine, spawn in (
         ("inprocess", "inprocess", None),
-        ("sidecar", "sidecar", None),
-        ("sidecar-native", "sidecar", {"native": True}),
+        ("sidecar", "sidecar", {"transport": "grpc"}),
+        ("sidecar-native", "sidecar", None),  # a spawned server's default client
     ):
         env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=4, wrapper_class=RecordActions)
         model = ESAPPO(
@@ -453,7 +453,7 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
         in_process = isinstance(model._esa.client.transport, InProcessTransport)
         assert in_process == (engine == "inprocess")
         native = isinstance(model._esa.client.transport, NativeGrpcTransport)
-        assert native == (spawn is not None)
+        assert native == (name == "sidecar-native")
         assert (model._esa.client.server is None) == in_process
         runs[name] = ([np.stack(e.actions) for e in env.envs], parameters(model))
         model.esa_close()

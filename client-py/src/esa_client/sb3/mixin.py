@@ -73,7 +73,9 @@ class EsaMixin(_Algorithm):
                 starts from ``EsaConfig.paper()`` instead. None: the family's default.
             esa_address: An esa-server address; None spawns a private server.
             esa_spawn: Arguments of :meth:`EsaClient.spawn` for that private server, e.g.
-                ``{"session_ttl": 3600}`` when rollouts are far apart.
+                ``{"session_ttl": 3600}`` when rollouts are far apart. It is reached
+                through the Rust client (``transport="native"``) unless these name
+                another transport, e.g. ``{"transport": "grpc"}`` for grpcio.
             esa_engine: Where the sessions live: ``"inprocess"`` (esa-core in this process:
                 no server, nothing shared) or ``"sidecar"`` (an esa-server: ``esa_address``,
                 else a private one). None: the server that ``esa_address`` or ``esa_spawn``
