@@ -62,9 +62,10 @@ def open_client(
 ) -> BaseClient:
     """A client of ``engine``: in-process, the server at ``address``, or a spawned one.
 
-    A spawned server is reached through the Rust client (``transport="native"``) unless
-    ``spawn`` names another transport: on its private Unix socket TLS is moot, and its
-    StepStream costs about a third of grpcio's per step with the same answers.
+    A server is reached through the Rust client (``transport="native"``) unless ``spawn``
+    names another transport: an address here is plaintext (a TLS client is made with
+    :meth:`EsaClient.connect` and given to :meth:`EsaRuntime.on_client`), and the Rust
+    client's StepStream costs about a third of grpcio's per step, with the same answers.
     """
     if engine == "inprocess":
         return EsaClient.in_process()
@@ -74,7 +75,7 @@ def open_client(
         if "transport" not in spawn and "native" not in spawn:
             defaults["transport"] = "native"
         return EsaClient.spawn(**{**defaults, **spawn})
-    return EsaClient.connect(address, reconnect_timeout=reconnect_timeout)
+    return EsaClient.connect(address, transport="native", reconnect_timeout=reconnect_timeout)
 
 
 def check_on_unavailable(on_unavailable: str) -> OnUnavailable:

@@ -71,7 +71,8 @@ class EsaMixin(_Algorithm):
                 (an RL Zoo yaml file's ``esa: {amplitude: 0.2}``) applied over the family's
                 default, checked like ``EsaConfig`` (``ValueError``); ``"preset": "paper"``
                 starts from ``EsaConfig.paper()`` instead. None: the family's default.
-            esa_address: An esa-server address; None spawns a private server.
+            esa_address: An esa-server address (``host:port`` or ``unix:/path``, reached
+                in plaintext through the Rust client); None spawns a private server.
             esa_spawn: Arguments of :meth:`EsaClient.spawn` for that private server, e.g.
                 ``{"session_ttl": 3600}`` when rollouts are far apart. It is reached
                 through the Rust client (``transport="native"``) unless these name
