@@ -14,6 +14,18 @@ fn server() -> Option<example::Server> {
     Some(example::Server::spawn().expect("esa-server starts"))
 }
 
+/// A session of one action dimension.
+fn one_dim_config() -> pb::SessionConfig {
+    pb::SessionConfig {
+        action_dim: 1,
+        dt: 0.04,
+        amplitude: vec![0.2],
+        frequency: vec![31.4],
+        learning_rate: vec![0.5],
+        ..Default::default()
+    }
+}
+
 #[tokio::test]
 async fn the_example_moves_the_action_toward_the_critics_best() {
     let Some(server) = server() else { return };
@@ -38,14 +50,7 @@ async fn errors_are_typed_with_the_batch_item() {
     let err = client.end_episode("nobody").await.unwrap_err();
     assert_eq!(err.kind(), Kind::SessionNotFound);
 
-    let config = pb::SessionConfig {
-        action_dim: 1,
-        dt: 0.04,
-        amplitude: vec![0.2],
-        frequency: vec![31.4],
-        learning_rate: vec![0.5],
-        ..Default::default()
-    };
+    let config = one_dim_config();
     let id = client.create_session("mine", config.clone()).await.unwrap();
     // The same id and config again is a safe retry; another config is a conflict.
     assert_eq!(
@@ -133,14 +138,7 @@ async fn a_pipelined_pair_fails_with_its_report_and_the_stream_stays_in_step() {
     let client = Client::connect(&server.address, Options::default())
         .await
         .unwrap();
-    let config = pb::SessionConfig {
-        action_dim: 1,
-        dt: 0.04,
-        amplitude: vec![0.2],
-        frequency: vec![31.4],
-        learning_rate: vec![0.5],
-        ..Default::default()
-    };
+    let config = one_dim_config();
     let ids = vec![
         client.create_session("", config.clone()).await.unwrap(),
         client.create_session("", config).await.unwrap(),
