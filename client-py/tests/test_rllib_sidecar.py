@@ -17,6 +17,7 @@ import pytest
 from esa_client import EsaClient
 from esa_client.errors import EsaError
 from esa_client.rllib.service import EsaService, NodeSidecar, _alive
+from esa_client.transports.native import NativeGrpcTransport
 
 RUNNER = """
 import json, sys, time
@@ -141,6 +142,8 @@ def test_runners_follow_a_sidecar_killed_mid_training(sidecar_dir):
     )
     service = EsaService(sidecar_dir=str(sidecar_dir), timeout=1.0, reconnect_timeout=20)
     clients = [service.connect() for _ in range(2)]
+    # The runners reach their sidecar through the Rust client, its batches on a StepStream.
+    assert all(isinstance(c.transport.client.transport, NativeGrpcTransport) for c in clients)
     batches = [c.create_batch(config, 2, use_stream=True) for c in clients]
     errors, steps = [], 250
 
