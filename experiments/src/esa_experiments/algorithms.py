@@ -64,6 +64,7 @@ METHODS: dict[str, Method] = {
     "ppo_esa_null": Method("PPO+ESA (lr 0)", "ppo", "esa", "null"),
     "ppo_esa_paper": Method("PPO+ESA (paper law)", "ppo", "esa", "paper"),
     "ppo_paramnoise": Method("PPO+ParamNoise", "ppo", "param_noise"),
+    "ppo_qgrad": Method("PPO+gradient", "ppo", "esa", "default", (("esa_shift", "gradient"),)),
     "ppo_esa_target": Method("PPO+ESA target", "ppo", "esa", "target", (("esa_mode", "target"),)),
     "ppo_qgrad_target": Method(
         "PPO+gradient target",
@@ -91,6 +92,7 @@ BASELINE_OF = {
     "ppo_esa": "ppo",
     "ppo_esa_null": "ppo",
     "ppo_esa_paper": "ppo",
+    "ppo_qgrad": "ppo",
     "ppo_esa_target": "ppo",
     "ppo_qgrad_target": "ppo",
     "sac_esa": "sac",
@@ -104,6 +106,7 @@ BASELINE_OF = {
 
 
 GRADIENT_CONTROL_OF = {
+    "ppo_esa": "ppo_qgrad",
     "ppo_esa_target": "ppo_qgrad_target",
     "sac_esa": "sac_qgrad",
     "td3_esa": "td3_qgrad",

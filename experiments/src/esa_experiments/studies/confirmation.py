@@ -4,11 +4,14 @@ Per algorithm family, the shipped default of that family against its baseline an
 gradient control (the same bound, normalisation and gate, with the shift along the
 critic's action gradient: ESC is credited only where it beats it), on the same seeds:
 
-* PPO (``EsaConfig()``): ``ppo``, ``ppo_esa`` (behaviour: the env executes ``a + v``),
-  ``ppo_esa_target`` (the env executes the sample, PPO's update pulls the mean toward
-  ``mu_old + v``) and its control ``ppo_qgrad_target``; on InvertedPendulum-v5 (30k
-  steps), InvertedDoublePendulum-v5 (100k), the quadrotor figure eight (60k) and
-  Hopper-v5 (100k).
+* PPO (``EsaConfig()``): ``ppo``, ``ppo_esa`` (behaviour: the env executes ``a + v``)
+  and its control ``ppo_qgrad``, ``ppo_esa_target`` (the env executes the sample, PPO's
+  update pulls the mean toward ``mu_old + v``) and its control ``ppo_qgrad_target``; on
+  InvertedPendulum-v5 (30k steps), InvertedDoublePendulum-v5 (100k), the quadrotor
+  figure eight (60k) and Hopper-v5 (100k). ``ppo_qgrad`` joined after the other 640
+  runs had finished (the issue asks a control for every ESA arm, and the shipped PPO
+  default had none); it runs the same seeds 0-19 and its comparisons join the PPO
+  family's Holm correction, which can only make that family's verdicts stricter.
 * SAC (``EsaConfig.off_policy()``): ``sac``, ``sac_esa``, ``sac_qgrad`` on Hopper-v5 and
   the quadrotor figure eight, 50k steps.
 * TD3 (``EsaConfig.off_policy()``, on top of TD3's Gaussian noise): ``td3``, ``td3_esa``,
@@ -50,7 +53,7 @@ from esa_experiments.verdicts import (
 NAME = "confirmation"
 DESCRIPTION = "20 seeds: each family's ESA default vs its baseline and its gradient control"
 ARMS = {
-    "ppo": ("ppo", "ppo_esa", "ppo_esa_target", "ppo_qgrad_target"),
+    "ppo": ("ppo", "ppo_esa", "ppo_qgrad", "ppo_esa_target", "ppo_qgrad_target"),
     "sac": ("sac", "sac_esa", "sac_qgrad"),
     "td3": ("td3", "td3_esa", "td3_qgrad", "td3_sine", "td3_pink"),
 }
@@ -155,9 +158,6 @@ def _goal(verdicts: pd.DataFrame) -> str:
         for env in ENVS_OF[family]:
             row = {"family": family, "env": env, "shipped default": label}
             for kind in ("baseline", "gradient control"):
-                if not any(c.method == method and c.kind == kind for c in COMPARISONS):
-                    row[f"vs {kind}"] = "no control"
-                    continue
                 hit = verdicts[
                     (verdicts.env == env)
                     & (verdicts.method == label)
@@ -176,12 +176,14 @@ def _goal(verdicts: pd.DataFrame) -> str:
             rows.append(row)
     reached = len(better) >= GOAL_BETTER and GOAL_ENV in better and not worse
     state = "reached" if reached else "not reached"
+    tally = f"Better on {len(better)}, worse on {len(worse)}."
     if final < len(rows):
         state = f"open ({final} of {len(rows)} rows have all {SEED_COUNT} seeds)"
+        tally = f"So far better on {len(better)}, worse on {len(worse)}."
     return (
         f"{to_markdown(pd.DataFrame(rows))}\n\n"
         f"Goal (never worse; better on >= {GOAL_BETTER} pairs, one on {GOAL_ENV}): "
-        f"{state}. So far better on {len(better)}, worse on {len(worse)}.\n"
+        f"{state}. {tally}\n"
     )
 
 
