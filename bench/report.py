@@ -582,7 +582,7 @@ def training_section(training: dict) -> list[str]:
         "per-repeat ratios.",
         "",
     ]
-    if again := training.get("remeasured"):
+    for again in training.get("remeasured", []):
         lines += [
             f"Re-measured later ({again['why']}), with their baselines re-timed beside them: "
             + ", ".join(f"`{name}`" for name in again["rows"])
