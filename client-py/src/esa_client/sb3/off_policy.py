@@ -97,6 +97,10 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         """The policy's action and its spread sigma in [-1, 1] units, each ``(batch, D)``."""
         raise NotImplementedError
 
+    def _policy_std(self, obs: Any, n: int) -> th.Tensor:
+        """The policy's spread sigma in [-1, 1] units for ``n`` observations, ``(n, D)``."""
+        return self._policy_mean_and_std(obs)[1]
+
     def _esa_space(self) -> tuple[np.ndarray, np.ndarray]:
         dim = int(np.prod(self.action_space.shape or ()))
         return -np.ones(dim), np.ones(dim)
@@ -132,7 +136,7 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
             return action, buffer_action
         assert self._last_obs is not None and self._last_episode_starts is not None  # in rollouts
         obs, _ = self.policy.obs_to_tensor(self._last_obs)
-        _, std = self._policy_mean_and_std(obs)
+        std = self._policy_std(obs, n_envs)
         sigma = np.maximum(std.reshape(n_envs, -1).cpu().numpy(), SMALLEST_SCALE)
         sampled = buffer_action.reshape(n_envs, -1)
         if self.esa_shift == "gradient":

@@ -69,5 +69,9 @@ class ESATD3(OffPolicyEsaMixin, TD3):
         """The actor's action and the exploration noise's sigma, both in [-1, 1] units."""
         with th.no_grad():
             mean = self.actor(obs)
-        sigma = th.as_tensor(self._sigma(), dtype=mean.dtype, device=mean.device)
-        return mean, sigma.expand_as(mean).clamp(min=1e-6, max=1.0)
+        return mean, self._policy_std(obs, len(mean))
+
+    def _policy_std(self, obs: Any, n: int) -> th.Tensor:
+        """The exploration noise's sigma for ``n`` observations: no actor call is needed."""
+        sigma = th.as_tensor(self._sigma(), dtype=th.float32, device=self.device)
+        return sigma.expand(n, -1).clamp(min=1e-6, max=1.0)
