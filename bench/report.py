@@ -584,7 +584,9 @@ def training_section(training: dict) -> list[str]:
     ]
     for again in training.get("remeasured", []):
         lines += [
-            f"Re-measured later ({again['why']}), with their baselines re-timed beside them: "
+            f"Re-measured later ({again['why']})"
+            + (f" on {again['host']}" if "host" in again else "")
+            + ", with their baselines re-timed beside them: "
             + ", ".join(f"`{name}`" for name in again["rows"])
             + ".",
             "",

@@ -257,6 +257,15 @@ def main() -> None:
     print(f"wrote {out}")
 
 
+def host() -> str:
+    """The CPU model and core count: a re-measurement may run on another host than the rest."""
+    cpuinfo = Path("/proc/cpuinfo")
+    lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
+    models = [line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")]
+    model = models[0] if models else "?"
+    return f"{model}, {os.cpu_count()} cores"
+
+
 def merge_remeasured(full: dict, again: dict, why: str) -> dict:
     """``full`` with ``again``'s rows in place of its rows of the same pair and env count.
 
@@ -269,7 +278,12 @@ def merge_remeasured(full: dict, again: dict, why: str) -> dict:
 
     fresh = {key(row): row for row in again["rows"]}
     rows = [fresh.pop(key(row), row) for row in full["rows"]] + list(fresh.values())
-    record = {"rows": [row["esa"] for row in again["rows"]], "why": why, "args": again["args"]}
+    record = {
+        "rows": [row["esa"] for row in again["rows"]],
+        "why": why,
+        "host": host(),
+        "args": again["args"],
+    }
     return {**full, "rows": rows, "remeasured": [*full.get("remeasured", []), record]}
 
 
