@@ -204,6 +204,12 @@ def train_seconds(
 def main() -> None:
     """Times every agent ``repeats`` times per env count, alternating, and writes the ratios."""
     args = parse_dataclass(Args, __doc__.splitlines()[0])
+    out = Path(args.out)
+    if args.remeasure_why and not out.exists():
+        # Checked before the measurement, which takes minutes, not after it.
+        raise SystemExit(
+            f"expected an existing {out} to merge --remeasure-why's rows into, got no such file"
+        )
     th.set_num_threads(1)
     # Without it every spawn would first ask cargo whether the binary is up to date.
     os.environ["ESA_SERVER_BIN"] = server_binary()
@@ -248,7 +254,6 @@ def main() -> None:
                 }
             )
             print(f"{n_envs} env(s) {esa}/{plain} ratio: {np.median(ratios):.3f} {ratios.round(3)}")
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     result = {"args": dataclasses.asdict(args), "rows": rows}
     if args.remeasure_why:
