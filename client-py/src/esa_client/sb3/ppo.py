@@ -17,7 +17,15 @@ from stable_baselines3.common.distributions import Distribution
 from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.vec_env import VecEnv
 
-from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
+from ..common.advantage_head import (
+    AdvantageHead,
+    HeadSnapshot,
+    Rollout,
+    critic_quality,
+    fit,
+    normalized,
+)
+from ..common.runtime import QFunction
 from ..config import EsaConfig
 from .mixin import EsaMixin
 
@@ -151,6 +159,7 @@ class ESAPPO(EsaMixin, PPO):
         self._esa_head_fitted = False
         self._esa_active = False
         self._esa_scale: tuple[np.ndarray, np.ndarray] | None = None
+        self._esa_head_snapshot: HeadSnapshot | None = None
         super().__init__(policy, env, *args, esa=esa, esa_address=esa_address, **kwargs)
 
     def _setup_model(self) -> None:
@@ -184,8 +193,9 @@ class ESAPPO(EsaMixin, PPO):
 
     def _excluded_save_params(self) -> list[str]:
         # The head's training data are rebuilt from the next rollouts, the scaling from the
-        # action space.
-        return [*super()._excluded_save_params(), "_esa_head_data", "_esa_scale", "_esa_targets"]
+        # action space, the snapshot from the head.
+        excluded = ["_esa_head_data", "_esa_scale", "_esa_targets", "_esa_head_snapshot"]
+        return [*super()._excluded_save_params(), *excluded]
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
@@ -220,30 +230,32 @@ class ESAPPO(EsaMixin, PPO):
             return th.cat([pre[key].flatten(1).float() for key in sorted(pre)], dim=1)
         return pre.flatten(1).float()
 
-    def _esa_q_at(self, features: th.Tensor, mean: th.Tensor, std: th.Tensor | np.ndarray) -> Any:
-        """The head at the current observations, for actions in ESA units."""
+    def _esa_weights(self, obs: th.Tensor | dict[str, th.Tensor]) -> np.ndarray:
+        """The head's ``w(s)`` at the current observations, shape ``(N, D)``, float32.
+
+        From a numpy snapshot of the head, taken again whenever its parameters change (a
+        fit, a load): a rollout step asks for one step's observations at a time.
+        """
+        snapshot = self._esa_head_snapshot
+        if snapshot is None or snapshot.version != self.esa_head.version():
+            snapshot = self._esa_head_snapshot = self.esa_head.snapshot()
+        return snapshot.weights(self._head_features(obs).cpu().numpy())
+
+    def _esa_q_at(self, w: np.ndarray, mean: np.ndarray, std: np.ndarray) -> QFunction:
+        """The head at the current observations, for actions in ESA units.
+
+        ``A = w . (a - mu) / sigma`` is linear in the action: with ``a`` in ESA units,
+        ``A = g . a + b`` for ``g = w h / sigma`` and ``b = w . (c - mu) / sigma`` (``c``,
+        ``h``: the Box's center and half-width), so scoring the probes is one product.
+        """
         center, half_width = self._esa_scaling()
-        mean_np = mean.cpu().numpy()
-        std_np = std.cpu().numpy() if isinstance(std, th.Tensor) else std
-        # w(s) of the features tiled `reps` times, per reps: the sampled step's second call
-        # (esa/improvement) reuses the first's. Tiled, not broadcast, because a matrix
-        # product's rounding depends on its row count.
-        weights: dict[int, th.Tensor] = {}
+        gain = w * (half_width / std)
+        offset = (w * ((center - mean) / std)).sum(axis=1)
 
         def q_fn(actions: np.ndarray) -> np.ndarray:
-            reps = len(actions) // len(features)
-            raw = (actions * half_width + center).astype(np.float32)
-            # In float32 as torch would compute it (elementwise IEEE, the same bits),
-            # without torch's per-call overhead on these few numbers.
-            z = (raw.reshape(reps, *mean_np.shape) - mean_np) / std_np
-            with th.no_grad():
-                if reps not in weights:
-                    # The features are (N, F): tile_obs's repeat without its generality.
-                    tiled = features if reps == 1 else features.repeat(reps, 1)
-                    weights[reps] = self.esa_head.weights(tiled)
-                z_t = th.from_numpy(z.reshape(len(actions), -1)).to(self.device)
-                values: np.ndarray = AdvantageHead.advantage(weights[reps], z_t).cpu().numpy()
-                return values
+            points = actions.reshape(-1, *gain.shape)
+            values: np.ndarray = ((points * gain).sum(axis=2) + offset).reshape(-1)
+            return values
 
         return q_fn
 
@@ -276,18 +288,18 @@ class ESAPPO(EsaMixin, PPO):
             if self._esa_active and not deterministic:
                 sampled = actions.reshape(n, -1).cpu().numpy().astype(np.float64)
                 gaussian = _gaussian(distribution)
-                mean = gaussian.mean.reshape(n, -1)
                 std = gaussian.stddev.reshape(n, -1).cpu().numpy()
-                features = self._head_features(obs)
+                w = self._esa_weights(obs)
                 if self.esa_shift == "gradient":
-                    shift = self._gradient_shift(features) * std
+                    shift = self._gradient_shift(w) * std
                 else:
+                    mean = gaussian.mean.reshape(n, -1).cpu().numpy()
                     scaled = self._to_esa_units(sampled)
                     half_width = self._esa_scaling()[1]
                     applied = self._esa_runtime().step(
                         scaled,
                         np.asarray(self._last_episode_starts, dtype=bool),
-                        self._esa_q_at(features, mean, std),
+                        self._esa_q_at(w, mean, std),
                         std / half_width,
                     )
                     # The shift in raw units: exactly 0 when v = 0.
@@ -321,15 +333,15 @@ class ESAPPO(EsaMixin, PPO):
         with th.no_grad(), self._esa_forward():
             return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
 
-    def _gradient_shift(self, features: th.Tensor) -> np.ndarray:
+    def _gradient_shift(self, w: np.ndarray) -> np.ndarray:
         """``kappa w(s) / |w(s)|``: the head's action gradient as a shift in units of sigma.
 
-        The head ``A(s, a) = w(s) . (a - mu) / sigma`` has the gradient ``w(s)`` in units
-        of sigma, so the step needs no autograd; kappa is the trust region (1 when unset).
+        The head ``A(s, a) = w(s) . (a - mu) / sigma`` has the gradient ``w(s)`` (given, as
+        :meth:`_esa_weights` returns it) in units of sigma, so the step needs no autograd;
+        kappa is the trust region (1 when unset).
         """
         kappa = self.esa.trust_region if self.esa.trust_region is not None else 1.0
-        with th.no_grad():
-            w = self.esa_head.weights(features).cpu().numpy().astype(np.float64)
+        w = w.astype(np.float64)
         norm = np.linalg.norm(w, axis=1, keepdims=True)
         unit: np.ndarray = np.divide(w, norm, out=np.zeros_like(w), where=norm > 0)
         return kappa * unit
