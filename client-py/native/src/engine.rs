@@ -85,6 +85,60 @@ pub struct ReportOutput {
     pub dim: Option<usize>,
 }
 
+/// A critic linear in the action at each item's state, `Q_i(a) = gain_i . a + offset_i`, which
+/// [`Engine::step_linear`] evaluates itself (ESAPPO's advantage head has this form).
+pub struct LinearCritic<'a> {
+    /// `gain_i`, concatenated in item order (each item's action dimension).
+    pub gain: &'a [f64],
+    /// `offset_i`, one per item.
+    pub offset: &'a [f64],
+    /// Also report the critic at the applied actions as each item's `q_reference`.
+    pub paired: bool,
+}
+
+impl LinearCritic<'_> {
+    /// Checks the lengths against the sessions' dimensions and that every value is finite.
+    fn check(&self, sessions: &[&mut Session]) -> Result<(), Error> {
+        let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
+        for (field, values, expected) in [
+            ("gain", self.gain, total),
+            ("offset", self.offset, sessions.len()),
+        ] {
+            if values.len() != expected {
+                return Err(Error::InvalidArgument(format!(
+                    "{field}: expected {expected} values, got {}",
+                    values.len()
+                )));
+            }
+            if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
+                return Err(Error::InvalidArgument(format!(
+                    "{field}: expected finite values, got {bad}"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// `Q_i` at `actions` (concatenated like `gain`), one value per item.
+    fn values(&self, sessions: &[&mut Session], actions: &[f64]) -> Vec<f64> {
+        let mut start = 0;
+        sessions
+            .iter()
+            .zip(self.offset)
+            .map(|(session, &offset)| {
+                let end = start + session.action_dim();
+                let dot: f64 = self.gain[start..end]
+                    .iter()
+                    .zip(&actions[start..end])
+                    .map(|(g, a)| g * a)
+                    .sum();
+                start = end;
+                dot + offset
+            })
+            .collect()
+    }
+}
+
 impl Engine {
     /// An empty engine that holds at most `max_sessions` live sessions.
     pub fn new(max_sessions: usize) -> Self {
@@ -234,6 +288,56 @@ impl Engine {
             )?;
             Ok(ReportOutput {
                 actions,
+                dim: shared_dim(sessions),
+            })
+        })
+    }
+
+    /// One step of Algorithm 1 for a critic the engine evaluates itself: ProbeBatch, then
+    /// ReportBatch of `critic` at the probes (at the applied actions too, as references, when
+    /// `critic.paired`), with the probes' steps. One call instead of two and the critic's
+    /// evaluation in between. All-or-nothing: the critic is checked before the probe, and a
+    /// checked critic's report of a probe just made cannot be refused.
+    pub fn step_linear(
+        &mut self,
+        handle: &Handle,
+        steps: &[u64],
+        actions: &[f64],
+        episode_starts: &[bool],
+        action_scales: &[f64],
+        critic: &LinearCritic<'_>,
+    ) -> Result<ProbeOutput, Error> {
+        batch::check_probe_lengths(handle.len(), steps.len(), episode_starts.len())?;
+        self.with_sessions(handle, |sessions| {
+            critic.check(sessions)?;
+            let (mut probes, mut applied) = (Vec::new(), Vec::new());
+            batch::probe(
+                sessions,
+                steps,
+                actions,
+                episode_starts,
+                action_scales,
+                &mut probes,
+                &mut applied,
+            )?;
+            let q_values = critic.values(sessions, &probes);
+            let references = if critic.paired {
+                critic.values(sessions, &applied)
+            } else {
+                Vec::new()
+            };
+            let mut improved = Vec::new();
+            batch::report(
+                sessions,
+                steps,
+                &q_values,
+                &references,
+                &mut improved,
+                |_, _| {},
+            )?;
+            Ok(ProbeOutput {
+                probes,
+                applied,
                 dim: shared_dim(sessions),
             })
         })

@@ -14,7 +14,7 @@ use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
 
 use crate::arrays::{shaped, Values};
-use crate::engine;
+use crate::engine::{self, LinearCritic};
 use crate::errors::engine_error;
 
 /// By default, batches of more action values than this run with the GIL released (measured:
@@ -220,6 +220,66 @@ impl Engine {
                 actions.as_slice(),
                 starts.as_slice(),
                 scales.as_slice(),
+            )
+        }
+        .map_err(|err| engine_error(py, err))?;
+        let n = handle.len();
+        let probes = shaped(py, output.probes, n, output.dim)?;
+        let applied = shaped(py, output.applied, n, output.dim)?;
+        PyTuple::new(py, [probes, applied])
+    }
+
+    /// ProbeBatch, then ReportBatch of a linear critic's values: returns (probes, applied).
+    #[pyo3(signature = (handle, steps, actions, episode_starts, action_scales, gain, offset, paired))]
+    #[allow(clippy::too_many_arguments)] // the Python signature: ProbeBatch's and the critic's
+    fn step_linear<'py>(
+        &self,
+        py: Python<'py>,
+        handle: &Bound<'py, BatchHandle>,
+        steps: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        episode_starts: &Bound<'py, PyAny>,
+        action_scales: Option<&Bound<'py, PyAny>>,
+        gain: &Bound<'py, PyAny>,
+        offset: &Bound<'py, PyAny>,
+        paired: bool,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let handle = &handle.get().inner;
+        let steps = Values::<u64>::steps(steps)?;
+        let actions = Values::<f64>::floats(actions)?;
+        let starts = Values::<bool>::bools(episode_starts)?;
+        let scales = match action_scales {
+            Some(scales) => Values::<f64>::floats(scales)?,
+            None => Values::empty(),
+        };
+        let (gain, offset) = (Values::<f64>::floats(gain)?, Values::<f64>::floats(offset)?);
+        let output = if handle.values() > self.detach_values {
+            let owned = [&actions, &scales, &gain, &offset].map(|values| values.owned());
+            let (steps, starts) = (steps.owned(), starts.owned());
+            py.detach(|| {
+                let [actions, scales, gain, offset] = &owned;
+                let critic = LinearCritic {
+                    gain,
+                    offset,
+                    paired,
+                };
+                self.inner
+                    .lock()
+                    .step_linear(handle, &steps, actions, &starts, scales, &critic)
+            })
+        } else {
+            let critic = LinearCritic {
+                gain: gain.as_slice(),
+                offset: offset.as_slice(),
+                paired,
+            };
+            self.lock(py).step_linear(
+                handle,
+                steps.as_slice(),
+                actions.as_slice(),
+                starts.as_slice(),
+                scales.as_slice(),
+                &critic,
             )
         }
         .map_err(|err| engine_error(py, err))?;

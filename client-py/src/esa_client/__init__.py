@@ -37,6 +37,7 @@ from .errors import (
     Unauthenticated,
 )
 from .session import Session, SessionBatch, SessionState
+from .transports.base import LinearCritic
 from .transports.grpcio import TlsConfig
 
 # Zenoh is an optional extra (esa-client[zenoh]): its clients load on first use.
@@ -59,6 +60,7 @@ __all__ = [
     "EsaConfig",
     "EsaError",
     "InvalidArgument",
+    "LinearCritic",
     "ResourceExhausted",
     "ServerUnavailable",
     "Session",

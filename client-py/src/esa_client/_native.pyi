@@ -213,6 +213,41 @@ class Engine:
                 ``index`` names the failing item.
         """
 
+    def step_linear(
+        self,
+        handle: BatchHandle,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None,
+        gain: npt.ArrayLike,
+        offset: npt.ArrayLike,
+        paired: bool,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """ProbeBatch, then ReportBatch of a critic linear in the action, in one call.
+
+        The critic is ``Q_i(a) = gain_i . a + offset_i``; the report sends it at each probe
+        (and, when ``paired``, at each applied action as ``q_reference``) with the probe's
+        step. All-or-nothing: the critic is checked before the probe.
+
+        Args:
+            handle: The N sessions.
+            steps: As for :meth:`probe`.
+            actions: As for :meth:`probe`.
+            episode_starts: As for :meth:`probe`.
+            action_scales: As for :meth:`probe`.
+            gain: float64, the sessions' dimensions concatenated (``(N, D)``), finite.
+            offset: float64[N], finite.
+            paired: Report the critic at the applied actions as the references.
+
+        Returns:
+            ``(probes, applied)``, as :meth:`probe` returns them.
+
+        Raises:
+            EngineError: As ProbeBatch; INVALID_ARGUMENT for a gain or offset of the wrong
+                length or with a non-finite value.
+        """
+
 class StatusError(Exception):
     """A failed call of :class:`GrpcClient`: the server's status, or the connection's.
 

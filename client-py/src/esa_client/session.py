@@ -34,7 +34,7 @@ from .state import (
     check_array,
     check_indices,
 )
-from .transports.base import BatchProbe, BatchReport, Transport
+from .transports.base import BatchProbe, BatchReport, LinearCritic, Transport
 
 __all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
 
@@ -280,16 +280,7 @@ class SessionBatch:
             ``(probes, applied)``, both shape ``(N, D)``: the probes, and
             ``clip(a_t + v(t))``, the shift before this step's report.
         """
-        shape = (self.n, self.action_dim)
-        a = check_array(actions, shape, "actions")
-        starts = self._next_starts.copy()
-        if episode_starts is not None:
-            starts |= check_array(episode_starts, (self.n,), "episode_starts", dtype=bool)
-        step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
-        scales = None
-        if action_scales is not None:
-            scales = np.broadcast_to(np.asarray(action_scales, np.float64), shape)
-        request = BatchProbe(step, a, starts, scales)
+        request = self._probe_request(actions, episode_starts, steps, action_scales)
         deferred = self._deferred
         if self._reconnect is None:
             if deferred is None:
@@ -305,6 +296,74 @@ class SessionBatch:
         self._last_probe = request
         self._next_starts[:] = False
         return answer
+
+    def step_linear(
+        self,
+        actions: npt.ArrayLike,
+        critic: LinearCritic,
+        episode_starts: npt.ArrayLike | None = None,
+        *,
+        action_scales: npt.ArrayLike | None = None,
+        paired: bool = False,
+    ) -> tuple[F64Array, F64Array]:
+        """A whole step of Algorithm 1 for a critic linear in the action.
+
+        :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the
+        probes (and at the applied actions as ``q_references`` when ``paired``). On the
+        in-process engine the engine evaluates the critic itself and both run in one
+        call, with nothing deferred.
+
+        Args:
+            actions: Sampled actions, shape ``(N, D)``.
+            critic: The critic at the N current states.
+            episode_starts: As for :meth:`probe_applied`.
+            action_scales: As for :meth:`probe_applied`.
+            paired: Report the critic at the applied actions as the references.
+
+        Returns:
+            ``(probes, applied)``, as :meth:`probe_applied` returns them.
+        """
+        shape = (self.n, self.action_dim)
+        gain_shape, offset_shape = np.shape(critic.gain), np.shape(critic.offset)
+        if gain_shape != shape or offset_shape != (self.n,):
+            raise ValueError(
+                f"critic: expected gain of shape {shape} and offset of shape {(self.n,)}, "
+                f"got {gain_shape} and {offset_shape}"
+            )
+        step_linear = getattr(self._batch, "step_linear", None)
+        if step_linear is None or self._deferred is not None:
+            probes, applied = self.probe_applied(
+                actions, episode_starts, action_scales=action_scales
+            )
+            q = critic(np.concatenate([probes, applied]) if paired else probes)
+            self.report(q[: self.n], q_references=q[self.n :] if paired else None, defer=True)
+            return probes, applied
+        # In this process: no wire to ride out, so no reconnect around the call.
+        request = self._probe_request(actions, episode_starts, None, action_scales)
+        answer: tuple[F64Array, F64Array] = step_linear(request, critic, paired)
+        self._steps = request.steps + 1
+        self._last_probe = request
+        self._next_starts[:] = False
+        return answer
+
+    def _probe_request(
+        self,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None,
+        steps: npt.ArrayLike | None,
+        action_scales: npt.ArrayLike | None,
+    ) -> BatchProbe:
+        """The checked probe of ``actions``, with the tracked steps unless ``steps`` is given."""
+        shape = (self.n, self.action_dim)
+        a = check_array(actions, shape, "actions")
+        starts = self._next_starts.copy()
+        if episode_starts is not None:
+            starts |= check_array(episode_starts, (self.n,), "episode_starts", dtype=bool)
+        step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
+        scales = None
+        if action_scales is not None:
+            scales = np.broadcast_to(np.asarray(action_scales, np.float64), shape)
+        return BatchProbe(step, a, starts, scales)
 
     def _probe_attempt(
         self, deferred: BatchReport | None, request: BatchProbe, retrying: bool

@@ -52,6 +52,8 @@ class AdvantageHead(nn.Module):
         # The three layers, for weights(): indexing a Sequential costs microseconds. A
         # tuple is not registered as a submodule, so the state_dict keeps its keys.
         self._linears = tuple(cast(nn.Linear, self.w[i]) for i in (0, 2, 4))
+        # Held for version(): parameters() walks the modules on every call.
+        self._parameters_held = tuple(self.parameters())
 
     def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
         """Returns A for policy-normalized actions ``z``, shape ``(batch,)``."""
@@ -86,7 +88,7 @@ class AdvantageHead(nn.Module):
 
     def version(self) -> tuple[int, ...]:
         """Changes whenever a parameter is written in place (an optimizer step, a load)."""
-        return tuple(p._version for p in self.parameters())
+        return tuple(p._version for p in self._parameters_held)
 
 
 class HeadSnapshot:
@@ -143,22 +145,54 @@ def fit(
 ) -> float:
     """Regresses the head onto the rollouts' normalized advantages; returns the mean loss.
 
-    Minibatches are drawn from ``rng``, not numpy's global generator, so that fitting
-    the head leaves PPO's own minibatch order untouched.
+    The loss of a minibatch is the mean squared error of ``A = w(s) . z``; its gradients
+    come from :func:`_gradients`, the backward pass written out. Minibatches are drawn
+    from ``rng``, not numpy's global generator, so that fitting the head leaves PPO's own
+    minibatch order untouched.
     """
     features = th.cat([r.features for r in rollouts])
     z = th.cat([r.z for r in rollouts])
     target = th.cat([r.target for r in rollouts])
+    parameters = [t for layer in head._linears for t in (layer.weight, layer.bias)]
     losses = []
-    for _ in range(epochs):
-        order = th.as_tensor(rng.permutation(len(target)))
-        for idx in order.split(batch_size):
-            loss = F.mse_loss(head(features[idx], z[idx]), target[idx])
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-            losses.append(loss.item())
-    return float(np.mean(losses))
+    with th.no_grad():
+        for _ in range(epochs):
+            order = th.as_tensor(rng.permutation(len(target)))
+            for idx in order.split(batch_size):
+                loss, gradients = _gradients(head, features[idx], z[idx], target[idx])
+                for parameter, gradient in zip(parameters, gradients, strict=True):
+                    parameter.grad = gradient
+                optimizer.step()
+                losses.append(loss)
+    return float(th.stack(losses).mean())
+
+
+def _gradients(
+    head: AdvantageHead, features: th.Tensor, z: th.Tensor, target: th.Tensor
+) -> tuple[th.Tensor, list[th.Tensor]]:
+    """The minibatch's mean squared error and its gradients (weight, bias per layer).
+
+    :meth:`AdvantageHead.weights`'s backward pass written out: for this small net, autograd's
+    graph bookkeeping cost a third of the fit (``bench/profiles/README.md``); the same
+    products in the same float32, equal to autograd's gradients up to rounding.
+    """
+    first, second, third = head._linears
+    hidden1 = th.tanh(th.addmm(first.bias, features, first.weight.t()))
+    hidden2 = th.tanh(th.addmm(second.bias, hidden1, second.weight.t()))
+    w = th.addmm(third.bias, hidden2, third.weight.t())
+    residual = (w * z).sum(dim=1) - target
+    grad_w = z * (residual * (2.0 / len(target))).unsqueeze(1)
+    grad2 = (grad_w @ third.weight) * (1 - hidden2 * hidden2)
+    grad1 = (grad2 @ second.weight) * (1 - hidden1 * hidden1)
+    gradients = [
+        grad1.t() @ features,
+        grad1.sum(dim=0),
+        grad2.t() @ hidden1,
+        grad2.sum(dim=0),
+        grad_w.t() @ hidden2,
+        grad_w.sum(dim=0),
+    ]
+    return residual.square().mean(), gradients
 
 
 def rank_correlation(x: np.ndarray, y: np.ndarray) -> float:

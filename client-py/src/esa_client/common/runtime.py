@@ -15,6 +15,7 @@ from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
 from ..errors import EsaError, ServerUnavailable, SessionNotFound
 from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
+from ..transports.base import LinearCritic
 
 _log = logging.getLogger("esa_client")
 
@@ -257,7 +258,8 @@ class EsaRuntime:
         Args:
             sampled: The policy's samples a_t, shape ``(N, D)`` (any float dtype).
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
-            q_fn: The critic at the current observations.
+            q_fn: The critic at the current observations. A :class:`LinearCritic` is
+                evaluated by the in-process engine itself, in the probe's call.
             policy_std: The policy's standard deviation, shape ``(N, D)``; sent as the
                 action scale when ``use_policy_std`` (else 1).
 
@@ -274,6 +276,14 @@ class EsaRuntime:
             policy_std = np.maximum(policy_std, SMALLEST_SCALE)
         scale = policy_std if self.esa.use_policy_std else None
         restored = self.batch.sessions_restored
+        linear = q_fn if isinstance(q_fn, LinearCritic) else None
+
+        def probe(starts: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+            if linear is None:
+                return self.batch.probe_applied(a, starts, action_scales=scale)
+            paired = self.esa.paired_response
+            return self.batch.step_linear(a, linear, starts, action_scales=scale, paired=paired)
+
         try:
             if self._skipping:
                 if not np.any(episode_starts):
@@ -282,15 +292,13 @@ class EsaRuntime:
                 self.batch.restore()
                 self._skipping = False
                 _log.warning("esa server at %s reachable again: ESA resumes", self.client.address)
-                probes, applied = self.batch.probe_applied(a, action_scales=scale)
+                probes, applied = probe(None)
             else:
                 try:
-                    probes, applied = self.batch.probe_applied(
-                        a, episode_starts, action_scales=scale
-                    )
+                    probes, applied = probe(episode_starts)
                 except SessionNotFound:
                     self.batch.restore()
-                    probes, applied = self.batch.probe_applied(a, action_scales=scale)
+                    probes, applied = probe(None)
         except ServerUnavailable as err:
             if self.on_unavailable == "raise":
                 raise
@@ -304,10 +312,11 @@ class EsaRuntime:
         # Kept for trainers that execute the probe itself (exploration by the sinusoid).
         self.last_probes = probes
         n = len(a)
-        points = np.concatenate([probes, applied]) if self.esa.paired_response else probes
-        q = np.asarray(q_fn(points), dtype=np.float64)
-        reference = q[n:] if self.esa.paired_response else None
-        self.batch.report(q[:n], q_references=reference, defer=True)
+        if linear is None:
+            points = np.concatenate([probes, applied]) if self.esa.paired_response else probes
+            q = np.asarray(q_fn(points), dtype=np.float64)
+            reference = q[n:] if self.esa.paired_response else None
+            self.batch.report(q[:n], q_references=reference, defer=True)
         self._stats.add_step(a, applied, policy_std, self._clip)
         if self._calls % self._improvement_every == 0:
             both = np.asarray(q_fn(np.concatenate([a, applied])), dtype=np.float64)

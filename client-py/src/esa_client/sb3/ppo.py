@@ -25,8 +25,8 @@ from ..common.advantage_head import (
     fit,
     normalized,
 )
-from ..common.runtime import QFunction
 from ..config import EsaConfig
+from ..transports.base import LinearCritic
 from .mixin import EsaMixin
 
 Mode = Literal["behaviour", "target"]
@@ -180,10 +180,10 @@ class ESAPPO(EsaMixin, PPO):
         with th.random.fork_rng(devices=[]):
             self.esa_head = AdvantageHead(features_dim, action_dim, self.esa_head_hidden)
         self.esa_head.to(self.device)
-        # foreach: one call per operation for the six tensors instead of six (on the CPU the
-        # same per-tensor kernels, the same bits; checked by bench/profiles/fingerprint.py).
+        # fused: Adam's update of all six tensors in one kernel; the per-tensor kernels cost
+        # as much as the head's gradients (bench/profiles/README.md).
         self.esa_head_optimizer = th.optim.Adam(
-            self.esa_head.parameters(), lr=self.esa_head_learning_rate, foreach=True
+            self.esa_head.parameters(), lr=self.esa_head_learning_rate, fused=True
         )
         self._esa_rng = np.random.default_rng(self.seed)
 
@@ -241,23 +241,19 @@ class ESAPPO(EsaMixin, PPO):
             snapshot = self._esa_head_snapshot = self.esa_head.snapshot()
         return snapshot.weights(self._head_features(obs).cpu().numpy())
 
-    def _esa_q_at(self, w: np.ndarray, mean: np.ndarray, std: np.ndarray) -> QFunction:
+    def _esa_q_at(self, w: np.ndarray, mean: np.ndarray, std: np.ndarray) -> LinearCritic:
         """The head at the current observations, for actions in ESA units.
 
         ``A = w . (a - mu) / sigma`` is linear in the action: with ``a`` in ESA units,
         ``A = g . a + b`` for ``g = w h / sigma`` and ``b = w . (c - mu) / sigma`` (``c``,
-        ``h``: the Box's center and half-width), so scoring the probes is one product.
+        ``h``: the Box's center and half-width), which the in-process engine evaluates
+        itself.
         """
         center, half_width = self._esa_scaling()
+        w = w.astype(np.float64)  # float64 for the engine, which would convert it anyway
         gain = w * (half_width / std)
         offset = (w * ((center - mean) / std)).sum(axis=1)
-
-        def q_fn(actions: np.ndarray) -> np.ndarray:
-            points = actions.reshape(-1, *gain.shape)
-            values: np.ndarray = ((points * gain).sum(axis=2) + offset).reshape(-1)
-            return values
-
-        return q_fn
+        return LinearCritic(gain, offset)
 
     @contextlib.contextmanager
     def _esa_forward(self) -> Iterator[None]:

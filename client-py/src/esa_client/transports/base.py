@@ -58,6 +58,27 @@ class BatchReport(NamedTuple):
     q_references: F64Array | None
 
 
+class LinearCritic(NamedTuple):
+    """A critic linear in the action at each session's state: ``Q_i(a) = gain_i . a + offset_i``.
+
+    ESAPPO's advantage head has this form; an in-process engine evaluates it itself
+    (:meth:`~esa_client.session.SessionBatch.step_linear`).
+
+    Attributes:
+        gain: ``gain_i`` per session and dimension, shape ``(N, D)``.
+        offset: ``offset_i`` per session, shape ``(N,)``.
+    """
+
+    gain: F64Array
+    offset: F64Array
+
+    def __call__(self, actions: F64Array) -> F64Array:
+        """Q of ``(k N, D)`` actions for the N states tiled k times, shape ``(k N,)``."""
+        points = actions.reshape(-1, *self.gain.shape)
+        values: F64Array = ((points * self.gain).sum(axis=2) + self.offset).reshape(-1)
+        return values
+
+
 class BatchTransport(Protocol):
     """The round trips of one batch of N sessions (all of one action dimension D).
 

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from .._native import BatchHandle, Engine, EngineError
 from ..errors import TypedErrors
 from ..state import F64Array
-from .base import BatchProbe, BatchReport, InTurnBatch
+from .base import BatchProbe, BatchReport, InTurnBatch, LinearCritic
 from .native_calls import NativeSessionCalls
 
 _typed_errors = TypedErrors(EngineError)
@@ -49,6 +49,22 @@ class InProcessBatch(InTurnBatch):
                 request.actions,
                 request.episode_starts,
                 request.action_scales,
+            )
+
+    def step_linear(
+        self, request: BatchProbe, critic: LinearCritic, paired: bool
+    ) -> tuple[F64Array, F64Array]:
+        """ProbeBatch, then ReportBatch of ``critic`` at the probes, in one engine call."""
+        with _typed_errors:
+            return self._engine.step_linear(
+                self._resolved(),
+                request.steps,
+                request.actions,
+                request.episode_starts,
+                request.action_scales,
+                critic.gain,
+                critic.offset,
+                paired,
             )
 
     def report(self, request: BatchReport) -> F64Array:
