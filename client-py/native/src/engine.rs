@@ -297,7 +297,8 @@ impl Engine {
     /// ReportBatch of `critic` at the probes (at the applied actions too, as references, when
     /// `critic.paired`), with the probes' steps. One call instead of two and the critic's
     /// evaluation in between. All-or-nothing: the critic is checked before the probe, and a
-    /// checked critic's report of a probe just made cannot be refused.
+    /// report refused after it (a finite critic whose value overflows at a far probe) puts the
+    /// sessions back as they were before the probe.
     pub fn step_linear(
         &mut self,
         handle: &Handle,
@@ -310,6 +311,7 @@ impl Engine {
         batch::check_probe_lengths(handle.len(), steps.len(), episode_starts.len())?;
         self.with_sessions(handle, |sessions| {
             critic.check(sessions)?;
+            let before: Vec<Session> = sessions.iter().map(|session| (**session).clone()).collect();
             let (mut probes, mut applied) = (Vec::new(), Vec::new());
             batch::probe(
                 sessions,
@@ -327,14 +329,20 @@ impl Engine {
                 Vec::new()
             };
             let mut improved = Vec::new();
-            batch::report(
+            let reported = batch::report(
                 sessions,
                 steps,
                 &q_values,
                 &references,
                 &mut improved,
                 |_, _| {},
-            )?;
+            );
+            if let Err(err) = reported {
+                for (session, saved) in sessions.iter_mut().zip(before) {
+                    **session = saved;
+                }
+                return Err(err.into());
+            }
             Ok(ProbeOutput {
                 probes,
                 applied,

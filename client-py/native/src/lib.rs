@@ -10,11 +10,13 @@
 //! - [`errors`]: the exceptions a refused call raises, `EngineError` and `StatusError`, each with
 //!   the gRPC status `code`, `message` and failing batch item `index`.
 //! - [`arrays`]: numpy arguments in, numpy arrays out.
+//! - [`advantage_mlp`]: `AdvantageMlp`, ESAPPO's advantage head forward for one rollout step.
 //!
 //! The stub `esa_client/_native.pyi` documents the API.
 
 use pyo3::prelude::*;
 
+mod advantage_mlp;
 mod arrays;
 mod client;
 mod engine;
@@ -23,13 +25,15 @@ mod errors;
 
 use esa_store::Code;
 
-/// esa-core in-process (`Engine`, `BatchHandle`, `EngineError`), a gRPC client (`GrpcClient`,
+/// esa-core in-process (`Engine`, `BatchHandle`, `EngineError`), ESAPPO's head (`AdvantageMlp`), a
+/// gRPC client (`GrpcClient`,
 /// `GrpcBatch`, `StatusError`) and the gRPC code numbers.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
     m.add_class::<engine_class::Engine>()?;
     m.add_class::<engine_class::BatchHandle>()?;
+    m.add_class::<advantage_mlp::AdvantageMlp>()?;
     m.add("EngineError", py.get_type::<errors::EngineError>())?;
     m.add_class::<client::GrpcClient>()?;
     m.add_class::<client::GrpcBatch>()?;

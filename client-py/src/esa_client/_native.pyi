@@ -248,6 +248,58 @@ class Engine:
                 length or with a non-finite value.
         """
 
+class AdvantageMlp:
+    """ESAPPO's advantage head ``w(s)``, a tanh MLP, for one rollout step at a time.
+
+    A copy of the head's layers (``AdvantageHead.snapshot``), computed in float32 without
+    numpy's or torch's per-operation dispatch, and the action Box's scaling, for the step's
+    critic in ESA units.
+
+    Args:
+        weights: Each layer's weight, float32 ``(outputs, inputs)`` as torch stores it; tanh
+            between layers, none after the last.
+        biases: Each layer's bias, float32 ``(outputs,)``.
+        center: The Box's center per action dimension.
+        half_width: Its half-width per dimension, > 0.
+
+    Raises:
+        ValueError: If the shapes do not chain, or the scaling is not finite and positive.
+    """
+
+    def __init__(
+        self,
+        weights: Sequence[npt.NDArray[np.float32]],
+        biases: Sequence[npt.NDArray[np.float32]],
+        center: Sequence[float],
+        half_width: Sequence[float],
+    ) -> None: ...
+    @property
+    def features_dim(self) -> int:
+        """F, the first layer's inputs."""
+
+    @property
+    def action_dim(self) -> int:
+        """D, the last layer's outputs."""
+
+    def weights(self, features: npt.NDArray[np.float32]) -> npt.NDArray[np.float64]:
+        """``w(features)`` for float32 features ``(N, F)``: float64 ``(N, D)``."""
+
+    def critic(
+        self,
+        features: npt.NDArray[np.float32],
+        mean: npt.NDArray[np.float32],
+        std: npt.NDArray[np.float32],
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """``(gain, offset)`` of ``A = w . (a - mean) / std`` for ``a`` in ESA units.
+
+        With ``a = c + h x`` (``c``, ``h``: center and half-width), ``A = gain . x + offset``
+        where ``gain = w h / std`` and ``offset = w . (c - mean) / std``: float64 ``(N, D)``
+        and ``(N,)``, for :class:`esa_client.LinearCritic`.
+
+        Raises:
+            ValueError: If a shape does not match the head's (F, D) or the row count.
+        """
+
 class StatusError(Exception):
     """A failed call of :class:`GrpcClient`: the server's status, or the connection's.
 

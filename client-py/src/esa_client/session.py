@@ -356,13 +356,18 @@ class SessionBatch:
         """The checked probe of ``actions``, with the tracked steps unless ``steps`` is given."""
         shape = (self.n, self.action_dim)
         a = check_array(actions, shape, "actions")
-        starts = self._next_starts.copy()
-        if episode_starts is not None:
-            starts |= check_array(episode_starts, (self.n,), "episode_starts", dtype=bool)
+        if episode_starts is None:
+            starts = self._next_starts.copy()
+        else:
+            starts = self._next_starts | check_array(
+                episode_starts, (self.n,), "episode_starts", dtype=bool
+            )
         step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
         scales = None
         if action_scales is not None:
-            scales = np.broadcast_to(np.asarray(action_scales, np.float64), shape)
+            scales = np.asarray(action_scales, np.float64)
+            if scales.shape != shape:  # a scalar or a row, for every session
+                scales = np.broadcast_to(scales, shape)
         return BatchProbe(step, a, starts, scales)
 
     def _probe_attempt(

@@ -85,7 +85,7 @@ def capture_states(
                     sampled = (mean + std * th.randn(mean.shape, generator=generator)).numpy()[0]
                 scaled = (sampled - center) / half_width
                 sigma = std.numpy()[0] / half_width
-                q_fn = m._esa_q_at(m._esa_weights(obs_t), mean.numpy(), std.numpy())
+                q_fn = m._esa_critic(obs_t, mean.numpy(), std.numpy())
                 shifts, gains = [], []
                 for session in sessions:
                     probe, applied = session.probe_applied(

@@ -29,6 +29,8 @@ import torch as th
 from torch import nn
 from torch.nn import functional as F
 
+from .._native import AdvantageMlp
+
 
 class AdvantageHead(nn.Module):
     """``A(s, a) = w(s) . (a - mu) / sigma``, ``w`` a tanh MLP of the observation features.
@@ -78,46 +80,29 @@ class AdvantageHead(nn.Module):
         value: th.Tensor = (w * z).sum(dim=1)
         return value
 
-    def snapshot(self) -> HeadSnapshot:
-        """A numpy copy of ``w``'s network, for one observation at a time in a rollout."""
-        layers = [
-            (lin.weight.detach().cpu().numpy().T.copy(), lin.bias.detach().cpu().numpy().copy())
-            for lin in self._linears
-        ]
-        return HeadSnapshot(layers, self.version())
+    def snapshot(self, center: np.ndarray, half_width: np.ndarray) -> AdvantageMlp:
+        """The network as it is now, in Rust, for one rollout step at a time.
+
+        Args:
+            center: The action Box's center, per dimension (0 where a side is open).
+            half_width: Its half-width (1 where a side is open): ESA units are
+                ``(a - center) / half_width``.
+
+        Returns:
+            An :class:`esa_client._native.AdvantageMlp` that gives ``w(s)`` and the step's
+            critic in ESA units. Its float32 arithmetic rounds differently from torch's
+            kernels: ``w`` agrees with :meth:`weights` to float32 precision, not bit for bit.
+        """
+        return AdvantageMlp(
+            [layer.weight.detach().cpu().numpy() for layer in self._linears],
+            [layer.bias.detach().cpu().numpy() for layer in self._linears],
+            [float(c) for c in center],
+            [float(h) for h in half_width],
+        )
 
     def version(self) -> tuple[int, ...]:
         """Changes whenever a parameter is written in place (an optimizer step, a load)."""
         return tuple(p._version for p in self._parameters_held)
-
-
-class HeadSnapshot:
-    """``w(s)`` of an :class:`AdvantageHead` as it was, computed with numpy.
-
-    A rollout evaluates the head on one step's few observations at a time, where torch's
-    dispatch costs several microseconds per operation and numpy's one: the same network in
-    float32, rounded differently (a different matrix kernel), so ``w`` agrees with the
-    torch head's to float32 precision, not bit for bit.
-
-    Args:
-        layers: ``(weight.T, bias)`` of the three linear layers, tanh between them.
-        version: The head's :meth:`AdvantageHead.version` when copied.
-    """
-
-    def __init__(
-        self, layers: list[tuple[np.ndarray, np.ndarray]], version: tuple[int, ...]
-    ) -> None:
-        """Holds the copied layers."""
-        self.layers = layers
-        self.version = version
-
-    def weights(self, features: np.ndarray) -> np.ndarray:
-        """``w(features)`` for features of shape ``(N, F)``, float32, shape ``(N, D)``."""
-        (w1, b1), (w2, b2), (w3, b3) = self.layers
-        hidden = np.tanh(features @ w1 + b1)
-        hidden = np.tanh(hidden @ w2 + b2)
-        out: np.ndarray = hidden @ w3 + b3
-        return out
 
 
 @dataclass

@@ -17,14 +17,8 @@ from stable_baselines3.common.distributions import Distribution
 from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.vec_env import VecEnv
 
-from ..common.advantage_head import (
-    AdvantageHead,
-    HeadSnapshot,
-    Rollout,
-    critic_quality,
-    fit,
-    normalized,
-)
+from .._native import AdvantageMlp
+from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from ..config import EsaConfig
 from ..transports.base import LinearCritic
 from .mixin import EsaMixin
@@ -159,7 +153,7 @@ class ESAPPO(EsaMixin, PPO):
         self._esa_head_fitted = False
         self._esa_active = False
         self._esa_scale: tuple[np.ndarray, np.ndarray] | None = None
-        self._esa_head_snapshot: HeadSnapshot | None = None
+        self._esa_head_snapshot: tuple[tuple[int, ...], AdvantageMlp] | None = None
         super().__init__(policy, env, *args, esa=esa, esa_address=esa_address, **kwargs)
 
     def _setup_model(self) -> None:
@@ -230,30 +224,29 @@ class ESAPPO(EsaMixin, PPO):
             return th.cat([pre[key].flatten(1).float() for key in sorted(pre)], dim=1)
         return pre.flatten(1).float()
 
+    def _esa_mlp(self) -> AdvantageMlp:
+        """The head in Rust, copied again whenever its parameters changed (a fit, a load)."""
+        version = self.esa_head.version()
+        if self._esa_head_snapshot is None or self._esa_head_snapshot[0] != version:
+            self._esa_head_snapshot = (version, self.esa_head.snapshot(*self._esa_scaling()))
+        return self._esa_head_snapshot[1]
+
     def _esa_weights(self, obs: th.Tensor | dict[str, th.Tensor]) -> np.ndarray:
-        """The head's ``w(s)`` at the current observations, shape ``(N, D)``, float32.
+        """The head's ``w(s)`` at the current observations, shape ``(N, D)``."""
+        return self._esa_mlp().weights(self._head_features(obs).cpu().numpy())
 
-        From a numpy snapshot of the head, taken again whenever its parameters change (a
-        fit, a load): a rollout step asks for one step's observations at a time.
-        """
-        snapshot = self._esa_head_snapshot
-        if snapshot is None or snapshot.version != self.esa_head.version():
-            snapshot = self._esa_head_snapshot = self.esa_head.snapshot()
-        return snapshot.weights(self._head_features(obs).cpu().numpy())
-
-    def _esa_q_at(self, w: np.ndarray, mean: np.ndarray, std: np.ndarray) -> LinearCritic:
+    def _esa_critic(
+        self, obs: th.Tensor | dict[str, th.Tensor], mean: np.ndarray, std: np.ndarray
+    ) -> LinearCritic:
         """The head at the current observations, for actions in ESA units.
 
         ``A = w . (a - mu) / sigma`` is linear in the action: with ``a`` in ESA units,
         ``A = g . a + b`` for ``g = w h / sigma`` and ``b = w . (c - mu) / sigma`` (``c``,
         ``h``: the Box's center and half-width), which the in-process engine evaluates
-        itself.
+        itself. ``mean`` and ``std`` are the policy's, float32 ``(N, D)``.
         """
-        center, half_width = self._esa_scaling()
-        w = w.astype(np.float64)  # float64 for the engine, which would convert it anyway
-        gain = w * (half_width / std)
-        offset = (w * ((center - mean) / std)).sum(axis=1)
-        return LinearCritic(gain, offset)
+        features = self._head_features(obs).cpu().numpy()
+        return LinearCritic(*self._esa_mlp().critic(features, mean, std))
 
     @contextlib.contextmanager
     def _esa_forward(self) -> Iterator[None]:
@@ -285,9 +278,8 @@ class ESAPPO(EsaMixin, PPO):
                 sampled = actions.reshape(n, -1).cpu().numpy().astype(np.float64)
                 gaussian = _gaussian(distribution)
                 std = gaussian.stddev.reshape(n, -1).cpu().numpy()
-                w = self._esa_weights(obs)
                 if self.esa_shift == "gradient":
-                    shift = self._gradient_shift(w) * std
+                    shift = self._gradient_shift(self._esa_weights(obs)) * std
                 else:
                     mean = gaussian.mean.reshape(n, -1).cpu().numpy()
                     scaled = self._to_esa_units(sampled)
@@ -295,7 +287,7 @@ class ESAPPO(EsaMixin, PPO):
                     applied = self._esa_runtime().step(
                         scaled,
                         np.asarray(self._last_episode_starts, dtype=bool),
-                        self._esa_q_at(w, mean, std),
+                        self._esa_critic(obs, mean, std),
                         std / half_width,
                     )
                     # The shift in raw units: exactly 0 when v = 0.
@@ -337,7 +329,6 @@ class ESAPPO(EsaMixin, PPO):
         kappa is the trust region (1 when unset).
         """
         kappa = self.esa.trust_region if self.esa.trust_region is not None else 1.0
-        w = w.astype(np.float64)
         norm = np.linalg.norm(w, axis=1, keepdims=True)
         unit: np.ndarray = np.divide(w, norm, out=np.zeros_like(w), where=norm > 0)
         return kappa * unit

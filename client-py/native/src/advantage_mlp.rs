@@ -1,0 +1,231 @@
+//! `AdvantageMlp`: ESAPPO's advantage head, forward, for one rollout step.
+//!
+//! ESAPPO scores a step's probes with `A = w(s) . (a - mu) / sigma`, `w` a tanh MLP of the
+//! observation (`esa_client.common.advantage_head`). A step has one observation per env: numpy or
+//! torch would spend more time dispatching their dozen small operations than computing them. This
+//! class holds a copy of the head's layers (taken again after each fit) and returns, in one call,
+//! the step's critic linear in the action in ESA units, `Q(a) = gain . a + offset` with
+//! `gain = w h / sigma` and `offset = w . (c - mu) / sigma` (`c`, `h`: the Box's center and
+//! half-width), which `Engine.step_linear` evaluates.
+
+use std::borrow::Cow;
+
+use numpy::ndarray::{Array1, Array2, ArrayView2};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+/// What `critic` returns: `gain` (N, D) and `offset` (N,).
+type Critic<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<f64>>);
+
+/// One linear layer, `weight` row-major (outputs x inputs) as torch stores it.
+struct Layer {
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+    inputs: usize,
+}
+
+impl Layer {
+    fn outputs(&self) -> usize {
+        self.bias.len()
+    }
+
+    /// `weight x + bias`, written over `out`.
+    fn forward(&self, input: &[f32], out: &mut Vec<f32>) {
+        out.clear();
+        out.extend(
+            self.weight
+                .chunks_exact(self.inputs)
+                .zip(&self.bias)
+                .map(|(row, bias)| row.iter().zip(input).map(|(w, x)| w * x).sum::<f32>() + bias),
+        );
+    }
+}
+
+/// The head's layers and the action space's scaling; see the module stub for the API.
+#[pyclass(frozen, module = "esa_client._native")]
+pub(crate) struct AdvantageMlp {
+    layers: Vec<Layer>,
+    center: Vec<f64>,
+    half_width: Vec<f64>,
+}
+
+fn invalid(message: String) -> PyErr {
+    PyValueError::new_err(message)
+}
+
+/// The rows of a `(n, width)` float32 array (borrowed where contiguous), checking the width.
+fn rows<'a>(
+    array: &'a ArrayView2<'_, f32>,
+    width: usize,
+    name: &str,
+) -> PyResult<Vec<Cow<'a, [f32]>>> {
+    if array.ncols() != width {
+        return Err(invalid(format!(
+            "{name}: expected {width} columns, got shape {:?}",
+            array.shape()
+        )));
+    }
+    Ok(array
+        .rows()
+        .into_iter()
+        .map(|row| match row.to_slice() {
+            Some(slice) => Cow::Borrowed(slice),
+            None => Cow::Owned(row.to_vec()),
+        })
+        .collect())
+}
+
+impl AdvantageMlp {
+    fn features_dim(&self) -> usize {
+        self.layers[0].inputs
+    }
+
+    fn action_dim(&self) -> usize {
+        self.center.len()
+    }
+
+    /// `w(features)` for each row of `features`, in float32.
+    fn each_w(&self, features: &ArrayView2<'_, f32>) -> PyResult<Vec<Vec<f32>>> {
+        let inputs = rows(features, self.features_dim(), "features")?;
+        let (mut hidden, mut next) = (Vec::new(), Vec::new());
+        Ok(inputs
+            .into_iter()
+            .map(|input| {
+                hidden.clear();
+                hidden.extend_from_slice(&input);
+                let last = self.layers.len() - 1;
+                for (index, layer) in self.layers.iter().enumerate() {
+                    layer.forward(&hidden, &mut next);
+                    if index < last {
+                        next.iter_mut().for_each(|v| *v = v.tanh());
+                    }
+                    std::mem::swap(&mut hidden, &mut next);
+                }
+                hidden.clone()
+            })
+            .collect())
+    }
+}
+
+#[pymethods]
+impl AdvantageMlp {
+    #[new]
+    fn new(
+        weights: Vec<PyReadonlyArray2<'_, f32>>,
+        biases: Vec<PyReadonlyArray1<'_, f32>>,
+        center: Vec<f64>,
+        half_width: Vec<f64>,
+    ) -> PyResult<Self> {
+        if weights.is_empty() || weights.len() != biases.len() {
+            return Err(invalid(format!(
+                "expected as many biases as weights (at least one layer), got {} and {}",
+                weights.len(),
+                biases.len()
+            )));
+        }
+        let mut layers: Vec<Layer> = Vec::with_capacity(weights.len());
+        for (index, (weight, bias)) in weights.iter().zip(&biases).enumerate() {
+            let (weight, bias) = (weight.as_array(), bias.as_array());
+            let (outputs, inputs) = weight.dim();
+            let expected_inputs = layers.last().map_or(inputs, Layer::outputs);
+            if inputs != expected_inputs || bias.len() != outputs || outputs == 0 || inputs == 0 {
+                return Err(invalid(format!(
+                    "layer {index}: expected a weight of shape (outputs, {expected_inputs}) and \
+                     a bias of length outputs, got {:?} and {}",
+                    weight.shape(),
+                    bias.len()
+                )));
+            }
+            layers.push(Layer {
+                weight: weight.iter().copied().collect(),
+                bias: bias.iter().copied().collect(),
+                inputs,
+            });
+        }
+        let action_dim = layers.last().map_or(0, Layer::outputs);
+        if center.len() != action_dim || half_width.len() != action_dim {
+            return Err(invalid(format!(
+                "expected center and half_width of length {action_dim} (the last layer's \
+                 outputs), got {} and {}",
+                center.len(),
+                half_width.len()
+            )));
+        }
+        if !center.iter().chain(&half_width).all(|v| v.is_finite())
+            || half_width.iter().any(|&h| h <= 0.0)
+        {
+            return Err(invalid(format!(
+                "expected finite center and half_width > 0, got {center:?} and {half_width:?}"
+            )));
+        }
+        Ok(Self {
+            layers,
+            center,
+            half_width,
+        })
+    }
+
+    /// F, the features each row of `features` has.
+    #[getter(features_dim)]
+    fn py_features_dim(&self) -> usize {
+        self.features_dim()
+    }
+
+    /// D, the action dimension.
+    #[getter(action_dim)]
+    fn py_action_dim(&self) -> usize {
+        self.action_dim()
+    }
+
+    /// `w(features)`: float64 (N, D).
+    fn weights<'py>(
+        &self,
+        py: Python<'py>,
+        features: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let each = self.each_w(&features.as_array())?;
+        let (n, dim) = (each.len(), self.action_dim());
+        let values = each.into_iter().flatten().map(f64::from).collect();
+        Array2::from_shape_vec((n, dim), values)
+            .map(|array| array.into_pyarray(py))
+            .map_err(|err| invalid(err.to_string()))
+    }
+
+    /// The step's critic in ESA units: `(gain, offset)`, float64 (N, D) and (N,).
+    fn critic<'py>(
+        &self,
+        py: Python<'py>,
+        features: PyReadonlyArray2<'py, f32>,
+        mean: PyReadonlyArray2<'py, f32>,
+        std: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<Critic<'py>> {
+        let each = self.each_w(&features.as_array())?;
+        let n = each.len();
+        let (mean, std) = (mean.as_array(), std.as_array());
+        let dim = self.action_dim();
+        let means = rows(&mean, dim, "mean")?;
+        let stds = rows(&std, dim, "std")?;
+        if means.len() != n || stds.len() != n {
+            return Err(invalid(format!(
+                "expected mean and std with {n} rows (one per features row), got {} and {}",
+                means.len(),
+                stds.len()
+            )));
+        }
+        let mut gain = Vec::with_capacity(n * dim);
+        let mut offset = Vec::with_capacity(n);
+        for ((w, mean), std) in each.iter().zip(means).zip(stds) {
+            let mut total = 0.0;
+            for d in 0..dim {
+                let (w, sigma) = (f64::from(w[d]), f64::from(std[d]));
+                gain.push(w * self.half_width[d] / sigma);
+                total += w * (self.center[d] - f64::from(mean[d])) / sigma;
+            }
+            offset.push(total);
+        }
+        let gain =
+            Array2::from_shape_vec((n, dim), gain).map_err(|err| invalid(err.to_string()))?;
+        Ok((gain.into_pyarray(py), Array1::from(offset).into_pyarray(py)))
+    }
+}

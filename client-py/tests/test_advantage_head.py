@@ -1,0 +1,86 @@
+"""ESAPPO's advantage head: the Rust copy a rollout step uses, and the fit's written-out gradients.
+
+Both replace torch code for speed (``bench/profiles/README.md``) and must compute the same
+function: the copy ``w(s)`` and its critic agree with the torch head to float32 precision,
+the gradients agree with autograd's, and bad shapes are refused with a ``ValueError``.
+"""
+
+import numpy as np
+import pytest
+import torch as th
+from torch.nn import functional as F
+
+from esa_client._native import AdvantageMlp
+from esa_client.common.advantage_head import AdvantageHead, _gradients
+
+
+@pytest.fixture
+def head() -> AdvantageHead:
+    with th.random.fork_rng(devices=[]):
+        th.manual_seed(3)
+        return AdvantageHead(5, 2, hidden=16)
+
+
+CENTER, HALF_WIDTH = np.array([0.5, -1.0]), np.array([2.0, 0.25])
+
+
+def test_the_rust_copy_computes_the_torch_heads_w_and_critic(head):
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(7, 5)).astype(np.float32)
+    mlp = head.snapshot(CENTER, HALF_WIDTH)
+    assert (mlp.features_dim, mlp.action_dim) == (5, 2)
+    with th.no_grad():
+        want = head.weights(th.from_numpy(features)).numpy()
+    w = mlp.weights(features)
+    np.testing.assert_allclose(w, want, rtol=1e-5, atol=1e-6)
+    mean = rng.normal(size=(7, 2)).astype(np.float32)
+    std = rng.uniform(0.1, 1.0, size=(7, 2)).astype(np.float32)
+    gain, offset = mlp.critic(features, mean, std)
+    np.testing.assert_allclose(gain, w * HALF_WIDTH / std, rtol=1e-12)
+    np.testing.assert_allclose(offset, (w * (CENTER - mean) / std).sum(axis=1), rtol=1e-12)
+    # The critic is the head's advantage of the raw action a = c + h x.
+    x = rng.normal(size=(7, 2))
+    with th.no_grad():
+        z = th.from_numpy(((CENTER + HALF_WIDTH * x - mean) / std).astype(np.float32))
+        advantage = head(th.from_numpy(features), z).numpy()
+    np.testing.assert_allclose((gain * x).sum(axis=1) + offset, advantage, rtol=1e-4, atol=1e-5)
+    # Strided views are read as they are.
+    wide = np.repeat(features, 2, axis=1)[:, ::2]
+    np.testing.assert_array_equal(mlp.weights(wide), w)
+
+
+def test_the_rust_copy_refuses_bad_shapes(head):
+    mlp = head.snapshot(CENTER, HALF_WIDTH)
+    f32 = np.float32
+    with pytest.raises(ValueError, match="features: expected 5 columns"):
+        mlp.weights(np.zeros((2, 4), f32))
+    with pytest.raises(ValueError, match="mean: expected 2 columns"):
+        mlp.critic(np.zeros((2, 5), f32), np.zeros((2, 3), f32), np.ones((2, 2), f32))
+    with pytest.raises(ValueError, match="expected mean and std with 2 rows"):
+        mlp.critic(np.zeros((2, 5), f32), np.zeros((3, 2), f32), np.ones((3, 2), f32))
+    weights = [np.zeros((4, 5), f32), np.zeros((2, 3), f32)]
+    with pytest.raises(ValueError, match="layer 1: expected a weight of shape"):
+        AdvantageMlp(weights, [np.zeros(4, f32), np.zeros(2, f32)], [0.0, 0.0], [1.0, 1.0])
+    layer = [np.zeros((2, 5), f32)], [np.zeros(2, f32)]
+    with pytest.raises(ValueError, match="expected as many biases as weights"):
+        AdvantageMlp(layer[0], [], [0.0, 0.0], [1.0, 1.0])
+    with pytest.raises(ValueError, match="center and half_width of length 2"):
+        AdvantageMlp(*layer, [0.0], [1.0])
+    with pytest.raises(ValueError, match="half_width > 0"):
+        AdvantageMlp(*layer, [0.0, 0.0], [1.0, 0.0])
+
+
+def test_the_fits_gradients_are_autograds(head):
+    rng = np.random.default_rng(1)
+    features = th.from_numpy(rng.normal(size=(64, 5)).astype(np.float32))
+    z = th.from_numpy(rng.normal(size=(64, 2)).astype(np.float32))
+    target = th.from_numpy(rng.normal(size=64).astype(np.float32))
+    head.zero_grad()
+    want_loss = F.mse_loss(head(features, z), target)
+    want_loss.backward()
+    with th.no_grad():
+        loss, gradients = _gradients(head, features, z, target)
+    assert float(loss) == pytest.approx(want_loss.item(), rel=1e-6)
+    for parameter, gradient in zip(head.parameters(), gradients, strict=True):
+        assert parameter.grad is not None
+        np.testing.assert_allclose(gradient, parameter.grad, rtol=1e-4, atol=1e-6)
