@@ -23,8 +23,9 @@ engine).
 
 To tell the service's share from the algorithm's, the ESA agents' time is also split
 by wrapping methods with timers: the round trips (``SessionBatch.probe_applied``, which
-carries the deferred report too, and ``.flush``), the whole ESA step (``EsaRuntime.step``:
-round trips plus critic evaluations) and ESAPPO's advantage-head fit and gate.
+carries the deferred report too, and ``.flush``; ESAPPO's in-process step is one
+``InProcessBatch.step_linear`` call: probe, critic and report), the whole ESA step
+(``EsaRuntime.step``: round trips plus critic evaluations) and ESAPPO's advantage-head fit and gate.
 
 Usage::
 
@@ -50,6 +51,7 @@ import torch as th
 from esa_client import SessionBatch
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3, EsaConfig
+from esa_client.transports.in_process import InProcessBatch
 from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -118,6 +120,7 @@ class Args:
 TIMED = [
     (SessionBatch, "probe_applied", "round_trips"),
     (SessionBatch, "flush", "round_trips"),
+    (InProcessBatch, "step_linear", "round_trips"),
     (EsaRuntime, "step", "esa_step"),
     (ESAPPO, "_update_esa_head", "critic_fit"),
 ]
