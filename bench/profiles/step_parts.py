@@ -1,0 +1,162 @@
+"""Where ESAPPO's extra wall-clock goes, timed inside real training runs (not micro-benchmarks).
+
+A step's small operations cost two to three times more inside training than in a loop of
+their own (the env and PPO's update evict them from the caches between steps), so this
+times them where they run: PPO, ESAPPO with its gate never open (``EsaConfig(gate=1.0)``:
+the head is fitted and gated every rollout, no ESA step) and the shipped ESAPPO, alternating,
+``--repeats`` times. Timers wrap SB3's ``collect_rollouts`` and ``train``, the policy's
+forward pass (the ESA hook in ESAPPO), ``ESAPPO._esa_critic`` (the head's forward and the step's
+critic), ``EsaRuntime.step`` (probe and report: one engine call in-process) and ``fit``.
+
+Settings as ``run_one.py``: InvertedPendulum-v5, 1 env, SB3's default PPO, 12,288 steps,
+torch on one thread, the in-process engine (``--engine sidecar-native`` for the sidecar).
+
+Usage::
+
+    python bench/profiles/step_parts.py [--repeats 3] [--engine inprocess] > step_parts.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import torch as th
+from esa_client.common import advantage_head
+from esa_client.common.runtime import EsaRuntime
+from esa_client.sb3 import ESAPPO, EsaConfig
+from esa_client.sb3 import ppo as esappo_module
+from run_one import ENGINES
+from stable_baselines3 import PPO
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+
+SECONDS: dict[str, float] = defaultdict(float)
+
+
+def timed(label: str, function: Callable[..., Any]) -> Callable[..., Any]:
+    """``function``, adding its wall seconds to ``SECONDS[label]``."""
+
+    @functools.wraps(function)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        start = time.perf_counter()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            SECONDS[label] += time.perf_counter() - start
+
+    return wrapper
+
+
+@contextlib.contextmanager
+def timers() -> Iterator[None]:
+    """Wraps the methods named in the module doc for the block."""
+    patched = [
+        (OnPolicyAlgorithm, "collect_rollouts", "collect_rollouts"),
+        (OnPolicyAlgorithm, "train", "PPO train"),
+        (ESAPPO, "train", "ESAPPO train (PPO's + the head's fit and gate)"),
+        (ESAPPO, "_esa_critic", "head forward + step critic (_esa_critic)"),
+        (EsaRuntime, "step", "probe + report (EsaRuntime.step)"),
+    ]
+    originals = [(cls, name, getattr(cls, name)) for cls, name, _ in patched]
+    fit = esappo_module.fit
+    for cls, name, label in patched:
+        setattr(cls, name, timed(label, getattr(cls, name)))
+    esappo_module.fit = timed("head fit", fit)
+    forward = ESAPPO._esa_forward
+
+    @contextlib.contextmanager
+    def timed_hook(self: ESAPPO) -> Iterator[None]:
+        with forward(self):
+            hook = self.policy.forward
+            self.policy.forward = timed("policy forward (with ESA's hook)", hook)  # type: ignore[method-assign]
+            yield
+
+    ESAPPO._esa_forward = timed_hook  # type: ignore[method-assign,assignment]
+    try:
+        yield
+    finally:
+        for cls, name, original in originals:
+            setattr(cls, name, original)
+        esappo_module.fit = fit
+        ESAPPO._esa_forward = forward  # type: ignore[method-assign]
+
+
+def run(agent: str, engine: str, steps: int) -> tuple[float, dict[str, float], int]:
+    """One training: learn()'s seconds, the timers' seconds, ESA's active steps."""
+    env = make_vec_env("InvertedPendulum-v5", n_envs=1, seed=0)
+    common: dict[str, Any] = dict(n_steps=2048, seed=0, device="cpu", verbose=0)
+    if agent == "PPO":
+        model: PPO = PPO("MlpPolicy", env, **common)
+        # PPO's forward is the policy's method; timed per instance like the hook.
+        model.policy.forward = timed("policy forward (with ESA's hook)", model.policy.forward)  # type: ignore[method-assign]
+    else:
+        esa = EsaConfig(gate=1.0) if agent == "ESAPPO gate closed" else EsaConfig()
+        model = ESAPPO("MlpPolicy", env, esa=esa, **common, **ENGINES[engine])
+    active = 0
+    if isinstance(model, ESAPPO):
+        collect = model.collect_rollouts
+
+        def counting_collect(*args: Any, **kwargs: Any) -> bool:
+            nonlocal active
+            was_active = model._esa_active
+            result = collect(*args, **kwargs)
+            active += model.n_steps if was_active else 0
+            return result
+
+        model.collect_rollouts = counting_collect  # type: ignore[method-assign]
+    SECONDS.clear()
+    start = time.perf_counter()
+    model.learn(steps)
+    total = time.perf_counter() - start
+    if isinstance(model, ESAPPO):
+        model.esa_close()
+    return total, dict(SECONDS), active
+
+
+def main() -> None:
+    """Prints a Markdown table of medians over the repeats."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=12_288)
+    parser.add_argument("--engine", choices=sorted(ENGINES), default="inprocess")
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    agents = ("PPO", "ESAPPO gate closed", "ESAPPO")
+    results: dict[str, list[tuple[float, dict[str, float], int]]] = defaultdict(list)
+    with timers():
+        for _ in range(args.repeats):
+            for agent in agents:
+                results[agent].append(run(agent, args.engine, args.steps))
+    labels = sorted({label for runs in results.values() for _, parts, _ in runs for label in parts})
+    print(f"engine: {args.engine}; {args.steps} steps, 1 env; medians of {args.repeats} runs\n")
+    print("| seconds | " + " | ".join(agents) + " |")
+    print("|---|" + "---:|" * len(agents))
+    rows = [("learn()", lambda r: r[0])] + [
+        (label, lambda r, label=label: r[1].get(label, 0.0)) for label in labels
+    ]
+    for name, value in rows:
+        cells = [f"{np.median([value(r) for r in results[a]]):.3f}" for a in agents]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    active = int(np.median([r[2] for r in results["ESAPPO"]]))
+    plain = np.median([r[0] for r in results["PPO"]])
+    for agent in agents[1:]:
+        ratio = np.median([r[0] for r in results[agent]]) / plain
+        print(f"\n{agent} / PPO: {ratio:.3f}", end="")
+    print(f"\n\nESAPPO's ESA steps (rollouts with the gate open): {active}")
+    per_step = {
+        label: np.median([r[1].get(label, 0.0) for r in results["ESAPPO"]]) / max(active, 1) * 1e6
+        for label in ("head forward + step critic (_esa_critic)", "probe + report (EsaRuntime.step)")
+    }
+    for label, micros in per_step.items():
+        print(f"- {label}: {micros:.1f} us per ESA step")
+
+
+if __name__ == "__main__":
+    main()
