@@ -28,10 +28,10 @@ from typing import Any
 
 import numpy as np
 import torch as th
-from esa_client.common import advantage_head
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, EsaConfig
 from esa_client.sb3 import ppo as esappo_module
+from esa_client.session import SessionBatch
 from run_one import ENGINES
 from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
@@ -59,10 +59,11 @@ def timers() -> Iterator[None]:
     """Wraps the methods named in the module doc for the block."""
     patched = [
         (OnPolicyAlgorithm, "collect_rollouts", "collect_rollouts"),
-        (OnPolicyAlgorithm, "train", "PPO train"),
+        (PPO, "train", "PPO train"),
         (ESAPPO, "train", "ESAPPO train (PPO's + the head's fit and gate)"),
         (ESAPPO, "_esa_critic", "head forward + step critic (_esa_critic)"),
         (EsaRuntime, "step", "probe + report (EsaRuntime.step)"),
+        (SessionBatch, "probe_applied", "  of which the sidecar's round trip (probe_applied)"),
     ]
     originals = [(cls, name, getattr(cls, name)) for cls, name, _ in patched]
     fit = esappo_module.fit
@@ -150,9 +151,13 @@ def main() -> None:
         ratio = np.median([r[0] for r in results[agent]]) / plain
         print(f"\n{agent} / PPO: {ratio:.3f}", end="")
     print(f"\n\nESAPPO's ESA steps (rollouts with the gate open): {active}")
+    per_step_labels = (
+        "head forward + step critic (_esa_critic)",
+        "probe + report (EsaRuntime.step)",
+    )
     per_step = {
         label: np.median([r[1].get(label, 0.0) for r in results["ESAPPO"]]) / max(active, 1) * 1e6
-        for label in ("head forward + step critic (_esa_critic)", "probe + report (EsaRuntime.step)")
+        for label in per_step_labels
     }
     for label, micros in per_step.items():
         print(f"- {label}: {micros:.1f} us per ESA step")
