@@ -250,7 +250,7 @@ class EsaRuntime:
         self,
         sampled: np.ndarray,
         episode_starts: np.ndarray,
-        q_fn: QFunction,
+        q_fn: QFunction | LinearCritic,
         policy_std: np.ndarray | None = None,
     ) -> np.ndarray:
         """Runs Algorithm 1's step for all envs and returns the actions to apply.
