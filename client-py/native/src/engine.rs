@@ -244,21 +244,7 @@ impl Engine {
     ) -> Result<ProbeOutput, Error> {
         batch::check_probe_lengths(handle.len(), steps.len(), episode_starts.len())?;
         self.with_sessions(handle, |sessions| {
-            let (mut probes, mut applied) = (Vec::new(), Vec::new());
-            batch::probe(
-                sessions,
-                steps,
-                actions,
-                episode_starts,
-                action_scales,
-                &mut probes,
-                &mut applied,
-            )?;
-            Ok(ProbeOutput {
-                probes,
-                applied,
-                dim: shared_dim(sessions),
-            })
+            probe_sessions(sessions, steps, actions, episode_starts, action_scales)
         })
     }
 
@@ -312,19 +298,10 @@ impl Engine {
         self.with_sessions(handle, |sessions| {
             critic.check(sessions)?;
             let before: Vec<Session> = sessions.iter().map(|session| (**session).clone()).collect();
-            let (mut probes, mut applied) = (Vec::new(), Vec::new());
-            batch::probe(
-                sessions,
-                steps,
-                actions,
-                episode_starts,
-                action_scales,
-                &mut probes,
-                &mut applied,
-            )?;
-            let q_values = critic.values(sessions, &probes);
+            let output = probe_sessions(sessions, steps, actions, episode_starts, action_scales)?;
+            let q_values = critic.values(sessions, &output.probes);
             let references = if critic.paired {
-                critic.values(sessions, &applied)
+                critic.values(sessions, &output.applied)
             } else {
                 Vec::new()
             };
@@ -343,11 +320,7 @@ impl Engine {
                 }
                 return Err(err.into());
             }
-            Ok(ProbeOutput {
-                probes,
-                applied,
-                dim: shared_dim(sessions),
-            })
+            Ok(output)
         })
     }
 
@@ -401,6 +374,31 @@ impl Engine {
         entry.remember(key);
         Ok(taken)
     }
+}
+
+/// ProbeBatch over `sessions` (see `esa_core::batch::probe`); all-or-nothing.
+fn probe_sessions(
+    sessions: &mut [&mut Session],
+    steps: &[u64],
+    actions: &[f64],
+    episode_starts: &[bool],
+    action_scales: &[f64],
+) -> Result<ProbeOutput, Error> {
+    let (mut probes, mut applied) = (Vec::new(), Vec::new());
+    batch::probe(
+        sessions,
+        steps,
+        actions,
+        episode_starts,
+        action_scales,
+        &mut probes,
+        &mut applied,
+    )?;
+    Ok(ProbeOutput {
+        probes,
+        applied,
+        dim: shared_dim(sessions),
+    })
 }
 
 fn shared_dim(sessions: &[&mut Session]) -> Option<usize> {

@@ -49,6 +49,17 @@ impl Engine {
     }
 }
 
+/// `(probes, applied)` of a probe's output, each (n, dim) where the items share a dimension.
+fn probe_tuple(
+    py: Python<'_>,
+    output: engine::ProbeOutput,
+    n: usize,
+) -> PyResult<Bound<'_, PyTuple>> {
+    let probes = shaped(py, output.probes, n, output.dim)?;
+    let applied = shaped(py, output.applied, n, output.dim)?;
+    PyTuple::new(py, [probes, applied])
+}
+
 #[pymethods]
 impl Engine {
     #[new]
@@ -223,10 +234,7 @@ impl Engine {
             )
         }
         .map_err(|err| engine_error(py, err))?;
-        let n = handle.len();
-        let probes = shaped(py, output.probes, n, output.dim)?;
-        let applied = shaped(py, output.applied, n, output.dim)?;
-        PyTuple::new(py, [probes, applied])
+        probe_tuple(py, output, handle.len())
     }
 
     /// ProbeBatch, then ReportBatch of a linear critic's values: returns (probes, applied).
@@ -283,10 +291,7 @@ impl Engine {
             )
         }
         .map_err(|err| engine_error(py, err))?;
-        let n = handle.len();
-        let probes = shaped(py, output.probes, n, output.dim)?;
-        let applied = shaped(py, output.applied, n, output.dim)?;
-        PyTuple::new(py, [probes, applied])
+        probe_tuple(py, output, handle.len())
     }
 
     /// ReportBatch: returns the improved actions.

@@ -175,9 +175,11 @@ class ESAPPO(EsaMixin, PPO):
             self.esa_head = AdvantageHead(features_dim, action_dim, self.esa_head_hidden)
         self.esa_head.to(self.device)
         # fused: Adam's update of all six tensors in one kernel; the per-tensor kernels cost
-        # as much as the head's gradients (bench/profiles/README.md).
+        # as much as the head's gradients (bench/profiles/README.md). torch >= 2.4 has it on
+        # the CPU and CUDA; elsewhere the default implementation.
+        fused = self.device.type in ("cpu", "cuda") or None
         self.esa_head_optimizer = th.optim.Adam(
-            self.esa_head.parameters(), lr=self.esa_head_learning_rate, fused=True
+            self.esa_head.parameters(), lr=self.esa_head_learning_rate, fused=fused
         )
         self._esa_rng = np.random.default_rng(self.seed)
 
