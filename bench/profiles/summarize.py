@@ -23,7 +23,8 @@ BUCKETS: list[tuple[str, str]] = [
         "SessionBatch calls (engine or transport)",
         r"^(probe_applied|flush|report|restore) \(.*session\.py:",
     ),
-    ("head forward at the probes (q_fn)", r"^q_fn \(.*ppo\.py:"),
+    # q_fn: the torch head of the profiles up to 48d7c6a; then the head in Rust (7ee1b71 on).
+    ("head forward at the probes (q_fn)", r"^(q_fn \(.*ppo\.py:|(_esa_critic|_esa_weights) \()"),
     ("runtime stats", r"^(add_step|_fold|add_improvement|means|record) \(.*runtime\.py:"),
     ("runtime step, rest", r"^step \(.*runtime\.py:"),
     ("runtime open (sessions, spawn)", r"^_esa_runtime \("),
