@@ -12,6 +12,7 @@ from torch.nn import functional as F
 
 from esa_client._native import AdvantageMlp
 from esa_client.common.advantage_head import AdvantageHead, _gradients
+from esa_client.sb3 import ESAPPO, EsaConfig
 
 
 @pytest.fixture
@@ -84,3 +85,24 @@ def test_the_fits_gradients_are_autograds(head):
     for parameter, gradient in zip(head.parameters(), gradients, strict=True):
         assert parameter.grad is not None
         np.testing.assert_allclose(gradient, parameter.grad, rtol=1e-4, atol=1e-6)
+
+
+def test_the_rust_copy_follows_every_fit():
+    # Fused Adam writes the parameters without bumping their version counters: the copy
+    # must still be taken again after each fit, or ESA would keep scoring with a stale head.
+    model = ESAPPO(
+        "MlpPolicy",
+        "InvertedPendulum-v5",
+        esa=EsaConfig(gate=None),
+        n_steps=64,
+        batch_size=64,
+        seed=0,
+        device="cpu",
+    )
+    model.learn(3 * 64)  # three fits; ESA steps with the head of the first two
+    assert model.esa_head.fits == 3
+    obs = th.as_tensor(model._last_obs)
+    with th.no_grad():
+        want = model.esa_head.weights(model._head_features(obs)).numpy()
+    np.testing.assert_allclose(model._esa_weights(obs), want, rtol=1e-5, atol=1e-6)
+    model.esa_close()

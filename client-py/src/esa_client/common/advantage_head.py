@@ -56,6 +56,9 @@ class AdvantageHead(nn.Module):
         self._linears = tuple(cast(nn.Linear, self.w[i]) for i in (0, 2, 4))
         # Held for version(): parameters() walks the modules on every call.
         self._parameters_held = tuple(self.parameters())
+        # Counted by fit(): a fused optimizer writes the parameters without bumping their
+        # version counters.
+        self.fits = 0
 
     def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
         """Returns A for policy-normalized actions ``z``, shape ``(batch,)``."""
@@ -101,8 +104,8 @@ class AdvantageHead(nn.Module):
         )
 
     def version(self) -> tuple[int, ...]:
-        """Changes whenever a parameter is written in place (an optimizer step, a load)."""
-        return tuple(p._version for p in self._parameters_held)
+        """Changes whenever the parameters change: a :func:`fit`, a load, an in-place write."""
+        return (self.fits, *(p._version for p in self._parameters_held))
 
 
 @dataclass
@@ -149,6 +152,7 @@ def fit(
                     parameter.grad = gradient
                 optimizer.step()
                 losses.append(loss)
+    head.fits += 1
     return float(th.stack(losses).mean())
 
 
