@@ -3,7 +3,7 @@
 ``Engine.step_linear`` scores the probes with ``Q_i(a) = gain_i . a + offset_i`` inside the
 engine. It must do exactly what ProbeBatch, then ReportBatch of the same values do (bit for
 bit, against a second engine driven with the two calls and the critic evaluated in Python),
-refuse a bad critic with INVALID_ARGUMENT and change nothing, and ``SessionBatch.step_linear``
+refuse a bad critic with INVALID_ARGUMENT and change nothing, and ``SessionBatch.step``
 must give the same actions on the in-process engine as through a real esa-server, where it
 falls back to the two calls.
 """
@@ -124,15 +124,13 @@ def run_batch(batch, rng_seed: int, steps: int = 25):
         critic = LinearCritic(rng.normal(size=actions.shape), rng.normal(size=batch.n))
         starts = (rng.random(batch.n) < 0.1) | (t == 0)
         scales = rng.uniform(0.2, 1.0, size=actions.shape)
-        _, applied = batch.step_linear(
-            actions, critic, starts, action_scales=scales, paired=bool(t % 2)
-        )
+        _, applied = batch.step(actions, critic, starts, action_scales=scales, paired=bool(t % 2))
         applied_all.append(applied)
     batch.flush()
     return np.stack(applied_all), batch.states()
 
 
-def test_session_batch_step_linear_in_process_is_the_servers(client):
+def test_session_batch_step_in_process_is_the_servers(client):
     config = SessionConfig(
         action_dim=3, dt=0.05, amplitude=0.2, frequency=12.0, learning_rate=2.0, trust_region=0.5
     )
@@ -151,7 +149,7 @@ def test_session_batch_step_linear_in_process_is_the_servers(client):
         local.close()
 
 
-def test_session_batch_step_linear_refuses_a_critic_of_the_wrong_shape():
+def test_session_batch_step_refuses_a_linear_critic_of_the_wrong_shape():
     config = SessionConfig(action_dim=2, dt=0.05, amplitude=0.1, frequency=10.0, learning_rate=1.0)
     with EsaClient.in_process() as local:
         batch = local.create_batch(config, 3)
@@ -161,7 +159,7 @@ def test_session_batch_step_linear_refuses_a_critic_of_the_wrong_shape():
             LinearCritic(np.zeros((3, 2)), np.zeros(2)),
         ):
             with pytest.raises(ValueError, match="critic: expected gain of shape"):
-                batch.step_linear(actions, critic)
+                batch.step(actions, critic)
             np.testing.assert_array_equal(batch.steps, [0, 0, 0])
-        batch.step_linear(actions, LinearCritic(np.zeros((3, 2)), np.zeros(3)))
+        batch.step(actions, LinearCritic(np.zeros((3, 2)), np.zeros(3)))
         np.testing.assert_array_equal(batch.steps, [1, 1, 1])

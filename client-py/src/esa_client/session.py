@@ -297,25 +297,26 @@ class SessionBatch:
         self._next_starts[:] = False
         return answer
 
-    def step_linear(
+    def step(
         self,
         actions: npt.ArrayLike,
-        critic: LinearCritic,
+        critic: Callable[[F64Array], npt.ArrayLike] | LinearCritic,
         episode_starts: npt.ArrayLike | None = None,
         *,
         action_scales: npt.ArrayLike | None = None,
         paired: bool = False,
     ) -> tuple[F64Array, F64Array]:
-        """A whole step of Algorithm 1 for a critic linear in the action.
+        """A whole step of Algorithm 1 (section 1b): probe, critic, deferred report.
 
         :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the
-        probes (and at the applied actions as ``q_references`` when ``paired``). On the
-        in-process engine the engine evaluates the critic itself and both run in one
-        call, with nothing deferred.
+        probes (and at the applied actions as ``q_references`` when ``paired``). A
+        :class:`~esa_client.transports.base.LinearCritic` on the in-process engine is
+        evaluated by the engine itself: both run in one call, with nothing deferred.
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
-            critic: The critic at the N current states.
+            critic: The critic at the N current states: maps ``(k N, D)`` actions (the
+                states tiled k times) to ``(k N,)`` values.
             episode_starts: As for :meth:`probe_applied`.
             action_scales: As for :meth:`probe_applied`.
             paired: Report the critic at the applied actions as the references.
@@ -323,19 +324,21 @@ class SessionBatch:
         Returns:
             ``(probes, applied)``, as :meth:`probe_applied` returns them.
         """
-        shape = (self.n, self.action_dim)
-        gain_shape, offset_shape = np.shape(critic.gain), np.shape(critic.offset)
-        if gain_shape != shape or offset_shape != (self.n,):
-            raise ValueError(
-                f"critic: expected gain of shape {shape} and offset of shape {(self.n,)}, "
-                f"got {gain_shape} and {offset_shape}"
-            )
-        step_linear = getattr(self._batch, "step_linear", None)
+        step_linear = None
+        if isinstance(critic, LinearCritic):
+            shape = (self.n, self.action_dim)
+            gain_shape, offset_shape = np.shape(critic.gain), np.shape(critic.offset)
+            if gain_shape != shape or offset_shape != (self.n,):
+                raise ValueError(
+                    f"critic: expected gain of shape {shape} and offset of shape {(self.n,)}, "
+                    f"got {gain_shape} and {offset_shape}"
+                )
+            step_linear = getattr(self._batch, "step_linear", None)
         if step_linear is None or self._deferred is not None:
             probes, applied = self.probe_applied(
                 actions, episode_starts, action_scales=action_scales
             )
-            q = critic(np.concatenate([probes, applied]) if paired else probes)
+            q = np.asarray(critic(np.concatenate([probes, applied]) if paired else probes))
             self.report(q[: self.n], q_references=q[self.n :] if paired else None, defer=True)
             return probes, applied
         # In this process: no wire to ride out, so no reconnect around the call.

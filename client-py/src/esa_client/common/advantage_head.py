@@ -54,8 +54,11 @@ class AdvantageHead(nn.Module):
         # The three layers, for weights(): indexing a Sequential costs microseconds. A
         # tuple is not registered as a submodule, so the state_dict keeps its keys.
         self._linears = tuple(cast(nn.Linear, self.w[i]) for i in (0, 2, 4))
-        # Held for version(): parameters() walks the modules on every call.
-        self._parameters_held = tuple(self.parameters())
+        # Weight and bias of each layer, in order: for version() (parameters() walks the
+        # modules on every call) and for fit()'s written-out gradients.
+        self._parameters_held = tuple(
+            t for layer in self._linears for t in (layer.weight, layer.bias)
+        )
         # Counted by fit(): a fused optimizer writes the parameters without bumping their
         # version counters.
         self.fits = 0
@@ -141,14 +144,13 @@ def fit(
     features = th.cat([r.features for r in rollouts])
     z = th.cat([r.z for r in rollouts])
     target = th.cat([r.target for r in rollouts])
-    parameters = [t for layer in head._linears for t in (layer.weight, layer.bias)]
     losses = []
     with th.no_grad():
         for _ in range(epochs):
             order = th.as_tensor(rng.permutation(len(target)))
             for idx in order.split(batch_size):
                 loss, gradients = _gradients(head, features[idx], z[idx], target[idx])
-                for parameter, gradient in zip(parameters, gradients, strict=True):
+                for parameter, gradient in zip(head._parameters_held, gradients, strict=True):
                     parameter.grad = gradient
                 optimizer.step()
                 losses.append(loss)

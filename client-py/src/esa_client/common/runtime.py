@@ -258,8 +258,8 @@ class EsaRuntime:
         Args:
             sampled: The policy's samples a_t, shape ``(N, D)`` (any float dtype).
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
-            q_fn: The critic at the current observations. A :class:`LinearCritic` is
-                evaluated by the in-process engine itself, in the probe's call.
+            q_fn: The critic at the current observations (:meth:`SessionBatch.step`: a
+                :class:`LinearCritic` is evaluated by the in-process engine itself).
             policy_std: The policy's standard deviation, shape ``(N, D)``; sent as the
                 action scale when ``use_policy_std`` (else 1).
 
@@ -276,13 +276,10 @@ class EsaRuntime:
             policy_std = np.maximum(policy_std, SMALLEST_SCALE)
         scale = policy_std if self.esa.use_policy_std else None
         restored = self.batch.sessions_restored
-        linear = q_fn if isinstance(q_fn, LinearCritic) else None
+        paired = self.esa.paired_response
 
         def probe(starts: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-            if linear is None:
-                return self.batch.probe_applied(a, starts, action_scales=scale)
-            paired = self.esa.paired_response
-            return self.batch.step_linear(a, linear, starts, action_scales=scale, paired=paired)
+            return self.batch.step(a, q_fn, starts, action_scales=scale, paired=paired)
 
         try:
             if self._skipping:
@@ -312,11 +309,6 @@ class EsaRuntime:
         # Kept for trainers that execute the probe itself (exploration by the sinusoid).
         self.last_probes = probes
         n = len(a)
-        if linear is None:
-            points = np.concatenate([probes, applied]) if self.esa.paired_response else probes
-            q = np.asarray(q_fn(points), dtype=np.float64)
-            reference = q[n:] if self.esa.paired_response else None
-            self.batch.report(q[:n], q_references=reference, defer=True)
         self._stats.add_step(a, applied, policy_std, self._clip)
         if self._calls % self._improvement_every == 0:
             both = np.asarray(q_fn(np.concatenate([a, applied])), dtype=np.float64)

@@ -62,7 +62,7 @@ class LinearCritic(NamedTuple):
     """A critic linear in the action at each session's state: ``Q_i(a) = gain_i . a + offset_i``.
 
     ESAPPO's advantage head has this form; an in-process engine evaluates it itself
-    (:meth:`~esa_client.session.SessionBatch.step_linear`).
+    (:meth:`~esa_client.session.SessionBatch.step`).
 
     Attributes:
         gain: ``gain_i`` per session and dimension, shape ``(N, D)``.
