@@ -50,6 +50,38 @@ def test_the_rust_copy_computes_the_torch_heads_w_and_critic(head):
     np.testing.assert_array_equal(mlp.weights(wide), w)
 
 
+def test_the_step_inputs_are_numpys_units_and_the_critic_bit_for_bit(head):
+    rng = np.random.default_rng(1)
+    features = rng.normal(size=(4, 5)).astype(np.float32)
+    sample, mean = rng.normal(size=(2, 4, 2)).astype(np.float32)
+    std = rng.uniform(0.1, 1.0, size=(4, 2)).astype(np.float32)
+    mlp = head.snapshot(CENTER, HALF_WIDTH)
+    scaled, gain, offset = mlp.step_inputs(features, sample, mean, std)
+    # What ESAPPO computed in numpy before: the same float64 operations, so the same bits.
+    np.testing.assert_array_equal(scaled, (sample.astype(np.float64) - CENTER) / HALF_WIDTH)
+    want_gain, want_offset = mlp.critic(features, mean, std)
+    np.testing.assert_array_equal(gain, want_gain)
+    np.testing.assert_array_equal(offset, want_offset)
+    # Columns of one (N, 3 D) array, as torch's views may be.
+    packed = np.concatenate([sample, mean, std], axis=1)
+    views = (packed[:, :2], packed[:, 2:4], packed[:, 4:])
+    for got, want in zip(mlp.step_inputs(features, *views), (scaled, gain, offset), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_the_step_inputs_refuse_bad_shapes(head):
+    mlp = head.snapshot(CENTER, HALF_WIDTH)
+    features, rows = np.zeros((2, 5), np.float32), np.ones((2, 2), np.float32)
+    with pytest.raises(ValueError, match="actions: expected 2 columns"):
+        mlp.step_inputs(features, np.zeros((2, 3), np.float32), rows, rows)
+    with pytest.raises(ValueError, match="expected actions with 2 rows"):
+        mlp.step_inputs(features, np.ones((3, 2), np.float32), rows, rows)
+    with pytest.raises(ValueError, match="std: expected 2 columns"):
+        mlp.step_inputs(features, rows, rows, np.ones((2, 1), np.float32))
+    with pytest.raises(ValueError, match="expected mean and std with 2 rows"):
+        mlp.step_inputs(features, rows, np.ones((1, 2), np.float32), rows)
+
+
 def test_the_rust_copy_refuses_bad_shapes(head):
     mlp = head.snapshot(CENTER, HALF_WIDTH)
     f32 = np.float32

@@ -18,6 +18,13 @@ use pyo3::prelude::*;
 /// What `critic` returns: `gain` (N, D) and `offset` (N,).
 type Critic<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<f64>>);
 
+/// What `step_inputs` returns: `scaled` and `gain` (N, D), and `offset` (N,).
+type StepInputs<'py> = (
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray1<f64>>,
+);
+
 /// One linear layer, `weight` row-major (outputs x inputs) as torch stores it.
 struct Layer {
     weight: Vec<f32>,
@@ -83,6 +90,44 @@ impl AdvantageMlp {
 
     fn action_dim(&self) -> usize {
         self.center.len()
+    }
+
+    /// Appends the critic of one row to `gain` and `offset` (see `critic`).
+    fn push_linear(
+        &self,
+        w: &[f32],
+        mean: &[f32],
+        std: &[f32],
+        gain: &mut Vec<f64>,
+        offset: &mut Vec<f64>,
+    ) {
+        let mut total = 0.0;
+        for d in 0..self.action_dim() {
+            let (w, sigma) = (f64::from(w[d]), f64::from(std[d]));
+            gain.push(w * self.half_width[d] / sigma);
+            total += w * (self.center[d] - f64::from(mean[d])) / sigma;
+        }
+        offset.push(total);
+    }
+
+    /// The rows of the policy's `mean` and `std`, checking that each has `n` rows of D values.
+    #[allow(clippy::type_complexity)] // two row lists, as `rows` gives them
+    fn policy_rows<'a>(
+        &self,
+        mean: &'a ArrayView2<'_, f32>,
+        std: &'a ArrayView2<'_, f32>,
+        n: usize,
+    ) -> PyResult<(Vec<Cow<'a, [f32]>>, Vec<Cow<'a, [f32]>>)> {
+        let means = rows(mean, self.action_dim(), "mean")?;
+        let stds = rows(std, self.action_dim(), "std")?;
+        if means.len() != n || stds.len() != n {
+            return Err(invalid(format!(
+                "expected mean and std with {n} rows (one per features row), got {} and {}",
+                means.len(),
+                stds.len()
+            )));
+        }
+        Ok((means, stds))
     }
 
     /// `w(features)` for each row of `features`, in float32.
@@ -187,9 +232,7 @@ impl AdvantageMlp {
         let each = self.each_w(&features.as_array())?;
         let (n, dim) = (each.len(), self.action_dim());
         let values = each.into_iter().flatten().map(f64::from).collect();
-        Array2::from_shape_vec((n, dim), values)
-            .map(|array| array.into_pyarray(py))
-            .map_err(|err| invalid(err.to_string()))
+        matrix(py, values, n, dim)
     }
 
     /// The step's critic in ESA units: `(gain, offset)`, float64 (N, D) and (N,).
@@ -204,28 +247,68 @@ impl AdvantageMlp {
         let n = each.len();
         let (mean, std) = (mean.as_array(), std.as_array());
         let dim = self.action_dim();
-        let means = rows(&mean, dim, "mean")?;
-        let stds = rows(&std, dim, "std")?;
-        if means.len() != n || stds.len() != n {
-            return Err(invalid(format!(
-                "expected mean and std with {n} rows (one per features row), got {} and {}",
-                means.len(),
-                stds.len()
-            )));
-        }
+        let (means, stds) = self.policy_rows(&mean, &std, n)?;
         let mut gain = Vec::with_capacity(n * dim);
         let mut offset = Vec::with_capacity(n);
         for ((w, mean), std) in each.iter().zip(means).zip(stds) {
-            let mut total = 0.0;
-            for d in 0..dim {
-                let (w, sigma) = (f64::from(w[d]), f64::from(std[d]));
-                gain.push(w * self.half_width[d] / sigma);
-                total += w * (self.center[d] - f64::from(mean[d])) / sigma;
-            }
-            offset.push(total);
+            self.push_linear(w, &mean, &std, &mut gain, &mut offset);
         }
-        let gain =
-            Array2::from_shape_vec((n, dim), gain).map_err(|err| invalid(err.to_string()))?;
-        Ok((gain.into_pyarray(py), Array1::from(offset).into_pyarray(py)))
+        Ok((
+            matrix(py, gain, n, dim)?,
+            Array1::from(offset).into_pyarray(py),
+        ))
     }
+
+    /// ESAPPO's step inputs in one call: the sample in ESA units and the step's critic.
+    ///
+    /// `actions`, `mean` and `std` are the policy's float32 `(N, D)`. Returns `(scaled, gain,
+    /// offset)`: the sample in ESA units `(a - c) / h`, float64 `(N, D)` (numpy's float64
+    /// operations on the widened values, so the same bits), and the critic as `critic` gives it.
+    fn step_inputs<'py>(
+        &self,
+        py: Python<'py>,
+        features: PyReadonlyArray2<'py, f32>,
+        actions: PyReadonlyArray2<'py, f32>,
+        mean: PyReadonlyArray2<'py, f32>,
+        std: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<StepInputs<'py>> {
+        let each = self.each_w(&features.as_array())?;
+        let n = each.len();
+        let dim = self.action_dim();
+        let (actions, mean, std) = (actions.as_array(), mean.as_array(), std.as_array());
+        let samples = rows(&actions, dim, "actions")?;
+        let (means, stds) = self.policy_rows(&mean, &std, n)?;
+        if samples.len() != n {
+            return Err(invalid(format!(
+                "expected actions with {n} rows (one per features row), got {}",
+                samples.len()
+            )));
+        }
+        let mut scaled = Vec::with_capacity(n * dim);
+        let mut gain = Vec::with_capacity(n * dim);
+        let mut offset = Vec::with_capacity(n);
+        for (((w, sample), mean), std) in each.iter().zip(samples).zip(means).zip(stds) {
+            for d in 0..dim {
+                scaled.push((f64::from(sample[d]) - self.center[d]) / self.half_width[d]);
+            }
+            self.push_linear(w, &mean, &std, &mut gain, &mut offset);
+        }
+        Ok((
+            matrix(py, scaled, n, dim)?,
+            matrix(py, gain, n, dim)?,
+            Array1::from(offset).into_pyarray(py),
+        ))
+    }
+}
+
+/// `values` as a float64 `(n, dim)` array.
+fn matrix(
+    py: Python<'_>,
+    values: Vec<f64>,
+    n: usize,
+    dim: usize,
+) -> PyResult<Bound<'_, PyArray2<f64>>> {
+    Array2::from_shape_vec((n, dim), values)
+        .map(|array| array.into_pyarray(py))
+        .map_err(|err| invalid(err.to_string()))
 }

@@ -300,6 +300,24 @@ class AdvantageMlp:
             ValueError: If a shape does not match the head's (F, D) or the row count.
         """
 
+    def step_inputs(
+        self,
+        features: npt.NDArray[np.float32],
+        actions: npt.NDArray[np.float32],
+        mean: npt.NDArray[np.float32],
+        std: npt.NDArray[np.float32],
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """ESAPPO's step inputs in one call: ``(scaled, gain, offset)``.
+
+        ``scaled`` is the policy's sample ``actions`` in ESA units, ``(a - c) / h`` in float64
+        ``(N, D)`` (the same bits as numpy's float64 arithmetic on the widened values), and
+        ``(gain, offset)`` is :meth:`critic` of ``features``, ``mean`` and ``std``. All float32
+        ``(N, D)`` inputs but ``features`` ``(N, F)``; strided views are read as they are.
+
+        Raises:
+            ValueError: If a shape does not match the head's (F, D) or the row count.
+        """
+
 class StatusError(Exception):
     """A failed call of :class:`GrpcClient`: the server's status, or the connection's.
 

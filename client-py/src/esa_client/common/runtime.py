@@ -275,27 +275,26 @@ class EsaRuntime:
             # trust region and the scaled step then keep v at 0 there, as sigma = 0 means.
             policy_std = np.maximum(policy_std, SMALLEST_SCALE)
         scale = policy_std if self.esa.use_policy_std else None
-        restored = self.batch.sessions_restored
+        batch = self.batch
+        restored = batch.sessions_restored
         paired = self.esa.paired_response
-
-        def probe(starts: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-            return self.batch.step(a, q_fn, starts, action_scales=scale, paired=paired)
-
         try:
             if self._skipping:
                 if not np.any(episode_starts):
                     return self._without_esa(a)
                 # An episode starts: try the server once more; every session restarts.
-                self.batch.restore()
+                batch.restore()
                 self._skipping = False
                 _log.warning("esa server at %s reachable again: ESA resumes", self.client.address)
-                probes, applied = probe(None)
+                probes, applied = batch.step(a, q_fn, None, action_scales=scale, paired=paired)
             else:
                 try:
-                    probes, applied = probe(episode_starts)
+                    probes, applied = batch.step(
+                        a, q_fn, episode_starts, action_scales=scale, paired=paired
+                    )
                 except SessionNotFound:
-                    self.batch.restore()
-                    probes, applied = probe(None)
+                    batch.restore()
+                    probes, applied = batch.step(a, q_fn, None, action_scales=scale, paired=paired)
         except ServerUnavailable as err:
             if self.on_unavailable == "raise":
                 raise
@@ -304,8 +303,8 @@ class EsaRuntime:
             self._skipping = True
             return self._without_esa(a)
         finally:
-            if self.batch.sessions_restored > restored:
-                self._stats.add_count("sessions_restored", self.batch.sessions_restored - restored)
+            if batch.sessions_restored > restored:
+                self._stats.add_count("sessions_restored", batch.sessions_restored - restored)
         # Kept for trainers that execute the probe itself (exploration by the sinusoid).
         self.last_probes = probes
         n = len(a)

@@ -14,7 +14,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.distributions import Distribution
-from stable_baselines3.common.preprocessing import preprocess_obs
+from stable_baselines3.common.preprocessing import is_image_space, preprocess_obs
 from stable_baselines3.common.vec_env import VecEnv
 
 from .._native import AdvantageMlp
@@ -226,6 +226,20 @@ class ESAPPO(EsaMixin, PPO):
             return th.cat([pre[key].flatten(1).float() for key in sorted(pre)], dim=1)
         return pre.flatten(1).float()
 
+    def _step_features(self, obs: th.Tensor | dict[str, th.Tensor]) -> np.ndarray:
+        """:meth:`_head_features` of one step's observations, float32 ``(N, F)`` in numpy.
+
+        For a Box that is not an image SB3 normalizes, its preprocessing is ``obs.float()``:
+        numpy's float32 cast rounds as torch's does, in one operation instead of five.
+        """
+        space = self.observation_space
+        if isinstance(obs, th.Tensor) and isinstance(space, spaces.Box):
+            if not (self.policy.normalize_images and is_image_space(space)):
+                host = obs.cpu().numpy().reshape(len(obs), -1)
+                features: np.ndarray = host.astype(np.float32, copy=False)
+                return features
+        return self._head_features(obs).cpu().numpy()
+
     def _esa_mlp(self) -> AdvantageMlp:
         """The head in Rust, copied again whenever its parameters changed (a fit, a load)."""
         version = self.esa_head.version()
@@ -235,7 +249,7 @@ class ESAPPO(EsaMixin, PPO):
 
     def _esa_weights(self, obs: th.Tensor | dict[str, th.Tensor]) -> np.ndarray:
         """The head's ``w(s)`` at the current observations, shape ``(N, D)``."""
-        return self._esa_mlp().weights(self._head_features(obs).cpu().numpy())
+        return self._esa_mlp().weights(self._step_features(obs))
 
     def _esa_critic(
         self, obs: th.Tensor | dict[str, th.Tensor], mean: np.ndarray, std: np.ndarray
@@ -247,8 +261,7 @@ class ESAPPO(EsaMixin, PPO):
         ``h``: the Box's center and half-width), which the in-process engine evaluates
         itself. ``mean`` and ``std`` are the policy's, float32 ``(N, D)``.
         """
-        features = self._head_features(obs).cpu().numpy()
-        return LinearCritic(*self._esa_mlp().critic(features, mean, std))
+        return LinearCritic(*self._esa_mlp().critic(self._step_features(obs), mean, std))
 
     @contextlib.contextmanager
     def _esa_forward(self) -> Iterator[None]:
@@ -277,19 +290,23 @@ class ESAPPO(EsaMixin, PPO):
             log_prob = distribution.log_prob(actions)
             n = len(actions)
             if self._esa_active and not deterministic:
-                sampled = actions.reshape(n, -1).cpu().numpy().astype(np.float64)
                 gaussian = _gaussian(distribution)
-                std = gaussian.stddev.reshape(n, -1).cpu().numpy()
+                # numpy views of the sample, mean and std (copies on a GPU), (N, D) each.
+                sample, mean, std = (
+                    t.cpu().numpy().reshape(n, -1)
+                    for t in (actions, gaussian.mean, gaussian.stddev)
+                )
+                sampled = sample.astype(np.float64)
                 if self.esa_shift == "gradient":
                     shift = self._gradient_shift(self._esa_weights(obs)) * std
                 else:
-                    mean = gaussian.mean.reshape(n, -1).cpu().numpy()
-                    scaled = self._to_esa_units(sampled)
+                    head_in = self._step_features(obs)
+                    scaled, gain, offset = self._esa_mlp().step_inputs(head_in, sample, mean, std)
                     half_width = self._esa_scaling()[1]
                     applied = self._esa_runtime().step(
                         scaled,
                         np.asarray(self._last_episode_starts, dtype=bool),
-                        self._esa_critic(obs, mean, std),
+                        LinearCritic(gain, offset),
                         std / half_width,
                     )
                     # The shift in raw units: exactly 0 when v = 0.
@@ -297,9 +314,8 @@ class ESAPPO(EsaMixin, PPO):
                 if self.esa_mode == "target":
                     self._esa_targets.append(shift / std)
                 else:
-                    actions = th.as_tensor(
-                        sampled + shift, dtype=actions.dtype, device=actions.device
-                    )
+                    executed = (sampled + shift).astype(sample.dtype)
+                    actions = th.from_numpy(executed).to(actions.device)
             elif self.esa_mode == "target" and not deterministic:
                 self._esa_targets.append(np.zeros((n, int(np.prod(self._esa_box().shape)))))
             return actions.reshape((-1, *self._esa_box().shape)), values, log_prob
