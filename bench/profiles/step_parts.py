@@ -5,8 +5,9 @@ their own (the env and PPO's update evict them from the caches between steps), s
 times them where they run: PPO, ESAPPO with its gate never open (``EsaConfig(gate=1.0)``:
 the head is fitted and gated every rollout, no ESA step) and the shipped ESAPPO, alternating,
 ``--repeats`` times. Timers wrap SB3's ``collect_rollouts`` and ``train``, the policy's
-forward pass (the ESA hook in ESAPPO), ``ESAPPO._esa_critic`` (the head's forward and the step's
-critic), ``EsaRuntime.step`` (probe and report: one engine call in-process) and ``fit``.
+forward pass (the ESA hook in ESAPPO), ``ESAPPO._step_features`` and
+``AdvantageMlp.step_inputs`` (the head's input, and its forward with the step's critic and
+ESA units), ``EsaRuntime.step`` (probe and report: one engine call in-process) and ``fit``.
 
 Settings as ``run_one.py``: InvertedPendulum-v5, 1 env, SB3's default PPO, 12,288 steps,
 torch on one thread, the in-process engine (``--engine sidecar-native`` for the sidecar).
@@ -28,6 +29,7 @@ from typing import Any
 
 import numpy as np
 import torch as th
+from esa_client._native import AdvantageMlp
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, EsaConfig
 from esa_client.sb3 import ppo as esappo_module
@@ -54,6 +56,26 @@ def timed(label: str, function: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+class TimedMlp:
+    """The head's Rust copy, its step call timed (a native method cannot be wrapped in place)."""
+
+    def __init__(self, mlp: AdvantageMlp) -> None:
+        """Wraps ``mlp``."""
+        self._step_inputs = timed(STEP_INPUTS, mlp.step_inputs)
+        self._mlp = mlp
+
+    def step_inputs(self, *args: Any) -> Any:
+        """``mlp.step_inputs``, timed."""
+        return self._step_inputs(*args)
+
+    def __getattr__(self, name: str) -> Any:
+        """Everything else of ``mlp``."""
+        return getattr(self._mlp, name)
+
+
+STEP_INPUTS = "head forward, critic and ESA units (AdvantageMlp.step_inputs)"
+
+
 @contextlib.contextmanager
 def timers() -> Iterator[None]:
     """Wraps the methods named in the module doc for the block."""
@@ -61,7 +83,7 @@ def timers() -> Iterator[None]:
         (OnPolicyAlgorithm, "collect_rollouts", "collect_rollouts"),
         (PPO, "train", "PPO train"),
         (ESAPPO, "train", "ESAPPO train (PPO's + the head's fit and gate)"),
-        (ESAPPO, "_esa_critic", "head forward + step critic (_esa_critic)"),
+        (ESAPPO, "_step_features", "head features (_step_features)"),
         (EsaRuntime, "step", "probe + report (EsaRuntime.step)"),
         (SessionBatch, "probe_applied", "  of which the sidecar's round trip (probe_applied)"),
     ]
@@ -71,6 +93,12 @@ def timers() -> Iterator[None]:
         setattr(cls, name, timed(label, getattr(cls, name)))
     esappo_module.fit = timed("head fit", fit)
     forward = ESAPPO._esa_forward
+    esa_mlp = ESAPPO._esa_mlp
+
+    def timed_mlp(self: ESAPPO) -> TimedMlp:
+        return TimedMlp(esa_mlp(self))
+
+    ESAPPO._esa_mlp = timed_mlp  # type: ignore[method-assign,assignment]
 
     @contextlib.contextmanager
     def timed_hook(self: ESAPPO) -> Iterator[None]:
@@ -87,6 +115,7 @@ def timers() -> Iterator[None]:
             setattr(cls, name, original)
         esappo_module.fit = fit
         ESAPPO._esa_forward = forward  # type: ignore[method-assign]
+        ESAPPO._esa_mlp = esa_mlp  # type: ignore[method-assign]
 
 
 def run(agent: str, engine: str, steps: int) -> tuple[float, dict[str, float], int]:
@@ -152,7 +181,8 @@ def main() -> None:
         print(f"\n{agent} / PPO: {ratio:.3f}", end="")
     print(f"\n\nESAPPO's ESA steps (rollouts with the gate open): {active}")
     per_step_labels = (
-        "head forward + step critic (_esa_critic)",
+        "head features (_step_features)",
+        STEP_INPUTS,
         "probe + report (EsaRuntime.step)",
     )
     per_step = {

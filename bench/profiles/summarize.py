@@ -33,7 +33,7 @@ BUCKETS: list[tuple[str, str]] = [
     ("head data (policy over the rollout)", r"^_update_esa_head \("),
     (
         "ESA glue in forward (head features, conversions)",
-        r"^(_head_features|_esa_q_at|_to_esa_units|_esa_scaling|_gradient_shift) \(",
+        r"^(_head_features|_step_features|_esa_q_at|_to_esa_units|_esa_scaling|_gradient_shift) \(",
     ),
     ("ESA logging", r"^(dump_logs) \(.*mixin\.py:"),
 ]
