@@ -92,34 +92,17 @@ impl AdvantageMlp {
         self.center.len()
     }
 
-    /// Appends the critic of one row to `gain` and `offset` (see `critic`).
-    fn push_linear(
+    /// The step's critic of each row of `each` (`w`), as `critic` returns it, checking that
+    /// `mean` and `std` have one row of D values per row.
+    fn linear_critic(
         &self,
-        w: &[f32],
-        mean: &[f32],
-        std: &[f32],
-        gain: &mut Vec<f64>,
-        offset: &mut Vec<f64>,
-    ) {
-        let mut total = 0.0;
-        for d in 0..self.action_dim() {
-            let (w, sigma) = (f64::from(w[d]), f64::from(std[d]));
-            gain.push(w * self.half_width[d] / sigma);
-            total += w * (self.center[d] - f64::from(mean[d])) / sigma;
-        }
-        offset.push(total);
-    }
-
-    /// The rows of the policy's `mean` and `std`, checking that each has `n` rows of D values.
-    #[allow(clippy::type_complexity)] // two row lists, as `rows` gives them
-    fn policy_rows<'a>(
-        &self,
-        mean: &'a ArrayView2<'_, f32>,
-        std: &'a ArrayView2<'_, f32>,
-        n: usize,
-    ) -> PyResult<(Vec<Cow<'a, [f32]>>, Vec<Cow<'a, [f32]>>)> {
-        let means = rows(mean, self.action_dim(), "mean")?;
-        let stds = rows(std, self.action_dim(), "std")?;
+        each: &[Vec<f32>],
+        mean: &ArrayView2<'_, f32>,
+        std: &ArrayView2<'_, f32>,
+    ) -> PyResult<(Vec<f64>, Vec<f64>)> {
+        let (n, dim) = (each.len(), self.action_dim());
+        let means = rows(mean, dim, "mean")?;
+        let stds = rows(std, dim, "std")?;
         if means.len() != n || stds.len() != n {
             return Err(invalid(format!(
                 "expected mean and std with {n} rows (one per features row), got {} and {}",
@@ -127,7 +110,18 @@ impl AdvantageMlp {
                 stds.len()
             )));
         }
-        Ok((means, stds))
+        let mut gain = Vec::with_capacity(n * dim);
+        let mut offset = Vec::with_capacity(n);
+        for ((w, mean), std) in each.iter().zip(means).zip(stds) {
+            let mut total = 0.0;
+            for d in 0..dim {
+                let (w, sigma) = (f64::from(w[d]), f64::from(std[d]));
+                gain.push(w * self.half_width[d] / sigma);
+                total += w * (self.center[d] - f64::from(mean[d])) / sigma;
+            }
+            offset.push(total);
+        }
+        Ok((gain, offset))
     }
 
     /// `w(features)` for each row of `features`, in float32.
@@ -244,17 +238,9 @@ impl AdvantageMlp {
         std: PyReadonlyArray2<'py, f32>,
     ) -> PyResult<Critic<'py>> {
         let each = self.each_w(&features.as_array())?;
-        let n = each.len();
-        let (mean, std) = (mean.as_array(), std.as_array());
-        let dim = self.action_dim();
-        let (means, stds) = self.policy_rows(&mean, &std, n)?;
-        let mut gain = Vec::with_capacity(n * dim);
-        let mut offset = Vec::with_capacity(n);
-        for ((w, mean), std) in each.iter().zip(means).zip(stds) {
-            self.push_linear(w, &mean, &std, &mut gain, &mut offset);
-        }
+        let (gain, offset) = self.linear_critic(&each, &mean.as_array(), &std.as_array())?;
         Ok((
-            matrix(py, gain, n, dim)?,
+            matrix(py, gain, each.len(), self.action_dim())?,
             Array1::from(offset).into_pyarray(py),
         ))
     }
@@ -273,26 +259,22 @@ impl AdvantageMlp {
         std: PyReadonlyArray2<'py, f32>,
     ) -> PyResult<StepInputs<'py>> {
         let each = self.each_w(&features.as_array())?;
-        let n = each.len();
-        let dim = self.action_dim();
-        let (actions, mean, std) = (actions.as_array(), mean.as_array(), std.as_array());
+        let (n, dim) = (each.len(), self.action_dim());
+        let actions = actions.as_array();
         let samples = rows(&actions, dim, "actions")?;
-        let (means, stds) = self.policy_rows(&mean, &std, n)?;
         if samples.len() != n {
             return Err(invalid(format!(
                 "expected actions with {n} rows (one per features row), got {}",
                 samples.len()
             )));
         }
-        let mut scaled = Vec::with_capacity(n * dim);
-        let mut gain = Vec::with_capacity(n * dim);
-        let mut offset = Vec::with_capacity(n);
-        for (((w, sample), mean), std) in each.iter().zip(samples).zip(means).zip(stds) {
-            for d in 0..dim {
-                scaled.push((f64::from(sample[d]) - self.center[d]) / self.half_width[d]);
-            }
-            self.push_linear(w, &mean, &std, &mut gain, &mut offset);
-        }
+        let (gain, offset) = self.linear_critic(&each, &mean.as_array(), &std.as_array())?;
+        let scaled = samples
+            .iter()
+            .flat_map(|sample| {
+                (0..dim).map(|d| (f64::from(sample[d]) - self.center[d]) / self.half_width[d])
+            })
+            .collect();
         Ok((
             matrix(py, scaled, n, dim)?,
             matrix(py, gain, n, dim)?,
