@@ -69,6 +69,16 @@ def test_the_step_inputs_are_numpys_units_and_the_critic_bit_for_bit(head):
         np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize("dtype", [th.float64, th.float32, th.uint8])
+def test_esappo_reads_a_box_observation_as_sb3_preprocesses_it(dtype):
+    model = ESAPPO("MlpPolicy", "Pendulum-v1", n_steps=64, seed=0)
+    obs = (th.rand(5, 3, dtype=th.float64) * 200).to(dtype)
+    want = model._head_features(obs).numpy()
+    got = model._step_features(obs)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, want)
+
+
 def test_the_step_inputs_refuse_bad_shapes(head):
     mlp = head.snapshot(CENTER, HALF_WIDTH)
     features, rows = np.zeros((2, 5), np.float32), np.ones((2, 2), np.float32)
