@@ -94,10 +94,10 @@ def test_bad_critics_are_refused_and_change_nothing():
     # the probe, which must be undone.
     overflow = np.full(4, 1e308)
     cases = [
-        (gain[:3], offset, "gain: expected 4 values, got 3"),
-        (gain, np.zeros(3), "offset: expected 2 values, got 3"),
-        (nan_gain, offset, "gain: expected finite values, got NaN"),
-        (gain, inf_offset, "offset: expected finite values, got inf"),
+        (gain[:3], offset, "critic_gains: expected 4 values, got 3"),
+        (gain, np.zeros(3), "critic_offsets: expected 2 values, got 3"),
+        (nan_gain, offset, "critic_gains: expected finite values, got NaN"),
+        (gain, inf_offset, "critic_offsets: expected finite values, got inf"),
         (
             overflow,
             np.full(2, 1e308),

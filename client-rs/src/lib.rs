@@ -59,6 +59,8 @@ pub const MAX_MESSAGE_BYTES: usize = 256 * 1024 * 1024;
 const READY_RETRY: Duration = Duration::from_millis(20);
 /// How many StepStream requests may wait to be sent.
 const STREAM_QUEUE: usize = 16;
+/// Most runtime passes [`StepStream::send_now`] takes to see a request leave the queue.
+const FLUSH_YIELDS: usize = 8;
 
 /// How to connect: the deadline of every call, the token, TLS.
 #[derive(Clone, Debug)]
@@ -432,6 +434,8 @@ pub enum Step {
     Probe(pb::ProbeBatchRequest),
     /// A ReportBatch.
     Report(pb::ReportBatchRequest),
+    /// A whole step for a linear critic (a probe and the critic's report, one request).
+    StepLinear(pb::StepLinearBatchRequest),
 }
 
 /// One answer of a StepStream, in request order.
@@ -441,6 +445,8 @@ pub enum Answer {
     Probe(pb::ProbeBatchResponse),
     /// The answer to a ReportBatch.
     Report(pb::ReportBatchResponse),
+    /// The answer to a step for a linear critic.
+    StepLinear(pb::StepLinearBatchResponse),
 }
 
 /// A StepStream: batch requests sent without waiting ([`StepStream::send`]), answers read in
@@ -461,12 +467,32 @@ impl StepStream {
         let kind = match step {
             Step::Probe(request) => K::ProbeBatch(request),
             Step::Report(request) => K::ReportBatch(request),
+            Step::StepLinear(request) => K::StepLinearBatch(request),
         };
         self.sender
             .send(pb::StepStreamRequest { kind: Some(kind) })
             .await
             .map_err(|_| Error::new(Code::Unavailable, "the step stream is closed"))?;
         self.pending += 1;
+        Ok(())
+    }
+
+    /// Sends a request and drives the runtime until the request has left the queue for the
+    /// connection, so that it travels while the caller does something else. For a runtime that
+    /// only runs while its caller waits on it (the blocking client's, which the calling thread
+    /// drives), [`StepStream::send`] alone would leave the request queued until the next call.
+    pub async fn send_now(&mut self, step: Step) -> Result<()> {
+        self.send(step).await?;
+        // Each yield lets the runtime's other tasks run once: the request body's task takes the
+        // message from the queue and hands it to the connection's task, which writes it. Bounded:
+        // a connection that cannot take it now (flow control) gets it at the next call.
+        for _ in 0..FLUSH_YIELDS {
+            let queued = self.sender.capacity() < self.sender.max_capacity();
+            tokio::task::yield_now().await;
+            if !queued {
+                break;
+            }
+        }
         Ok(())
     }
 
@@ -492,6 +518,7 @@ impl StepStream {
         match message.and_then(|message| message.kind) {
             Some(K::ProbeBatch(response)) => Ok(Answer::Probe(response)),
             Some(K::ReportBatch(response)) => Ok(Answer::Report(response)),
+            Some(K::StepLinearBatch(response)) => Ok(Answer::StepLinear(response)),
             Some(K::Error(error)) => Err(Error::from_stream(error)),
             None => Err(Error::new(
                 Code::Unavailable,
@@ -508,7 +535,7 @@ impl StepStream {
         self.send(Step::Probe(request)).await?;
         match self.next().await? {
             Answer::Probe(response) => Ok(response),
-            Answer::Report(_) => Err(out_of_order()),
+            _ => Err(out_of_order()),
         }
     }
 
@@ -520,7 +547,7 @@ impl StepStream {
         self.send(Step::Report(request)).await?;
         match self.next().await? {
             Answer::Report(response) => Ok(response),
-            Answer::Probe(_) => Err(out_of_order()),
+            _ => Err(out_of_order()),
         }
     }
 
@@ -546,7 +573,19 @@ impl StepStream {
         report?;
         match probe? {
             Answer::Probe(response) => Ok(response),
-            Answer::Report(_) => Err(out_of_order()),
+            _ => Err(out_of_order()),
+        }
+    }
+
+    /// A whole step for a linear critic: send, then read its answer.
+    pub async fn step_linear_batch(
+        &mut self,
+        request: pb::StepLinearBatchRequest,
+    ) -> Result<pb::StepLinearBatchResponse> {
+        self.send(Step::StepLinear(request)).await?;
+        match self.next().await? {
+            Answer::StepLinear(response) => Ok(response),
+            _ => Err(out_of_order()),
         }
     }
 }
@@ -627,7 +666,7 @@ impl Batch {
         };
         match response {
             Answer::Probe(response) => Ok((response.probes, response.actions)),
-            Answer::Report(_) => Err(out_of_order()),
+            _ => Err(out_of_order()),
         }
     }
 

@@ -323,6 +323,30 @@ impl Lanes {
         }
     }
 
+    /// Appends `clip(a + clamp(shift, -bound, bound), lo, hi)` with `bound = min(L, kappa sigma)` of
+    /// `scale` (empty = 1, one value = broadcast): what [`set_scale`](Self::set_scale),
+    /// [`clamp_shift`](Self::clamp_shift) and [`push_action`](Self::push_action) give for a held
+    /// shift, computed without holding anything.
+    pub fn applied_with(
+        &self,
+        shift: &[f64],
+        action: &[f64],
+        scale: &[f64],
+        rule: StepRule,
+        out: &mut Vec<f64>,
+    ) {
+        let sigma = |i: usize| match scale {
+            [] => 1.0,
+            [sigma] => *sigma,
+            _ => scale.get(i).copied().unwrap_or(1.0),
+        };
+        let values = action.iter().zip(shift).enumerate().map(|(i, (&a, &v))| {
+            let bound = rule.bound(sigma(i));
+            a + v.clamp(-bound, bound)
+        });
+        push_clipped(out, values, self.column(LOW), self.column(HIGH));
+    }
+
     /// Appends the improved action for the held `a` and current v: `clip(a + v)`, or `clip(a)` when
     /// `pass_through`.
     pub fn push_action(&self, pass_through: bool, out: &mut Vec<f64>) {

@@ -45,6 +45,7 @@ mod error;
 pub mod footprint;
 mod highpass;
 mod lanes;
+pub mod linear_step;
 mod session;
 mod sine;
 

@@ -248,6 +248,32 @@ impl Session {
         self.lanes.push_action(self.is_pass_through(), out);
     }
 
+    /// Appends the applied action a probe of `action` with scale `action_scale` would give if the
+    /// shift were `shift`: `clip(a_t + clamp(shift, -bound, bound), lo, hi)`, the bits of
+    /// [`probe`](Self::probe) then [`applied_action`](Self::applied_action) outside pass-through.
+    /// Reads only the config; checks `action` and `action_scale` as a probe does (and `shift`'s
+    /// length), appending nothing on an error.
+    pub fn applied_with_shift(
+        &self,
+        shift: &[f64],
+        action: &[f64],
+        action_scale: &[f64],
+        out: &mut Vec<f64>,
+    ) -> Result<(), CoreError> {
+        self.check_action(action)?;
+        self.check_action_scale(action_scale)?;
+        if shift.len() != self.action_dim() {
+            return Err(CoreError::InvalidArgument(format!(
+                "shift: expected length {} (action_dim), got {}",
+                self.action_dim(),
+                shift.len()
+            )));
+        }
+        self.lanes
+            .applied_with(shift, action, action_scale, self.step_rule(), out);
+        Ok(())
+    }
+
     /// Checks a report without changing anything.
     pub fn check_report(
         &self,

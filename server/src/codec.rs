@@ -30,16 +30,19 @@ pub use esa_core::batch::{MAX_BATCH_ITEMS, MAX_BATCH_VALUES};
 /// Longest accepted session id, in bytes (esa-store's id rule).
 pub use esa_store::MAX_ID_BYTES;
 
-/// The encoded size of the largest legal request: a ProbeBatch of [`MAX_BATCH_ITEMS`] items with
-/// ids of [`MAX_ID_BYTES`] bytes, steps of 10 varint bytes (the longest), [`MAX_BATCH_VALUES`]
-/// actions and as many action scales, wrapped in a StepStream message. The server's default
+/// The encoded size of the largest legal request: a StepStream `step_linear_batch` whose probe is
+/// the largest ProbeBatch ([`MAX_BATCH_ITEMS`] items with ids of [`MAX_ID_BYTES`] bytes, steps of
+/// 10 varint bytes (the longest), [`MAX_BATCH_VALUES`] actions and as many action scales), with a
+/// critic gain per action value, an offset per item and the paired flag. The server's default
 /// request size limit.
 pub const MAX_REQUEST_BYTES: usize = {
-    // Field key plus the longest length prefix of a packed field.
+    // Field key plus the longest length prefix of a packed field (or of a message field).
     const FIELD: usize = 1 + 5;
     let id = 1 + 2 + MAX_ID_BYTES;
     let per_item = id + 10 + 1;
-    FIELD + MAX_BATCH_ITEMS * per_item + 4 * FIELD + 2 * MAX_BATCH_VALUES * 8
+    let probe_batch = MAX_BATCH_ITEMS * per_item + 4 * FIELD + 2 * MAX_BATCH_VALUES * 8;
+    let critic = 2 * FIELD + (MAX_BATCH_VALUES + MAX_BATCH_ITEMS) * 8 + 2;
+    FIELD + FIELD + probe_batch + critic
 };
 
 /// Bounds on what a message's wire bytes may decode to, checked before decoding them.
@@ -170,15 +173,29 @@ const REPORT_BATCH: &[(u32, Rule)] = &[
     ),
 ];
 
-// A legal StepStream message holds one batch, so the two kinds may share counters: a message
-// holding both only ever counts more, never less.
+// The critic's fields are numbered after the probe batch's, so each field has its own counter.
+const STEP_LINEAR_BATCH: &[(u32, Rule)] = &[
+    (1, Rule::Message(PROBE_BATCH)),
+    (
+        6,
+        repeated("critic_gains", Elements::Fixed64, MAX_BATCH_VALUES),
+    ),
+    (
+        7,
+        repeated("critic_offsets", Elements::Fixed64, MAX_BATCH_ITEMS),
+    ),
+];
+
+// A legal StepStream message holds one batch, so the kinds may share counters: a message
+// holding several only ever counts more, never less.
 const STEP_STREAM: &[(u32, Rule)] = &[
     (1, Rule::Message(PROBE_BATCH)),
     (2, Rule::Message(REPORT_BATCH)),
+    (3, Rule::Message(STEP_LINEAR_BATCH)),
 ];
 
-/// Element counters, indexed by field number (the batch messages number theirs 1 to 5).
-type Counts = [usize; 6];
+/// Element counters, indexed by field number (the batch messages number theirs 1 to 7).
+type Counts = [usize; 8];
 
 fn check_fields(bytes: &[u8], rules: &[(u32, Rule)]) -> Result<(), Error> {
     let mut counts = Counts::default();
@@ -334,8 +351,14 @@ mod tests {
     #[test]
     fn the_largest_legal_request_fits_the_default_limit_exactly() {
         let batch = probe_batch(MAX_BATCH_ITEMS, MAX_BATCH_VALUES / MAX_BATCH_ITEMS);
+        let step = pb::StepLinearBatchRequest {
+            probe: Some(batch),
+            critic_gains: vec![0.5; MAX_BATCH_VALUES],
+            critic_offsets: vec![0.5; MAX_BATCH_ITEMS],
+            paired: true,
+        };
         let message = pb::StepStreamRequest {
-            kind: Some(pb::step_stream_request::Kind::ProbeBatch(batch)),
+            kind: Some(pb::step_stream_request::Kind::StepLinearBatch(step)),
         };
         let bytes = message.encode_to_vec();
         assert!(bytes.len() <= MAX_REQUEST_BYTES, "{}", bytes.len());
@@ -380,6 +403,25 @@ mod tests {
         assert!(decode::<pb::StepStreamRequest>(once.as_slice()).is_ok());
         let twice = [once.as_slice(), once.as_slice()].concat();
         assert!(decode::<pb::StepStreamRequest>(twice.as_slice()).is_err());
+    }
+
+    #[test]
+    fn critic_values_past_the_limit_are_refused_before_decoding() {
+        let step = |gains: usize| pb::StepStreamRequest {
+            kind: Some(pb::step_stream_request::Kind::StepLinearBatch(
+                pb::StepLinearBatchRequest {
+                    probe: Some(probe_batch(MAX_BATCH_ITEMS, 1)),
+                    critic_gains: vec![0.0; gains],
+                    critic_offsets: vec![0.0; MAX_BATCH_ITEMS],
+                    paired: false,
+                },
+            )),
+        };
+        let legal = step(MAX_BATCH_VALUES).encode_to_vec();
+        assert!(decode::<pb::StepStreamRequest>(legal.as_slice()).is_ok());
+        let over = step(MAX_BATCH_VALUES + 1).encode_to_vec();
+        let err = decode::<pb::StepStreamRequest>(over.as_slice()).unwrap_err();
+        assert!(err.to_string().contains("critic_gains"), "{err}");
     }
 
     #[test]

@@ -7,6 +7,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use esa_core::linear_step::{self, LinearCritic};
 use esa_core::{batch, Session};
 use esa_store::unary;
 use prost::Message;
@@ -202,8 +203,11 @@ impl EsaHandler {
             Some(StreamRequest::ReportBatch(batch)) => self
                 .run_report_batch(batch)
                 .map(StreamResponse::ReportBatch),
+            Some(StreamRequest::StepLinearBatch(batch)) => self
+                .run_step_linear_batch(batch)
+                .map(StreamResponse::StepLinearBatch),
             None => Err(Error::InvalidArgument(
-                "kind: expected probe_batch or report_batch, got neither".into(),
+                "kind: expected probe_batch, report_batch or step_linear_batch, got none".into(),
             )),
         });
         pb::StepStreamResponse {
@@ -275,6 +279,51 @@ impl EsaHandler {
                 },
             )?;
             Ok(pb::ReportBatchResponse { actions })
+        })
+    }
+
+    fn run_step_linear_batch(
+        &self,
+        req: pb::StepLinearBatchRequest,
+    ) -> Result<pb::StepLinearBatchResponse, Error> {
+        let probe = req.probe.ok_or_else(|| {
+            Error::InvalidArgument("probe: expected the step's probe batch, got none".into())
+        })?;
+        batch::check_probe_lengths(
+            probe.session_ids.len(),
+            probe.steps.len(),
+            probe.episode_starts.len(),
+        )?;
+        let critic = LinearCritic {
+            gains: &req.critic_gains,
+            offsets: &req.critic_offsets,
+            paired: req.paired,
+        };
+        self.store.with_batch(&probe.session_ids, |sessions| {
+            let (mut probes, mut actions) = (Vec::new(), Vec::new());
+            linear_step::step(
+                sessions,
+                &probe.steps,
+                &probe.actions,
+                &probe.episode_starts,
+                &probe.action_scales,
+                &critic,
+                &mut probes,
+                &mut actions,
+                |index, outcome| {
+                    let id = probe.session_ids.get(index).map_or("", String::as_str);
+                    self.note_nonfinite(outcome.nonfinite_skipped, id);
+                },
+            )?;
+            let shifts = sessions
+                .iter()
+                .flat_map(|session| session.shift().iter().copied())
+                .collect();
+            Ok(pb::StepLinearBatchResponse {
+                probes,
+                actions,
+                shifts,
+            })
         })
     }
 

@@ -14,7 +14,7 @@ use pyo3::types::{PyBytes, PyTuple};
 use tonic::Code;
 
 use esa_client::blocking::Client as Remote;
-use esa_client::{Answer, Options, StepStream};
+use esa_client::{Answer, Options, Step, StepStream};
 use esa_proto::v1 as pb;
 
 use crate::arrays::{shaped, Values};
@@ -274,30 +274,42 @@ impl GrpcBatch {
     /// Sends `exchange` without the GIL: over the batch's StepStream (opened here when there
     /// is none), or as unary calls when the batch has no stream.
     fn send(&self, py: Python<'_>, exchange: Exchange) -> PyResult<Answer> {
+        if self.stream.is_some() {
+            return self.on_stream(py, |remote, slot| {
+                remote.block_on(async { exchange.over(opened(remote, slot).await?).await })
+            });
+        }
         let remote = self.client.get().remote(py)?;
-        call(py, &remote, |remote| match &self.stream {
-            Some(slot) => {
-                let mut slot = slot.lock();
-                let answer = remote.block_on(async {
-                    let stream = match slot.as_mut() {
-                        Some(stream) => stream,
-                        None => slot.insert(remote.client().step_stream().await?),
-                    };
-                    exchange.over(stream).await
-                });
-                if answer.as_ref().is_err_and(esa_client::Error::is_retryable) {
-                    *slot = None;
-                }
-                answer
+        call(py, &remote, |remote| match exchange {
+            Exchange::Probe(probe) => remote.probe_batch(probe).map(Answer::Probe),
+            Exchange::Report(report) => remote.report_batch(report).map(Answer::Report),
+            Exchange::ReportThenProbe(report, probe) => {
+                remote.report_batch(report)?;
+                remote.probe_batch(probe).map(Answer::Probe)
             }
-            None => match exchange {
-                Exchange::Probe(probe) => remote.probe_batch(probe).map(Answer::Probe),
-                Exchange::Report(report) => remote.report_batch(report).map(Answer::Report),
-                Exchange::ReportThenProbe(report, probe) => {
-                    remote.report_batch(report)?;
-                    remote.probe_batch(probe).map(Answer::Probe)
-                }
-            },
+        })
+    }
+
+    /// Runs `f` on the batch's stream slot without the GIL; drops the stream after a failure of
+    /// the wire (its answers are lost: the next call opens a new one).
+    fn on_stream<R: Send>(
+        &self,
+        py: Python<'_>,
+        f: impl Send + FnOnce(&Remote, &mut Option<StepStream>) -> esa_client::Result<R>,
+    ) -> PyResult<R> {
+        let Some(slot) = &self.stream else {
+            return Err(PyValueError::new_err(
+                "expected a batch opened with use_stream=True, got one without a stream",
+            ));
+        };
+        let remote = self.client.get().remote(py)?;
+        call(py, &remote, |remote| {
+            let mut slot = slot.lock();
+            let result = f(remote, &mut slot);
+            if result.as_ref().is_err_and(esa_client::Error::is_retryable) {
+                *slot = None;
+            }
+            result
         })
     }
 
@@ -313,6 +325,17 @@ impl GrpcBatch {
                 shaped(py, response.actions, n, Some(self.dim))?,
             ],
         )
+    }
+}
+
+/// The stream in `slot`, opened first when there is none.
+async fn opened<'s>(
+    remote: &Remote,
+    slot: &'s mut Option<StepStream>,
+) -> esa_client::Result<&'s mut StepStream> {
+    match slot {
+        Some(stream) => Ok(stream),
+        None => Ok(slot.insert(remote.client().step_stream().await?)),
     }
 }
 
@@ -383,6 +406,61 @@ impl GrpcBatch {
         let probe = self.probe_request(steps, actions, episode_starts, action_scales)?;
         let answer = self.send(py, Exchange::ReportThenProbe(report, probe))?;
         self.probe_answer(py, answer)
+    }
+
+    /// Sends a `step_linear_batch` on the batch's StepStream (opened here when there is none)
+    /// and returns once it is on its way, without its answer: read that with
+    /// `receive_step_linear`. A batch without a stream cannot send one.
+    #[allow(clippy::too_many_arguments)] // ProbeBatch's arrays and the critic's
+    #[pyo3(signature = (steps, actions, episode_starts, action_scales, gains, offsets, paired))]
+    fn send_step_linear<'py>(
+        &self,
+        py: Python<'py>,
+        steps: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        episode_starts: &Bound<'py, PyAny>,
+        action_scales: Option<&Bound<'py, PyAny>>,
+        gains: &Bound<'py, PyAny>,
+        offsets: &Bound<'py, PyAny>,
+        paired: bool,
+    ) -> PyResult<()> {
+        let request = pb::StepLinearBatchRequest {
+            probe: Some(self.probe_request(steps, actions, episode_starts, action_scales)?),
+            critic_gains: Values::<f64>::floats(gains)?.owned(),
+            critic_offsets: Values::<f64>::floats(offsets)?.owned(),
+            paired,
+        };
+        self.on_stream(py, |remote, slot| {
+            remote.block_on(async {
+                let stream = opened(remote, slot).await?;
+                stream.send_now(Step::StepLinear(request)).await
+            })
+        })
+    }
+
+    /// The answer to the oldest `send_step_linear` not yet answered: `(probes, applied,
+    /// shifts)`, each `(N, dim)`, or its error. UNAVAILABLE when the stream broke (its answers
+    /// are lost).
+    fn receive_step_linear<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let answer = self.on_stream(py, |remote, slot| match slot.as_mut() {
+            Some(stream) => remote.block_on(stream.next()),
+            None => Err(esa_client::Error::new(
+                Code::Unavailable,
+                "the step stream broke before this step's answer was read",
+            )),
+        })?;
+        let Answer::StepLinear(response) = answer else {
+            return Err(out_of_order(py));
+        };
+        let n = self.session_ids.len();
+        PyTuple::new(
+            py,
+            [
+                shaped(py, response.probes, n, Some(self.dim))?,
+                shaped(py, response.actions, n, Some(self.dim))?,
+                shaped(py, response.shifts, n, Some(self.dim))?,
+            ],
+        )
     }
 
     /// Ends the batch's StepStream, if one is open; the sessions stay. Idempotent.

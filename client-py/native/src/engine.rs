@@ -6,6 +6,7 @@
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 use esa_core::batch;
+use esa_core::linear_step::{self, LinearCritic};
 use esa_core::{Session, SessionConfig};
 use esa_proto::convert::session_snapshot;
 use esa_proto::v1 as pb;
@@ -83,60 +84,6 @@ pub struct ProbeOutput {
 pub struct ReportOutput {
     pub actions: Vec<f64>,
     pub dim: Option<usize>,
-}
-
-/// A critic linear in the action at each item's state, `Q_i(a) = gain_i . a + offset_i`, which
-/// [`Engine::step_linear`] evaluates itself (ESAPPO's advantage head has this form).
-pub struct LinearCritic<'a> {
-    /// `gain_i`, concatenated in item order (each item's action dimension).
-    pub gain: &'a [f64],
-    /// `offset_i`, one per item.
-    pub offset: &'a [f64],
-    /// Also report the critic at the applied actions as each item's `q_reference`.
-    pub paired: bool,
-}
-
-impl LinearCritic<'_> {
-    /// Checks the lengths against the sessions' dimensions and that every value is finite.
-    fn check(&self, sessions: &[&mut Session]) -> Result<(), Error> {
-        let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
-        for (field, values, expected) in [
-            ("gain", self.gain, total),
-            ("offset", self.offset, sessions.len()),
-        ] {
-            if values.len() != expected {
-                return Err(Error::InvalidArgument(format!(
-                    "{field}: expected {expected} values, got {}",
-                    values.len()
-                )));
-            }
-            if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
-                return Err(Error::InvalidArgument(format!(
-                    "{field}: expected finite values, got {bad}"
-                )));
-            }
-        }
-        Ok(())
-    }
-
-    /// `Q_i` at `actions` (concatenated like `gain`), one value per item.
-    fn values(&self, sessions: &[&mut Session], actions: &[f64]) -> Vec<f64> {
-        let mut start = 0;
-        sessions
-            .iter()
-            .zip(self.offset)
-            .map(|(session, &offset)| {
-                let end = start + session.action_dim();
-                let dot: f64 = self.gain[start..end]
-                    .iter()
-                    .zip(&actions[start..end])
-                    .map(|(g, a)| g * a)
-                    .sum();
-                start = end;
-                dot + offset
-            })
-            .collect()
-    }
 }
 
 impl Engine {
@@ -279,12 +226,9 @@ impl Engine {
         })
     }
 
-    /// One step of Algorithm 1 for a critic the engine evaluates itself: ProbeBatch, then
-    /// ReportBatch of `critic` at the probes (at the applied actions too, as references, when
-    /// `critic.paired`), with the probes' steps. One call instead of two and the critic's
-    /// evaluation in between. All-or-nothing: the critic is checked before the probe, and a
-    /// report refused after it (a finite critic whose value overflows at a far probe) puts the
-    /// sessions back as they were before the probe.
+    /// One step of Algorithm 1 for a critic the engine evaluates itself (see
+    /// `esa_core::linear_step::step`): ProbeBatch, then ReportBatch of `critic` at the probes,
+    /// in one call; all-or-nothing.
     pub fn step_linear(
         &mut self,
         handle: &Handle,
@@ -296,31 +240,23 @@ impl Engine {
     ) -> Result<ProbeOutput, Error> {
         batch::check_probe_lengths(handle.len(), steps.len(), episode_starts.len())?;
         self.with_sessions(handle, |sessions| {
-            critic.check(sessions)?;
-            let before: Vec<Session> = sessions.iter().map(|session| (**session).clone()).collect();
-            let output = probe_sessions(sessions, steps, actions, episode_starts, action_scales)?;
-            let q_values = critic.values(sessions, &output.probes);
-            let references = if critic.paired {
-                critic.values(sessions, &output.applied)
-            } else {
-                Vec::new()
-            };
-            let mut improved = Vec::new();
-            let reported = batch::report(
+            let (mut probes, mut applied) = (Vec::new(), Vec::new());
+            linear_step::step(
                 sessions,
                 steps,
-                &q_values,
-                &references,
-                &mut improved,
+                actions,
+                episode_starts,
+                action_scales,
+                critic,
+                &mut probes,
+                &mut applied,
                 |_, _| {},
-            );
-            if let Err(err) = reported {
-                for (session, saved) in sessions.iter_mut().zip(before) {
-                    **session = saved;
-                }
-                return Err(err.into());
-            }
-            Ok(output)
+            )?;
+            Ok(ProbeOutput {
+                probes,
+                applied,
+                dim: shared_dim(sessions),
+            })
         })
     }
 

@@ -10,11 +10,12 @@ use prost::Message;
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 
+use esa_core::linear_step::LinearCritic;
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
 
 use crate::arrays::{shaped, Values};
-use crate::engine::{self, LinearCritic};
+use crate::engine;
 use crate::errors::engine_error;
 
 /// By default, batches of more action values than this run with the GIL released (measured:
@@ -267,8 +268,8 @@ impl Engine {
             py.detach(|| {
                 let [actions, scales, gain, offset] = &owned;
                 let critic = LinearCritic {
-                    gain,
-                    offset,
+                    gains: gain,
+                    offsets: offset,
                     paired,
                 };
                 self.inner
@@ -277,8 +278,8 @@ impl Engine {
             })
         } else {
             let critic = LinearCritic {
-                gain: gain.as_slice(),
-                offset: offset.as_slice(),
+                gains: gain.as_slice(),
+                offsets: offset.as_slice(),
                 paired,
             };
             self.lock(py).step_linear(

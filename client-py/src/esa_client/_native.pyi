@@ -386,8 +386,74 @@ class GrpcBatch:
             ValueError: As :meth:`probe`.
         """
 
+    def send_step_linear(
+        self,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None,
+        gains: npt.ArrayLike,
+        offsets: npt.ArrayLike,
+        paired: bool,
+    ) -> None:
+        """Sends a ``step_linear_batch`` (probe, linear critic, report) and returns at once.
+
+        The request is on the wire when this returns; its answer is read by
+        :meth:`receive_step_linear`. Only a batch with a stream can send one.
+
+        Raises:
+            StatusError: The wire's error (the stream could not be opened or written).
+            ValueError: The batch has no stream, or an array cannot be converted.
+        """
+
+    def receive_step_linear(
+        self,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """The answer to the oldest unanswered :meth:`send_step_linear`.
+
+        Returns:
+            ``(probes, applied, shifts)``, each float64[N, D]: the shifts are ``v(t + 1)``.
+
+        Raises:
+            StatusError: That request's error (nothing of it was applied), or the wire's
+                (UNAVAILABLE when the stream broke: whether it was applied is unknown).
+        """
+
     def close(self) -> None:
         """Ends the batch's ``StepStream``, if one is open; the sessions stay. Idempotent."""
+
+    def __len__(self) -> int:
+        """N, the number of sessions."""
+
+class AppliedAhead:
+    """Algorithm 1's applied actions from shifts known ahead, with esa-core's own function.
+
+    For a client of the pipelined step: ``clip(a + clamp(v, -bound, bound), lo, hi)`` with
+    ``bound = min(L, kappa * sigma)``, per session and dimension, the bits the server's probe
+    gives for the shift ``v`` (CONTRACT.md section 1b, implementation note 8).
+
+    Args:
+        configs: One encoded ``esa.v1.SessionConfig`` per session, all of one action
+            dimension.
+
+    Raises:
+        EngineError: A config is not valid (INVALID_ARGUMENT).
+        ValueError: No config, or configs of different action dimensions.
+    """
+
+    def __init__(self, configs: list[bytes]) -> None: ...
+    def __call__(
+        self,
+        shifts: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None = None,
+    ) -> npt.NDArray[np.float64]:
+        """The applied actions, float64[N, D], for shifts, actions and scales of shape (N, D).
+
+        Raises:
+            EngineError: A length does not match, an action is not finite or a scale not
+                finite and > 0 (INVALID_ARGUMENT, ``index`` names the session).
+        """
 
     def __len__(self) -> int:
         """N, the number of sessions."""

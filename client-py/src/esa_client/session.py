@@ -19,14 +19,17 @@ runs over gRPC, Zenoh, N shards or an in-process engine.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
+from ._native import AppliedAhead
 from .config import SessionConfig
-from .errors import SessionNotFound, StatusCode, StepMismatch
-from .reconnect import Reconnect
+from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch
+from .reconnect import Reconnect, RetriableErrors
 from .state import (
+    BoolArray,
     F64Array,
     I64Array,
     SessionState,
@@ -34,7 +37,7 @@ from .state import (
     check_array,
     check_indices,
 )
-from .transports.base import BatchProbe, BatchReport, LinearCritic, Transport
+from .transports.base import AheadBatch, BatchProbe, BatchReport, LinearCritic, Transport
 
 __all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
 
@@ -60,6 +63,13 @@ def restore_sessions(
             transport.create_session(session_id, config.to_proto())
             restored += 1
     return restored
+
+
+class _InFlight(NamedTuple):
+    """What a step sent by :meth:`SessionBatch.step_ahead` replaced, restored if it fails."""
+
+    steps_before: I64Array
+    starts_before: BoolArray
 
 
 class Session:
@@ -228,6 +238,11 @@ class SessionBatch:
         self._reconnect = reconnect
         # The last probe sent: replayed into recreated sessions before a lone report.
         self._last_probe: BatchProbe | None = None
+        # step_ahead: the step sent whose answer is not read yet, and what to restore if it
+        # fails; the shifts v(t) of the next step (from the last answer read).
+        self._ahead: _InFlight | None = None
+        self._shifts: F64Array = np.zeros((self.n, self.action_dim))
+        self._applier: AppliedAhead | None = None
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
 
@@ -280,6 +295,7 @@ class SessionBatch:
             ``(probes, applied)``, both shape ``(N, D)``: the probes, and
             ``clip(a_t + v(t))``, the shift before this step's report.
         """
+        self._flush_ahead()
         request = self._probe_request(actions, episode_starts, steps, action_scales)
         deferred = self._deferred
         if self._reconnect is None:
@@ -326,13 +342,7 @@ class SessionBatch:
         """
         step_linear = None
         if isinstance(critic, LinearCritic):
-            shape = (self.n, self.action_dim)
-            gain_shape, offset_shape = np.shape(critic.gain), np.shape(critic.offset)
-            if gain_shape != shape or offset_shape != (self.n,):
-                raise ValueError(
-                    f"critic: expected gain of shape {shape} and offset of shape {(self.n,)}, "
-                    f"got {gain_shape} and {offset_shape}"
-                )
+            self._check_critic(critic)
             step_linear = getattr(self._batch, "step_linear", None)
         if step_linear is None or self._deferred is not None:
             probes, applied = self.probe_applied(
@@ -348,6 +358,137 @@ class SessionBatch:
         self._last_probe = request
         self._next_starts[:] = False
         return answer
+
+    @property
+    def steps_ahead(self) -> bool:
+        """Whether :meth:`step_ahead` pipelines here (a native gRPC client's StepStream).
+
+        Elsewhere it is :meth:`step`, which waits for the server (or, in-process, needs
+        no wire).
+        """
+        return isinstance(self._batch, AheadBatch)
+
+    def step_ahead(
+        self,
+        actions: npt.ArrayLike,
+        critic: LinearCritic,
+        episode_starts: npt.ArrayLike | None = None,
+        *,
+        action_scales: npt.ArrayLike | None = None,
+        paired: bool = False,
+    ) -> F64Array:
+        """Algorithm 1's step for a linear critic, without waiting for the server.
+
+        Returns ``clip(a_t + v(t))``, as :meth:`step` does, computed here with esa-core's
+        own function from the shifts ``v(t)`` that the previous step's answer carried (0 at
+        an episode start): the same bits as the server's. The step itself (probe, critic,
+        report) goes as one ``step_linear_batch`` message whose answer is read at the next
+        call, so the round trip overlaps the environment's step and the policy's forward
+        (CONTRACT.md section 1b, implementation note 8). Where the batch cannot pipeline
+        (:attr:`steps_ahead` is False) this is :meth:`step`'s applied actions.
+
+        An error of the step surfaces one call late: the next call (or :meth:`flush`)
+        raises it, and nothing of that step was applied on the server, although its
+        actions were returned. After a broken exchange (the server restarted, or the
+        connection dropped) whether the step was applied is unknown, so every session
+        starts a new episode at the next step (the running shifts are lost, as after a
+        restart); with a reconnect policy that happens within the call.
+
+        Args:
+            actions: Sampled actions, shape ``(N, D)``.
+            critic: ``Q_i(a) = gain_i . a + offset_i`` at the N current states.
+            episode_starts: As for :meth:`probe_applied`.
+            action_scales: As for :meth:`probe_applied`.
+            paired: Report the critic at the applied actions as the references.
+
+        Returns:
+            The applied actions ``clip(a_t + v(t))``, shape ``(N, D)``.
+        """
+        if not isinstance(self._batch, AheadBatch):
+            return self.step(
+                actions, critic, episode_starts, action_scales=action_scales, paired=paired
+            )[1]
+        self._check_critic(critic)
+        self.flush()
+        request = self._probe_request(actions, episode_starts, None, action_scales)
+        if self._applier is None:
+            self._applier = AppliedAhead([c.to_proto().SerializeToString() for c in self.configs])
+        # Checks the actions and scales before anything is sent (an error here is this call's).
+        self._applier(self._shifts, request.actions, request.action_scales)
+        before = _InFlight(self._steps, self._next_starts.copy())
+        request = self._send_ahead(request, critic, paired)
+        self._ahead = before
+        self._steps = request.steps + 1
+        self._last_probe = request
+        self._next_starts[:] = False
+        shifts = np.where(request.episode_starts[:, None], 0.0, self._shifts)
+        applied: F64Array = self._applier(shifts, request.actions, request.action_scales)
+        return applied
+
+    def _check_critic(self, critic: LinearCritic) -> None:
+        shape = (self.n, self.action_dim)
+        gain_shape, offset_shape = np.shape(critic.gain), np.shape(critic.offset)
+        if gain_shape != shape or offset_shape != (self.n,):
+            raise ValueError(
+                f"critic: expected gain of shape {shape} and offset of shape {(self.n,)}, "
+                f"got {gain_shape} and {offset_shape}"
+            )
+
+    def _send_ahead(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> BatchProbe:
+        """Sends a step ahead; returns what it sent.
+
+        After a broken wire, with a reconnect policy, every session restarts with this step
+        (see :meth:`step_ahead`).
+        """
+        assert isinstance(self._batch, AheadBatch)
+        batch = self._batch
+
+        def attempt(retrying: bool) -> BatchProbe:
+            sent = request
+            if retrying:
+                self.restore()
+                sent = request._replace(
+                    steps=np.zeros(self.n, dtype=np.int64),
+                    episode_starts=np.ones(self.n, dtype=bool),
+                )
+            batch.send_step_linear(sent, critic, paired)
+            return sent
+
+        if self._reconnect is None:
+            return attempt(False)
+        return self._reconnect.run(attempt)
+
+    def _receive_ahead(self) -> F64Array:
+        """The shifts ``v(t + 1)`` of the step in flight, or its error (see :meth:`step_ahead`).
+
+        A refused step is undone here (its steps and episode starts are due again); after a
+        broken exchange every session restarts: :meth:`restore` (riding out the server's
+        absence with a reconnect policy) and zero shifts.
+        """
+        assert isinstance(self._batch, AheadBatch) and self._ahead is not None
+        sent, self._ahead = self._ahead, None
+        try:
+            return self._batch.receive_step_linear()[2]
+        except RetriableErrors:
+            if self._reconnect is None:
+                self._next_starts[:] = True
+                self._steps[:] = 0
+                raise
+        except EsaError:
+            self._steps = sent.steps_before
+            self._next_starts = sent.starts_before
+            raise
+
+        def attempt(_retrying: bool) -> F64Array:
+            self.restore()
+            return np.zeros((self.n, self.action_dim))
+
+        return self._reconnect.run(attempt)
+
+    def _flush_ahead(self) -> None:
+        """Reads the answer of a step sent ahead (raising its error), if one is in flight."""
+        if self._ahead is not None:
+            self._shifts = self._receive_ahead()
 
     def _probe_request(
         self,
@@ -476,6 +617,7 @@ class SessionBatch:
         Returns:
             The improved actions ``clip(a_t + v(t + 1))``, shape ``(N, D)``; None if deferred.
         """
+        self._flush_ahead()
         # Copies: a deferred report must not change with the caller's arrays.
         q = np.array(check_array(q_values, (self.n,), "q_values"))
         references = None
@@ -499,11 +641,15 @@ class SessionBatch:
         return improved
 
     def flush(self) -> None:
-        """Sends a deferred report now (nothing if none is pending).
+        """Reads the answer of a step sent by :meth:`step_ahead`, and sends a deferred report.
+
+        Nothing if neither is pending.
 
         Raises:
-            EsaError: The report's error; it then stays pending.
+            EsaError: The step's error (see :meth:`step_ahead`), or the report's (it then
+                stays pending).
         """
+        self._flush_ahead()
         if self._deferred is not None:
             sent, _ = self._send_report(self._deferred)
             self._deferred = None
@@ -543,6 +689,11 @@ class SessionBatch:
             How many sessions were recreated.
         """
         self._deferred = None
+        if self._ahead is not None:
+            # Its answer would be read as the next step's: a new stream starts clean.
+            self._ahead = None
+            self._batch.close()
+        self._shifts = np.zeros((self.n, self.action_dim))
         restored = restore_sessions(self._transport, self.ids, self.configs)
         self.sessions_restored += restored
         if self._on_restore is not None:
@@ -584,6 +735,7 @@ class SessionBatch:
         A deferred report is dropped: it cannot change anything the caller still sees.
         """
         self._deferred = None
+        self._ahead = None
         self._batch.close()
         for session_id in self.ids:
             self._transport.close_session(session_id)

@@ -13,6 +13,7 @@ mod limits;
 mod memory;
 mod robustness;
 mod section_1b;
+mod step_linear;
 mod stream;
 mod tls;
 mod transport;

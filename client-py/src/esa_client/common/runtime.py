@@ -277,7 +277,6 @@ class EsaRuntime:
         scale = policy_std if self.esa.use_policy_std else None
         batch = self.batch
         restored = batch.sessions_restored
-        paired = self.esa.paired_response
         try:
             if self._skipping:
                 if not np.any(episode_starts):
@@ -286,15 +285,13 @@ class EsaRuntime:
                 batch.restore()
                 self._skipping = False
                 _log.warning("esa server at %s reachable again: ESA resumes", self.client.address)
-                probes, applied = batch.step(a, q_fn, None, action_scales=scale, paired=paired)
+                probes, applied = self._run(a, q_fn, None, scale)
             else:
                 try:
-                    probes, applied = batch.step(
-                        a, q_fn, episode_starts, action_scales=scale, paired=paired
-                    )
+                    probes, applied = self._run(a, q_fn, episode_starts, scale)
                 except SessionNotFound:
                     batch.restore()
-                    probes, applied = batch.step(a, q_fn, None, action_scales=scale, paired=paired)
+                    probes, applied = self._run(a, q_fn, None, scale)
         except ServerUnavailable as err:
             if self.on_unavailable == "raise":
                 raise
@@ -305,7 +302,8 @@ class EsaRuntime:
         finally:
             if batch.sessions_restored > restored:
                 self._stats.add_count("sessions_restored", batch.sessions_restored - restored)
-        # Kept for trainers that execute the probe itself (exploration by the sinusoid).
+        # Kept for trainers that execute the probe itself (exploration by the sinusoid); None
+        # after a step sent ahead, whose probes the server answers one step later.
         self.last_probes = probes
         n = len(a)
         self._stats.add_step(a, applied, policy_std, self._clip)
@@ -314,6 +312,21 @@ class EsaRuntime:
             self._stats.add_improvement(float((both[n:] - both[:n]).mean()))
         self._calls += 1
         return applied
+
+    def _run(
+        self,
+        a: np.ndarray,
+        q_fn: QFunction | LinearCritic,
+        starts: np.ndarray | None,
+        scale: np.ndarray | None,
+    ) -> tuple[np.ndarray | None, np.ndarray]:
+        """The batch's step: ``(probes, applied)``; probes None for a step sent ahead."""
+        paired = self.esa.paired_response
+        if isinstance(q_fn, LinearCritic) and self.batch.steps_ahead:
+            # Through a server: the round trip overlaps the env's step (probes come later).
+            applied = self.batch.step_ahead(a, q_fn, starts, action_scales=scale, paired=paired)
+            return None, applied
+        return self.batch.step(a, q_fn, starts, action_scales=scale, paired=paired)
 
     def _without_esa(self, sampled: np.ndarray) -> np.ndarray:
         """The sampled actions, clipped to the sessions' bounds: a step without ESA."""

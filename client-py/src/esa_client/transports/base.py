@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from typing import NamedTuple, Protocol
+from typing import NamedTuple, Protocol, runtime_checkable
 
 from .._proto.esa.v1 import esa_pb2
 from ..state import BoolArray, F64Array, I64Array, SessionState
@@ -107,6 +107,29 @@ class BatchTransport(Protocol):
 
     def close(self) -> None:
         """Releases what the batch holds (e.g. its stream); the sessions stay."""
+        ...
+
+
+@runtime_checkable
+class AheadBatch(Protocol):
+    """A batch that sends a whole step for a linear critic and reads its answer later.
+
+    The wire's ``step_linear_batch`` (CONTRACT.md section 1b, implementation note 8): the
+    server probes, evaluates the critic and reports in one request, and answers with the
+    shifts ``v(t + 1)``, from which the client computes the next step's applied actions
+    itself. Requests are answered in the order they were sent.
+    """
+
+    def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
+        """Sends the step; returns once it is on its way, without its answer."""
+        ...
+
+    def receive_step_linear(self) -> tuple[F64Array, F64Array, F64Array]:
+        """The oldest unanswered step's ``(probes, applied, shifts)``, each ``(N, D)``.
+
+        Raises the step's error (nothing of it was applied), or the wire's (whether it
+        was applied is then unknown).
+        """
         ...
 
 

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from .._native import GrpcBatch, GrpcClient, StatusError
 from ..errors import TypedErrors
 from ..state import F64Array
-from .base import BatchProbe, BatchReport, InTurnBatch, PipelinedBatch
+from .base import BatchProbe, BatchReport, InTurnBatch, LinearCritic, PipelinedBatch
 from .native_calls import NativeSessionCalls
 
 _typed_errors = TypedErrors(StatusError)
@@ -50,7 +50,11 @@ class NativeGrpcBatch(InTurnBatch):
 
 
 class NativeGrpcStepBatch(NativeGrpcBatch, PipelinedBatch):
-    """A :class:`NativeGrpcBatch` on a ``StepStream``, whose pair takes one round trip."""
+    """A :class:`NativeGrpcBatch` on a ``StepStream``, whose pair takes one round trip.
+
+    It also sends a whole step for a linear critic without waiting for its answer
+    (:class:`~esa_client.transports.base.AheadBatch`).
+    """
 
     def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
         with _typed_errors:
@@ -63,6 +67,24 @@ class NativeGrpcStepBatch(NativeGrpcBatch, PipelinedBatch):
                 probe.episode_starts,
                 probe.action_scales,
             )
+
+    def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
+        """Sends the step's probe, ``critic`` and report as one message; returns at once."""
+        with _typed_errors:
+            self._batch.send_step_linear(
+                request.steps,
+                request.actions,
+                request.episode_starts,
+                request.action_scales,
+                critic.gain,
+                critic.offset,
+                paired,
+            )
+
+    def receive_step_linear(self) -> tuple[F64Array, F64Array, F64Array]:
+        """The oldest unanswered step's ``(probes, applied, shifts)``, or its error."""
+        with _typed_errors:
+            return self._batch.receive_step_linear()
 
 
 class NativeGrpcTransport(NativeSessionCalls):
