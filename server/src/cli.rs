@@ -85,8 +85,8 @@ pub struct Cli {
 
     /// Largest gRPC request message accepted; a bigger one fails with
     /// RESOURCE_EXHAUSTED before it is buffered. The default is the largest
-    /// legal request (a StepStream ProbeBatch of 65,536 sessions with
-    /// 128-byte ids and 1,048,576 action values and scales).
+    /// legal request (a StepStream step_linear_batch of 65,536 sessions with
+    /// 128-byte ids, 1,048,576 action values, scales and critic gains).
     #[arg(long, value_name = "BYTES", default_value_t = MAX_REQUEST_BYTES, value_parser = parse_bytes)]
     pub max_message_bytes: usize,
 

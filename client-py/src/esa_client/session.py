@@ -24,9 +24,9 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from ._native import AppliedAhead
+from ._native import AppliedAhead, EngineError
 from .config import SessionConfig
-from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch
+from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch, TypedErrors
 from .reconnect import Reconnect, RetriableErrors
 from .state import (
     BoolArray,
@@ -40,6 +40,8 @@ from .state import (
 from .transports.base import AheadBatch, BatchProbe, BatchReport, LinearCritic, Transport
 
 __all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
+
+_engine_errors = TypedErrors(EngineError)
 
 
 def restore_sessions(
@@ -243,6 +245,7 @@ class SessionBatch:
         self._ahead: _InFlight | None = None
         self._shifts: F64Array = np.zeros((self.n, self.action_dim))
         self._applier: AppliedAhead | None = None
+        self._ahead_batch = self._batch if isinstance(self._batch, AheadBatch) else None
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
 
@@ -366,7 +369,7 @@ class SessionBatch:
         Elsewhere it is :meth:`step`, which waits for the server (or, in-process, needs
         no wire).
         """
-        return isinstance(self._batch, AheadBatch)
+        return self._ahead_batch is not None
 
     def step_ahead(
         self,
@@ -404,25 +407,41 @@ class SessionBatch:
         Returns:
             The applied actions ``clip(a_t + v(t))``, shape ``(N, D)``.
         """
-        if not isinstance(self._batch, AheadBatch):
+        ahead = self._ahead_batch
+        if ahead is None:
             return self.step(
                 actions, critic, episode_starts, action_scales=action_scales, paired=paired
             )[1]
         self._check_critic(critic)
-        self.flush()
+        if self._deferred is not None:
+            self.flush()
+        if self._ahead is not None:
+            self._shifts = self._receive_ahead(ahead)
         request = self._probe_request(actions, episode_starts, None, action_scales)
-        if self._applier is None:
-            self._applier = AppliedAhead([c.to_proto().SerializeToString() for c in self.configs])
-        # Checks the actions and scales before anything is sent (an error here is this call's).
-        self._applier(self._shifts, request.actions, request.action_scales)
+        applier = self._applier
+        if applier is None:
+            applier = AppliedAhead([c.to_proto().SerializeToString() for c in self.configs])
+            self._applier = applier
+        shifts = self._shifts
+        if request.episode_starts.any():
+            shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
+        # This also checks the actions and scales: an error here is this call's, nothing sent.
+        with _engine_errors:
+            applied: F64Array = applier(shifts, request.actions, request.action_scales)
         before = _InFlight(self._steps, self._next_starts.copy())
-        request = self._send_ahead(request, critic, paired)
+        try:
+            ahead.send_step_linear(request, critic, paired)
+        except RetriableErrors:
+            if self._reconnect is None:
+                raise
+            request = self._reconnect.run(
+                lambda _: self._restart_ahead(ahead, request, critic, paired)
+            )
+            applied = applier(self._shifts, request.actions, request.action_scales)
         self._ahead = before
         self._steps = request.steps + 1
         self._last_probe = request
         self._next_starts[:] = False
-        shifts = np.where(request.episode_starts[:, None], 0.0, self._shifts)
-        applied: F64Array = self._applier(shifts, request.actions, request.action_scales)
         return applied
 
     def _check_critic(self, critic: LinearCritic) -> None:
@@ -434,41 +453,33 @@ class SessionBatch:
                 f"got {gain_shape} and {offset_shape}"
             )
 
-    def _send_ahead(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> BatchProbe:
-        """Sends a step ahead; returns what it sent.
+    def _restart_ahead(
+        self, batch: AheadBatch, request: BatchProbe, critic: LinearCritic, paired: bool
+    ) -> BatchProbe:
+        """Sends ``request`` as every session's episode start, after :meth:`restore`.
 
-        After a broken wire, with a reconnect policy, every session restarts with this step
-        (see :meth:`step_ahead`).
+        For a broken wire: whether earlier steps were applied is unknown (see
+        :meth:`step_ahead`). Returns what it sent.
         """
-        assert isinstance(self._batch, AheadBatch)
-        batch = self._batch
+        self.restore()
+        restart = request._replace(
+            steps=np.zeros(self.n, dtype=np.int64),
+            episode_starts=np.ones(self.n, dtype=bool),
+        )
+        batch.send_step_linear(restart, critic, paired)
+        return restart
 
-        def attempt(retrying: bool) -> BatchProbe:
-            sent = request
-            if retrying:
-                self.restore()
-                sent = request._replace(
-                    steps=np.zeros(self.n, dtype=np.int64),
-                    episode_starts=np.ones(self.n, dtype=bool),
-                )
-            batch.send_step_linear(sent, critic, paired)
-            return sent
-
-        if self._reconnect is None:
-            return attempt(False)
-        return self._reconnect.run(attempt)
-
-    def _receive_ahead(self) -> F64Array:
+    def _receive_ahead(self, batch: AheadBatch) -> F64Array:
         """The shifts ``v(t + 1)`` of the step in flight, or its error (see :meth:`step_ahead`).
 
         A refused step is undone here (its steps and episode starts are due again); after a
         broken exchange every session restarts: :meth:`restore` (riding out the server's
         absence with a reconnect policy) and zero shifts.
         """
-        assert isinstance(self._batch, AheadBatch) and self._ahead is not None
+        assert self._ahead is not None
         sent, self._ahead = self._ahead, None
         try:
-            return self._batch.receive_step_linear()[2]
+            return batch.receive_step_linear()[2]
         except RetriableErrors:
             if self._reconnect is None:
                 self._next_starts[:] = True
@@ -487,8 +498,8 @@ class SessionBatch:
 
     def _flush_ahead(self) -> None:
         """Reads the answer of a step sent ahead (raising its error), if one is in flight."""
-        if self._ahead is not None:
-            self._shifts = self._receive_ahead()
+        if self._ahead is not None and self._ahead_batch is not None:
+            self._shifts = self._receive_ahead(self._ahead_batch)
 
     def _probe_request(
         self,

@@ -117,7 +117,10 @@ class EsaRuntime:
     gives the probes and the actions to apply, ``a_t + v(t)``; one critic batch scores
     the probes (and, with ``paired_response``, the applied actions as the reference);
     the report is deferred and rides with the next step's probe on the StepStream, so a
-    step costs one round trip.
+    step costs one round trip. A :class:`LinearCritic` (ESAPPO's head) is evaluated by
+    the engine itself: in-process in one call, and through a native client's StepStream
+    without waiting at all (:meth:`SessionBatch.step_ahead`: the actions come from the
+    previous answer's shifts, the round trip overlaps the env's step).
 
     Sessions the server loses (a restart, a TTL expiry during a long pause) are
     recreated and restarted at the next step, and counted (``esa/sessions_restored``):

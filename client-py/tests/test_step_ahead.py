@@ -1,0 +1,142 @@
+"""``SessionBatch.step_ahead``: the pipelined step for a linear critic, against a real server.
+
+The applied actions it computes ahead (from the previous answer's shifts, with esa-core's own
+function) are the bits the in-process engine's whole step returns, and so are the sessions'
+states; an error of a step surfaces at the next call with nothing of it applied; a batch that
+cannot pipeline falls back to ``step``.
+"""
+
+import numpy as np
+import pytest
+
+from esa_client import EsaClient, InvalidArgument, LinearCritic, SessionConfig, StepMismatch
+
+CONFIG = SessionConfig(
+    action_dim=2,
+    dt=0.02,
+    amplitude=[0.3],
+    frequency=[40.0, 25.0],
+    learning_rate=[0.5],
+    action_low=[-1.0],
+    action_high=[1.0],
+    shift_limit=0.4,
+    normalize_response=True,
+    shift_leak=0.01,
+    trust_region=1.5,
+)
+N = 3
+
+
+@pytest.fixture(scope="module")
+def native(server_bin):
+    """A private server through the native client (whose StepStream pipelines)."""
+    with EsaClient.spawn(server_bin, transport="native") as client:
+        yield client
+
+
+def script(steps: int, seed: int = 0):
+    """Random sampled actions, scales, critics and episode starts, one tuple per step."""
+    rng = np.random.default_rng(seed)
+    for t in range(steps):
+        actions = rng.uniform(-1.5, 1.5, size=(N, 2))
+        scales = rng.uniform(0.01, 0.9, size=(N, 2))
+        critic = LinearCritic(rng.normal(size=(N, 2)), rng.normal(size=N))
+        starts = rng.random(N) < 0.08
+        starts[:] |= t == 0
+        yield actions, scales, critic, starts
+
+
+def comparable(states):
+    return [
+        (s.step, s.episodes_completed, s.probe_pending, s.shift.tolist(), s.response_mean_square)
+        for s in states
+    ]
+
+
+@pytest.mark.parametrize("paired", [False, True])
+def test_the_actions_and_states_are_the_in_process_steps_bits(native, paired):
+    local = EsaClient.in_process()
+    ahead = native.create_batch(CONFIG, N, use_stream=True)
+    whole = local.create_batch(CONFIG, N)
+    assert ahead.steps_ahead and not whole.steps_ahead
+    for actions, scales, critic, starts in script(300):
+        applied = ahead.step_ahead(actions, critic, starts, action_scales=scales, paired=paired)
+        _, expected = whole.step(actions, critic, starts, action_scales=scales, paired=paired)
+        np.testing.assert_array_equal(applied, expected)
+    # states() reads the last answer first.
+    assert comparable(ahead.states()) == comparable(whole.states())
+    np.testing.assert_array_equal(ahead.steps, whole.steps)
+    ahead.close()
+    local.close()
+
+
+def test_without_a_pipelining_stream_it_is_step(native):
+    local = EsaClient.in_process()
+    for batch in (
+        native.create_batch(CONFIG, N, use_stream=False),
+        local.create_batch(CONFIG, N),
+    ):
+        twin = local.create_batch(CONFIG, N)
+        assert not batch.steps_ahead
+        for actions, scales, critic, starts in script(40, seed=1):
+            applied = batch.step_ahead(actions, critic, starts, action_scales=scales)
+            _, expected = twin.step(actions, critic, starts, action_scales=scales)
+            np.testing.assert_array_equal(applied, expected)
+        batch.close()
+    local.close()
+
+
+def test_a_refused_step_raises_at_the_next_call_and_changes_nothing(native):
+    batch = native.create_batch(CONFIG, N, use_stream=True)
+    steps = script(10, seed=2)
+    for actions, scales, critic, starts in steps:
+        batch.step_ahead(actions, critic, starts, action_scales=scales)
+    before = comparable(batch.states())
+    tracked = batch.steps
+    actions, scales, critic, _ = next(script(1, seed=3))
+    gain = critic.gain.copy()
+    gain[1, 0] = np.nan
+    # Sent without waiting: this call returns actions, the server refuses the step.
+    batch.step_ahead(actions, LinearCritic(gain, critic.offset), action_scales=scales)
+    with pytest.raises(InvalidArgument, match="critic_gains: expected finite values"):
+        batch.step_ahead(actions, critic, action_scales=scales)
+    assert comparable(batch.states()) == before
+    np.testing.assert_array_equal(batch.steps, tracked)
+    # The refused step is due again, and goes through.
+    batch.step_ahead(actions, critic, action_scales=scales)
+    batch.flush()
+    np.testing.assert_array_equal(batch.steps, tracked + 1)
+    assert [s.step for s in batch.states()] == (tracked + 1).tolist()
+    batch.close()
+
+
+def test_bad_actions_are_refused_at_once_and_nothing_is_sent(native):
+    batch = native.create_batch(CONFIG, N, use_stream=True)
+    actions, scales, critic, starts = next(script(1, seed=4))
+    batch.step_ahead(actions, critic, starts, action_scales=scales)
+    before = comparable(batch.states())
+    bad = actions.copy()
+    bad[2, 1] = np.inf
+    with pytest.raises(InvalidArgument, match=r"item 2: .*action\[1\]: expected a finite number"):
+        batch.step_ahead(bad, critic, action_scales=scales)
+    with pytest.raises(InvalidArgument, match="action_scale"):
+        batch.step_ahead(actions, critic, action_scales=-scales)
+    with pytest.raises(ValueError, match="critic: expected gain of shape"):
+        batch.step_ahead(actions, LinearCritic(critic.gain[:2], critic.offset))
+    assert comparable(batch.states()) == before
+    batch.close()
+
+
+def test_a_step_out_of_turn_is_a_step_mismatch_one_call_late(native):
+    batch = native.create_batch(CONFIG, 1, use_stream=True)
+    critic = LinearCritic(np.ones((1, 2)), np.zeros(1))
+    batch.step_ahead(np.zeros((1, 2)), critic, np.ones(1, bool))
+    batch.flush()
+    # Another client moves the session on behind this batch's back.
+    other = native.get_session(batch.ids[0])
+    other.probe(np.zeros(2))
+    other.report(0.0)
+    batch.step_ahead(np.zeros((1, 2)), critic)
+    with pytest.raises(StepMismatch):
+        batch.flush()
+    batch.close()
