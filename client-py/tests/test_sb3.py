@@ -52,7 +52,11 @@ class RecordActions(gym.Wrapper):
 
 @pytest.fixture
 def esa_calls(monkeypatch):
-    """Records the sampled actions sent to, and the applied actions returned by, the server."""
+    """Records the sampled actions sent to, and the applied actions returned by, the server.
+
+    A step sent ahead falls back to ``step`` (then ``probe_applied``) where the batch cannot
+    pipeline; those steps are recorded once, by ``probe_applied``.
+    """
     calls = {"sampled": [], "applied": [], "scales": []}
     probe_applied = SessionBatch.probe_applied
 
@@ -63,7 +67,20 @@ def esa_calls(monkeypatch):
         calls["scales"].append(kwargs.get("action_scales"))
         return probes, applied
 
+    step_ahead = SessionBatch.step_ahead
+
+    def recording_ahead(self, actions, critic, episode_starts=None, **kwargs):
+        applied = step_ahead(self, actions, critic, episode_starts, **kwargs)
+        if not self.steps_ahead:
+            return applied  # recorded by probe_applied
+        calls["sampled"].append(np.array(actions, dtype=np.float64))
+        calls["applied"].append(applied.copy())
+        calls["scales"].append(kwargs.get("action_scales"))
+        return applied
+
     monkeypatch.setattr(SessionBatch, "probe_applied", recording)
+    # ESAPPO's linear critic through the native client's stream.
+    monkeypatch.setattr(SessionBatch, "step_ahead", recording_ahead)
     return calls
 
 
