@@ -52,6 +52,7 @@ from esa_client import SessionBatch
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3, EsaConfig
 from esa_client.transports.in_process import InProcessBatch
+from esa_client.transports.native import NativeGrpcStepBatch
 from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -121,6 +122,10 @@ TIMED = [
     (SessionBatch, "probe_applied", "round_trips"),
     (SessionBatch, "flush", "round_trips"),
     (InProcessBatch, "step_linear", "round_trips"),
+    # A step sent ahead (a linear critic through the native client's stream): the send, and
+    # reading the answer one step later (mostly arrived by then).
+    (NativeGrpcStepBatch, "send_step_linear", "round_trips"),
+    (NativeGrpcStepBatch, "receive_step_linear", "round_trips"),
     (EsaRuntime, "step", "esa_step"),
     (ESAPPO, "_update_esa_head", "critic_fit"),
 ]
