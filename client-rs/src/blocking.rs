@@ -16,7 +16,7 @@ use std::time::Duration;
 use tokio::runtime::Runtime;
 use tonic::Code;
 
-use crate::{pb, Error, Options, Result};
+use crate::{pb, Answer, Error, Options, Result, Step, StepStream};
 
 /// How often the keeper thread answers what arrived while no call was waiting; well within the
 /// server's keepalive timeout (10 s by default).
@@ -32,6 +32,9 @@ pub struct Client {
     runtime: Arc<Runtime>,
     /// Dropped with the client: ends the keeper thread.
     _keeper: mpsc::Sender<()>,
+    /// Where and how it connects, for [`Client::stream_thread`]'s own connection.
+    address: String,
+    options: Options,
 }
 
 impl Client {
@@ -44,13 +47,20 @@ impl Client {
         let runtime = Arc::new(runtime);
         let client = {
             let _context = runtime.enter();
-            crate::Client::connect_lazy(address, options)?
+            crate::Client::connect_lazy(address, options.clone())?
         };
         Ok(Self {
             client,
             _keeper: keeper(Arc::clone(&runtime)),
             runtime,
+            address: address.to_string(),
+            options,
         })
+    }
+
+    /// A StepStream on a thread and connection of its own ([`StreamThread`]).
+    pub fn stream_thread(&self) -> Result<StreamThread> {
+        StreamThread::spawn(&self.address, self.options.clone())
     }
 
     /// The async client this one drives (for calls not wrapped here, e.g. a StepStream).
@@ -120,4 +130,97 @@ fn keeper(runtime: Arc<Runtime>) -> mpsc::Sender<()> {
             }
         });
     stop
+}
+
+/// A StepStream on a thread of its own, with its own connection and runtime: [`send`] queues a
+/// request and returns at once, the thread writes it, reads its answer and keeps it for
+/// [`next`]. So the calling thread does none of the stream's work (HTTP/2 framing, the
+/// socket's system calls, decoding) and never waits for the wire unless it asks for an answer
+/// that has not arrived. For a caller that sends a step and reads its answer one step later
+/// (the pipelined step for a linear critic): the round trip and the stream's work then overlap
+/// the caller's own.
+///
+/// Requests are answered in the order sent. A failure of the wire fails that request's answer
+/// and drops the stream; the next request opens a new one. Dropping this ends the thread.
+///
+/// [`send`]: StreamThread::send
+/// [`next`]: StreamThread::next
+#[derive(Debug)]
+pub struct StreamThread {
+    requests: tokio::sync::mpsc::UnboundedSender<Step>,
+    answers: mpsc::Receiver<Result<Answer>>,
+    /// How long [`StreamThread::next`] waits at most: the thread's own calls have the
+    /// options' deadline, so this only guards against a thread that stopped answering.
+    patience: Duration,
+}
+
+impl StreamThread {
+    /// Starts the thread, which connects lazily to `address` (as [`crate::Client::connect_lazy`]).
+    pub fn spawn(address: &str, options: Options) -> Result<Self> {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|err| Error::new(Code::Internal, format!("the stream's runtime: {err}")))?;
+        let client = {
+            let _context = runtime.enter();
+            crate::Client::connect_lazy(address, options.clone())?
+        };
+        let (requests, mut queued) = tokio::sync::mpsc::unbounded_channel::<Step>();
+        let (answered, answers) = mpsc::channel();
+        thread::Builder::new()
+            .name("esa-grpc-stream".into())
+            .spawn(move || {
+                runtime.block_on(async move {
+                    let mut stream: Option<StepStream> = None;
+                    while let Some(step) = queued.recv().await {
+                        let answer = exchange(&client, &mut stream, step).await;
+                        if answer.as_ref().is_err_and(Error::is_retryable) {
+                            stream = None;
+                        }
+                        if answered.send(answer).is_err() {
+                            break;
+                        }
+                    }
+                });
+            })
+            .map_err(|err| Error::new(Code::Internal, format!("the stream's thread: {err}")))?;
+        Ok(Self {
+            requests,
+            answers,
+            // Opening the stream and the exchange itself each have the deadline.
+            patience: options.timeout.saturating_mul(3),
+        })
+    }
+
+    /// Queues a request; its answer comes from a later [`StreamThread::next`].
+    pub fn send(&self, step: Step) -> Result<()> {
+        self.requests.send(step).map_err(|_| gone())
+    }
+
+    /// The answer to the oldest request not yet answered, waiting for it if need be.
+    pub fn next(&mut self) -> Result<Answer> {
+        match self.answers.recv_timeout(self.patience) {
+            Ok(answer) => answer,
+            Err(RecvTimeoutError::Timeout) => Err(Error::deadline(self.patience)),
+            Err(RecvTimeoutError::Disconnected) => Err(gone()),
+        }
+    }
+}
+
+/// One request on `stream` (opened first when there is none) and its answer.
+async fn exchange(
+    client: &crate::Client,
+    stream: &mut Option<StepStream>,
+    step: Step,
+) -> Result<Answer> {
+    let stream = match stream {
+        Some(stream) => stream,
+        None => stream.insert(client.step_stream().await?),
+    };
+    stream.send(step).await?;
+    stream.next().await
+}
+
+fn gone() -> Error {
+    Error::new(Code::Unavailable, "the step stream's thread has stopped")
 }

@@ -59,8 +59,6 @@ pub const MAX_MESSAGE_BYTES: usize = 256 * 1024 * 1024;
 const READY_RETRY: Duration = Duration::from_millis(20);
 /// How many StepStream requests may wait to be sent.
 const STREAM_QUEUE: usize = 16;
-/// Most runtime passes [`StepStream::send_now`] takes to see a request leave the queue.
-const FLUSH_YIELDS: usize = 8;
 
 /// How to connect: the deadline of every call, the token, TLS.
 #[derive(Clone, Debug)]
@@ -474,25 +472,6 @@ impl StepStream {
             .await
             .map_err(|_| Error::new(Code::Unavailable, "the step stream is closed"))?;
         self.pending += 1;
-        Ok(())
-    }
-
-    /// Sends a request and drives the runtime until the request has left the queue for the
-    /// connection, so that it travels while the caller does something else. For a runtime that
-    /// only runs while its caller waits on it (the blocking client's, which the calling thread
-    /// drives), [`StepStream::send`] alone would leave the request queued until the next call.
-    pub async fn send_now(&mut self, step: Step) -> Result<()> {
-        self.send(step).await?;
-        // Each yield lets the runtime's other tasks run once: the request body's task takes the
-        // message from the queue and hands it to the connection's task, which writes it. Bounded:
-        // a connection that cannot take it now (flow control) gets it at the next call.
-        for _ in 0..FLUSH_YIELDS {
-            let queued = self.sender.capacity() < self.sender.max_capacity();
-            tokio::task::yield_now().await;
-            if !queued {
-                break;
-            }
-        }
         Ok(())
     }
 

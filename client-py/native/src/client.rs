@@ -13,7 +13,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 use tonic::Code;
 
-use esa_client::blocking::Client as Remote;
+use esa_client::blocking::{Client as Remote, StreamThread};
 use esa_client::{Answer, Options, Step, StepStream};
 use esa_proto::v1 as pb;
 
@@ -179,6 +179,7 @@ impl GrpcClient {
             session_ids,
             dim,
             stream: use_stream.then(|| Mutex::new(None)),
+            ahead: Mutex::new(None),
         }
     }
 
@@ -217,6 +218,9 @@ pub(crate) struct GrpcBatch {
     /// after a failure of the wire (the next call opens a new one; the server accepts a
     /// repeated step).
     stream: Option<Mutex<Option<StepStream>>>,
+    /// The steps sent ahead (`send_step_linear`): a StepStream on a thread of its own, started
+    /// by the first.
+    ahead: Mutex<Option<StreamThread>>,
 }
 
 /// What a batch sends over its StepStream.
@@ -408,9 +412,10 @@ impl GrpcBatch {
         self.probe_answer(py, answer)
     }
 
-    /// Sends a `step_linear_batch` on the batch's StepStream (opened here when there is none)
-    /// and returns once it is on its way, without its answer: read that with
-    /// `receive_step_linear`. A batch without a stream cannot send one.
+    /// Queues a `step_linear_batch` for the batch's stream thread (started here when there is
+    /// none) and returns at once, without its answer: read that with `receive_step_linear`.
+    /// The thread writes it and reads the answer while the caller goes on. A batch without a
+    /// stream cannot send one.
     #[allow(clippy::too_many_arguments)] // ProbeBatch's arrays and the critic's
     #[pyo3(signature = (steps, actions, episode_starts, action_scales, gains, offsets, paired))]
     fn send_step_linear<'py>(
@@ -424,31 +429,49 @@ impl GrpcBatch {
         offsets: &Bound<'py, PyAny>,
         paired: bool,
     ) -> PyResult<()> {
+        if self.stream.is_none() {
+            return Err(PyValueError::new_err(
+                "expected a batch opened with use_stream=True, got one without a stream",
+            ));
+        }
         let request = pb::StepLinearBatchRequest {
             probe: Some(self.probe_request(steps, actions, episode_starts, action_scales)?),
             critic_gains: Values::<f64>::floats(gains)?.owned(),
             critic_offsets: Values::<f64>::floats(offsets)?.owned(),
             paired,
         };
-        self.on_stream(py, |remote, slot| {
-            remote.block_on(async {
-                let stream = opened(remote, slot).await?;
-                stream.send_now(Step::StepLinear(request)).await
-            })
-        })
+        let mut ahead = self.ahead.lock();
+        let thread = match ahead.as_mut() {
+            Some(thread) => thread,
+            None => {
+                let remote = self.client.get().remote(py)?;
+                let thread = remote.stream_thread().map_err(|err| error_of(py, err))?;
+                ahead.insert(thread)
+            }
+        };
+        thread
+            .send(Step::StepLinear(request))
+            .map_err(|err| error_of(py, err))
     }
 
     /// The answer to the oldest `send_step_linear` not yet answered: `(probes, applied,
-    /// shifts)`, each `(N, dim)`, or its error. UNAVAILABLE when the stream broke (its answers
+    /// shifts)`, each `(N, dim)`, or its error (the wire's, when the stream broke: its answers
     /// are lost).
     fn receive_step_linear<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
-        let answer = self.on_stream(py, |remote, slot| match slot.as_mut() {
-            Some(stream) => remote.block_on(stream.next()),
-            None => Err(esa_client::Error::new(
-                Code::Unavailable,
-                "the step stream broke before this step's answer was read",
-            )),
-        })?;
+        let answer = {
+            let mut ahead = self.ahead.lock();
+            let Some(thread) = ahead.as_mut() else {
+                return Err(error_of(
+                    py,
+                    esa_client::Error::new(
+                        Code::FailedPrecondition,
+                        "no step was sent ahead on this batch",
+                    ),
+                ));
+            };
+            py.detach(|| thread.next())
+                .map_err(|error| error_of(py, error))?
+        };
         let Answer::StepLinear(response) = answer else {
             return Err(out_of_order(py));
         };
@@ -463,10 +486,12 @@ impl GrpcBatch {
         )
     }
 
-    /// Ends the batch's StepStream, if one is open; the sessions stay. Idempotent.
+    /// Ends the batch's StepStream and its stream thread, if open (answers not read are
+    /// dropped); the sessions stay. Idempotent.
     fn close(&self, py: Python<'_>) {
         let stream = self.stream.as_ref().and_then(|slot| slot.lock().take());
-        py.detach(|| drop(stream));
+        let ahead = self.ahead.lock().take();
+        py.detach(|| drop((stream, ahead)));
     }
 
     fn __len__(&self) -> usize {

@@ -1,0 +1,58 @@
+"""The client's cost of one ESAPPO-shaped step through the native sidecar, in a tight loop.
+
+One spawned esa-server on a Unix socket, the Rust client of ``esa_client._native`` on the
+batch's StepStream; ``--steps`` steps of a linear critic either as ``SessionBatch.step``
+(the probe and the deferred report: one round trip that the call waits for) or as
+``SessionBatch.step_ahead`` (one ``step_linear_batch`` message sent without waiting, its
+answer read at the next call). Prints the wall-clock and the client's CPU time per step;
+with nothing between the steps the answer of a step sent ahead has not arrived yet, so the
+wall-clock here is an upper bound of what a trainer waits.
+
+Usage::
+
+    python bench/profiles/step_ahead_loop.py [--n 1] [--steps 20000] [--modes ahead,step]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+from esa_client import EsaClient, LinearCritic, SessionConfig
+
+
+def main() -> None:
+    """Runs the modes one after another on one server and prints their cost per step."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=1, help="sessions (envs)")
+    parser.add_argument("--steps", type=int, default=20_000)
+    parser.add_argument("--modes", default="ahead,step,ahead,step")
+    args = parser.parse_args()
+    config = SessionConfig(
+        action_dim=1, dt=0.04, amplitude=[0.2], frequency=[30.0], learning_rate=[0.1]
+    )
+    rng = np.random.default_rng(0)
+    actions = rng.normal(size=(args.n, 1))
+    critic = LinearCritic(np.ones((args.n, 1)), np.zeros(args.n))
+    starts = np.zeros(args.n, dtype=bool)
+    with EsaClient.spawn(transport="native") as client:
+        for mode in args.modes.split(","):
+            batch = client.create_batch(config, args.n, use_stream=True)
+            wall, cpu = time.perf_counter(), time.process_time()
+            for _ in range(args.steps):
+                if mode == "ahead":
+                    batch.step_ahead(actions, critic, starts)
+                else:
+                    batch.step(actions, critic, starts)
+            batch.flush()
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+            print(
+                f"{mode:>5}: wall {wall / args.steps * 1e6:6.1f} us/step, "
+                f"client CPU {cpu / args.steps * 1e6:6.1f} us/step"
+            )
+            batch.close()
+
+
+if __name__ == "__main__":
+    main()
