@@ -6,6 +6,9 @@
 //! thread that asked. Between calls nothing would answer the server's HTTP/2 pings, so a keeper
 //! thread drives the runtime for a moment every few seconds (a connection left unanswered for
 //! the server's keepalive timeout would be dropped and reopened by the next call).
+//!
+//! [`StreamThread`] is the other way round, for a caller that does not wait for its answers:
+//! a StepStream driven by a thread of its own, so its work overlaps the caller's.
 
 use std::future::Future;
 use std::sync::mpsc::{self, RecvTimeoutError};
@@ -134,7 +137,7 @@ fn keeper(runtime: Arc<Runtime>) -> mpsc::Sender<()> {
 
 /// A StepStream on a thread of its own, with its own connection and runtime: [`send`] queues a
 /// request and returns at once, the thread writes it, reads its answer and keeps it for
-/// [`next`]. So the calling thread does none of the stream's work (HTTP/2 framing, the
+/// [`answer`]. So the calling thread does none of the stream's work (HTTP/2 framing, the
 /// socket's system calls, decoding) and never waits for the wire unless it asks for an answer
 /// that has not arrived. For a caller that sends a step and reads its answer one step later
 /// (the pipelined step for a linear critic): the round trip and the stream's work then overlap
@@ -144,12 +147,12 @@ fn keeper(runtime: Arc<Runtime>) -> mpsc::Sender<()> {
 /// and drops the stream; the next request opens a new one. Dropping this ends the thread.
 ///
 /// [`send`]: StreamThread::send
-/// [`next`]: StreamThread::next
+/// [`answer`]: StreamThread::answer
 #[derive(Debug)]
 pub struct StreamThread {
     requests: tokio::sync::mpsc::UnboundedSender<Step>,
     answers: mpsc::Receiver<Result<Answer>>,
-    /// How long [`StreamThread::next`] waits at most: the thread's own calls have the
+    /// How long [`StreamThread::answer`] waits at most: the thread's own calls have the
     /// options' deadline, so this only guards against a thread that stopped answering.
     patience: Duration,
 }
@@ -192,13 +195,13 @@ impl StreamThread {
         })
     }
 
-    /// Queues a request; its answer comes from a later [`StreamThread::next`].
+    /// Queues a request; its answer comes from a later [`StreamThread::answer`].
     pub fn send(&self, step: Step) -> Result<()> {
         self.requests.send(step).map_err(|_| gone())
     }
 
     /// The answer to the oldest request not yet answered, waiting for it if need be.
-    pub fn next(&mut self) -> Result<Answer> {
+    pub fn answer(&mut self) -> Result<Answer> {
         match self.answers.recv_timeout(self.patience) {
             Ok(answer) => answer,
             Err(RecvTimeoutError::Timeout) => Err(Error::deadline(self.patience)),

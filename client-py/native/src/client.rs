@@ -469,7 +469,7 @@ impl GrpcBatch {
                     ),
                 ));
             };
-            py.detach(|| thread.next())
+            py.detach(|| thread.answer())
                 .map_err(|error| error_of(py, error))?
         };
         let Answer::StepLinear(response) = answer else {
