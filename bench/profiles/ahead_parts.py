@@ -1,0 +1,78 @@
+"""Where a step sent ahead spends its time inside training: ESAPPO through a native sidecar.
+
+Trains ESAPPO (SB3 defaults, InvertedPendulum-v5, 1 env by default) through a private
+esa-server reached with the native client, with a timer around ``SessionBatch.step_ahead``
+and around its two native calls, ``send_step_linear`` (queueing the step for the batch's
+stream thread) and ``receive_step_linear`` (taking the answer of the previous step). Prints
+each one's mean and percentiles per call.
+
+Usage::
+
+    OMP_NUM_THREADS=1 python bench/profiles/ahead_parts.py [--steps 12288] [--n-envs 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from collections import defaultdict
+from collections.abc import Callable
+
+import numpy as np
+import torch as th
+from esa_client import SessionBatch
+from esa_client.sb3 import ESAPPO
+from esa_client.transports.native import NativeGrpcStepBatch
+from stable_baselines3.common.env_util import make_vec_env
+
+TIMED = [
+    (SessionBatch, "step_ahead"),
+    (NativeGrpcStepBatch, "send_step_linear"),
+    (NativeGrpcStepBatch, "receive_step_linear"),
+]
+
+
+def timed(method: Callable, times: list[float]) -> Callable:
+    """``method``, appending the seconds of each call to ``times``."""
+
+    def wrapper(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return method(*args, **kwargs)
+        finally:
+            times.append(time.perf_counter() - start)
+
+    return wrapper
+
+
+def main() -> None:
+    """Trains once with the timers in place and prints what they measured."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=12_288)
+    parser.add_argument("--n-envs", type=int, default=1)
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
+    times: dict[str, list[float]] = defaultdict(list)
+    for cls, name in TIMED:
+        setattr(cls, name, timed(getattr(cls, name), times[name]))
+    env = make_vec_env("InvertedPendulum-v5", n_envs=args.n_envs, seed=0)
+    model = ESAPPO(
+        "MlpPolicy", env, esa_engine="sidecar", esa_spawn={"transport": "native"}, seed=0
+    )
+    start = time.perf_counter()
+    model.learn(args.steps)
+    print(f"learn() {time.perf_counter() - start:.2f} s")
+    for name, seconds in times.items():
+        us = np.array(seconds) * 1e6
+        p10, p50, p90, p99 = np.percentile(us, [10, 50, 90, 99])
+        print(
+            f"{name:>20}: {len(us)} calls, mean {us.mean():.1f} us, p10 {p10:.1f}, "
+            f"p50 {p50:.1f}, p90 {p90:.1f}, p99 {p99:.1f}, total {us.sum() / 1e6:.3f} s"
+        )
+    model.esa_close()
+
+
+if __name__ == "__main__":
+    main()
