@@ -9,7 +9,15 @@ cannot pipeline falls back to ``step``.
 import numpy as np
 import pytest
 
-from esa_client import EsaClient, InvalidArgument, LinearCritic, SessionConfig, StepMismatch
+from esa_client import (
+    EsaClient,
+    InvalidArgument,
+    LinearCritic,
+    ServerUnavailable,
+    SessionConfig,
+    StatusCode,
+    StepMismatch,
+)
 
 CONFIG = SessionConfig(
     action_dim=2,
@@ -139,4 +147,32 @@ def test_a_step_out_of_turn_is_a_step_mismatch_one_call_late(native):
     batch.step_ahead(np.zeros((1, 2)), critic)
     with pytest.raises(StepMismatch):
         batch.flush()
+    batch.close()
+
+
+def test_a_broken_exchange_restarts_every_session(native, monkeypatch):
+    batch = native.create_batch(CONFIG, N, use_stream=True)
+    for actions, scales, critic, starts in script(5, seed=5):
+        batch.step_ahead(actions, critic, starts, action_scales=scales)
+    episodes = [s.episodes_completed for s in batch.states()]
+    ahead = batch._ahead_batch
+    receive = ahead.receive_step_linear
+    calls = []
+
+    def broken():
+        calls.append(1)
+        if len(calls) == 1:
+            receive()  # the answer is read, then lost on the way
+            raise ServerUnavailable("the connection dropped", StatusCode.UNAVAILABLE)
+        return receive()
+
+    monkeypatch.setattr(ahead, "receive_step_linear", broken)
+    batch.step_ahead(*next(script(1, seed=6))[:2])  # sends step 5
+    actions, scales, critic, _ = next(script(1, seed=7))
+    # Whether step 5 was applied is unknown: every session starts over with this step.
+    applied = batch.step_ahead(actions, critic, action_scales=scales)
+    np.testing.assert_array_equal(applied, np.clip(actions, -1.0, 1.0))
+    states = batch.states()
+    assert [s.step for s in states] == [1] * N
+    assert [s.episodes_completed for s in states] == [e + 1 for e in episodes]
     batch.close()

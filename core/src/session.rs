@@ -251,8 +251,8 @@ impl Session {
     /// Appends the applied action a probe of `action` with scale `action_scale` would give if the
     /// shift were `shift`: `clip(a_t + clamp(shift, -bound, bound), lo, hi)`, the bits of
     /// [`probe`](Self::probe) then [`applied_action`](Self::applied_action) outside pass-through.
-    /// Reads only the config; checks `action` and `action_scale` as a probe does (and `shift`'s
-    /// length), appending nothing on an error.
+    /// Reads only the config; checks `action` and `action_scale` as a probe does, and that `shift`
+    /// has D finite values, appending nothing on an error.
     pub fn applied_with_shift(
         &self,
         shift: &[f64],
@@ -267,6 +267,12 @@ impl Session {
                 "shift: expected length {} (action_dim), got {}",
                 self.action_dim(),
                 shift.len()
+            )));
+        }
+        if let Some(i) = shift.iter().position(|v| !v.is_finite()) {
+            return Err(CoreError::InvalidArgument(format!(
+                "shift[{i}]: expected a finite number, got {}",
+                shift[i]
             )));
         }
         self.lanes

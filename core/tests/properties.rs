@@ -1,7 +1,8 @@
 //! Properties over any valid config and any request sequence: outputs are finite and inside the action
 //! bounds, v stays inside the shift limit and the trust region (`|v| <= kappa * sigma`, CONTRACT.md
 //! section 1b), refused requests change nothing, and `check_*` agree with the requests they check. With
-//! `normalize_response`, Q and `c1 * Q + c0` give the same actions.
+//! `normalize_response`, Q and `c1 * Q + c0` give the same actions. The applied action a client computes
+//! ahead from the shift (`Session::applied_with_shift`) is the probe's, bit for bit.
 
 use std::f64::consts::PI;
 
@@ -261,14 +262,31 @@ proptest! {
                         _ => resolve(&session, step),
                     };
                     let checked = session.check_probe(step, action, scale, *episode_start);
+                    // What a client of the pipelined step applies, from the shift alone (0 once
+                    // the probe ends the episode).
+                    let ends_episode = *episode_start && (before.step() > 0 || before.probe_pending());
+                    let shift = if ends_episode { vec![0.0; action.len()] } else { before.shift().to_vec() };
+                    let mut ahead = Vec::new();
+                    let predicted = before.applied_with_shift(&shift, action, scale, &mut ahead);
                     let result = session.probe(step, action, scale, *episode_start, &mut out);
                     prop_assert_eq!(&checked, &result);
+                    if predicted.is_err() {
+                        prop_assert!(result.is_err(), "the probe took what applied_with_shift refused");
+                        prop_assert!(ahead.is_empty());
+                    }
                     if result.is_ok() {
                         assert_valid_output(&config, &out)?;
                         prop_assert!(session.probe_pending());
                         let mut applied = Vec::new();
                         session.applied_action(&mut applied);
                         assert_valid_output(&config, &applied)?;
+                        if session.is_pass_through() {
+                            // v = 0 there: the same numbers (a zero's sign aside).
+                            prop_assert_eq!(&ahead, &applied);
+                        } else {
+                            let bits = |x: &[f64]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                            prop_assert_eq!(bits(&ahead), bits(&applied), "the action computed ahead");
+                        }
                         pending_scale = (0..action.len()).map(|i| bound(scale, i, 1.0)).collect();
                         if !session.is_pass_through() {
                             // The probe's sigma bounds v from now on (Algorithm 1's action uses it).

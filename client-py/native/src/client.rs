@@ -449,9 +449,12 @@ impl GrpcBatch {
                 ahead.insert(thread)
             }
         };
-        thread
-            .send(Step::StepLinear(request))
-            .map_err(|err| error_of(py, err))
+        let sent = thread.send(Step::StepLinear(request));
+        if sent.is_err() {
+            // A stopped thread answers nothing more: the next step starts a new one.
+            *ahead = None;
+        }
+        sent.map_err(|err| error_of(py, err))
     }
 
     /// The answer to the oldest `send_step_linear` not yet answered: `(probes, applied,
@@ -469,8 +472,13 @@ impl GrpcBatch {
                     ),
                 ));
             };
-            py.detach(|| thread.answer())
-                .map_err(|error| error_of(py, error))?
+            let answer = py.detach(|| thread.answer());
+            if answer.as_ref().is_err_and(esa_client::Error::is_retryable) {
+                // The answer is lost (the thread stopped, or it missed its deadline): a later
+                // answer would be taken for the next step's, so the next step starts anew.
+                *ahead = None;
+            }
+            answer.map_err(|error| error_of(py, error))?
         };
         let Answer::StepLinear(response) = answer else {
             return Err(out_of_order(py));
