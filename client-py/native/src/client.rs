@@ -321,14 +321,21 @@ impl GrpcBatch {
         let Answer::Probe(response) = answer else {
             return Err(out_of_order(py));
         };
+        self.arrays(py, [response.probes, response.actions])
+    }
+
+    /// Concatenated answers as a tuple of `(N, dim)` arrays.
+    fn arrays<'py, const K: usize>(
+        &self,
+        py: Python<'py>,
+        answers: [Vec<f64>; K],
+    ) -> PyResult<Bound<'py, PyTuple>> {
         let n = self.session_ids.len();
-        PyTuple::new(
-            py,
-            [
-                shaped(py, response.probes, n, Some(self.dim))?,
-                shaped(py, response.actions, n, Some(self.dim))?,
-            ],
-        )
+        let arrays = answers
+            .into_iter()
+            .map(|values| shaped(py, values, n, Some(self.dim)))
+            .collect::<PyResult<Vec<_>>>()?;
+        PyTuple::new(py, arrays)
     }
 }
 
@@ -483,15 +490,7 @@ impl GrpcBatch {
         let Answer::StepLinear(response) = answer else {
             return Err(out_of_order(py));
         };
-        let n = self.session_ids.len();
-        PyTuple::new(
-            py,
-            [
-                shaped(py, response.probes, n, Some(self.dim))?,
-                shaped(py, response.actions, n, Some(self.dim))?,
-                shaped(py, response.shifts, n, Some(self.dim))?,
-            ],
-        )
+        self.arrays(py, [response.probes, response.actions, response.shifts])
     }
 
     /// Ends the batch's StepStream and its stream thread, if open (answers not read are
