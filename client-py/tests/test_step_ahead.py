@@ -18,6 +18,7 @@ from esa_client import (
     StatusCode,
     StepMismatch,
 )
+from esa_client._native import AppliedAhead, EngineError, StatusError
 
 CONFIG = SessionConfig(
     action_dim=2,
@@ -177,3 +178,50 @@ def test_a_broken_exchange_restarts_every_session(native, monkeypatch):
     assert [s.step for s in states] == [1] * N
     assert [s.episodes_completed for s in states] == [e + 1 for e in episodes]
     batch.close()
+
+
+def test_applied_ahead_refuses_bad_configs_and_arrays():
+    good = CONFIG.to_proto().SerializeToString()
+    other = SessionConfig(
+        action_dim=3, dt=0.02, amplitude=[0.3], frequency=[40.0], learning_rate=[0.5]
+    )
+    with pytest.raises(ValueError, match="expected one or more configs of one action_dim"):
+        AppliedAhead([])
+    with pytest.raises(ValueError, match="expected one or more configs of one action_dim"):
+        AppliedAhead([good, other.to_proto().SerializeToString()])
+    with pytest.raises(EngineError, match="config: expected an encoded esa.v1.SessionConfig"):
+        AppliedAhead([b"\xff\xff"])
+    invalid = CONFIG.to_proto()
+    invalid.dt = -1.0
+    with pytest.raises(EngineError, match="dt"):
+        AppliedAhead([invalid.SerializeToString()])
+    applier = AppliedAhead([good] * 2)
+    zeros = np.zeros((2, 2))
+    for shifts, actions, scales, match in [
+        (np.zeros((2, 3)), zeros, None, "shifts: expected 4 values, got 6"),
+        (zeros, np.zeros(3), None, "actions: expected 4 values, got 3"),
+        (zeros, zeros, np.ones(3), "action_scales: expected 0 or 4 values, got 3"),
+        (np.array([[0.0, np.nan], [0.0, 0.0]]), zeros, None, r"item 0: .*shift\[1\]"),
+        (zeros, zeros, np.array([[1.0, 1.0], [0.0, 1.0]]), r"item 1: .*action_scale\[0\]"),
+    ]:
+        with pytest.raises(EngineError, match=match) as refused:
+            applier(shifts, actions, scales)
+        assert refused.value.code == StatusCode.INVALID_ARGUMENT
+
+
+def test_the_native_batch_needs_a_stream_and_a_step_sent(native):
+    critic = LinearCritic(np.ones((N, 2)), np.zeros(N))
+    unary = native.create_batch(CONFIG, N, use_stream=False)._batch._batch
+    with pytest.raises(ValueError, match="expected a batch opened with use_stream=True"):
+        unary.send_step_linear(
+            np.zeros(N, np.uint64),
+            np.zeros((N, 2)),
+            np.ones(N, bool),
+            None,
+            critic.gain,
+            critic.offset,
+            False,
+        )
+    streamed = native.create_batch(CONFIG, N, use_stream=True)._batch._batch
+    with pytest.raises(StatusError, match="no step was sent ahead on this batch"):
+        streamed.receive_step_linear()

@@ -4,13 +4,12 @@
 
 use esa_core::linear_step;
 use esa_core::Session;
-use esa_proto::v1 as pb;
 use esa_store::Error;
-use prost::Message;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::arrays::{shaped, Values};
+use crate::engine_class::decode_config;
 use crate::errors::engine_error;
 
 /// The configs of N sessions of one action dimension; see the module stub for the API.
@@ -29,14 +28,7 @@ impl AppliedAhead {
     fn new(py: Python<'_>, configs: Vec<Vec<u8>>) -> PyResult<Self> {
         let sessions = configs
             .iter()
-            .map(|config| {
-                let config = pb::SessionConfig::decode(config.as_slice()).map_err(|err| {
-                    Error::InvalidArgument(format!(
-                        "config: expected an encoded esa.v1.SessionConfig message: {err}"
-                    ))
-                })?;
-                Ok(Session::new(esa_proto::convert::config_from_proto(config))?)
-            })
+            .map(|config| Ok(Session::new(decode_config(config)?)?))
             .collect::<Result<Vec<_>, Error>>()
             .map_err(|err| engine_error(py, err))?;
         let dim = sessions.first().map_or(0, Session::action_dim);

@@ -294,6 +294,15 @@ impl GrpcBatch {
         })
     }
 
+    /// The slot of the batch's StepStream; a ValueError for a batch opened without one.
+    fn stream_slot(&self) -> PyResult<&Mutex<Option<StepStream>>> {
+        self.stream.as_ref().ok_or_else(|| {
+            PyValueError::new_err(
+                "expected a batch opened with use_stream=True, got one without a stream",
+            )
+        })
+    }
+
     /// Runs `f` on the batch's stream slot without the GIL; drops the stream after a failure of
     /// the wire (its answers are lost: the next call opens a new one).
     fn on_stream<R: Send>(
@@ -301,11 +310,7 @@ impl GrpcBatch {
         py: Python<'_>,
         f: impl Send + FnOnce(&Remote, &mut Option<StepStream>) -> esa_client::Result<R>,
     ) -> PyResult<R> {
-        let Some(slot) = &self.stream else {
-            return Err(PyValueError::new_err(
-                "expected a batch opened with use_stream=True, got one without a stream",
-            ));
-        };
+        let slot = self.stream_slot()?;
         let remote = self.client.get().remote(py)?;
         call(py, &remote, |remote| {
             let mut slot = slot.lock();
@@ -436,11 +441,7 @@ impl GrpcBatch {
         offsets: &Bound<'py, PyAny>,
         paired: bool,
     ) -> PyResult<()> {
-        if self.stream.is_none() {
-            return Err(PyValueError::new_err(
-                "expected a batch opened with use_stream=True, got one without a stream",
-            ));
-        }
+        self.stream_slot()?;
         let request = pb::StepLinearBatchRequest {
             probe: Some(self.probe_request(steps, actions, episode_starts, action_scales)?),
             critic_gains: Values::<f64>::floats(gains)?.owned(),

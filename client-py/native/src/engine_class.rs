@@ -11,6 +11,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 
 use esa_core::linear_step::LinearCritic;
+use esa_core::SessionConfig;
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
 
@@ -100,16 +101,9 @@ impl Engine {
         session_id: Option<&str>,
         config: &[u8],
     ) -> PyResult<String> {
-        let config = pb::SessionConfig::decode(config).map_err(|err| {
-            engine_error(
-                py,
-                Error::InvalidArgument(format!(
-                    "config: expected an encoded esa.v1.SessionConfig message: {err}"
-                )),
-            )
-        })?;
+        let config = decode_config(config).map_err(|err| engine_error(py, err))?;
         self.lock(py)
-            .create_session(session_id, esa_proto::convert::config_from_proto(config))
+            .create_session(session_id, config)
             .map_err(|err| engine_error(py, err))
     }
 
@@ -357,4 +351,16 @@ impl BatchHandle {
     fn __repr__(&self) -> String {
         format!("BatchHandle(n={})", self.inner.len())
     }
+}
+
+/// An encoded `esa.v1.SessionConfig`, as esa-core's config (INVALID_ARGUMENT for bytes that are
+/// not one). Not yet validated: creating a session does that.
+pub(crate) fn decode_config(bytes: &[u8]) -> Result<SessionConfig, Error> {
+    pb::SessionConfig::decode(bytes)
+        .map(esa_proto::convert::config_from_proto)
+        .map_err(|err| {
+            Error::InvalidArgument(format!(
+                "config: expected an encoded esa.v1.SessionConfig message: {err}"
+            ))
+        })
 }
