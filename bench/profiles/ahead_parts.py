@@ -3,7 +3,7 @@
 Trains ESAPPO (SB3 defaults, InvertedPendulum-v5, 1 env by default) through a private
 esa-server reached with the native client, with a timer around ``SessionBatch.step_ahead``
 and around its two native calls, ``send_step_linear`` (queueing the step for the batch's
-stream thread) and ``receive_step_linear`` (taking the answer of the previous step). Prints
+stream thread) and ``receive_step`` (taking the answer of the previous step). Prints
 each one's mean and percentiles per call.
 
 Usage::
@@ -29,7 +29,7 @@ from stable_baselines3.common.env_util import make_vec_env
 TIMED = [
     (SessionBatch, "step_ahead"),
     (NativeGrpcStepBatch, "send_step_linear"),
-    (NativeGrpcStepBatch, "receive_step_linear"),
+    (NativeGrpcStepBatch, "receive_step"),
 ]
 
 

@@ -125,7 +125,7 @@ TIMED = [
     # A step sent ahead (a linear critic through the native client's stream): the send, and
     # reading the answer one step later (mostly arrived by then).
     (NativeGrpcStepBatch, "send_step_linear", "round_trips"),
-    (NativeGrpcStepBatch, "receive_step_linear", "round_trips"),
+    (NativeGrpcStepBatch, "receive_step", "round_trips"),
     (EsaRuntime, "step", "esa_step"),
     (ESAPPO, "_update_esa_head", "critic_fit"),
 ]

@@ -19,11 +19,12 @@ from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.noise import NormalActionNoise
 
 from esa_client import EsaClient, EsaConfig, SessionBatch
 from esa_client.common import runtime
 from esa_client.common.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
-from esa_client.sb3 import ESAPPO, ESASAC
+from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
 from esa_client.transports.in_process import InProcessTransport
 from esa_client.transports.native import NativeGrpcTransport
 
@@ -480,6 +481,45 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
         for here, there in zip(local_actions, server_actions, strict=True):
             np.testing.assert_array_equal(here, there)
         assert th.equal(local_parameters, server_parameters)
+
+
+@pytest.mark.parametrize(
+    "cls, execute",
+    [(ESATD3, "shifted"), (ESATD3, "probe"), (ESASAC, "shifted")],
+    ids=["esatd3", "esatd3-probe", "esasac"],
+)
+def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatch, cls, execute):
+    """In-process and through a native sidecar (whose steps go ahead, the critic evaluated
+    at probes computed here, unless the env executes the server's probe) give the same
+    replay buffer and parameters with the same seed."""
+    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+    runs = []
+    for engine in ("inprocess", "sidecar"):
+        env = make_vec_env("Pendulum-v1", n_envs=2, seed=6)
+        extra = {"action_noise": NormalActionNoise(np.zeros(1), 0.1 * np.ones(1))}
+        model = cls(
+            "MlpPolicy",
+            env,
+            esa=EsaConfig.off_policy(gate=None),
+            esa_engine=engine,
+            esa_execute=execute,
+            learning_starts=100,
+            batch_size=32,
+            policy_kwargs=dict(net_arch=[32]),
+            seed=6,
+            **(extra if cls is ESATD3 else {}),
+        )
+        model.learn(400)
+        assert model._esa is not None
+        assert model._esa.batch.steps_ahead == (engine == "sidecar")
+        # A step sent ahead leaves no probes; a probe executed is waited for.
+        sent_ahead = engine == "sidecar" and execute == "shifted"
+        assert (model._esa.last_probes is None) == sent_ahead
+        runs.append((model.replay_buffer.actions.copy(), parameters(model)))
+        model.esa_close()
+    (local_actions, local_parameters), (sidecar_actions, sidecar_parameters) = runs
+    np.testing.assert_array_equal(local_actions, sidecar_actions)
+    assert th.equal(local_parameters, sidecar_parameters)
 
 
 def test_the_default_engine_is_in_process_unless_a_server_is_named():

@@ -1,9 +1,11 @@
-"""``SessionBatch.step_ahead``: the pipelined step for a linear critic, against a real server.
+"""``SessionBatch.step_ahead``: the pipelined step, against a real server.
 
-The applied actions it computes ahead (from the previous answer's shifts, with esa-core's own
-function) are the bits the in-process engine's whole step returns, and so are the sessions'
-states; an error of a step surfaces at the next call with nothing of it applied; a batch that
-cannot pipeline falls back to ``step``.
+For a linear critic (evaluated by the server) and for any critic (evaluated here, at probes
+computed ahead), the applied actions it computes ahead (from the previous answer's shifts, with
+esa-core's own functions) are the bits the in-process engine's whole step returns, and so are
+the sessions' states; an error of a step surfaces at the next call with nothing of it applied;
+bad critic values are refused before anything is sent; a batch that cannot pipeline falls back
+to ``step``.
 """
 
 import numpy as np
@@ -18,7 +20,7 @@ from esa_client import (
     StatusCode,
     StepMismatch,
 )
-from esa_client._native import AppliedAhead, EngineError, StatusError
+from esa_client._native import EngineError, StatusError, StepAhead
 
 CONFIG = SessionConfig(
     action_dim=2,
@@ -55,6 +57,22 @@ def script(steps: int, seed: int = 0):
         yield actions, scales, critic, starts
 
 
+def curved(critic: LinearCritic):
+    """A critic that is not linear in the action, built from a linear one's numbers."""
+
+    def q(points):
+        # ``points`` are (k n, D): the n states tiled k times.
+        reps = len(points) // len(critic.offset)
+        centre = np.tile(critic.gain, (reps, 1))
+        scale = np.tile(1.0 + critic.offset**2, reps)
+        return -scale * ((points - 0.5 * centre) ** 2).sum(axis=1) + np.sin(3.0 * points[:, 0])
+
+    return q
+
+
+CRITICS = {"linear": lambda critic: critic, "curved": curved}
+
+
 def comparable(states):
     return [
         (s.step, s.episodes_completed, s.probe_pending, s.shift.tolist(), s.response_mean_square)
@@ -62,13 +80,15 @@ def comparable(states):
     ]
 
 
+@pytest.mark.parametrize("kind", sorted(CRITICS))
 @pytest.mark.parametrize("paired", [False, True])
-def test_the_actions_and_states_are_the_in_process_steps_bits(native, paired):
+def test_the_actions_and_states_are_the_in_process_steps_bits(native, paired, kind):
     local = EsaClient.in_process()
     ahead = native.create_batch(CONFIG, N, use_stream=True)
     whole = local.create_batch(CONFIG, N)
     assert ahead.steps_ahead and not whole.steps_ahead
-    for actions, scales, critic, starts in script(300):
+    for actions, scales, linear, starts in script(300):
+        critic = CRITICS[kind](linear)
         applied = ahead.step_ahead(actions, critic, starts, action_scales=scales, paired=paired)
         _, expected = whole.step(actions, critic, starts, action_scales=scales, paired=paired)
         np.testing.assert_array_equal(applied, expected)
@@ -119,6 +139,47 @@ def test_a_refused_step_raises_at_the_next_call_and_changes_nothing(native):
     batch.close()
 
 
+def test_a_refused_step_with_values_raises_at_the_next_call(native):
+    batch = native.create_batch(CONFIG, 1, use_stream=True)
+    q = curved(LinearCritic(np.ones((1, 2)), np.zeros(1)))
+    batch.step_ahead(np.zeros((1, 2)), q, np.ones(1, bool))
+    batch.flush()
+    # Another client moves the session on: the values went with a probe out of turn.
+    other = native.get_session(batch.ids[0])
+    other.probe(np.zeros(2))
+    other.report(0.0)
+    before = comparable(batch.states())
+    batch.step_ahead(np.zeros((1, 2)), q)
+    with pytest.raises(StepMismatch):
+        batch.flush()
+    assert comparable(batch.states()) == before
+    batch.close()
+
+
+@pytest.mark.parametrize("paired", [False, True])
+def test_bad_critic_values_are_refused_at_once_and_nothing_is_sent(native, paired):
+    batch = native.create_batch(CONFIG, N, use_stream=True)
+    actions, scales, critic, starts = next(script(1, seed=8))
+    batch.step_ahead(actions, curved(critic), starts, action_scales=scales, paired=paired)
+    before, tracked = comparable(batch.states()), batch.steps
+    rows = 2 * N if paired else N
+    for values, match in [
+        (lambda points: np.zeros(N + 1), rf"expected critic values of shape \({rows},\)"),
+        (lambda points: np.zeros((rows, 1)), rf"expected critic values of shape \({rows},\)"),
+        (lambda points: np.full(rows, np.nan), "expected finite critic values"),
+        (lambda points: np.r_[np.zeros(rows - 1), np.inf], "expected finite critic values"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            batch.step_ahead(actions, values, action_scales=scales, paired=paired)
+        np.testing.assert_array_equal(batch.steps, tracked)
+    assert comparable(batch.states()) == before
+    # Nothing was sent: the next good step is the one due.
+    batch.step_ahead(actions, curved(critic), action_scales=scales, paired=paired)
+    batch.flush()
+    np.testing.assert_array_equal(batch.steps, tracked + 1)
+    batch.close()
+
+
 def test_bad_actions_are_refused_at_once_and_nothing_is_sent(native):
     batch = native.create_batch(CONFIG, N, use_stream=True)
     actions, scales, critic, starts = next(script(1, seed=4))
@@ -151,13 +212,14 @@ def test_a_step_out_of_turn_is_a_step_mismatch_one_call_late(native):
     batch.close()
 
 
-def test_a_broken_exchange_restarts_every_session(native, monkeypatch):
+@pytest.mark.parametrize("kind", sorted(CRITICS))
+def test_a_broken_exchange_restarts_every_session(native, monkeypatch, kind):
     batch = native.create_batch(CONFIG, N, use_stream=True)
     for actions, scales, critic, starts in script(5, seed=5):
-        batch.step_ahead(actions, critic, starts, action_scales=scales)
+        batch.step_ahead(actions, CRITICS[kind](critic), starts, action_scales=scales)
     episodes = [s.episodes_completed for s in batch.states()]
     ahead = batch._ahead_batch
-    receive = ahead.receive_step_linear
+    receive = ahead.receive_step
     calls = []
 
     def broken():
@@ -167,12 +229,12 @@ def test_a_broken_exchange_restarts_every_session(native, monkeypatch):
             raise ServerUnavailable("the connection dropped", StatusCode.UNAVAILABLE)
         return receive()
 
-    monkeypatch.setattr(ahead, "receive_step_linear", broken)
+    monkeypatch.setattr(ahead, "receive_step", broken)
     sent, _, sent_critic, _ = next(script(1, seed=6))
-    batch.step_ahead(sent, sent_critic)  # sends step 5
+    batch.step_ahead(sent, CRITICS[kind](sent_critic))  # sends step 5
     actions, scales, critic, _ = next(script(1, seed=7))
     # Whether step 5 was applied is unknown: every session starts over with this step.
-    applied = batch.step_ahead(actions, critic, action_scales=scales)
+    applied = batch.step_ahead(actions, CRITICS[kind](critic), action_scales=scales)
     np.testing.assert_array_equal(applied, np.clip(actions, -1.0, 1.0))
     states = batch.states()
     assert [s.step for s in states] == [1] * N
@@ -180,22 +242,22 @@ def test_a_broken_exchange_restarts_every_session(native, monkeypatch):
     batch.close()
 
 
-def test_applied_ahead_refuses_bad_configs_and_arrays():
+def test_step_ahead_refuses_bad_configs_and_arrays():
     good = CONFIG.to_proto().SerializeToString()
     other = SessionConfig(
         action_dim=3, dt=0.02, amplitude=[0.3], frequency=[40.0], learning_rate=[0.5]
     )
     with pytest.raises(ValueError, match="expected one or more configs of one action_dim"):
-        AppliedAhead([])
+        StepAhead([])
     with pytest.raises(ValueError, match="expected one or more configs of one action_dim"):
-        AppliedAhead([good, other.to_proto().SerializeToString()])
+        StepAhead([good, other.to_proto().SerializeToString()])
     with pytest.raises(EngineError, match="config: expected an encoded esa.v1.SessionConfig"):
-        AppliedAhead([b"\xff\xff"])
+        StepAhead([b"\xff\xff"])
     invalid = CONFIG.to_proto()
     invalid.dt = -1.0
     with pytest.raises(EngineError, match="dt"):
-        AppliedAhead([invalid.SerializeToString()])
-    applier = AppliedAhead([good] * 2)
+        StepAhead([invalid.SerializeToString()])
+    applier = StepAhead([good] * 2)
     zeros = np.zeros((2, 2))
     for shifts, actions, scales, match in [
         (np.zeros((2, 3)), zeros, None, "shifts: expected 4 values, got 6"),
@@ -207,6 +269,29 @@ def test_applied_ahead_refuses_bad_configs_and_arrays():
         with pytest.raises(EngineError, match=match) as refused:
             applier(shifts, actions, scales)
         assert refused.value.code == StatusCode.INVALID_ARGUMENT
+        with pytest.raises(EngineError, match=match) as refused:
+            applier.probes(shifts, np.zeros(2, np.uint64), actions, scales)
+        assert refused.value.code == StatusCode.INVALID_ARGUMENT
+    with pytest.raises(EngineError, match="steps: expected 2 values, got 3"):
+        applier.probes(zeros, np.zeros(3, np.uint64), zeros)
+    with pytest.raises((ValueError, OverflowError), match="step"):
+        applier.probes(zeros, np.array([0, -1]), zeros)
+
+
+def test_probes_ahead_are_the_servers_probes(native):
+    batch = native.create_batch(CONFIG, N, use_stream=True)
+    engine = StepAhead([CONFIG.to_proto().SerializeToString()] * N)
+    shifts = np.zeros((N, 2))
+    for actions, scales, critic, starts in script(60, seed=9):
+        shifts = np.where(starts[:, None] | (batch.steps == 0)[:, None], 0.0, shifts)
+        steps = np.where(starts, 0, batch.steps).astype(np.uint64)
+        probes, applied = engine.probes(shifts, steps, actions, scales)
+        server_probes, server_applied = batch.step(actions, critic, starts, action_scales=scales)
+        np.testing.assert_array_equal(probes, server_probes)
+        np.testing.assert_array_equal(applied, server_applied)
+        batch.flush()
+        shifts = np.array([s.shift for s in batch.states()])
+    batch.close()
 
 
 def test_the_native_batch_needs_a_stream_and_a_step_sent(native):
@@ -222,6 +307,10 @@ def test_the_native_batch_needs_a_stream_and_a_step_sent(native):
             critic.offset,
             False,
         )
+    with pytest.raises(ValueError, match="expected a batch opened with use_stream=True"):
+        unary.send_step(
+            np.zeros(N, np.uint64), np.zeros((N, 2)), np.ones(N, bool), None, np.zeros(N), None
+        )
     streamed = native.create_batch(CONFIG, N, use_stream=True)._batch._batch
     with pytest.raises(StatusError, match="no step was sent ahead on this batch"):
-        streamed.receive_step_linear()
+        streamed.receive_step()

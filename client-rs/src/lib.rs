@@ -434,6 +434,9 @@ pub enum Step {
     Report(pb::ReportBatchRequest),
     /// A whole step for a linear critic (a probe and the critic's report, one request).
     StepLinear(pb::StepLinearBatchRequest),
+    /// A whole step with the critic's values given at probes computed ahead (a probe and the
+    /// report of those values, one request): the wire's `step_batch`.
+    Fused(pb::StepBatchRequest),
 }
 
 /// One answer of a StepStream, in request order.
@@ -443,8 +446,8 @@ pub enum Answer {
     Probe(pb::ProbeBatchResponse),
     /// The answer to a ReportBatch.
     Report(pb::ReportBatchResponse),
-    /// The answer to a step for a linear critic.
-    StepLinear(pb::StepLinearBatchResponse),
+    /// The answer to a whole step ([`Step::StepLinear`] or [`Step::Fused`]).
+    Step(pb::StepBatchResponse),
 }
 
 /// A StepStream: batch requests sent without waiting ([`StepStream::send`]), answers read in
@@ -466,6 +469,7 @@ impl StepStream {
             Step::Probe(request) => K::ProbeBatch(request),
             Step::Report(request) => K::ReportBatch(request),
             Step::StepLinear(request) => K::StepLinearBatch(request),
+            Step::Fused(request) => K::StepBatch(request),
         };
         self.sender
             .send(pb::StepStreamRequest { kind: Some(kind) })
@@ -497,7 +501,9 @@ impl StepStream {
         match message.and_then(|message| message.kind) {
             Some(K::ProbeBatch(response)) => Ok(Answer::Probe(response)),
             Some(K::ReportBatch(response)) => Ok(Answer::Report(response)),
-            Some(K::StepLinearBatch(response)) => Ok(Answer::StepLinear(response)),
+            Some(K::StepLinearBatch(response) | K::StepBatch(response)) => {
+                Ok(Answer::Step(response))
+            }
             Some(K::Error(error)) => Err(Error::from_stream(error)),
             None => Err(Error::new(
                 Code::Unavailable,
@@ -560,10 +566,22 @@ impl StepStream {
     pub async fn step_linear_batch(
         &mut self,
         request: pb::StepLinearBatchRequest,
-    ) -> Result<pb::StepLinearBatchResponse> {
-        self.send(Step::StepLinear(request)).await?;
+    ) -> Result<pb::StepBatchResponse> {
+        self.step(Step::StepLinear(request)).await
+    }
+
+    /// A whole step with the critic's values given: send, then read its answer.
+    pub async fn step_batch(
+        &mut self,
+        request: pb::StepBatchRequest,
+    ) -> Result<pb::StepBatchResponse> {
+        self.step(Step::Fused(request)).await
+    }
+
+    async fn step(&mut self, step: Step) -> Result<pb::StepBatchResponse> {
+        self.send(step).await?;
         match self.next().await? {
-            Answer::StepLinear(response) => Ok(response),
+            Answer::Step(response) => Ok(response),
             _ => Err(out_of_order()),
         }
     }

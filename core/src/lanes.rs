@@ -187,6 +187,13 @@ impl Lanes {
         self.columns.column_mut(SHIFT).fill(0.0);
     }
 
+    /// Sets v to `shift` (D values).
+    pub fn set_shift(&mut self, shift: &[f64]) {
+        for (v, &x) in self.split_mut().shift.iter_mut().zip(shift) {
+            *v = x;
+        }
+    }
+
     pub fn shift(&self) -> &[f64] {
         self.column(SHIFT)
     }

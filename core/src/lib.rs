@@ -43,9 +43,9 @@ pub mod batch;
 mod config;
 mod error;
 pub mod footprint;
+pub mod fused_step;
 mod highpass;
 mod lanes;
-pub mod linear_step;
 mod session;
 mod sine;
 

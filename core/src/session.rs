@@ -260,6 +260,45 @@ impl Session {
         action_scale: &[f64],
         out: &mut Vec<f64>,
     ) -> Result<(), CoreError> {
+        self.check_ahead(shift, action, action_scale)?;
+        self.lanes
+            .applied_with(shift, action, action_scale, self.step_rule(), out);
+        Ok(())
+    }
+
+    /// Appends the probe of step `step` a session with shift `shift` would give for `action` and
+    /// `action_scale` (`clip(a_t + clamp(shift, -bound, bound) + K sin(w step dt), lo, hi)`) to
+    /// `probes`, and its applied action to `applied`: the bits of [`probe`](Self::probe) then
+    /// [`applied_action`](Self::applied_action) outside pass-through, by the same code on a copy
+    /// of the lanes. Reads only the config; checks as
+    /// [`applied_with_shift`](Self::applied_with_shift) does, appending nothing on an error.
+    pub fn probe_with_shift(
+        &self,
+        shift: &[f64],
+        step: u64,
+        action: &[f64],
+        action_scale: &[f64],
+        probes: &mut Vec<f64>,
+        applied: &mut Vec<f64>,
+    ) -> Result<(), CoreError> {
+        self.check_ahead(shift, action, action_scale)?;
+        let mut lanes = self.lanes.clone();
+        lanes.set_shift(shift);
+        lanes.set_scale(action_scale);
+        lanes.clamp_shift(self.step_rule());
+        lanes.probe(action, step as f64 * self.settings.dt, probes);
+        lanes.push_action(false, applied);
+        Ok(())
+    }
+
+    /// The checks of a step computed ahead: the action and scale as a probe's, and a shift of D
+    /// finite values.
+    fn check_ahead(
+        &self,
+        shift: &[f64],
+        action: &[f64],
+        action_scale: &[f64],
+    ) -> Result<(), CoreError> {
         self.check_action(action)?;
         self.check_action_scale(action_scale)?;
         if shift.len() != self.action_dim() {
@@ -275,8 +314,6 @@ impl Session {
                 shift[i]
             )));
         }
-        self.lanes
-            .applied_with(shift, action, action_scale, self.step_rule(), out);
         Ok(())
     }
 

@@ -2,7 +2,8 @@
 //! bounds, v stays inside the shift limit and the trust region (`|v| <= kappa * sigma`, CONTRACT.md
 //! section 1b), refused requests change nothing, and `check_*` agree with the requests they check. With
 //! `normalize_response`, Q and `c1 * Q + c0` give the same actions. The applied action a client computes
-//! ahead from the shift (`Session::applied_with_shift`) is the probe's, bit for bit.
+//! ahead from the shift (`Session::applied_with_shift`, `Session::probe_with_shift`) is the probe's,
+//! bit for bit, and so is the probe computed ahead.
 
 use std::f64::consts::PI;
 
@@ -268,11 +269,15 @@ proptest! {
                     let shift = if ends_episode { vec![0.0; action.len()] } else { before.shift().to_vec() };
                     let mut ahead = Vec::new();
                     let predicted = before.applied_with_shift(&shift, action, scale, &mut ahead);
+                    // And the probe, for a critic the client evaluates itself.
+                    let (mut probe_ahead, mut probe_applied) = (Vec::new(), Vec::new());
+                    let probed_ahead = before.probe_with_shift(&shift, step, action, scale, &mut probe_ahead, &mut probe_applied);
+                    prop_assert_eq!(&predicted, &probed_ahead);
                     let result = session.probe(step, action, scale, *episode_start, &mut out);
                     prop_assert_eq!(&checked, &result);
                     if predicted.is_err() {
                         prop_assert!(result.is_err(), "the probe took what applied_with_shift refused");
-                        prop_assert!(ahead.is_empty());
+                        prop_assert!(ahead.is_empty() && probe_ahead.is_empty() && probe_applied.is_empty());
                     }
                     if result.is_ok() {
                         assert_valid_output(&config, &out)?;
@@ -286,6 +291,8 @@ proptest! {
                         } else {
                             let bits = |x: &[f64]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
                             prop_assert_eq!(bits(&ahead), bits(&applied), "the action computed ahead");
+                            prop_assert_eq!(bits(&probe_applied), bits(&applied), "the action probed ahead");
+                            prop_assert_eq!(bits(&probe_ahead), bits(&out), "the probe computed ahead");
                         }
                         pending_scale = (0..action.len()).map(|i| bound(scale, i, 1.0)).collect();
                         if !session.is_pass_through() {

@@ -33,8 +33,9 @@ pub use esa_store::MAX_ID_BYTES;
 /// The encoded size of the largest legal request: a StepStream `step_linear_batch` whose probe is
 /// the largest ProbeBatch ([`MAX_BATCH_ITEMS`] items with ids of [`MAX_ID_BYTES`] bytes, steps of
 /// 10 varint bytes (the longest), [`MAX_BATCH_VALUES`] actions and as many action scales), with a
-/// critic gain per action value, an offset per item and the paired flag. The server's default
-/// request size limit.
+/// critic gain per action value, an offset per item and the paired flag (a `step_batch`, with
+/// two values per item in place of the critic, is smaller). The server's default request size
+/// limit.
 pub const MAX_REQUEST_BYTES: usize = {
     // Field key plus the longest length prefix of a packed field (or of a message field).
     const FIELD: usize = 1 + 5;
@@ -186,12 +187,23 @@ const STEP_LINEAR_BATCH: &[(u32, Rule)] = &[
     ),
 ];
 
+// The critic's values are numbered after the probe batch's fields too.
+const STEP_BATCH: &[(u32, Rule)] = &[
+    (1, Rule::Message(PROBE_BATCH)),
+    (6, repeated("q_values", Elements::Fixed64, MAX_BATCH_ITEMS)),
+    (
+        7,
+        repeated("q_references", Elements::Fixed64, MAX_BATCH_ITEMS),
+    ),
+];
+
 // A legal StepStream message holds one batch, so the kinds may share counters: a message
 // holding several only ever counts more, never less.
 const STEP_STREAM: &[(u32, Rule)] = &[
     (1, Rule::Message(PROBE_BATCH)),
     (2, Rule::Message(REPORT_BATCH)),
     (3, Rule::Message(STEP_LINEAR_BATCH)),
+    (4, Rule::Message(STEP_BATCH)),
 ];
 
 /// Element counters, indexed by field number (the batch messages number theirs 1 to 7).
@@ -422,6 +434,30 @@ mod tests {
         let over = step(MAX_BATCH_VALUES + 1).encode_to_vec();
         let err = decode::<pb::StepStreamRequest>(over.as_slice()).unwrap_err();
         assert!(err.to_string().contains("critic_gains"), "{err}");
+    }
+
+    #[test]
+    fn given_values_past_the_limit_are_refused_before_decoding() {
+        let step = |values: usize, references: usize| pb::StepStreamRequest {
+            kind: Some(pb::step_stream_request::Kind::StepBatch(
+                pb::StepBatchRequest {
+                    probe: Some(probe_batch(MAX_BATCH_ITEMS, 1)),
+                    q_values: vec![0.0; values],
+                    q_references: vec![0.0; references],
+                },
+            )),
+        };
+        let legal = step(MAX_BATCH_ITEMS, MAX_BATCH_ITEMS).encode_to_vec();
+        assert!(legal.len() < MAX_REQUEST_BYTES, "{}", legal.len());
+        assert!(decode::<pb::StepStreamRequest>(legal.as_slice()).is_ok());
+        for (values, references, name) in [
+            (MAX_BATCH_ITEMS + 1, 0, "q_values"),
+            (0, MAX_BATCH_ITEMS + 1, "q_references"),
+        ] {
+            let over = step(values, references).encode_to_vec();
+            let err = decode::<pb::StepStreamRequest>(over.as_slice()).unwrap_err();
+            assert!(err.to_string().contains(name), "{err}");
+        }
     }
 
     #[test]

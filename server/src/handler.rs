@@ -7,7 +7,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use esa_core::linear_step::{self, LinearCritic};
+use esa_core::fused_step::{self, CriticValues, LinearCritic, StepCritic};
 use esa_core::{batch, Session};
 use esa_store::unary;
 use prost::Message;
@@ -203,11 +203,27 @@ impl EsaHandler {
             Some(StreamRequest::ReportBatch(batch)) => self
                 .run_report_batch(batch)
                 .map(StreamResponse::ReportBatch),
-            Some(StreamRequest::StepLinearBatch(batch)) => self
-                .run_step_linear_batch(batch)
-                .map(StreamResponse::StepLinearBatch),
+            Some(StreamRequest::StepLinearBatch(batch)) => {
+                let critic = LinearCritic {
+                    gains: &batch.critic_gains,
+                    offsets: &batch.critic_offsets,
+                    paired: batch.paired,
+                };
+                self.run_fused_step(batch.probe.as_ref(), &critic)
+                    .map(StreamResponse::StepLinearBatch)
+            }
+            Some(StreamRequest::StepBatch(batch)) => {
+                let values = CriticValues {
+                    q_values: &batch.q_values,
+                    q_references: &batch.q_references,
+                };
+                self.run_fused_step(batch.probe.as_ref(), &values)
+                    .map(StreamResponse::StepBatch)
+            }
             None => Err(Error::InvalidArgument(
-                "kind: expected probe_batch, report_batch or step_linear_batch, got none".into(),
+                "kind: expected probe_batch, report_batch, step_linear_batch or step_batch, \
+                 got none"
+                    .into(),
             )),
         });
         pb::StepStreamResponse {
@@ -282,11 +298,14 @@ impl EsaHandler {
         })
     }
 
-    fn run_step_linear_batch(
+    /// A StepStream fused step (`step_linear_batch`, `step_batch`): `probe` with `critic`'s
+    /// report, answered with the probes, the applied actions and the shifts `v(t + 1)`.
+    fn run_fused_step(
         &self,
-        req: pb::StepLinearBatchRequest,
-    ) -> Result<pb::StepLinearBatchResponse, Error> {
-        let probe = req.probe.ok_or_else(|| {
+        probe: Option<&pb::ProbeBatchRequest>,
+        critic: &impl StepCritic,
+    ) -> Result<pb::StepBatchResponse, Error> {
+        let probe = probe.ok_or_else(|| {
             Error::InvalidArgument("probe: expected the step's probe batch, got none".into())
         })?;
         batch::check_probe_lengths(
@@ -294,20 +313,15 @@ impl EsaHandler {
             probe.steps.len(),
             probe.episode_starts.len(),
         )?;
-        let critic = LinearCritic {
-            gains: &req.critic_gains,
-            offsets: &req.critic_offsets,
-            paired: req.paired,
-        };
         self.store.with_batch(&probe.session_ids, |sessions| {
             let (mut probes, mut actions) = (Vec::new(), Vec::new());
-            linear_step::step(
+            fused_step::step(
                 sessions,
                 &probe.steps,
                 &probe.actions,
                 &probe.episode_starts,
                 &probe.action_scales,
-                &critic,
+                critic,
                 &mut probes,
                 &mut actions,
                 |index, outcome| {
@@ -319,7 +333,7 @@ impl EsaHandler {
                 .iter()
                 .flat_map(|session| session.shift().iter().copied())
                 .collect();
-            Ok(pb::StepLinearBatchResponse {
+            Ok(pb::StepBatchResponse {
                 probes,
                 actions,
                 shifts,

@@ -65,6 +65,11 @@ impl<'py> Values<'py, f64> {
             None => Self::convert(object, "float64"),
         }
     }
+
+    /// Optional float values: None reads as none (action scales of all 1, no references).
+    pub(crate) fn floats_or_empty(object: Option<&Bound<'py, PyAny>>) -> PyResult<Self> {
+        object.map_or_else(|| Ok(Self::empty()), Self::floats)
+    }
 }
 
 impl<'py> Values<'py, bool> {

@@ -136,7 +136,7 @@ impl GrpcClient {
             step,
             action: Values::<f64>::floats(action)?.owned(),
             episode_start,
-            action_scale: optional_floats(action_scale)?,
+            action_scale: Values::<f64>::floats_or_empty(action_scale)?.owned(),
         };
         let remote = self.remote(py)?;
         let response = call(py, &remote, |r| r.probe(request))?;
@@ -202,12 +202,6 @@ impl GrpcClient {
 }
 
 /// Float values, or none for None (the wire's "all 1" / "no reference").
-fn optional_floats(values: Option<&Bound<'_, PyAny>>) -> PyResult<Vec<f64>> {
-    values.map_or(Ok(Vec::new()), |values| {
-        Values::<f64>::floats(values).map(|values| values.owned())
-    })
-}
-
 /// The batch calls of N sessions of one client.
 #[pyclass(frozen, module = "esa_client._native")]
 pub(crate) struct GrpcBatch {
@@ -245,6 +239,25 @@ impl Exchange {
 }
 
 impl GrpcBatch {
+    /// Queues `step` for the batch's stream thread, started here when there is none.
+    fn send_ahead(&self, py: Python<'_>, step: Step) -> PyResult<()> {
+        let mut ahead = self.ahead.lock();
+        let thread = match ahead.as_mut() {
+            Some(thread) => thread,
+            None => {
+                let remote = self.client.get().remote(py)?;
+                let thread = remote.stream_thread().map_err(|err| error_of(py, err))?;
+                ahead.insert(thread)
+            }
+        };
+        let sent = thread.send(step);
+        if sent.is_err() {
+            // A stopped thread answers nothing more: the next step starts a new one.
+            *ahead = None;
+        }
+        sent.map_err(|err| error_of(py, err))
+    }
+
     fn probe_request(
         &self,
         steps: &Bound<'_, PyAny>,
@@ -257,7 +270,7 @@ impl GrpcBatch {
             steps: Values::<u64>::steps(steps)?.owned(),
             actions: Values::<f64>::floats(actions)?.owned(),
             episode_starts: Values::<bool>::bools(episode_starts)?.owned(),
-            action_scales: optional_floats(action_scales)?,
+            action_scales: Values::<f64>::floats_or_empty(action_scales)?.owned(),
         })
     }
 
@@ -271,7 +284,7 @@ impl GrpcBatch {
             session_ids: self.session_ids.clone(),
             steps: Values::<u64>::steps(steps)?.owned(),
             q_values: Values::<f64>::floats(q_values)?.owned(),
-            q_references: optional_floats(q_references)?,
+            q_references: Values::<f64>::floats_or_empty(q_references)?.owned(),
         })
     }
 
@@ -425,8 +438,8 @@ impl GrpcBatch {
     }
 
     /// Queues a `step_linear_batch` for the batch's stream thread (started here when there is
-    /// none) and returns at once, without its answer: read that with `receive_step_linear`.
-    /// The thread writes it and reads the answer while the caller goes on. A batch without a
+    /// none) and returns at once, without its answer: read that with `receive_step`. The
+    /// thread writes it and reads the answer while the caller goes on. A batch without a
     /// stream cannot send one.
     #[allow(clippy::too_many_arguments)] // ProbeBatch's arrays and the critic's
     #[pyo3(signature = (steps, actions, episode_starts, action_scales, gains, offsets, paired))]
@@ -448,27 +461,36 @@ impl GrpcBatch {
             critic_offsets: Values::<f64>::floats(offsets)?.owned(),
             paired,
         };
-        let mut ahead = self.ahead.lock();
-        let thread = match ahead.as_mut() {
-            Some(thread) => thread,
-            None => {
-                let remote = self.client.get().remote(py)?;
-                let thread = remote.stream_thread().map_err(|err| error_of(py, err))?;
-                ahead.insert(thread)
-            }
-        };
-        let sent = thread.send(Step::StepLinear(request));
-        if sent.is_err() {
-            // A stopped thread answers nothing more: the next step starts a new one.
-            *ahead = None;
-        }
-        sent.map_err(|err| error_of(py, err))
+        self.send_ahead(py, Step::StepLinear(request))
     }
 
-    /// The answer to the oldest `send_step_linear` not yet answered: `(probes, applied,
+    /// Queues a `step_batch` (the step's probe with the critic's values at the probes the
+    /// caller computed ahead) like `send_step_linear`.
+    #[allow(clippy::too_many_arguments)] // ProbeBatch's arrays and the critic's values
+    #[pyo3(signature = (steps, actions, episode_starts, action_scales, q_values, q_references))]
+    fn send_step<'py>(
+        &self,
+        py: Python<'py>,
+        steps: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        episode_starts: &Bound<'py, PyAny>,
+        action_scales: Option<&Bound<'py, PyAny>>,
+        q_values: &Bound<'py, PyAny>,
+        q_references: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<()> {
+        self.stream_slot()?;
+        let request = pb::StepBatchRequest {
+            probe: Some(self.probe_request(steps, actions, episode_starts, action_scales)?),
+            q_values: Values::<f64>::floats(q_values)?.owned(),
+            q_references: Values::<f64>::floats_or_empty(q_references)?.owned(),
+        };
+        self.send_ahead(py, Step::Fused(request))
+    }
+
+    /// The answer to the oldest step sent ahead and not yet answered: `(probes, applied,
     /// shifts)`, each `(N, dim)`, or its error (the wire's, when the stream broke: its answers
     /// are lost).
-    fn receive_step_linear<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+    fn receive_step<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
         let answer = {
             let mut ahead = self.ahead.lock();
             let Some(thread) = ahead.as_mut() else {
@@ -488,7 +510,7 @@ impl GrpcBatch {
             }
             answer.map_err(|error| error_of(py, error))?
         };
-        let Answer::StepLinear(response) = answer else {
+        let Answer::Step(response) = answer else {
             return Err(out_of_order(py));
         };
         self.arrays(py, [response.probes, response.actions, response.shifts])

@@ -6,7 +6,7 @@
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 use esa_core::batch;
-use esa_core::linear_step::{self, LinearCritic};
+use esa_core::fused_step::{self, LinearCritic};
 use esa_core::{Session, SessionConfig};
 use esa_proto::convert::session_snapshot;
 use esa_proto::v1 as pb;
@@ -227,7 +227,7 @@ impl Engine {
     }
 
     /// One step of Algorithm 1 for a critic the engine evaluates itself (see
-    /// `esa_core::linear_step::step`): ProbeBatch, then ReportBatch of `critic` at the probes,
+    /// `esa_core::fused_step::step`): ProbeBatch, then ReportBatch of `critic` at the probes,
     /// in one call; all-or-nothing.
     pub fn step_linear(
         &mut self,
@@ -241,7 +241,7 @@ impl Engine {
         batch::check_probe_lengths(handle.len(), steps.len(), episode_starts.len())?;
         self.with_sessions(handle, |sessions| {
             let (mut probes, mut applied) = (Vec::new(), Vec::new());
-            linear_step::step(
+            fused_step::step(
                 sessions,
                 steps,
                 actions,

@@ -10,7 +10,7 @@ use prost::Message;
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 
-use esa_core::linear_step::LinearCritic;
+use esa_core::fused_step::LinearCritic;
 use esa_core::SessionConfig;
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
@@ -142,10 +142,7 @@ impl Engine {
         action_scale: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyTuple>> {
         let action = Values::<f64>::floats(action)?;
-        let scale = match action_scale {
-            Some(scale) => Values::<f64>::floats(scale)?,
-            None => Values::empty(),
-        };
+        let scale = Values::<f64>::floats_or_empty(action_scale)?;
         let (probe, applied) = self
             .lock(py)
             .probe_one(
@@ -203,10 +200,7 @@ impl Engine {
             Some(starts) => Values::<bool>::bools(starts)?,
             None => Values::empty(),
         };
-        let scales = match action_scales {
-            Some(scales) => Values::<f64>::floats(scales)?,
-            None => Values::empty(),
-        };
+        let scales = Values::<f64>::floats_or_empty(action_scales)?;
         let output = if handle.values() > self.detach_values {
             let (steps, actions, starts, scales) = (
                 steps.owned(),
@@ -251,10 +245,7 @@ impl Engine {
         let steps = Values::<u64>::steps(steps)?;
         let actions = Values::<f64>::floats(actions)?;
         let starts = Values::<bool>::bools(episode_starts)?;
-        let scales = match action_scales {
-            Some(scales) => Values::<f64>::floats(scales)?,
-            None => Values::empty(),
-        };
+        let scales = Values::<f64>::floats_or_empty(action_scales)?;
         let (gain, offset) = (Values::<f64>::floats(gain)?, Values::<f64>::floats(offset)?);
         let output = if handle.values() > self.detach_values {
             let owned = [&actions, &scales, &gain, &offset].map(|values| values.owned());
@@ -302,10 +293,7 @@ impl Engine {
         let handle = &handle.get().inner;
         let steps = Values::<u64>::steps(steps)?;
         let q_values = Values::<f64>::floats(q_values)?;
-        let references = match q_references {
-            Some(references) => Values::<f64>::floats(references)?,
-            None => Values::empty(),
-        };
+        let references = Values::<f64>::floats_or_empty(q_references)?;
         let output = if handle.values() > self.detach_values {
             let (steps, q_values, references) =
                 (steps.owned(), q_values.owned(), references.owned());

@@ -11,20 +11,20 @@
 //!   the gRPC status `code`, `message` and failing batch item `index`.
 //! - [`arrays`]: numpy arguments in, numpy arrays out.
 //! - [`advantage_mlp`]: `AdvantageMlp`, ESAPPO's advantage head forward for one rollout step.
-//! - [`applied_ahead`]: `AppliedAhead`, the applied actions of a pipelined step from the shifts
-//!   the previous step's answer carried.
+//! - [`step_ahead`]: `StepAhead`, the applied actions and probes of a pipelined step from the
+//!   shifts the previous step's answer carried.
 //!
 //! The stub `esa_client/_native.pyi` documents the API.
 
 use pyo3::prelude::*;
 
 mod advantage_mlp;
-mod applied_ahead;
 mod arrays;
 mod client;
 mod engine;
 mod engine_class;
 mod errors;
+mod step_ahead;
 
 use esa_store::Code;
 
@@ -37,7 +37,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<engine_class::Engine>()?;
     m.add_class::<engine_class::BatchHandle>()?;
     m.add_class::<advantage_mlp::AdvantageMlp>()?;
-    m.add_class::<applied_ahead::AppliedAhead>()?;
+    m.add_class::<step_ahead::StepAhead>()?;
     m.add("EngineError", py.get_type::<errors::EngineError>())?;
     m.add_class::<client::GrpcClient>()?;
     m.add_class::<client::GrpcBatch>()?;

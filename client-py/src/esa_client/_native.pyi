@@ -399,17 +399,36 @@ class GrpcBatch:
         """Sends a ``step_linear_batch`` (probe, linear critic, report) and returns at once.
 
         The request is on the wire when this returns; its answer is read by
-        :meth:`receive_step_linear`. Only a batch with a stream can send one.
+        :meth:`receive_step`. Only a batch with a stream can send one.
 
         Raises:
             StatusError: The wire's error (the stream could not be opened or written).
             ValueError: The batch has no stream, or an array cannot be converted.
         """
 
-    def receive_step_linear(
+    def send_step(
+        self,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None,
+        q_values: npt.ArrayLike,
+        q_references: npt.ArrayLike | None,
+    ) -> None:
+        """Sends a ``step_batch`` (probe, the critic's values, report) and returns at once.
+
+        The values are the critic at the probes computed ahead (:meth:`StepAhead.probes`)
+        and, as references, at the applied actions. Answered like :meth:`send_step_linear`.
+
+        Raises:
+            StatusError: The wire's error (the stream could not be opened or written).
+            ValueError: The batch has no stream, or an array cannot be converted.
+        """
+
+    def receive_step(
         self,
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """The answer to the oldest unanswered :meth:`send_step_linear`.
+        """The answer to the oldest unanswered :meth:`send_step_linear` or :meth:`send_step`.
 
         Returns:
             ``(probes, applied, shifts)``, each float64[N, D]: the shifts are ``v(t + 1)``.
@@ -425,12 +444,13 @@ class GrpcBatch:
     def __len__(self) -> int:
         """N, the number of sessions."""
 
-class AppliedAhead:
-    """Algorithm 1's applied actions from shifts known ahead, with esa-core's own function.
+class StepAhead:
+    """Algorithm 1's applied actions and probes from shifts known ahead, with esa-core's code.
 
     For a client of the pipelined step: ``clip(a + clamp(v, -bound, bound), lo, hi)`` with
-    ``bound = min(L, kappa * sigma)``, per session and dimension, the bits the server's probe
-    gives for the shift ``v`` (CONTRACT.md section 1b, implementation note 8).
+    ``bound = min(L, kappa * sigma)``, per session and dimension, and the probe
+    ``clip(a + clamp(v, -bound, bound) + K sin(w t dt), lo, hi)``: the bits the server's
+    probe gives for the shift ``v`` (CONTRACT.md section 1b, implementation note 8).
 
     Args:
         configs: One encoded ``esa.v1.SessionConfig`` per session, all of one action
@@ -453,6 +473,20 @@ class AppliedAhead:
         Raises:
             EngineError: A length does not match, an action is not finite or a scale not
                 finite and > 0 (INVALID_ARGUMENT, ``index`` names the session).
+        """
+
+    def probes(
+        self,
+        shifts: npt.ArrayLike,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None = None,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """``(probes, applied)``, each float64[N, D], of step ``steps[i]`` (shape (N,)).
+
+        Raises:
+            EngineError: As :meth:`__call__`, or ``steps`` not of length N.
+            ValueError: ``steps`` not non-negative integers.
         """
 
     def __len__(self) -> int:

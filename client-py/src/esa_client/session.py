@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from ._native import AppliedAhead, EngineError
+from ._native import EngineError, StepAhead
 from .config import SessionConfig
 from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch, TypedErrors
 from .reconnect import Reconnect, RetriableErrors
@@ -244,7 +244,7 @@ class SessionBatch:
         # fails; the shifts v(t) of the next step (from the last answer read).
         self._ahead: _InFlight | None = None
         self._shifts: F64Array = np.zeros((self.n, self.action_dim))
-        self._applier: AppliedAhead | None = None
+        self._step_ahead: StepAhead | None = None
         self._ahead_batch = self._batch if isinstance(self._batch, AheadBatch) else None
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
@@ -374,21 +374,24 @@ class SessionBatch:
     def step_ahead(
         self,
         actions: npt.ArrayLike,
-        critic: LinearCritic,
+        critic: Callable[[F64Array], npt.ArrayLike] | LinearCritic,
         episode_starts: npt.ArrayLike | None = None,
         *,
         action_scales: npt.ArrayLike | None = None,
         paired: bool = False,
     ) -> F64Array:
-        """Algorithm 1's step for a linear critic, without waiting for the server.
+        """Algorithm 1's step without waiting for the server.
 
         Returns ``clip(a_t + v(t))``, as :meth:`step` does, computed here with esa-core's
         own function from the shifts ``v(t)`` that the previous step's answer carried (0 at
         an episode start): the same bits as the server's. The step itself (probe, critic,
-        report) goes as one ``step_linear_batch`` message whose answer is read at the next
-        call, so the round trip overlaps the environment's step and the policy's forward
-        (CONTRACT.md section 1b, implementation note 8). Where the batch cannot pipeline
-        (:attr:`steps_ahead` is False) this is :meth:`step`'s applied actions.
+        report) goes as one message whose answer is read at the next call, so the round
+        trip overlaps the environment's step and the learner's work (CONTRACT.md section 1b,
+        implementation note 8). A :class:`LinearCritic` is evaluated by the server
+        (``step_linear_batch``); any other critic is evaluated here, at the probes computed
+        the same way (the server's bits), and its values go with the step (``step_batch``).
+        Where the batch cannot pipeline (:attr:`steps_ahead` is False) this is
+        :meth:`step`'s applied actions.
 
         An error of the step surfaces one call late: the next call (or :meth:`flush`)
         raises it, and nothing of that step was applied on the server, although its
@@ -399,45 +402,40 @@ class SessionBatch:
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
-            critic: ``Q_i(a) = gain_i . a + offset_i`` at the N current states.
+            critic: ``Q_i(a) = gain_i . a + offset_i`` at the N current states, or the
+                critic as for :meth:`step`.
             episode_starts: As for :meth:`probe_applied`.
             action_scales: As for :meth:`probe_applied`.
             paired: Report the critic at the applied actions as the references.
 
         Returns:
             The applied actions ``clip(a_t + v(t))``, shape ``(N, D)``.
+
+        Raises:
+            ValueError: The critic's values are not ``(N,)`` (``(2 N,)`` when ``paired``)
+                finite numbers; nothing was sent.
         """
         ahead = self._ahead_batch
         if ahead is None:
             return self.step(
                 actions, critic, episode_starts, action_scales=action_scales, paired=paired
             )[1]
-        self._check_critic(critic)
+        if isinstance(critic, LinearCritic):
+            self._check_critic(critic)
         if self._deferred is not None:
             self.flush()
         if self._ahead is not None:
             self._shifts = self._receive_ahead(ahead)
         request = self._probe_request(actions, episode_starts, None, action_scales)
-        applier = self._applier
-        if applier is None:
-            applier = AppliedAhead([c.to_proto().SerializeToString() for c in self.configs])
-            self._applier = applier
-        shifts = self._shifts
-        if request.episode_starts.any():
-            shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
-        # This also checks the actions and scales: an error here is this call's, nothing sent.
-        with _engine_errors:
-            applied: F64Array = applier(shifts, request.actions, request.action_scales)
         before = _InFlight(self._steps, self._next_starts.copy())
         try:
-            ahead.send_step_linear(request, critic, paired)
+            applied = self._send_ahead(ahead, request, critic, paired)
         except RetriableErrors:
             if self._reconnect is None:
                 raise
-            request = self._reconnect.run(
+            request, applied = self._reconnect.run(
                 lambda _: self._restart_ahead(ahead, request, critic, paired)
             )
-            applied = applier(self._shifts, request.actions, request.action_scales)
         self._ahead = before
         self._steps = request.steps + 1
         self._last_probe = request
@@ -453,21 +451,57 @@ class SessionBatch:
                 f"got {gain_shape} and {offset_shape}"
             )
 
+    def _send_ahead(
+        self,
+        batch: AheadBatch,
+        request: BatchProbe,
+        critic: Callable[[F64Array], npt.ArrayLike] | LinearCritic,
+        paired: bool,
+    ) -> F64Array:
+        """Sends ``request``'s step, computed from the shifts in hand; returns its actions.
+
+        The actions and scales (and a critic's values) are checked before anything is sent:
+        an error there is this call's.
+        """
+        engine = self._step_ahead
+        if engine is None:
+            engine = StepAhead([c.to_proto().SerializeToString() for c in self.configs])
+            self._step_ahead = engine
+        shifts = self._shifts
+        if request.episode_starts.any():
+            shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
+        if isinstance(critic, LinearCritic):
+            with _engine_errors:
+                applied: F64Array = engine(shifts, request.actions, request.action_scales)
+            batch.send_step_linear(request, critic, paired)
+            return applied
+        with _engine_errors:
+            probes, applied = engine.probes(
+                shifts, request.steps, request.actions, request.action_scales
+            )
+        points = np.concatenate([probes, applied]) if paired else probes
+        q = check_array(critic(points), (len(points),), "critic values", finite=True)
+        batch.send_step(request, q[: self.n], q[self.n :] if paired else None)
+        return applied
+
     def _restart_ahead(
-        self, batch: AheadBatch, request: BatchProbe, critic: LinearCritic, paired: bool
-    ) -> BatchProbe:
+        self,
+        batch: AheadBatch,
+        request: BatchProbe,
+        critic: Callable[[F64Array], npt.ArrayLike] | LinearCritic,
+        paired: bool,
+    ) -> tuple[BatchProbe, F64Array]:
         """Sends ``request`` as every session's episode start, after :meth:`restore`.
 
         For a broken wire: whether earlier steps were applied is unknown (see
-        :meth:`step_ahead`). Returns what it sent.
+        :meth:`step_ahead`). Returns what it sent and its applied actions.
         """
         self.restore()
         restart = request._replace(
             steps=np.zeros(self.n, dtype=np.int64),
             episode_starts=np.ones(self.n, dtype=bool),
         )
-        batch.send_step_linear(restart, critic, paired)
-        return restart
+        return restart, self._send_ahead(batch, restart, critic, paired)
 
     def _receive_ahead(self, batch: AheadBatch) -> F64Array:
         """The shifts ``v(t + 1)`` of the step in flight, or its error (see :meth:`step_ahead`).
@@ -479,7 +513,7 @@ class SessionBatch:
         assert self._ahead is not None
         sent, self._ahead = self._ahead, None
         try:
-            return batch.receive_step_linear()[2]
+            return batch.receive_step()[2]
         except RetriableErrors:
             if self._reconnect is None:
                 self._next_starts[:] = True

@@ -118,9 +118,11 @@ class EsaRuntime:
     the probes (and, with ``paired_response``, the applied actions as the reference);
     the report is deferred and rides with the next step's probe on the StepStream, so a
     step costs one round trip. A :class:`LinearCritic` (ESAPPO's head) is evaluated by
-    the engine itself: in-process in one call, and through a native client's StepStream
-    without waiting at all (:meth:`SessionBatch.step_ahead`: the actions come from the
-    previous answer's shifts, the round trip overlaps the env's step).
+    the engine itself, in-process in one call. Through a native client's StepStream a
+    step does not wait at all (:meth:`SessionBatch.step_ahead`: the actions, and the probes
+    where the critic is evaluated here, come from the previous answer's shifts, and the
+    round trip overlaps the env's step and the learner's update), unless the trainer needs
+    the step's probes from the server (``want_probes``).
 
     Sessions the server loses (a restart, a TTL expiry during a long pause) are
     recreated and restarted at the next step, and counted (``esa/sessions_restored``):
@@ -255,6 +257,8 @@ class EsaRuntime:
         episode_starts: np.ndarray,
         q_fn: QFunction | LinearCritic,
         policy_std: np.ndarray | None = None,
+        *,
+        want_probes: bool = False,
     ) -> np.ndarray:
         """Runs Algorithm 1's step for all envs and returns the actions to apply.
 
@@ -265,6 +269,8 @@ class EsaRuntime:
                 :class:`LinearCritic` is evaluated by the in-process engine itself).
             policy_std: The policy's standard deviation, shape ``(N, D)``; sent as the
                 action scale when ``use_policy_std`` (else 1).
+            want_probes: Wait for the server's probes of this step (``last_probes``), for
+                trainers that execute the probe itself.
 
         Returns:
             ``a_t + v(t)`` (clipped to the session's bounds, if it has any), float64,
@@ -288,13 +294,13 @@ class EsaRuntime:
                 batch.restore()
                 self._skipping = False
                 _log.warning("esa server at %s reachable again: ESA resumes", self.client.address)
-                probes, applied = self._run(a, q_fn, None, scale)
+                probes, applied = self._run(a, q_fn, None, scale, want_probes)
             else:
                 try:
-                    probes, applied = self._run(a, q_fn, episode_starts, scale)
+                    probes, applied = self._run(a, q_fn, episode_starts, scale, want_probes)
                 except SessionNotFound:
                     batch.restore()
-                    probes, applied = self._run(a, q_fn, None, scale)
+                    probes, applied = self._run(a, q_fn, None, scale, want_probes)
         except ServerUnavailable as err:
             if self.on_unavailable == "raise":
                 raise
@@ -322,10 +328,11 @@ class EsaRuntime:
         q_fn: QFunction | LinearCritic,
         starts: np.ndarray | None,
         scale: np.ndarray | None,
+        want_probes: bool,
     ) -> tuple[np.ndarray | None, np.ndarray]:
         """The batch's step: ``(probes, applied)``; probes None for a step sent ahead."""
         paired = self.esa.paired_response
-        if isinstance(q_fn, LinearCritic) and self.batch.steps_ahead:
+        if self.batch.steps_ahead and not want_probes:
             # Through a server: the round trip overlaps the env's step (probes come later).
             applied = self.batch.step_ahead(a, q_fn, starts, action_scales=scale, paired=paired)
             return None, applied

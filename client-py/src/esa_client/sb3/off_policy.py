@@ -143,10 +143,16 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
             applied = self._gradient_step(obs, sampled, sigma)
         else:
             runtime = self._esa_runtime()
-            applied = runtime.step(sampled, self._last_episode_starts, self._esa_q(obs), sigma)
-            if self.esa_execute == "probe":
-                # A callable critic: the step waited for its probes.
-                assert runtime.last_probes is not None
+            execute_probe = self.esa_execute == "probe"
+            applied = runtime.step(
+                sampled,
+                self._last_episode_starts,
+                self._esa_q(obs),
+                sigma,
+                want_probes=execute_probe,
+            )
+            if execute_probe:
+                assert runtime.last_probes is not None  # the step waited for its probes
                 applied = np.clip(runtime.last_probes, -1.0, 1.0)
         buffer_action = applied.reshape(buffer_action.shape).astype(buffer_action.dtype)
         return self.policy.unscale_action(buffer_action), buffer_action

@@ -112,19 +112,26 @@ class BatchTransport(Protocol):
 
 @runtime_checkable
 class AheadBatch(Protocol):
-    """A batch that sends a whole step for a linear critic and reads its answer later.
+    """A batch that sends a whole step and reads its answer later.
 
-    The wire's ``step_linear_batch`` (CONTRACT.md section 1b, implementation note 8): the
-    server probes, evaluates the critic and reports in one request, and answers with the
-    shifts ``v(t + 1)``, from which the client computes the next step's applied actions
-    itself. Requests are answered in the order they were sent.
+    The wire's ``step_linear_batch`` and ``step_batch`` (CONTRACT.md section 1b,
+    implementation note 8): the server probes, evaluates the linear critic (or takes the
+    critic's values the client computed at the same probes) and reports in one request, and
+    answers with the shifts ``v(t + 1)``, from which the client computes the next step's
+    applied actions and probes itself. Requests are answered in the order they were sent.
     """
 
     def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
-        """Sends the step; returns once it is on its way, without its answer."""
+        """Sends the step for a linear critic; returns once it is on its way."""
         ...
 
-    def receive_step_linear(self) -> tuple[F64Array, F64Array, F64Array]:
+    def send_step(
+        self, request: BatchProbe, q_values: F64Array, q_references: F64Array | None
+    ) -> None:
+        """Sends the step with the critic's values at its probes; returns once it is on its way."""
+        ...
+
+    def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
         """The oldest unanswered step's ``(probes, applied, shifts)``, each ``(N, D)``.
 
         Raises the step's error (nothing of it was applied), or the wire's (whether it

@@ -52,8 +52,8 @@ class NativeGrpcBatch(InTurnBatch):
 class NativeGrpcStepBatch(NativeGrpcBatch, PipelinedBatch):
     """A :class:`NativeGrpcBatch` on a ``StepStream``, whose pair takes one round trip.
 
-    It also sends a whole step for a linear critic without waiting for its answer
-    (:class:`~esa_client.transports.base.AheadBatch`).
+    It also sends a whole step (for a linear critic, or with the critic's values) without
+    waiting for its answer (:class:`~esa_client.transports.base.AheadBatch`).
     """
 
     def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
@@ -81,10 +81,24 @@ class NativeGrpcStepBatch(NativeGrpcBatch, PipelinedBatch):
                 paired,
             )
 
-    def receive_step_linear(self) -> tuple[F64Array, F64Array, F64Array]:
+    def send_step(
+        self, request: BatchProbe, q_values: F64Array, q_references: F64Array | None
+    ) -> None:
+        """Sends the step's probe and the critic's values at it as one message; returns at once."""
+        with _typed_errors:
+            self._batch.send_step(
+                request.steps,
+                request.actions,
+                request.episode_starts,
+                request.action_scales,
+                q_values,
+                q_references,
+            )
+
+    def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
         """The oldest unanswered step's ``(probes, applied, shifts)``, or its error."""
         with _typed_errors:
-            return self._batch.receive_step_linear()
+            return self._batch.receive_step()
 
 
 class NativeGrpcTransport(NativeSessionCalls):

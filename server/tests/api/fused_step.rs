@@ -1,8 +1,9 @@
-//! StepStream's `step_linear_batch`: the same bits as a ProbeBatch and the ReportBatch of the
-//! critic at its probes, shifts a client can apply ahead with esa-core's function, and bad
-//! critics answered in-band with nothing changed.
+//! StepStream's `step_linear_batch` and `step_batch`: the same bits as a ProbeBatch and the
+//! ReportBatch of the critic at its probes, shifts from which a client computes the next probes
+//! and actions ahead with esa-core's functions, and bad critics answered in-band with nothing
+//! changed.
 
-use esa_core::linear_step;
+use esa_core::fused_step;
 use esa_core::Session;
 use esa_proto::convert::config_from_proto;
 use esa_server::pb;
@@ -15,6 +16,7 @@ use crate::stream::Stream;
 
 const IDS: [&str; 2] = ["fused-0", "fused-1"];
 const TWINS: [&str; 2] = ["twin-0", "twin-1"];
+const GIVEN: [&str; 2] = ["given-0", "given-1"];
 
 /// Section 1b in full: bounds, a limit, a trust region, the normalization and a leak.
 fn config() -> pb::SessionConfig {
@@ -71,7 +73,7 @@ async fn shifts(client: &mut Client, ids: &[&str]) -> Vec<f64> {
 async fn a_fused_step_is_the_probe_and_the_critics_report_and_its_shifts_predict_the_next_action() {
     let server = start().await;
     let mut client = server.client().await;
-    for id in IDS.iter().chain(&TWINS) {
+    for id in IDS.iter().chain(&TWINS).chain(&GIVEN) {
         create(&mut client, id, config()).await;
     }
     let mut stream = Stream::open(&mut client).await;
@@ -104,6 +106,35 @@ async fn a_fused_step_is_the_probe_and_the_critics_report_and_its_shifts_predict
             panic!("expected a step_linear_batch answer");
         };
 
+        // The client's own probes and actions, from the previous answer's shifts; the critic
+        // evaluated there goes with the step.
+        for (i, start) in starts.iter().enumerate() {
+            if *start {
+                ahead[2 * i..2 * i + 2].fill(0.0);
+            }
+        }
+        let (mut ahead_probes, mut ahead_actions) = (Vec::new(), Vec::new());
+        fused_step::probes_ahead(
+            &local,
+            &ahead,
+            &steps,
+            &actions,
+            &scales,
+            &mut ahead_probes,
+            &mut ahead_actions,
+        )
+        .expect("valid");
+        stream
+            .send(Some(Req::StepBatch(pb::StepBatchRequest {
+                probe: Some(probe(&GIVEN, &steps, &actions, &starts, &scales)),
+                q_values: linear(&gains, &offsets, &ahead_probes),
+                q_references: linear(&gains, &offsets, &ahead_actions),
+            })))
+            .await;
+        let Resp::StepBatch(given) = stream.next().await else {
+            panic!("expected a step_batch answer");
+        };
+
         stream
             .send(Some(Req::ProbeBatch(probe(
                 &TWINS, &steps, &actions, &starts, &scales,
@@ -126,20 +157,20 @@ async fn a_fused_step_is_the_probe_and_the_critics_report_and_its_shifts_predict
         assert_eq!(fused.actions, probed.actions, "t = {t}");
         assert_eq!(fused.shifts, shifts(&mut client, &TWINS).await, "t = {t}");
         assert_eq!(fused.shifts, shifts(&mut client, &IDS).await, "t = {t}");
-        // The client's own applied actions, from the previous answer's shifts.
-        for (i, start) in starts.iter().enumerate() {
-            if *start {
-                ahead[2 * i..2 * i + 2].fill(0.0);
-            }
-        }
         let mut predicted = Vec::new();
-        linear_step::applied_ahead(&local, &ahead, &actions, &scales, &mut predicted)
+        fused_step::applied_ahead(&local, &ahead, &actions, &scales, &mut predicted)
             .expect("valid");
         assert_eq!(predicted, fused.actions, "t = {t}");
+        assert_eq!(
+            (&ahead_probes, &ahead_actions),
+            (&fused.probes, &fused.actions),
+            "t = {t}"
+        );
+        assert_eq!(given, fused, "t = {t}");
         ahead = fused.shifts;
         steps = steps.map(|s| s + 1);
     }
-    for id in IDS {
+    for id in IDS.iter().chain(&GIVEN) {
         let state = get(&mut client, id).await.expect("session");
         assert!(!state.probe_pending, "a fused step leaves no probe pending");
     }
@@ -158,6 +189,13 @@ async fn bad_fused_steps_are_answered_in_band_and_change_nothing() {
             critic_gains: gains,
             critic_offsets: offsets,
             paired: false,
+        }))
+    };
+    let given = |q_values: Vec<f64>, q_references: Vec<f64>| {
+        Some(Req::StepBatch(pb::StepBatchRequest {
+            probe: Some(probe(&["s"], &[0], &[0.1, 0.2], &[], &[])),
+            q_values,
+            q_references,
         }))
     };
     let cases = [
@@ -211,6 +249,35 @@ async fn bad_fused_steps_are_answered_in_band_and_change_nothing() {
             Code::NotFound,
             "ghost",
         ),
+        (
+            given(vec![], vec![]),
+            Code::InvalidArgument,
+            "q_values: expected 1 values",
+        ),
+        (
+            given(vec![1.0], vec![1.0, 2.0]),
+            Code::InvalidArgument,
+            "q_references: expected 1 values",
+        ),
+        (
+            given(vec![f64::NAN], vec![]),
+            Code::InvalidArgument,
+            "q_value: expected a finite number",
+        ),
+        (
+            given(vec![1.0], vec![f64::NEG_INFINITY]),
+            Code::InvalidArgument,
+            "q_reference: expected a finite number",
+        ),
+        (
+            Some(Req::StepBatch(pb::StepBatchRequest {
+                probe: None,
+                q_values: vec![1.0],
+                q_references: vec![],
+            })),
+            Code::InvalidArgument,
+            "probe: expected",
+        ),
     ];
     let before = get(&mut client, "s").await.expect("session");
     for (request, code, needle) in cases {
@@ -230,5 +297,14 @@ async fn bad_fused_steps_are_answered_in_band_and_change_nothing() {
     stream.send(good(vec![1.0, 1.0], vec![0.0])).await;
     assert!(matches!(stream.next().await, Resp::StepLinearBatch(r) if r.shifts.len() == 2));
     assert_eq!(get(&mut client, "s").await.expect("session").step, 1);
+    stream
+        .send(Some(Req::StepBatch(pb::StepBatchRequest {
+            probe: Some(probe(&["s"], &[1], &[0.1, 0.2], &[], &[])),
+            q_values: vec![0.5],
+            q_references: vec![],
+        })))
+        .await;
+    assert!(matches!(stream.next().await, Resp::StepBatch(r) if r.shifts.len() == 2));
+    assert_eq!(get(&mut client, "s").await.expect("session").step, 2);
     server.stop().await;
 }

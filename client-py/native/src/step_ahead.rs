@@ -1,12 +1,14 @@
-//! `AppliedAhead`: Algorithm 1's applied actions from shifts known ahead of the server's answer,
-//! with esa-core's own function (`esa_core::linear_step::applied_ahead`), so that a client of the
-//! pipelined step applies the bits the server would have answered.
+//! `StepAhead`: Algorithm 1's applied actions (and probes) of a step from the shifts known ahead
+//! of the server's answer, with esa-core's own functions (`esa_core::fused_step::applied_ahead`,
+//! `probes_ahead`), so that a client of the pipelined step applies, and evaluates its critic at,
+//! the bits the server would have answered.
 
-use esa_core::linear_step;
+use esa_core::fused_step;
 use esa_core::Session;
 use esa_store::Error;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use pyo3::types::PyTuple;
 
 use crate::arrays::{shaped, Values};
 use crate::engine_class::decode_config;
@@ -14,14 +16,14 @@ use crate::errors::engine_error;
 
 /// The configs of N sessions of one action dimension; see the module stub for the API.
 #[pyclass(frozen, module = "esa_client._native")]
-pub(crate) struct AppliedAhead {
+pub(crate) struct StepAhead {
     /// Fresh sessions of the configs: only their configs are read.
     sessions: Vec<Session>,
     dim: usize,
 }
 
 #[pymethods]
-impl AppliedAhead {
+impl StepAhead {
     /// The sessions of the encoded `esa.v1.SessionConfig`s `configs`, one per session, all of
     /// one action dimension.
     #[new]
@@ -52,12 +54,9 @@ impl AppliedAhead {
     ) -> PyResult<Bound<'py, PyAny>> {
         let shifts = Values::<f64>::floats(shifts)?;
         let actions = Values::<f64>::floats(actions)?;
-        let scales = match action_scales {
-            Some(scales) => Values::<f64>::floats(scales)?,
-            None => Values::empty(),
-        };
+        let scales = Values::<f64>::floats_or_empty(action_scales)?;
         let mut applied = Vec::with_capacity(actions.as_slice().len());
-        linear_step::applied_ahead(
+        fused_step::applied_ahead(
             &self.sessions,
             shifts.as_slice(),
             actions.as_slice(),
@@ -66,6 +65,39 @@ impl AppliedAhead {
         )
         .map_err(|err| engine_error(py, err.into()))?;
         shaped(py, applied, self.sessions.len(), Some(self.dim))
+    }
+
+    /// `(probes, applied)` of the step `steps` (one per session), each `(N, D)`.
+    #[pyo3(signature = (shifts, steps, actions, action_scales = None))]
+    fn probes<'py>(
+        &self,
+        py: Python<'py>,
+        shifts: &Bound<'py, PyAny>,
+        steps: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        action_scales: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let shifts = Values::<f64>::floats(shifts)?;
+        let steps = Values::<u64>::steps(steps)?;
+        let actions = Values::<f64>::floats(actions)?;
+        let scales = Values::<f64>::floats_or_empty(action_scales)?;
+        let capacity = actions.as_slice().len();
+        let (mut probes, mut applied) =
+            (Vec::with_capacity(capacity), Vec::with_capacity(capacity));
+        fused_step::probes_ahead(
+            &self.sessions,
+            shifts.as_slice(),
+            steps.as_slice(),
+            actions.as_slice(),
+            scales.as_slice(),
+            &mut probes,
+            &mut applied,
+        )
+        .map_err(|err| engine_error(py, err.into()))?;
+        let n = self.sessions.len();
+        let probes = shaped(py, probes, n, Some(self.dim))?;
+        let applied = shaped(py, applied, n, Some(self.dim))?;
+        PyTuple::new(py, [probes, applied])
     }
 
     fn __len__(&self) -> usize {
