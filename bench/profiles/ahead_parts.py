@@ -1,14 +1,18 @@
-"""Where a step sent ahead spends its time inside training: ESAPPO through a native sidecar.
+"""Where a step sent ahead spends its time inside training, through a native sidecar.
 
-Trains ESAPPO (SB3 defaults, InvertedPendulum-v5, 1 env by default) through a private
-esa-server reached with the native client, with a timer around ``SessionBatch.step_ahead``
-and around its two native calls, ``send_step_linear`` (queueing the step for the batch's
-stream thread) and ``receive_step`` (taking the answer of the previous step). Prints
-each one's mean and percentiles per call.
+Trains an ESA drop-in (SB3 defaults, InvertedPendulum-v5, 1 env by default; ESAPPO, or
+ESASAC / ESATD3 with the bench's 800 learning-starts steps) through a private esa-server
+reached with the native client, with a timer around the runtime's whole ESA step
+(``EsaRuntime.step``: the critic's evaluation included), ``SessionBatch.step_ahead``, and
+its native calls: ``send_step_linear`` (ESAPPO's linear critic) or ``send_step`` (the
+critic's values), which queue the step for the batch's stream thread, and
+``receive_step`` (taking the answer of the previous step). Prints each one's mean and
+percentiles per call.
 
 Usage::
 
-    OMP_NUM_THREADS=1 python bench/profiles/ahead_parts.py [--steps 12288] [--n-envs 1]
+    OMP_NUM_THREADS=1 python bench/profiles/ahead_parts.py [--agent ESAPPO] [--steps N]
+        [--n-envs 1]
 """
 
 from __future__ import annotations
@@ -22,15 +26,21 @@ from collections.abc import Callable
 import numpy as np
 import torch as th
 from esa_client import SessionBatch
-from esa_client.sb3 import ESAPPO
+from esa_client.common.runtime import EsaRuntime
+from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
 from esa_client.transports.native import NativeGrpcStepBatch
 from stable_baselines3.common.env_util import make_vec_env
 
 TIMED = [
+    (EsaRuntime, "step"),
     (SessionBatch, "step_ahead"),
     (NativeGrpcStepBatch, "send_step_linear"),
+    (NativeGrpcStepBatch, "send_step"),
     (NativeGrpcStepBatch, "receive_step"),
 ]
+AGENTS = {"ESAPPO": ESAPPO, "ESASAC": ESASAC, "ESATD3": ESATD3}
+STEPS = {"ESAPPO": 12_288, "ESASAC": 8_000, "ESATD3": 8_000}
+"""The bench's steps per run (``training_overhead.py``)."""
 
 
 def timed(method: Callable, times: list[float]) -> Callable:
@@ -49,20 +59,28 @@ def timed(method: Callable, times: list[float]) -> Callable:
 def main() -> None:
     """Trains once with the timers in place and prints what they measured."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=12_288)
+    parser.add_argument("--agent", choices=sorted(AGENTS), default="ESAPPO")
+    parser.add_argument("--steps", type=int, help="default: the bench's for the agent")
     parser.add_argument("--n-envs", type=int, default=1)
     args = parser.parse_args()
+    steps = args.steps or STEPS[args.agent]
     th.set_num_threads(1)
     os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
     times: dict[str, list[float]] = defaultdict(list)
     for cls, name in TIMED:
         setattr(cls, name, timed(getattr(cls, name), times[name]))
     env = make_vec_env("InvertedPendulum-v5", n_envs=args.n_envs, seed=0)
-    model = ESAPPO(
-        "MlpPolicy", env, esa_engine="sidecar", esa_spawn={"transport": "native"}, seed=0
+    off_policy = {} if args.agent == "ESAPPO" else {"learning_starts": 800}
+    model = AGENTS[args.agent](
+        "MlpPolicy",
+        env,
+        esa_engine="sidecar",
+        esa_spawn={"transport": "native"},
+        seed=0,
+        **off_policy,
     )
     start = time.perf_counter()
-    model.learn(args.steps)
+    model.learn(steps)
     print(f"learn() {time.perf_counter() - start:.2f} s")
     for name, seconds in times.items():
         us = np.array(seconds) * 1e6

@@ -24,7 +24,8 @@ engine).
 To tell the service's share from the algorithm's, the ESA agents' time is also split
 by wrapping methods with timers: the round trips (``SessionBatch.probe_applied``, which
 carries the deferred report too, and ``.flush``; ESAPPO's in-process step is one
-``InProcessBatch.step_linear`` call: probe, critic and report), the whole ESA step
+``InProcessBatch.step_linear`` call: probe, critic and report; a step sent ahead through the
+native client is its send and the reading of its answer a step later), the whole ESA step
 (``EsaRuntime.step``: round trips plus critic evaluations) and ESAPPO's advantage-head fit and gate.
 
 Usage::
@@ -122,9 +123,11 @@ TIMED = [
     (SessionBatch, "probe_applied", "round_trips"),
     (SessionBatch, "flush", "round_trips"),
     (InProcessBatch, "step_linear", "round_trips"),
-    # A step sent ahead (a linear critic through the native client's stream): the send, and
-    # reading the answer one step later (mostly arrived by then).
+    # A step sent ahead through the native client's stream (a linear critic, or the critic's
+    # values at probes computed here): the send, and reading the answer one step later
+    # (mostly arrived by then).
     (NativeGrpcStepBatch, "send_step_linear", "round_trips"),
+    (NativeGrpcStepBatch, "send_step", "round_trips"),
     (NativeGrpcStepBatch, "receive_step", "round_trips"),
     (EsaRuntime, "step", "esa_step"),
     (ESAPPO, "_update_esa_head", "critic_fit"),

@@ -191,6 +191,26 @@ class SessionConfig(_message.Message):
     trust_region: float
     def __init__(self, action_dim: _Optional[int] = ..., dt: _Optional[float] = ..., amplitude: _Optional[_Iterable[float]] = ..., frequency: _Optional[_Iterable[float]] = ..., learning_rate: _Optional[_Iterable[float]] = ..., highpass_cutoff: _Optional[float] = ..., disable_highpass: bool = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., shift_limit: _Optional[float] = ..., lr_decay: _Optional[float] = ..., max_episodes: _Optional[int] = ..., normalize_response: bool = ..., response_rms_rate: _Optional[float] = ..., response_clip: _Optional[float] = ..., shift_leak: _Optional[float] = ..., trust_region: _Optional[float] = ...) -> None: ...
 
+class StepBatchRequest(_message.Message):
+    __slots__ = ["probe", "q_references", "q_values"]
+    PROBE_FIELD_NUMBER: _ClassVar[int]
+    Q_REFERENCES_FIELD_NUMBER: _ClassVar[int]
+    Q_VALUES_FIELD_NUMBER: _ClassVar[int]
+    probe: ProbeBatchRequest
+    q_references: _containers.RepeatedScalarFieldContainer[float]
+    q_values: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, probe: _Optional[_Union[ProbeBatchRequest, _Mapping]] = ..., q_values: _Optional[_Iterable[float]] = ..., q_references: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class StepBatchResponse(_message.Message):
+    __slots__ = ["actions", "probes", "shifts"]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    PROBES_FIELD_NUMBER: _ClassVar[int]
+    SHIFTS_FIELD_NUMBER: _ClassVar[int]
+    actions: _containers.RepeatedScalarFieldContainer[float]
+    probes: _containers.RepeatedScalarFieldContainer[float]
+    shifts: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ..., shifts: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class StepLinearBatchRequest(_message.Message):
     __slots__ = ["critic_gains", "critic_offsets", "paired", "probe"]
     CRITIC_GAINS_FIELD_NUMBER: _ClassVar[int]
@@ -203,37 +223,31 @@ class StepLinearBatchRequest(_message.Message):
     probe: ProbeBatchRequest
     def __init__(self, probe: _Optional[_Union[ProbeBatchRequest, _Mapping]] = ..., critic_gains: _Optional[_Iterable[float]] = ..., critic_offsets: _Optional[_Iterable[float]] = ..., paired: bool = ...) -> None: ...
 
-class StepLinearBatchResponse(_message.Message):
-    __slots__ = ["actions", "probes", "shifts"]
-    ACTIONS_FIELD_NUMBER: _ClassVar[int]
-    PROBES_FIELD_NUMBER: _ClassVar[int]
-    SHIFTS_FIELD_NUMBER: _ClassVar[int]
-    actions: _containers.RepeatedScalarFieldContainer[float]
-    probes: _containers.RepeatedScalarFieldContainer[float]
-    shifts: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ..., shifts: _Optional[_Iterable[float]] = ...) -> None: ...
-
 class StepStreamRequest(_message.Message):
-    __slots__ = ["probe_batch", "report_batch", "step_linear_batch"]
+    __slots__ = ["probe_batch", "report_batch", "step_batch", "step_linear_batch"]
     PROBE_BATCH_FIELD_NUMBER: _ClassVar[int]
     REPORT_BATCH_FIELD_NUMBER: _ClassVar[int]
+    STEP_BATCH_FIELD_NUMBER: _ClassVar[int]
     STEP_LINEAR_BATCH_FIELD_NUMBER: _ClassVar[int]
     probe_batch: ProbeBatchRequest
     report_batch: ReportBatchRequest
+    step_batch: StepBatchRequest
     step_linear_batch: StepLinearBatchRequest
-    def __init__(self, probe_batch: _Optional[_Union[ProbeBatchRequest, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchRequest, _Mapping]] = ..., step_linear_batch: _Optional[_Union[StepLinearBatchRequest, _Mapping]] = ...) -> None: ...
+    def __init__(self, probe_batch: _Optional[_Union[ProbeBatchRequest, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchRequest, _Mapping]] = ..., step_linear_batch: _Optional[_Union[StepLinearBatchRequest, _Mapping]] = ..., step_batch: _Optional[_Union[StepBatchRequest, _Mapping]] = ...) -> None: ...
 
 class StepStreamResponse(_message.Message):
-    __slots__ = ["error", "probe_batch", "report_batch", "step_linear_batch"]
+    __slots__ = ["error", "probe_batch", "report_batch", "step_batch", "step_linear_batch"]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     PROBE_BATCH_FIELD_NUMBER: _ClassVar[int]
     REPORT_BATCH_FIELD_NUMBER: _ClassVar[int]
+    STEP_BATCH_FIELD_NUMBER: _ClassVar[int]
     STEP_LINEAR_BATCH_FIELD_NUMBER: _ClassVar[int]
     error: StreamError
     probe_batch: ProbeBatchResponse
     report_batch: ReportBatchResponse
-    step_linear_batch: StepLinearBatchResponse
-    def __init__(self, probe_batch: _Optional[_Union[ProbeBatchResponse, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchResponse, _Mapping]] = ..., error: _Optional[_Union[StreamError, _Mapping]] = ..., step_linear_batch: _Optional[_Union[StepLinearBatchResponse, _Mapping]] = ...) -> None: ...
+    step_batch: StepBatchResponse
+    step_linear_batch: StepBatchResponse
+    def __init__(self, probe_batch: _Optional[_Union[ProbeBatchResponse, _Mapping]] = ..., report_batch: _Optional[_Union[ReportBatchResponse, _Mapping]] = ..., error: _Optional[_Union[StreamError, _Mapping]] = ..., step_linear_batch: _Optional[_Union[StepBatchResponse, _Mapping]] = ..., step_batch: _Optional[_Union[StepBatchResponse, _Mapping]] = ...) -> None: ...
 
 class StreamError(_message.Message):
     __slots__ = ["code", "item", "message"]
