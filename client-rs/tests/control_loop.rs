@@ -176,3 +176,42 @@ async fn a_pipelined_pair_fails_with_its_report_and_the_stream_stays_in_step() {
     let state = client.get_session(ids[1].clone()).await.unwrap();
     assert_eq!(state.step, 1, "{state:?}");
 }
+
+#[tokio::test]
+async fn whole_steps_answer_with_shifts_and_a_refused_one_changes_nothing() {
+    let Some(server) = server() else { return };
+    let client = Client::connect(&server.address, Options::default())
+        .await
+        .unwrap();
+    let id = client.create_session("", one_dim_config()).await.unwrap();
+    let probe = |step: u64| pb::ProbeBatchRequest {
+        session_ids: vec![id.clone()],
+        steps: vec![step],
+        actions: vec![0.1],
+        episode_starts: vec![step == 0],
+        action_scales: vec![],
+    };
+    let mut stream = client.step_stream().await.unwrap();
+    let linear = stream
+        .step_linear_batch(pb::StepLinearBatchRequest {
+            probe: Some(probe(0)),
+            critic_gains: vec![1.0],
+            critic_offsets: vec![0.0],
+            paired: false,
+        })
+        .await
+        .unwrap();
+    assert_eq!((linear.probes.len(), linear.shifts.len()), (1, 1));
+    let given = |q_values: Vec<f64>| pb::StepBatchRequest {
+        probe: Some(probe(1)),
+        q_values,
+        q_references: vec![],
+    };
+    let err = stream.step_batch(given(vec![f64::NAN])).await.unwrap_err();
+    assert_eq!(err.kind(), Kind::InvalidArgument, "{err}");
+    assert_eq!(err.index(), Some(0), "{err}");
+    let state = client.get_session(id.clone()).await.unwrap();
+    assert_eq!((state.step, state.shift), (1, linear.shifts));
+    let answer = stream.step_batch(given(vec![0.5])).await.unwrap();
+    assert_eq!(answer.shifts, client.get_session(id).await.unwrap().shift);
+}
