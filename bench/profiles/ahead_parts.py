@@ -68,7 +68,8 @@ def main() -> None:
     os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
     times: dict[str, list[float]] = defaultdict(list)
     for cls, name in TIMED:
-        setattr(cls, name, timed(getattr(cls, name), times[name]))
+        key = f"{cls.__name__}.{name}"
+        setattr(cls, name, timed(getattr(cls, name), times[key]))
     env = make_vec_env("InvertedPendulum-v5", n_envs=args.n_envs, seed=0)
     off_policy = {} if args.agent == "ESAPPO" else {"learning_starts": 800}
     model = AGENTS[args.agent](
@@ -83,10 +84,12 @@ def main() -> None:
     model.learn(steps)
     print(f"learn() {time.perf_counter() - start:.2f} s")
     for name, seconds in times.items():
+        if not seconds:
+            continue  # the other agents' calls
         us = np.array(seconds) * 1e6
         p10, p50, p90, p99 = np.percentile(us, [10, 50, 90, 99])
         print(
-            f"{name:>20}: {len(us)} calls, mean {us.mean():.1f} us, p10 {p10:.1f}, "
+            f"{name:>31}: {len(us)} calls, mean {us.mean():.1f} us, p10 {p10:.1f}, "
             f"p50 {p50:.1f}, p90 {p90:.1f}, p99 {p99:.1f}, total {us.sum() / 1e6:.3f} s"
         )
     model.esa_close()
