@@ -4,7 +4,7 @@
 //! report is refused after the probe.
 
 use esa_core::batch::{self, BatchError};
-use esa_core::fused_step::{self, CriticValues, LinearCritic};
+use esa_core::fused_step::{self, CriticValues, LinearCritic, StepCritic};
 use esa_core::{Session, SessionConfig};
 
 fn config() -> SessionConfig {
@@ -30,6 +30,30 @@ fn linear(gains: &[f64], offsets: &[f64], points: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// A valid fused step of every session: `(steps, actions, episode_starts, action_scales)` and the
+/// critic; returns the probes and the applied actions.
+fn step_all(
+    sessions: &mut [Session],
+    (steps, actions, starts, scales): (&[u64], &[f64], &[bool], &[f64]),
+    critic: &impl StepCritic,
+) -> (Vec<f64>, Vec<f64>) {
+    let (mut probes, mut applied) = (Vec::new(), Vec::new());
+    let mut refs: Vec<&mut Session> = sessions.iter_mut().collect();
+    fused_step::step(
+        &mut refs,
+        steps,
+        actions,
+        starts,
+        scales,
+        critic,
+        &mut probes,
+        &mut applied,
+        |_, _| {},
+    )
+    .expect("a valid step");
+    (probes, applied)
+}
+
 #[test]
 fn the_fused_step_is_the_probe_then_the_critics_report() {
     let (mut fused, mut twins, mut given) = (sessions(2), sessions(2), sessions(2));
@@ -51,20 +75,8 @@ fn the_fused_step_is_the_probe_then_the_critics_report() {
             offsets: &offsets,
             paired: t % 2 == 0,
         };
-        let (mut probes, mut applied) = (Vec::new(), Vec::new());
-        let mut refs: Vec<&mut Session> = fused.iter_mut().collect();
-        fused_step::step(
-            &mut refs,
-            &steps,
-            &actions,
-            &starts,
-            &scales,
-            &critic,
-            &mut probes,
-            &mut applied,
-            |_, _| {},
-        )
-        .expect("a valid step");
+        let inputs = (steps.as_slice(), &actions[..], &starts[..], &scales[..]);
+        let (probes, applied) = step_all(&mut fused, inputs, &critic);
 
         let (mut twin_probes, mut twin_applied, mut improved) =
             (Vec::new(), Vec::new(), Vec::new());
@@ -109,20 +121,7 @@ fn the_fused_step_is_the_probe_then_the_critics_report() {
             q_values: &linear(&gains, &offsets, &ahead_probes),
             q_references: &references,
         };
-        let (mut given_probes, mut given_applied) = (Vec::new(), Vec::new());
-        let mut refs: Vec<&mut Session> = given.iter_mut().collect();
-        fused_step::step(
-            &mut refs,
-            &steps,
-            &actions,
-            &starts,
-            &scales,
-            &values,
-            &mut given_probes,
-            &mut given_applied,
-            |_, _| {},
-        )
-        .expect("a valid step");
+        let (given_probes, given_applied) = step_all(&mut given, inputs, &values);
         shifts = given.iter().flat_map(|s| s.shift().to_vec()).collect();
 
         assert_eq!(
