@@ -6,7 +6,7 @@ use numpy::{Element, IntoPyArray, PyArrayDyn, PyArrayMethods, PyUntypedArrayMeth
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyTuple};
 
 /// The values of an array argument: borrowed from a C-contiguous numpy array of the right dtype,
 /// else converted by numpy (which raises for what it cannot convert).
@@ -137,4 +137,18 @@ pub(crate) fn shaped<'py>(
             .map_err(|err| PyValueError::new_err(err.to_string())),
         None => Ok(values.into_pyarray(py).into_any()),
     }
+}
+
+/// Several answers of n items as a tuple of [`shaped`] arrays, e.g. `(probes, applied)`.
+pub(crate) fn shaped_tuple<'py, const K: usize>(
+    py: Python<'py>,
+    answers: [Vec<f64>; K],
+    n: usize,
+    dim: Option<usize>,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let arrays = answers
+        .into_iter()
+        .map(|values| shaped(py, values, n, dim))
+        .collect::<PyResult<Vec<_>>>()?;
+    PyTuple::new(py, arrays)
 }

@@ -17,7 +17,7 @@ use esa_client::blocking::{Client as Remote, StreamThread};
 use esa_client::{Answer, Options, Step, StepStream};
 use esa_proto::v1 as pb;
 
-use crate::arrays::{shaped, Values};
+use crate::arrays::{shaped, shaped_tuple, Values};
 use crate::errors::{status_error, StatusError};
 
 /// The `StatusError` of a failed call: esa-client's code, message and batch item.
@@ -201,7 +201,6 @@ impl GrpcClient {
     }
 }
 
-/// Float values, or none for None (the wire's "all 1" / "no reference").
 /// The batch calls of N sessions of one client.
 #[pyclass(frozen, module = "esa_client._native")]
 pub(crate) struct GrpcBatch {
@@ -339,21 +338,12 @@ impl GrpcBatch {
         let Answer::Probe(response) = answer else {
             return Err(out_of_order(py));
         };
-        self.arrays(py, [response.probes, response.actions])
-    }
-
-    /// Concatenated answers as a tuple of `(N, dim)` arrays.
-    fn arrays<'py, const K: usize>(
-        &self,
-        py: Python<'py>,
-        answers: [Vec<f64>; K],
-    ) -> PyResult<Bound<'py, PyTuple>> {
-        let n = self.session_ids.len();
-        let arrays = answers
-            .into_iter()
-            .map(|values| shaped(py, values, n, Some(self.dim)))
-            .collect::<PyResult<Vec<_>>>()?;
-        PyTuple::new(py, arrays)
+        shaped_tuple(
+            py,
+            [response.probes, response.actions],
+            self.session_ids.len(),
+            Some(self.dim),
+        )
     }
 }
 
@@ -513,7 +503,12 @@ impl GrpcBatch {
         let Answer::Step(response) = answer else {
             return Err(out_of_order(py));
         };
-        self.arrays(py, [response.probes, response.actions, response.shifts])
+        shaped_tuple(
+            py,
+            [response.probes, response.actions, response.shifts],
+            self.session_ids.len(),
+            Some(self.dim),
+        )
     }
 
     /// Ends the batch's StepStream and its stream thread, if open (answers not read are

@@ -15,7 +15,7 @@ use esa_core::SessionConfig;
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
 
-use crate::arrays::{shaped, Values};
+use crate::arrays::{shaped, shaped_tuple, Values};
 use crate::engine;
 use crate::errors::engine_error;
 
@@ -57,9 +57,7 @@ fn probe_tuple(
     output: engine::ProbeOutput,
     n: usize,
 ) -> PyResult<Bound<'_, PyTuple>> {
-    let probes = shaped(py, output.probes, n, output.dim)?;
-    let applied = shaped(py, output.applied, n, output.dim)?;
-    PyTuple::new(py, [probes, applied])
+    shaped_tuple(py, [output.probes, output.applied], n, output.dim)
 }
 
 #[pymethods]

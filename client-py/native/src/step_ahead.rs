@@ -10,7 +10,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
-use crate::arrays::{shaped, Values};
+use crate::arrays::{shaped, shaped_tuple, Values};
 use crate::engine_class::decode_config;
 use crate::errors::engine_error;
 
@@ -94,10 +94,7 @@ impl StepAhead {
             &mut applied,
         )
         .map_err(|err| engine_error(py, err.into()))?;
-        let n = self.sessions.len();
-        let probes = shaped(py, probes, n, Some(self.dim))?;
-        let applied = shaped(py, applied, n, Some(self.dim))?;
-        PyTuple::new(py, [probes, applied])
+        shaped_tuple(py, [probes, applied], self.sessions.len(), Some(self.dim))
     }
 
     fn __len__(&self) -> usize {
