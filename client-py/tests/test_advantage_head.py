@@ -69,6 +69,42 @@ def test_the_step_inputs_are_numpys_units_and_the_critic_bit_for_bit(head):
         np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize("box_dtype", [np.float32, np.float64])
+def test_the_shift_and_the_executed_action_are_numpys_bit_for_bit(head, box_dtype):
+    # ESAPPO's scaling comes from the Box: float32 bounds give float32 half-widths.
+    half_width = HALF_WIDTH.astype(box_dtype)
+    mlp = head.snapshot(CENTER, half_width)
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        sample = rng.normal(size=(4, 2)).astype(np.float32)
+        scaled = (sample.astype(np.float64) - CENTER) / half_width
+        applied = scaled + rng.normal(size=(4, 2)) * 10.0 ** rng.integers(-9, 1)
+        shift = mlp.shift(scaled, applied)
+        # What ESAPPO computed in numpy before.
+        np.testing.assert_array_equal(shift, (applied - scaled) * half_width)
+        executed = mlp.executed(sample, shift)
+        assert executed.dtype == np.float32
+        np.testing.assert_array_equal(executed, (sample.astype(np.float64) + shift).astype(np.float32))
+    # A column view, as torch's may be.
+    wide = np.repeat(sample, 2, axis=1)[:, ::2]
+    np.testing.assert_array_equal(mlp.executed(wide, shift), executed)
+
+
+def test_the_shift_and_the_executed_action_refuse_bad_shapes(head):
+    mlp = head.snapshot(CENTER, HALF_WIDTH)
+    f64, f32 = np.zeros((2, 2)), np.zeros((2, 2), np.float32)
+    with pytest.raises(ValueError, match="applied: expected 2 columns"):
+        mlp.shift(f64, np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="expected scaled and applied with as many rows, got 2 and 3"):
+        mlp.shift(f64, np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="actions: expected 2 columns"):
+        mlp.executed(np.zeros((2, 1), np.float32), f64)
+    with pytest.raises(ValueError, match="expected actions and shift with as many rows"):
+        mlp.executed(f32, np.zeros((1, 2)))
+    with pytest.raises(TypeError):
+        mlp.executed(f64, f64)  # float64 actions: the policy's sample is float32
+
+
 @pytest.mark.parametrize("dtype", [th.float64, th.float32, th.uint8])
 def test_esappo_reads_a_box_observation_as_sb3_preprocesses_it(dtype):
     model = ESAPPO("MlpPolicy", "Pendulum-v1", n_steps=64, seed=0)

@@ -25,6 +25,9 @@ type StepInputs<'py> = (
     Bound<'py, PyArray1<f64>>,
 );
 
+/// The rows of an array, borrowed where contiguous.
+type Rows<'a, T> = Vec<Cow<'a, [T]>>;
+
 /// One linear layer, `weight` row-major (outputs x inputs) as torch stores it.
 struct Layer {
     weight: Vec<f32>,
@@ -61,12 +64,12 @@ fn invalid(message: String) -> PyErr {
     PyValueError::new_err(message)
 }
 
-/// The rows of a `(n, width)` float32 array (borrowed where contiguous), checking the width.
-fn rows<'a>(
-    array: &'a ArrayView2<'_, f32>,
+/// The rows of a `(n, width)` array (borrowed where contiguous), checking the width.
+fn rows<'a, T: Clone>(
+    array: &'a ArrayView2<'_, T>,
     width: usize,
     name: &str,
-) -> PyResult<Vec<Cow<'a, [f32]>>> {
+) -> PyResult<Rows<'a, T>> {
     if array.ncols() != width {
         return Err(invalid(format!(
             "{name}: expected {width} columns, got shape {:?}",
@@ -90,6 +93,42 @@ impl AdvantageMlp {
 
     fn action_dim(&self) -> usize {
         self.center.len()
+    }
+
+    /// `f(x, y, d)` for each pair of values at the same place of `first` and `second` (D per
+    /// row, `d` their column), row-major.
+    fn each_pair<T: Copy, U: Copy, V>(
+        &self,
+        first: &[Cow<'_, [T]>],
+        second: &[Cow<'_, [U]>],
+        f: impl Fn(T, U, usize) -> V,
+    ) -> Vec<V> {
+        let dim = self.action_dim();
+        let mut out = Vec::with_capacity(first.len() * dim);
+        for (x, y) in first.iter().zip(second) {
+            out.extend((0..dim).map(|d| f(x[d], y[d], d)));
+        }
+        out
+    }
+
+    /// The rows of `(n, D)` arrays `first` and `second`, checking that they have n rows each.
+    fn paired_rows<'a, T: Clone, U: Clone>(
+        &self,
+        first: (&'a ArrayView2<'_, T>, &str),
+        second: (&'a ArrayView2<'_, U>, &str),
+    ) -> PyResult<(Rows<'a, T>, Rows<'a, U>)> {
+        let dim = self.action_dim();
+        let (a, b) = (rows(first.0, dim, first.1)?, rows(second.0, dim, second.1)?);
+        if a.len() != b.len() {
+            return Err(invalid(format!(
+                "expected {} and {} with as many rows, got {} and {}",
+                first.1,
+                second.1,
+                a.len(),
+                b.len()
+            )));
+        }
+        Ok((a, b))
     }
 
     /// The step's critic of each row of `each` (`w`), as `critic` returns it, checking that
@@ -281,15 +320,42 @@ impl AdvantageMlp {
             Array1::from(offset).into_pyarray(py),
         ))
     }
+
+    /// The shift of a step's answer in the Box's units: `(applied - scaled) h`, float64 (N, D).
+    fn shift<'py>(
+        &self,
+        py: Python<'py>,
+        scaled: PyReadonlyArray2<'py, f64>,
+        applied: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let (scaled, applied) = (scaled.as_array(), applied.as_array());
+        let (scaled, applied) = self.paired_rows((&scaled, "scaled"), (&applied, "applied"))?;
+        let values = self.each_pair(&scaled, &applied, |x, y, d| (y - x) * self.half_width[d]);
+        matrix(py, values, scaled.len(), self.action_dim())
+    }
+
+    /// The env's actions: the float32 sample plus the float64 shift, cast back to float32.
+    fn executed<'py>(
+        &self,
+        py: Python<'py>,
+        actions: PyReadonlyArray2<'py, f32>,
+        shift: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let (actions, shift) = (actions.as_array(), shift.as_array());
+        let (samples, shifts) = self.paired_rows((&actions, "actions"), (&shift, "shift"))?;
+        // f64 to f32 with `as` rounds to nearest, ties to even: numpy's astype.
+        let values = self.each_pair(&samples, &shifts, |a, s, _| (f64::from(a) + s) as f32);
+        matrix(py, values, samples.len(), self.action_dim())
+    }
 }
 
-/// `values` as a float64 `(n, dim)` array.
-fn matrix(
+/// `values` as an `(n, dim)` array.
+fn matrix<T: numpy::Element>(
     py: Python<'_>,
-    values: Vec<f64>,
+    values: Vec<T>,
     n: usize,
     dim: usize,
-) -> PyResult<Bound<'_, PyArray2<f64>>> {
+) -> PyResult<Bound<'_, PyArray2<T>>> {
     Array2::from_shape_vec((n, dim), values)
         .map(|array| array.into_pyarray(py))
         .map_err(|err| invalid(err.to_string()))

@@ -318,6 +318,29 @@ class AdvantageMlp:
             ValueError: If a shape does not match the head's (F, D) or the row count.
         """
 
+    def shift(
+        self, scaled: npt.NDArray[np.float64], applied: npt.NDArray[np.float64]
+    ) -> npt.NDArray[np.float64]:
+        """A step's shift in the Box's units, ``(applied - scaled) h``: float64 ``(N, D)``.
+
+        ``scaled`` is :meth:`step_inputs`' sample in ESA units and ``applied`` the step's
+        answer there; numpy's float64 operations, so the same bits.
+
+        Raises:
+            ValueError: If either is not ``(N, D)`` with the same N.
+        """
+
+    def executed(
+        self, actions: npt.NDArray[np.float32], shift: npt.NDArray[np.float64]
+    ) -> npt.NDArray[np.float32]:
+        """The env's actions: float32 ``actions`` plus a float64 ``shift``, cast to float32.
+
+        The same bits as ``(actions.astype(np.float64) + shift).astype(np.float32)``.
+
+        Raises:
+            ValueError: If either is not ``(N, D)`` with the same N.
+        """
+
 class StatusError(Exception):
     """A failed call of :class:`GrpcClient`: the server's status, or the connection's.
 

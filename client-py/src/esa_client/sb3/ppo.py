@@ -296,25 +296,25 @@ class ESAPPO(EsaMixin, PPO):
                     t.cpu().numpy().reshape(n, -1)
                     for t in (actions, gaussian.mean, gaussian.stddev)
                 )
-                sampled = sample.astype(np.float64)
+                mlp = self._esa_mlp()
                 if self.esa_shift == "gradient":
                     shift = self._gradient_shift(self._esa_weights(obs)) * std
                 else:
                     head_in = self._step_features(obs)
-                    scaled, gain, offset = self._esa_mlp().step_inputs(head_in, sample, mean, std)
-                    half_width = self._esa_scaling()[1]
+                    scaled, gain, offset = mlp.step_inputs(head_in, sample, mean, std)
                     applied = self._esa_runtime().step(
                         scaled,
                         np.asarray(self._last_episode_starts, dtype=bool),
                         LinearCritic(gain, offset),
-                        std / half_width,
+                        std / self._esa_scaling()[1],
                     )
                     # The shift in raw units: exactly 0 when v = 0.
-                    shift = (applied - scaled) * half_width
+                    shift = mlp.shift(scaled, applied)
                 if self.esa_mode == "target":
                     self._esa_targets.append(shift / std)
                 else:
-                    executed = (sampled + shift).astype(sample.dtype)
+                    # a + shift in float64, cast back to the policy's float32 (one call).
+                    executed = mlp.executed(sample, shift)
                     actions = th.from_numpy(executed).to(actions.device)
             elif self.esa_mode == "target" and not deterministic:
                 self._esa_targets.append(np.zeros((n, int(np.prod(self._esa_box().shape)))))
