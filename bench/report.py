@@ -304,7 +304,7 @@ def targets(
             Target(
                 f"{row['esa']} / {row['plain']} wall-clock ({row['steps']} steps, {envs} env(s))",
                 f"<= {limit}",
-                f"{row['ratio_median']:.2f}",
+                f"{row['ratio_median']:.3f}",
                 row["ratio_median"] <= limit,
             )
         )

@@ -84,7 +84,8 @@ def test_the_shift_and_the_executed_action_are_numpys_bit_for_bit(head, box_dtyp
         np.testing.assert_array_equal(shift, (applied - scaled) * half_width)
         executed = mlp.executed(sample, shift)
         assert executed.dtype == np.float32
-        np.testing.assert_array_equal(executed, (sample.astype(np.float64) + shift).astype(np.float32))
+        want = (sample.astype(np.float64) + shift).astype(np.float32)
+        np.testing.assert_array_equal(executed, want)
     # A column view, as torch's may be.
     wide = np.repeat(sample, 2, axis=1)[:, ::2]
     np.testing.assert_array_equal(mlp.executed(wide, shift), executed)
@@ -95,7 +96,7 @@ def test_the_shift_and_the_executed_action_refuse_bad_shapes(head):
     f64, f32 = np.zeros((2, 2)), np.zeros((2, 2), np.float32)
     with pytest.raises(ValueError, match="applied: expected 2 columns"):
         mlp.shift(f64, np.zeros((2, 3)))
-    with pytest.raises(ValueError, match="expected scaled and applied with as many rows, got 2 and 3"):
+    with pytest.raises(ValueError, match="scaled and applied with as many rows, got 2 and 3"):
         mlp.shift(f64, np.zeros((3, 2)))
     with pytest.raises(ValueError, match="actions: expected 2 columns"):
         mlp.executed(np.zeros((2, 1), np.float32), f64)
