@@ -111,24 +111,33 @@ impl AdvantageMlp {
         out
     }
 
-    /// The rows of `(n, D)` arrays `first` and `second`, checking that they have n rows each.
-    fn paired_rows<'a, T: Clone, U: Clone>(
+    /// `f(x, y, d)` of the `(N, D)` arrays `first` and `second` (named in the errors), value by
+    /// value, as an `(N, D)` array.
+    fn elementwise<'py, T, U, V>(
         &self,
-        first: (&'a ArrayView2<'_, T>, &str),
-        second: (&'a ArrayView2<'_, U>, &str),
-    ) -> PyResult<(Rows<'a, T>, Rows<'a, U>)> {
+        py: Python<'py>,
+        first: (&PyReadonlyArray2<'py, T>, &str),
+        second: (&PyReadonlyArray2<'py, U>, &str),
+        f: impl Fn(T, U, usize) -> V,
+    ) -> PyResult<Bound<'py, PyArray2<V>>>
+    where
+        T: numpy::Element + Copy,
+        U: numpy::Element + Copy,
+        V: numpy::Element,
+    {
         let dim = self.action_dim();
-        let (a, b) = (rows(first.0, dim, first.1)?, rows(second.0, dim, second.1)?);
-        if a.len() != b.len() {
+        let (x, y) = (first.0.as_array(), second.0.as_array());
+        let (x, y) = (rows(&x, dim, first.1)?, rows(&y, dim, second.1)?);
+        if x.len() != y.len() {
             return Err(invalid(format!(
                 "expected {} and {} with as many rows, got {} and {}",
                 first.1,
                 second.1,
-                a.len(),
-                b.len()
+                x.len(),
+                y.len()
             )));
         }
-        Ok((a, b))
+        matrix(py, self.each_pair(&x, &y, f), x.len(), dim)
     }
 
     /// The step's critic of each row of `each` (`w`), as `critic` returns it, checking that
@@ -328,10 +337,9 @@ impl AdvantageMlp {
         scaled: PyReadonlyArray2<'py, f64>,
         applied: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let (scaled, applied) = (scaled.as_array(), applied.as_array());
-        let (scaled, applied) = self.paired_rows((&scaled, "scaled"), (&applied, "applied"))?;
-        let values = self.each_pair(&scaled, &applied, |x, y, d| (y - x) * self.half_width[d]);
-        matrix(py, values, scaled.len(), self.action_dim())
+        self.elementwise(py, (&scaled, "scaled"), (&applied, "applied"), |x, y, d| {
+            (y - x) * self.half_width[d]
+        })
     }
 
     /// The env's actions: the float32 sample plus the float64 shift, cast back to float32.
@@ -341,11 +349,10 @@ impl AdvantageMlp {
         actions: PyReadonlyArray2<'py, f32>,
         shift: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
-        let (actions, shift) = (actions.as_array(), shift.as_array());
-        let (samples, shifts) = self.paired_rows((&actions, "actions"), (&shift, "shift"))?;
         // f64 to f32 with `as` rounds to nearest, ties to even: numpy's astype.
-        let values = self.each_pair(&samples, &shifts, |a, s, _| (f64::from(a) + s) as f32);
-        matrix(py, values, samples.len(), self.action_dim())
+        self.elementwise(py, (&actions, "actions"), (&shift, "shift"), |a, s, _| {
+            (f64::from(a) + s) as f32
+        })
     }
 }
 
