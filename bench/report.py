@@ -574,6 +574,14 @@ def throughput_ab_section(ab: dict) -> list[str]:
     ]
 
 
+def warmup_words(args: dict) -> str:
+    """How a training run warmed up, for its description (runs before the option: none)."""
+    runs = args.get("warmup_runs", 0)
+    if not runs:
+        return ", no warm-up run"
+    return f", after {runs} short untimed run(s) of every agent"
+
+
 def training_section(training: dict) -> list[str]:
     """Markdown for the training-overhead results."""
     args = training["args"]
@@ -594,7 +602,8 @@ def training_section(training: dict) -> list[str]:
         "server through the Rust client of `esa_client._native` (a spawned server's default "
         "client: its own StepStream, one pipelined round trip per step). "
         f"PPO rollouts of `n_steps={args['ppo_n_steps']}` per env. Wall-clock "
-        f"of `learn()`, {args['repeats']} alternating repeats; ratio = median of the "
+        f"of `learn()`, {args['repeats']} alternating repeats{warmup_words(args)}; "
+        "ratio = median of the "
         "per-repeat ratios, with a 95 % percentile-bootstrap interval of that median in "
         "brackets (10,000 resamples of the pairs; 3 pairs or more). The verdict is the "
         "median's.",
@@ -604,6 +613,7 @@ def training_section(training: dict) -> list[str]:
         lines += [
             f"Re-measured later ({again['why']})"
             + (f" on {again['host']}" if "host" in again else "")
+            + warmup_words(again["args"])
             + ", with their baselines re-timed beside them: "
             + ", ".join(f"`{name}`" for name in again["rows"])
             + ".",

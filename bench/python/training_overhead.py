@@ -11,7 +11,8 @@ through the Rust client of ``esa_client._native``, the drop-ins' default for a s
 server). Only ``learn()`` is timed;
 for the ESA agents that includes opening the engine or spawning the server, the round
 trips, the critic evaluations and ESAPPO's advantage head.
-The pairs run alternately ``repeats`` times so background load hits both alike.
+The pairs run alternately ``repeats`` times so background load hits both alike, after
+``warmup_runs`` short untimed runs of every agent.
 
 The ESA agents run each family's shipped default (``EsaConfig()`` for ESAPPO,
 ``EsaConfig.off_policy()`` for ESASAC and ESATD3) and, to price ESA when it is on at every
@@ -110,6 +111,10 @@ class Args:
     sac_steps: int = 8_000
     sac_learning_starts: int = 800
     repeats: int = 2
+    warmup_runs: int = 1
+    """Short untimed runs of every agent first: a process's first training pays one-time
+    costs (torch's first kernels, MuJoCo's model, the server binary read from disk) that
+    would otherwise fall on the first timed run, PPO's, and favour the ESA agent."""
     agents: str = ",".join(AGENTS)
     engines: str = "inprocess,sidecar,sidecar-native"
     seed: int = 0
@@ -117,6 +122,9 @@ class Args:
     remeasure_why: str = ""
     """Non-empty: a partial re-measurement; replace only these rows in ``out`` and say why."""
 
+
+WARMUP_GRADIENT_STEPS = 200
+"""SAC's and TD3's gradient steps in a warm-up run, after ``sac_learning_starts``."""
 
 # (class, method, bucket): where the ESA agents' extra time goes.
 TIMED = [
@@ -238,6 +246,16 @@ def main() -> None:
     for n_envs in (int(n) for n in args.n_envs.split(",")):
         seconds: dict[str, list[float]] = {name: [] for name, _, _ in runs}
         buckets: dict[str, list[dict[str, float]]] = {name: [] for name, _, _ in runs}
+        # One rollout and update for PPO, a few gradient steps for SAC and TD3.
+        short = dataclasses.replace(
+            args,
+            ppo_steps=args.ppo_n_steps * n_envs,
+            sac_steps=args.sac_learning_starts + WARMUP_GRADIENT_STEPS,
+        )
+        for _ in range(args.warmup_runs):
+            for name, agent, engine in runs:
+                wall, _ = train_seconds(agent, n_envs, short, engine)
+                print(f"{n_envs} env(s) {name:<26} {wall:7.2f} s  (warm-up, untimed)", flush=True)
         for _ in range(args.repeats):
             for name, agent, engine in runs:
                 wall, split = train_seconds(agent, n_envs, args, engine)
