@@ -29,6 +29,7 @@ import torch as th
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESATD3, EsaConfig
 from esa_client.sb3.off_policy import OffPolicyEsaMixin
+from run_one import ENGINES
 from stable_baselines3 import TD3
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -40,10 +41,6 @@ TIMED = [
     (EsaRuntime, "step", "esa_step"),
     (OffPolicyEsaMixin, "_probe_q", "critic_forward"),
 ]
-ENGINES = {
-    "inprocess": {"esa_engine": "inprocess"},
-    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"transport": "native"}},
-}
 
 
 def timed(method: Callable, key: str, seconds: dict, calls: dict) -> Callable:
@@ -64,7 +61,7 @@ def main() -> None:
     """Trains once with the timers in place and prints what they measured."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--agent", choices=["TD3", "ESATD3"], default="ESATD3")
-    parser.add_argument("--engine", choices=sorted(ENGINES), default="inprocess")
+    parser.add_argument("--engine", choices=["inprocess", "sidecar-native"], default="inprocess")
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--esa-learning-rate", type=float, help="default: the shipped config's")

@@ -25,9 +25,6 @@ type StepInputs<'py> = (
     Bound<'py, PyArray1<f64>>,
 );
 
-/// The rows of an array, borrowed where contiguous.
-type Rows<'a, T> = Vec<Cow<'a, [T]>>;
-
 /// One linear layer, `weight` row-major (outputs x inputs) as torch stores it.
 struct Layer {
     weight: Vec<f32>,
@@ -69,7 +66,7 @@ fn rows<'a, T: Clone>(
     array: &'a ArrayView2<'_, T>,
     width: usize,
     name: &str,
-) -> PyResult<Rows<'a, T>> {
+) -> PyResult<Vec<Cow<'a, [T]>>> {
     if array.ncols() != width {
         return Err(invalid(format!(
             "{name}: expected {width} columns, got shape {:?}",
@@ -93,22 +90,6 @@ impl AdvantageMlp {
 
     fn action_dim(&self) -> usize {
         self.center.len()
-    }
-
-    /// `f(x, y, d)` for each pair of values at the same place of `first` and `second` (D per
-    /// row, `d` their column), row-major.
-    fn each_pair<T: Copy, U: Copy, V>(
-        &self,
-        first: &[Cow<'_, [T]>],
-        second: &[Cow<'_, [U]>],
-        f: impl Fn(T, U, usize) -> V,
-    ) -> Vec<V> {
-        let dim = self.action_dim();
-        let mut out = Vec::with_capacity(first.len() * dim);
-        for (x, y) in first.iter().zip(second) {
-            out.extend((0..dim).map(|d| f(x[d], y[d], d)));
-        }
-        out
     }
 
     /// `f(x, y, d)` of the `(N, D)` arrays `first` and `second` (named in the errors), value by
@@ -137,7 +118,11 @@ impl AdvantageMlp {
                 y.len()
             )));
         }
-        matrix(py, self.each_pair(&x, &y, f), x.len(), dim)
+        let mut values = Vec::with_capacity(x.len() * dim);
+        for (row_x, row_y) in x.iter().zip(&y) {
+            values.extend((0..dim).map(|d| f(row_x[d], row_y[d], d)));
+        }
+        matrix(py, values, x.len(), dim)
     }
 
     /// The step's critic of each row of `each` (`w`), as `critic` returns it, checking that
