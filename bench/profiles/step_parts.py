@@ -5,9 +5,10 @@ their own (the env and PPO's update evict them from the caches between steps), s
 times them where they run: PPO, ESAPPO with its gate never open (``EsaConfig(gate=1.0)``:
 the head is fitted and gated every rollout, no ESA step) and the shipped ESAPPO, alternating,
 ``--repeats`` times. Timers wrap SB3's ``collect_rollouts`` and ``train``, the policy's
-forward pass (the ESA hook in ESAPPO), ``ESAPPO._step_features`` and
-``AdvantageMlp.step_inputs`` (the head's input, and its forward with the step's critic and
-ESA units), ``EsaRuntime.step`` (probe and report: one engine call in-process) and ``fit``.
+forward pass (the ESA hook in ESAPPO), ``ESAPPO._step_features`` (the head's input),
+``EsaRuntime.step_head`` (the whole ESA step: one native call in-process; elsewhere the
+head's step inputs, ``EsaRuntime.step``'s probe and report, also timed, and the executed
+action) and ``fit``.
 
 Settings as ``run_one.py``: InvertedPendulum-v5, 1 env, SB3's default PPO, 12,288 steps,
 torch on one thread, the in-process engine (``--engine sidecar-native`` for the sidecar).
@@ -29,7 +30,6 @@ from typing import Any
 
 import numpy as np
 import torch as th
-from esa_client._native import AdvantageMlp
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, EsaConfig
 from esa_client.sb3 import ppo as esappo_module
@@ -40,6 +40,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 
 SECONDS: dict[str, float] = defaultdict(float)
+STEP_HEAD = "the ESA step (EsaRuntime.step_head)"
 
 
 def timed(label: str, function: Callable[..., Any]) -> Callable[..., Any]:
@@ -56,26 +57,6 @@ def timed(label: str, function: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-class TimedMlp:
-    """The head's Rust copy, its step call timed (a native method cannot be wrapped in place)."""
-
-    def __init__(self, mlp: AdvantageMlp) -> None:
-        """Wraps ``mlp``."""
-        self._step_inputs = timed(STEP_INPUTS, mlp.step_inputs)
-        self._mlp = mlp
-
-    def step_inputs(self, *args: Any) -> Any:
-        """``mlp.step_inputs``, timed."""
-        return self._step_inputs(*args)
-
-    def __getattr__(self, name: str) -> Any:
-        """Everything else of ``mlp``."""
-        return getattr(self._mlp, name)
-
-
-STEP_INPUTS = "head forward, critic and ESA units (AdvantageMlp.step_inputs)"
-
-
 @contextlib.contextmanager
 def timers() -> Iterator[None]:
     """Wraps the methods named in the module doc for the block."""
@@ -84,7 +65,8 @@ def timers() -> Iterator[None]:
         (PPO, "train", "PPO train"),
         (ESAPPO, "train", "ESAPPO train (PPO's + the head's fit and gate)"),
         (ESAPPO, "_step_features", "head features (_step_features)"),
-        (EsaRuntime, "step", "probe + report (EsaRuntime.step)"),
+        (EsaRuntime, "step_head", STEP_HEAD),
+        (EsaRuntime, "step", "  of which probe + report, where not fused (EsaRuntime.step)"),
         (SessionBatch, "probe_applied", "  of which the sidecar's round trip (probe_applied)"),
     ]
     originals = [(cls, name, getattr(cls, name)) for cls, name, _ in patched]
@@ -93,12 +75,6 @@ def timers() -> Iterator[None]:
         setattr(cls, name, timed(label, getattr(cls, name)))
     esappo_module.fit = timed("head fit", fit)
     forward = ESAPPO._esa_forward
-    esa_mlp = ESAPPO._esa_mlp
-
-    def timed_mlp(self: ESAPPO) -> TimedMlp:
-        return TimedMlp(esa_mlp(self))
-
-    ESAPPO._esa_mlp = timed_mlp  # type: ignore[method-assign,assignment]
 
     @contextlib.contextmanager
     def timed_hook(self: ESAPPO) -> Iterator[None]:
@@ -115,7 +91,6 @@ def timers() -> Iterator[None]:
             setattr(cls, name, original)
         esappo_module.fit = fit
         ESAPPO._esa_forward = forward  # type: ignore[method-assign]
-        ESAPPO._esa_mlp = esa_mlp  # type: ignore[method-assign]
 
 
 def run(agent: str, engine: str, steps: int) -> tuple[float, dict[str, float], int]:
@@ -180,11 +155,7 @@ def main() -> None:
         ratio = np.median([r[0] for r in results[agent]]) / plain
         print(f"\n{agent} / PPO: {ratio:.3f}", end="")
     print(f"\n\nESAPPO's ESA steps (rollouts with the gate open): {active}")
-    per_step_labels = (
-        "head features (_step_features)",
-        STEP_INPUTS,
-        "probe + report (EsaRuntime.step)",
-    )
+    per_step_labels = ("head features (_step_features)", STEP_HEAD)
     per_step = {
         label: np.median([r[1].get(label, 0.0) for r in results["ESAPPO"]]) / max(active, 1) * 1e6
         for label in per_step_labels

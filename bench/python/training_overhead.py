@@ -25,9 +25,11 @@ engine).
 To tell the service's share from the algorithm's, the ESA agents' time is also split
 by wrapping methods with timers: the round trips (``SessionBatch.probe_applied``, which
 carries the deferred report too, and ``.flush``; ESAPPO's in-process step is one
-``InProcessBatch.step_linear`` call: probe, critic and report; a step sent ahead through the
-native client is its send and the reading of its answer a step later), the whole ESA step
-(``EsaRuntime.step``: round trips plus critic evaluations) and ESAPPO's advantage-head fit and gate.
+``InProcessBatch.step_head`` call: the head's inputs, probe, critic, report, statistics and
+executed action; a step sent ahead through the native client is its send and the reading of
+its answer a step later), the whole ESA step (``EsaRuntime.step``, ESAPPO's
+``EsaRuntime.step_head``: round trips plus critic evaluations) and ESAPPO's advantage-head
+fit and gate.
 
 Usage::
 
@@ -131,6 +133,9 @@ TIMED = [
     (SessionBatch, "probe_applied", "round_trips"),
     (SessionBatch, "flush", "round_trips"),
     (InProcessBatch, "step_linear", "round_trips"),
+    # ESAPPO's in-process step: the head's inputs, probe, critic, report, the statistics and
+    # the executed action in one engine call.
+    (InProcessBatch, "step_head", "round_trips"),
     # A step sent ahead through the native client's stream (a linear critic, or the critic's
     # values at probes computed here): the send, and reading the answer one step later
     # (mostly arrived by then).
@@ -138,6 +143,8 @@ TIMED = [
     (NativeGrpcStepBatch, "send_step", "round_trips"),
     (NativeGrpcStepBatch, "receive_step", "round_trips"),
     (EsaRuntime, "step", "esa_step"),
+    # ESAPPO's ESA step (EsaRuntime.step inside it, on other engines, counts once).
+    (EsaRuntime, "step_head", "esa_step"),
     (ESAPPO, "_update_esa_head", "critic_fit"),
 ]
 
@@ -153,14 +160,19 @@ ENGINES = {
 def timed_methods() -> Iterator[dict[str, float]]:
     """Wraps the ``TIMED`` methods with timers; yields the seconds per bucket."""
     seconds: dict[str, float] = defaultdict(float)
+    # Timed calls running per bucket: a call inside another of its bucket is counted once.
+    running: dict[str, int] = defaultdict(int)
 
     def wrap(method: Callable, bucket: str) -> Callable:
         def timed(*args, **kwargs):
             start = time.perf_counter()
+            running[bucket] += 1
             try:
                 return method(*args, **kwargs)
             finally:
-                seconds[bucket] += time.perf_counter() - start
+                running[bucket] -= 1
+                if not running[bucket]:
+                    seconds[bucket] += time.perf_counter() - start
 
         return timed
 

@@ -56,17 +56,37 @@ def test_the_step_inputs_are_numpys_units_and_the_critic_bit_for_bit(head):
     sample, mean = rng.normal(size=(2, 4, 2)).astype(np.float32)
     std = rng.uniform(0.1, 1.0, size=(4, 2)).astype(np.float32)
     mlp = head.snapshot(CENTER, HALF_WIDTH)
-    scaled, gain, offset = mlp.step_inputs(features, sample, mean, std)
+    scaled, gain, offset, units = mlp.step_inputs(features, sample, mean, std)
     # What ESAPPO computed in numpy before: the same float64 operations, so the same bits.
     np.testing.assert_array_equal(scaled, (sample.astype(np.float64) - CENTER) / HALF_WIDTH)
     want_gain, want_offset = mlp.critic(features, mean, std)
     np.testing.assert_array_equal(gain, want_gain)
     np.testing.assert_array_equal(offset, want_offset)
+    np.testing.assert_array_equal(units, std / HALF_WIDTH)
     # Columns of one (N, 3 D) array, as torch's views may be.
     packed = np.concatenate([sample, mean, std], axis=1)
     views = (packed[:, :2], packed[:, 2:4], packed[:, 4:])
-    for got, want in zip(mlp.step_inputs(features, *views), (scaled, gain, offset), strict=True):
-        np.testing.assert_array_equal(got, want)
+    want = (scaled, gain, offset, units)
+    for got, expected in zip(mlp.step_inputs(features, *views), want, strict=True):
+        np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("box_dtype", [np.float16, np.float32, np.float64])
+def test_the_std_in_esa_units_is_numpys_for_the_boxs_dtype(head, box_dtype):
+    # ESAPPO divided the float32 std by the Box's half-width in numpy (in float32 for a
+    # float32 or float16 Box), then the runtime floored it at float32's smallest normal.
+    half_width = np.array([3.0, 0.1], dtype=box_dtype)
+    mlp = head.snapshot(CENTER, half_width)
+    rng = np.random.default_rng(4)
+    std = (rng.uniform(0.0, 2.0, size=(64, 2)) * 10.0 ** rng.integers(-45, 3, (64, 2))).astype(
+        np.float32
+    )
+    std[:3] = [[0.0, -0.0], [np.nan, np.inf], [1e-45, 1e-38]]
+    zeros = np.zeros((64, 2), np.float32)
+    got = mlp.step_inputs(np.zeros((64, 5), np.float32), zeros, zeros, std)[3]
+    want = np.maximum(std / half_width, float(np.finfo(np.float32).tiny)).astype(np.float64)
+    assert got.dtype == np.float64
+    np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.parametrize("box_dtype", [np.float32, np.float64])
@@ -112,8 +132,11 @@ def test_esappo_reads_a_box_observation_as_sb3_preprocesses_it(dtype):
     obs = (th.rand(5, 3, dtype=th.float64) * 200).to(dtype)
     want = model._head_features(obs).numpy()
     got = model._step_features(obs)
-    assert got.dtype == np.float32
-    np.testing.assert_array_equal(got, want)
+    # float64 goes to the Rust copy as it is; the copy rounds it as torch's float() does.
+    assert got.dtype == (np.float64 if dtype == th.float64 else np.float32)
+    np.testing.assert_array_equal(got.astype(np.float32), want)
+    mlp = model._esa_mlp()
+    np.testing.assert_array_equal(mlp.weights(got), mlp.weights(want))
 
 
 def test_the_step_inputs_refuse_bad_shapes(head):

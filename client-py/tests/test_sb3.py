@@ -22,7 +22,6 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
 
 from esa_client import EsaClient, EsaConfig, SessionBatch
-from esa_client.common import runtime
 from esa_client.common.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
 from esa_client.transports.in_process import InProcessTransport
@@ -105,38 +104,6 @@ ESA_STATS = (
     "esa/kl_per_dim",
     "esa/clipped_fraction",
 )
-
-
-def test_statistics_are_per_step_means_whatever_the_batching():
-    """Steps are held and their statistics computed together; the means are the per-step ones."""
-    rng = np.random.default_rng(0)
-    clip = (np.full((1, 2), -1.0), np.full((1, 2), 1.0))
-    # More than one fold, then a change of env count (which folds early).
-    steps = [
-        (rng.normal(size=(n, 2)), rng.normal(size=(n, 2)), rng.uniform(0.5, 1.0, size=(n, 2)))
-        for n in [3] * (runtime._FOLD_EVERY + 44) + [5] * 10
-    ]
-    stats = runtime._Stats()
-    for sampled, applied, std in steps:
-        stats.add_step(sampled, applied, std, clip)
-    # The caller's arrays may be reused after the step.
-    for arrays in steps[-20:]:
-        for array in arrays:
-            array.fill(0.0)
-    got = stats.means()
-    # Recomputed from the reused steps' original values.
-    rng = np.random.default_rng(0)
-    steps = [
-        (rng.normal(size=s.shape), rng.normal(size=s.shape), rng.uniform(0.5, 1.0, size=s.shape))
-        for s, _, _ in steps
-    ]
-    want = {
-        "mean_abs_shift": np.mean([np.abs(a - s).mean() for s, a, _ in steps]),
-        "clipped_fraction": np.mean([np.any(np.abs(a) > 1, axis=1).mean() for _, a, _ in steps]),
-        "shift_over_std": np.mean([np.abs((a - s) / d).mean() for s, a, d in steps]),
-        "kl_per_dim": np.mean([(0.5 * ((a - s) / d) ** 2).mean() for s, a, d in steps]),
-    }
-    assert got == pytest.approx(want, rel=1e-12)
 
 
 def test_esasac_pendulum(client, esa_calls, tmp_path):

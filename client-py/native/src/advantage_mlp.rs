@@ -11,19 +11,45 @@
 use std::borrow::Cow;
 
 use numpy::ndarray::{Array1, Array2, ArrayView2};
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
-use pyo3::exceptions::PyValueError;
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
+use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
 /// What `critic` returns: `gain` (N, D) and `offset` (N,).
 type Critic<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<f64>>);
 
-/// What `step_inputs` returns: `scaled` and `gain` (N, D), and `offset` (N,).
+/// What `step_inputs` returns: `scaled` and `gain` (N, D), `offset` (N,) and `units` (N, D).
 type StepInputs<'py> = (
     Bound<'py, PyArray2<f64>>,
     Bound<'py, PyArray2<f64>>,
     Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray2<f64>>,
 );
+
+/// The head's input, float32 or float64 `(N, F)`: float64 observations (MuJoCo's) are rounded
+/// to float32 here, as torch's `float()` rounds them (to nearest, ties to even), without the
+/// separate numpy cast per step.
+enum Features<'py> {
+    Single(PyReadonlyArray2<'py, f32>),
+    Double(PyReadonlyArray2<'py, f64>),
+}
+
+impl<'py> Features<'py> {
+    /// Reads `object` by casts, not by a derived `FromPyObject`: that would build a Python
+    /// exception for each variant it tries first, which costs more than the head's forward.
+    fn read(object: &Bound<'py, PyAny>) -> PyResult<Self> {
+        if let Ok(array) = object.cast::<PyArray2<f32>>() {
+            return Ok(Self::Single(array.try_readonly()?));
+        }
+        if let Ok(array) = object.cast::<PyArray2<f64>>() {
+            return Ok(Self::Double(array.try_readonly()?));
+        }
+        Err(PyTypeError::new_err(format!(
+            "features: expected a float32 or float64 array of 2 dimensions, got {}",
+            object.repr()?
+        )))
+    }
+}
 
 /// One linear layer, `weight` row-major (outputs x inputs) as torch stores it.
 struct Layer {
@@ -55,6 +81,18 @@ pub(crate) struct AdvantageMlp {
     layers: Vec<Layer>,
     center: Vec<f64>,
     half_width: Vec<f64>,
+    /// The std in ESA units divides in float32, as numpy divides a float32 std by the
+    /// half-width of a float32 (or float16) Box; else in float64.
+    single_units: bool,
+}
+
+/// ESAPPO's step inputs, each flat in row order: the sample in ESA units, the critic's gain
+/// (N D values) and offset (N values), and the policy's std in ESA units (N D values).
+pub(crate) struct HeadInputs {
+    pub(crate) scaled: Vec<f64>,
+    pub(crate) gain: Vec<f64>,
+    pub(crate) offset: Vec<f64>,
+    pub(crate) units: Vec<f64>,
 }
 
 fn invalid(message: String) -> PyErr {
@@ -88,8 +126,81 @@ impl AdvantageMlp {
         self.layers[0].inputs
     }
 
-    fn action_dim(&self) -> usize {
+    pub(crate) fn action_dim(&self) -> usize {
         self.center.len()
+    }
+
+    /// A step's inputs from the policy's float32 `(N, D)` sample, mean and std (see
+    /// `step_inputs` and `units`), checking every shape.
+    pub(crate) fn inputs(
+        &self,
+        features: &Bound<'_, PyAny>,
+        actions: &PyReadonlyArray2<'_, f32>,
+        mean: &PyReadonlyArray2<'_, f32>,
+        std: &PyReadonlyArray2<'_, f32>,
+    ) -> PyResult<HeadInputs> {
+        let each = self.each_w(&Features::read(features)?)?;
+        let (n, dim) = (each.len(), self.action_dim());
+        let actions = actions.as_array();
+        let samples = rows(&actions, dim, "actions")?;
+        if samples.len() != n {
+            return Err(invalid(format!(
+                "expected actions with {n} rows (one per features row), got {}",
+                samples.len()
+            )));
+        }
+        let std = std.as_array();
+        let (gain, offset) = self.linear_critic(&each, &mean.as_array(), &std)?;
+        let scaled = samples
+            .iter()
+            .flat_map(|sample| {
+                (0..dim).map(|d| (f64::from(sample[d]) - self.center[d]) / self.half_width[d])
+            })
+            .collect();
+        Ok(HeadInputs {
+            scaled,
+            gain,
+            offset,
+            units: self.units_of(&std)?,
+        })
+    }
+
+    /// `max(std / h, tiny)` of each row of `std`, float64: the std in ESA units, floored at
+    /// float32's smallest normal number (the contract needs sigma > 0); numpy's bits for the
+    /// Box's dtype (`single_units`), NaN kept as `np.maximum` keeps it.
+    fn units_of(&self, std: &ArrayView2<'_, f32>) -> PyResult<Vec<f64>> {
+        let tiny = f32::MIN_POSITIVE;
+        let dim = self.action_dim();
+        Ok(rows(std, dim, "std")?
+            .iter()
+            .flat_map(|row| {
+                (0..dim).map(|d| {
+                    if self.single_units {
+                        // Exact: the half-width is a float32 widened.
+                        let unit = row[d] / self.half_width[d] as f32;
+                        f64::from(if unit < tiny { tiny } else { unit })
+                    } else {
+                        let unit = f64::from(row[d]) / self.half_width[d];
+                        if unit < f64::from(tiny) {
+                            f64::from(tiny)
+                        } else {
+                            unit
+                        }
+                    }
+                })
+            })
+            .collect())
+    }
+
+    /// A step's shift in the Box's units from its sample and answer in ESA units.
+    pub(crate) fn shift_value(&self, scaled: f64, applied: f64, d: usize) -> f64 {
+        (applied - scaled) * self.half_width[d]
+    }
+
+    /// The env's action: the float32 sample plus the float64 shift, cast back to float32.
+    pub(crate) fn executed_value(sample: f32, shift: f64) -> f32 {
+        // f64 to f32 with `as` rounds to nearest, ties to even: numpy's astype.
+        (f64::from(sample) + shift) as f32
     }
 
     /// `f(x, y, d)` of the `(N, D)` arrays `first` and `second` (named in the errors), value by
@@ -158,36 +269,46 @@ impl AdvantageMlp {
     }
 
     /// `w(features)` for each row of `features`, in float32.
-    fn each_w(&self, features: &ArrayView2<'_, f32>) -> PyResult<Vec<Vec<f32>>> {
-        let inputs = rows(features, self.features_dim(), "features")?;
+    fn each_w(&self, features: &Features<'_>) -> PyResult<Vec<Vec<f32>>> {
+        let width = self.features_dim();
         let (mut hidden, mut next) = (Vec::new(), Vec::new());
-        Ok(inputs
-            .into_iter()
-            .map(|input| {
-                hidden.clear();
-                hidden.extend_from_slice(&input);
-                let last = self.layers.len() - 1;
-                for (index, layer) in self.layers.iter().enumerate() {
-                    layer.forward(&hidden, &mut next);
-                    if index < last {
-                        next.iter_mut().for_each(|v| *v = v.tanh());
-                    }
-                    std::mem::swap(&mut hidden, &mut next);
+        let mut w = |input: &mut dyn Iterator<Item = f32>| {
+            hidden.clear();
+            hidden.extend(input);
+            let last = self.layers.len() - 1;
+            for (index, layer) in self.layers.iter().enumerate() {
+                layer.forward(&hidden, &mut next);
+                if index < last {
+                    next.iter_mut().for_each(|v| *v = v.tanh());
                 }
-                hidden.clone()
-            })
-            .collect())
+                std::mem::swap(&mut hidden, &mut next);
+            }
+            hidden.clone()
+        };
+        Ok(match features {
+            Features::Single(array) => rows(&array.as_array(), width, "features")?
+                .iter()
+                .map(|row| w(&mut row.iter().copied()))
+                .collect(),
+            // f64 to f32 with `as` rounds to nearest, ties to even: torch's float().
+            Features::Double(array) => rows(&array.as_array(), width, "features")?
+                .iter()
+                .map(|row| w(&mut row.iter().map(|&v| v as f32)))
+                .collect(),
+        })
     }
 }
 
 #[pymethods]
 impl AdvantageMlp {
     #[new]
+    #[pyo3(signature = (weights, biases, center, half_width, single_units = false))]
     fn new(
         weights: Vec<PyReadonlyArray2<'_, f32>>,
         biases: Vec<PyReadonlyArray1<'_, f32>>,
         center: Vec<f64>,
         half_width: Vec<f64>,
+        single_units: bool,
     ) -> PyResult<Self> {
         if weights.is_empty() || weights.len() != biases.len() {
             return Err(invalid(format!(
@@ -235,6 +356,7 @@ impl AdvantageMlp {
             layers,
             center,
             half_width,
+            single_units,
         })
     }
 
@@ -254,9 +376,9 @@ impl AdvantageMlp {
     fn weights<'py>(
         &self,
         py: Python<'py>,
-        features: PyReadonlyArray2<'py, f32>,
+        features: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let each = self.each_w(&features.as_array())?;
+        let each = self.each_w(&Features::read(features)?)?;
         let (n, dim) = (each.len(), self.action_dim());
         let values = each.into_iter().flatten().map(f64::from).collect();
         matrix(py, values, n, dim)
@@ -266,11 +388,11 @@ impl AdvantageMlp {
     fn critic<'py>(
         &self,
         py: Python<'py>,
-        features: PyReadonlyArray2<'py, f32>,
+        features: &Bound<'py, PyAny>,
         mean: PyReadonlyArray2<'py, f32>,
         std: PyReadonlyArray2<'py, f32>,
     ) -> PyResult<Critic<'py>> {
-        let each = self.each_w(&features.as_array())?;
+        let each = self.each_w(&Features::read(features)?)?;
         let (gain, offset) = self.linear_critic(&each, &mean.as_array(), &std.as_array())?;
         Ok((
             matrix(py, gain, each.len(), self.action_dim())?,
@@ -278,40 +400,27 @@ impl AdvantageMlp {
         ))
     }
 
-    /// ESAPPO's step inputs in one call: the sample in ESA units and the step's critic.
+    /// ESAPPO's step inputs in one call: the sample and std in ESA units, and the step's critic.
     ///
     /// `actions`, `mean` and `std` are the policy's float32 `(N, D)`. Returns `(scaled, gain,
-    /// offset)`: the sample in ESA units `(a - c) / h`, float64 `(N, D)` (numpy's float64
-    /// operations on the widened values, so the same bits), and the critic as `critic` gives it.
+    /// offset, units)`: the sample in ESA units `(a - c) / h`, float64 `(N, D)` (numpy's float64
+    /// operations on the widened values, so the same bits), the critic as `critic` gives it, and
+    /// the std in ESA units floored at float32's smallest normal number, float64 `(N, D)`.
     fn step_inputs<'py>(
         &self,
         py: Python<'py>,
-        features: PyReadonlyArray2<'py, f32>,
+        features: &Bound<'py, PyAny>,
         actions: PyReadonlyArray2<'py, f32>,
         mean: PyReadonlyArray2<'py, f32>,
         std: PyReadonlyArray2<'py, f32>,
     ) -> PyResult<StepInputs<'py>> {
-        let each = self.each_w(&features.as_array())?;
-        let (n, dim) = (each.len(), self.action_dim());
-        let actions = actions.as_array();
-        let samples = rows(&actions, dim, "actions")?;
-        if samples.len() != n {
-            return Err(invalid(format!(
-                "expected actions with {n} rows (one per features row), got {}",
-                samples.len()
-            )));
-        }
-        let (gain, offset) = self.linear_critic(&each, &mean.as_array(), &std.as_array())?;
-        let scaled = samples
-            .iter()
-            .flat_map(|sample| {
-                (0..dim).map(|d| (f64::from(sample[d]) - self.center[d]) / self.half_width[d])
-            })
-            .collect();
+        let inputs = self.inputs(features, &actions, &mean, &std)?;
+        let (n, dim) = (inputs.offset.len(), self.action_dim());
         Ok((
-            matrix(py, scaled, n, dim)?,
-            matrix(py, gain, n, dim)?,
-            Array1::from(offset).into_pyarray(py),
+            matrix(py, inputs.scaled, n, dim)?,
+            matrix(py, inputs.gain, n, dim)?,
+            Array1::from(inputs.offset).into_pyarray(py),
+            matrix(py, inputs.units, n, dim)?,
         ))
     }
 
@@ -323,7 +432,7 @@ impl AdvantageMlp {
         applied: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         self.elementwise(py, (&scaled, "scaled"), (&applied, "applied"), |x, y, d| {
-            (y - x) * self.half_width[d]
+            self.shift_value(x, y, d)
         })
     }
 
@@ -334,15 +443,14 @@ impl AdvantageMlp {
         actions: PyReadonlyArray2<'py, f32>,
         shift: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
-        // f64 to f32 with `as` rounds to nearest, ties to even: numpy's astype.
         self.elementwise(py, (&actions, "actions"), (&shift, "shift"), |a, s, _| {
-            (f64::from(a) + s) as f32
+            Self::executed_value(a, s)
         })
     }
 }
 
 /// `values` as an `(n, dim)` array.
-fn matrix<T: numpy::Element>(
+pub(crate) fn matrix<T: numpy::Element>(
     py: Python<'_>,
     values: Vec<T>,
     n: usize,

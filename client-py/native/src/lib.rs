@@ -13,6 +13,7 @@
 //! - [`advantage_mlp`]: `AdvantageMlp`, ESAPPO's advantage head forward for one rollout step.
 //! - [`step_ahead`]: `StepAhead`, the applied actions and probes of a pipelined step from the
 //!   shifts the previous step's answer carried.
+//! - [`step_stats`]: `StepStats`, the sums behind a learner's per-step ESA statistics.
 //!
 //! The stub `esa_client/_native.pyi` documents the API.
 
@@ -25,6 +26,7 @@ mod engine;
 mod engine_class;
 mod errors;
 mod step_ahead;
+mod step_stats;
 
 use esa_store::Code;
 
@@ -38,6 +40,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<engine_class::BatchHandle>()?;
     m.add_class::<advantage_mlp::AdvantageMlp>()?;
     m.add_class::<step_ahead::StepAhead>()?;
+    m.add_class::<step_stats::StepStats>()?;
     m.add("EngineError", py.get_type::<errors::EngineError>())?;
     m.add_class::<client::GrpcClient>()?;
     m.add_class::<client::GrpcBatch>()?;

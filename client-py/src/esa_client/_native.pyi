@@ -248,6 +248,55 @@ class Engine:
                 length or with a non-finite value.
         """
 
+    def step_head(
+        self,
+        handle: BatchHandle,
+        steps: npt.NDArray[np.int64],
+        next_starts: npt.NDArray[np.bool_],
+        episode_starts: npt.ArrayLike | None,
+        head: AdvantageMlp,
+        features: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+        actions: npt.NDArray[np.float32],
+        mean: npt.NDArray[np.float32],
+        std: npt.NDArray[np.float32],
+        use_policy_std: bool,
+        paired: bool,
+        stats: StepStats,
+        improvement: bool,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float32]]:
+        """ESAPPO's whole step for its advantage head in one call.
+
+        ``head.step_inputs`` (the sample and std in ESA units, the head's linear critic),
+        :meth:`step_linear` of that critic at the sample (the std in ESA units as the action
+        scales when ``use_policy_std``), the batch's step bookkeeping, the step's statistics
+        and the executed actions: the bits of those parts called one by one
+        (``SessionBatch.step_head``).
+
+        Args:
+            handle: The N sessions.
+            steps: The batch's int64[N] next steps, updated in place: a session starting an
+                episode probes step 0; afterwards each holds the probed step + 1.
+            next_starts: The batch's bool[N] pending episode starts, cleared in place.
+            episode_starts: bool[N] episode starts of this step, or None.
+            head: The advantage head's copy.
+            features: Its input, ``(N, F)``.
+            actions: The policy's samples, float32 ``(N, D)``.
+            mean: The policy's mean, float32 ``(N, D)``.
+            std: The policy's standard deviation, float32 ``(N, D)``.
+            use_policy_std: Send the std in ESA units as the action scales.
+            paired: Report the critic at the applied actions as the references.
+            stats: Where the step's statistics are added (the std in ESA units as the scale).
+            improvement: Also add the critic's improvement, ``Q(applied) - Q(sample)``.
+
+        Returns:
+            ``(shift, executed)``: the shift in the Box's units, float64 ``(N, D)``, and the
+            env's actions, float32 ``(N, D)`` (``head.shift`` and ``head.executed``).
+
+        Raises:
+            ValueError: A shape does not match (nothing changed).
+            EngineError: As :meth:`step_linear` (nothing changed).
+        """
+
 class AdvantageMlp:
     """ESAPPO's advantage head ``w(s)``, a tanh MLP, for one rollout step at a time.
 
@@ -261,6 +310,8 @@ class AdvantageMlp:
         biases: Each layer's bias, float32 ``(outputs,)``.
         center: The Box's center per action dimension.
         half_width: Its half-width per dimension, > 0.
+        single_units: Divide the std by the half-width in float32 (a float32 or float16
+            Box, as numpy divides the policy's float32 std there), else in float64.
 
     Raises:
         ValueError: If the shapes do not chain, or the scaling is not finite and positive.
@@ -272,6 +323,7 @@ class AdvantageMlp:
         biases: Sequence[npt.NDArray[np.float32]],
         center: Sequence[float],
         half_width: Sequence[float],
+        single_units: bool = False,
     ) -> None: ...
     @property
     def features_dim(self) -> int:
@@ -281,12 +333,14 @@ class AdvantageMlp:
     def action_dim(self) -> int:
         """D, the last layer's outputs."""
 
-    def weights(self, features: npt.NDArray[np.float32]) -> npt.NDArray[np.float64]:
-        """``w(features)`` for float32 features ``(N, F)``: float64 ``(N, D)``."""
+    def weights(
+        self, features: npt.NDArray[np.float32] | npt.NDArray[np.float64]
+    ) -> npt.NDArray[np.float64]:
+        """``w(features)``: float64 ``(N, D)`` for ``(N, F)`` features read as in step_inputs."""
 
     def critic(
         self,
-        features: npt.NDArray[np.float32],
+        features: npt.NDArray[np.float32] | npt.NDArray[np.float64],
         mean: npt.NDArray[np.float32],
         std: npt.NDArray[np.float32],
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
@@ -302,20 +356,30 @@ class AdvantageMlp:
 
     def step_inputs(
         self,
-        features: npt.NDArray[np.float32],
+        features: npt.NDArray[np.float32] | npt.NDArray[np.float64],
         actions: npt.NDArray[np.float32],
         mean: npt.NDArray[np.float32],
         std: npt.NDArray[np.float32],
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """ESAPPO's step inputs in one call: ``(scaled, gain, offset)``.
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+    ]:
+        """ESAPPO's step inputs in one call: ``(scaled, gain, offset, units)``.
 
         ``scaled`` is the policy's sample ``actions`` in ESA units, ``(a - c) / h`` in float64
-        ``(N, D)`` (the same bits as numpy's float64 arithmetic on the widened values), and
-        ``(gain, offset)`` is :meth:`critic` of ``features``, ``mean`` and ``std``. All float32
-        ``(N, D)`` inputs but ``features`` ``(N, F)``; strided views are read as they are.
+        ``(N, D)`` (the same bits as numpy's float64 arithmetic on the widened values),
+        ``(gain, offset)`` is :meth:`critic` of ``features``, ``mean`` and ``std``, and
+        ``units`` is the std in ESA units, ``max(std / h, tiny)`` with float32's smallest
+        normal ``tiny`` (the contract needs sigma > 0), numpy's bits for the Box's dtype
+        (``single_units``), widened to float64 ``(N, D)``. All float32 ``(N, D)`` inputs but
+        ``features`` ``(N, F)``, float32 or float64 (rounded to float32 as torch's ``float()``
+        rounds); strided views are read as they are.
 
         Raises:
             ValueError: If a shape does not match the head's (F, D) or the row count.
+            TypeError: If ``features`` is not a float32 or float64 array.
         """
 
     def shift(
@@ -340,6 +404,49 @@ class AdvantageMlp:
         Raises:
             ValueError: If either is not ``(N, D)`` with the same N.
         """
+
+class StepStats:
+    """The sums behind a learner's per-step ESA statistics (``esa/...`` in its log).
+
+    Per step, over its N envs: ``mean_abs_shift`` (mean ``|applied - sampled|``),
+    ``clipped_fraction`` (envs with an applied action outside the clip bounds), with a std
+    ``shift_over_std`` (mean ``|z|``, ``z = (applied - sampled) / std``) and ``kl_per_dim``
+    (mean ``z^2 / 2``), and the sampled ``improvement``; :meth:`means` averages each over its
+    steps. Counts (``sessions_restored``, ...) are totals.
+
+    Args:
+        clip_low: The bounds the env clips the actions to, D values, in the actions' units.
+        clip_high: See ``clip_low``.
+
+    Raises:
+        ValueError: If the bounds are empty or of different lengths.
+    """
+
+    def __init__(self, clip_low: Sequence[float], clip_high: Sequence[float]) -> None: ...
+    def add_step(
+        self,
+        sampled: npt.NDArray[np.floating],
+        applied: npt.NDArray[np.floating],
+        scales: npt.NDArray[np.floating] | None = None,
+    ) -> None:
+        """Adds one step: sampled and applied actions ``(N, D)``, the std ``(N, D)`` or None.
+
+        Raises:
+            ValueError: If a shape is not ``(N, D)`` with one N (nothing is added).
+            TypeError: If an argument is not a numpy array.
+        """
+
+    def add_improvement(self, value: float) -> None:
+        """Adds one step's critic improvement, ``Q(applied) - Q(sampled)`` averaged over envs."""
+
+    def add_count(self, key: str, count: float) -> None:
+        """Adds ``count`` to the total ``key``."""
+
+    def means(self) -> dict[str, float]:
+        """Each statistic's mean over its steps, and the counts, added since the last reset."""
+
+    def reset(self) -> None:
+        """Forgets everything added."""
 
 class StatusError(Exception):
     """A failed call of :class:`GrpcClient`: the server's status, or the connection's.

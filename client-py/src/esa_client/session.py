@@ -19,12 +19,12 @@ runs over gRPC, Zenoh, N shards or an in-process engine.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from ._native import EngineError, StepAhead
+from ._native import AdvantageMlp, EngineError, StepAhead, StepStats
 from .config import SessionConfig
 from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch, TypedErrors
 from .reconnect import Reconnect, RetriableErrors
@@ -37,7 +37,14 @@ from .state import (
     check_array,
     check_indices,
 )
-from .transports.base import AheadBatch, BatchProbe, BatchReport, LinearCritic, Transport
+from .transports.base import (
+    AheadBatch,
+    BatchProbe,
+    BatchReport,
+    HeadBatch,
+    LinearCritic,
+    Transport,
+)
 
 __all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
 
@@ -246,6 +253,7 @@ class SessionBatch:
         self._shifts: F64Array = np.zeros((self.n, self.action_dim))
         self._step_ahead: StepAhead | None = None
         self._ahead_batch = self._batch if isinstance(self._batch, AheadBatch) else None
+        self._head_batch = self._batch if isinstance(self._batch, HeadBatch) else None
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
 
@@ -360,6 +368,66 @@ class SessionBatch:
         self._steps = request.steps + 1
         self._last_probe = request
         self._next_starts[:] = False
+        return answer
+
+    @property
+    def steps_heads(self) -> bool:
+        """Whether :meth:`step_head` runs here (the in-process engine)."""
+        return self._head_batch is not None
+
+    def step_head(
+        self,
+        head: AdvantageMlp,
+        features: npt.NDArray[Any],
+        actions: npt.NDArray[np.float32],
+        mean: npt.NDArray[np.float32],
+        std: npt.NDArray[np.float32],
+        episode_starts: npt.ArrayLike | None = None,
+        *,
+        use_policy_std: bool,
+        paired: bool,
+        stats: StepStats,
+        improvement: bool,
+    ) -> tuple[F64Array, npt.NDArray[np.float32]]:
+        """:meth:`step` of ESAPPO's advantage head as one native call, in-process only.
+
+        The head's inputs (:meth:`AdvantageMlp.step_inputs`), :meth:`step` of its linear
+        critic at the sample in ESA units (with the std in ESA units as the action scales
+        when ``use_policy_std``), the step's statistics added to ``stats`` (and the critic's
+        improvement when ``improvement``), and the shift and executed actions
+        (:meth:`AdvantageMlp.shift`, :meth:`AdvantageMlp.executed`): the same bits as those
+        calls one by one. All or nothing, as :meth:`step`.
+
+        Returns:
+            ``(shift, executed)``: float64 and float32 ``(N, D)``.
+
+        Raises:
+            ValueError: The batch is not on the in-process engine (:attr:`steps_heads`), or
+                a shape is wrong.
+        """
+        if self._head_batch is None:
+            raise ValueError(
+                "expected a batch on the in-process engine for step_head, got one on "
+                f"{type(self._transport).__name__}"
+            )
+        if self._deferred is not None:
+            self.flush()
+        answer = self._head_batch.step_head(
+            self._steps,
+            self._next_starts,
+            episode_starts,
+            head,
+            features,
+            actions,
+            mean,
+            std,
+            use_policy_std=use_policy_std,
+            paired=paired,
+            stats=stats,
+            improvement=improvement,
+        )
+        # No wire to replay a probe into (see _report_attempt).
+        self._last_probe = None
         return answer
 
     @property

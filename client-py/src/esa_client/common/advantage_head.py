@@ -104,6 +104,9 @@ class AdvantageHead(nn.Module):
             [layer.bias.detach().cpu().numpy() for layer in self._linears],
             [float(c) for c in center],
             [float(h) for h in half_width],
+            # numpy divides the policy's float32 std by a float32 (or float16) half-width in
+            # float32: the Rust copy's std in ESA units keeps those bits.
+            single_units=np.result_type(np.float32, np.asarray(half_width)) == np.float32,
         )
 
     def version(self) -> tuple[int, ...]:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Callable
-from typing import Any, Literal, Protocol, get_args
+from typing import Any, Literal, Protocol, TypeVar, get_args
 
 import numpy as np
 
+from .._native import AdvantageMlp, StepStats
 from ..base_client import BaseClient
 from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
@@ -88,6 +89,9 @@ def check_on_unavailable(on_unavailable: str) -> OnUnavailable:
 
 SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
 """The floor of the action scale sent for a policy's std (the contract needs sigma > 0)."""
+
+_Ran = TypeVar("_Ran")
+"""What one attempt of a step returns (:meth:`EsaRuntime._attempt`)."""
 
 QFunction = Callable[[np.ndarray], np.ndarray]
 """Maps ``(k N, D)`` actions to ``(k N,)`` values at the N current observations tiled k times."""
@@ -240,12 +244,13 @@ class EsaRuntime:
         except BaseException:
             client.close()
             raise
-        self._clip = (clip_low.reshape(1, -1), clip_high.reshape(1, -1))
+        self._stats = StepStats(
+            [float(v) for v in clip_low.reshape(-1)], [float(v) for v in clip_high.reshape(-1)]
+        )
         low = -np.inf if config.action_low is None else config.action_low
         high = np.inf if config.action_high is None else config.action_high
         self._bounds = (np.asarray(low, np.float64), np.asarray(high, np.float64))
         self._improvement_every = improvement_every
-        self._stats = _Stats()
         self._calls = 0
         self.on_unavailable = "raise"
         # True while ESA is off after the server stayed unreachable (on_unavailable="skip").
@@ -284,43 +289,113 @@ class EsaRuntime:
             # trust region and the scaled step then keep v at 0 there, as sigma = 0 means.
             policy_std = np.maximum(policy_std, SMALLEST_SCALE)
         scale = policy_std if self.esa.use_policy_std else None
+        ran = self._attempt(
+            episode_starts, lambda starts: self._run(a, q_fn, starts, scale, want_probes)
+        )
+        if ran is None:
+            return self._without_esa(a)
+        # Kept for trainers that execute the probe itself (exploration by the sinusoid); None
+        # after a step sent ahead, whose probes the server answers one step later.
+        self.last_probes, applied = ran
+        n = len(a)
+        self._stats.add_step(a, applied, policy_std)
+        if self._calls % self._improvement_every == 0:
+            both = np.asarray(q_fn(np.concatenate([a, applied])), dtype=np.float64)
+            self._stats.add_improvement(float((both[n:] - both[:n]).mean()))
+        self._calls += 1
+        return applied
+
+    def step_head(
+        self,
+        head: AdvantageMlp,
+        features: np.ndarray,
+        sample: np.ndarray,
+        mean: np.ndarray,
+        std: np.ndarray,
+        episode_starts: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Algorithm 1's step with ESAPPO's advantage head as the critic.
+
+        The head's step inputs (:meth:`AdvantageMlp.step_inputs`: the sample and std in ESA
+        units, the head's critic linear in the action), then :meth:`step` of that critic,
+        then the shift and the executed action. On the in-process engine all of it is one
+        native call (:meth:`SessionBatch.step_head`), with the same bits; ``last_probes`` is
+        then None.
+
+        Args:
+            head: The head's Rust copy.
+            features: The head's input at the N observations, ``(N, F)``.
+            sample: The policy's float32 samples ``a_t``, ``(N, D)``.
+            mean: The policy's float32 mean, ``(N, D)``.
+            std: The policy's float32 standard deviation, ``(N, D)``.
+            episode_starts: True where an env starts a new episode, shape ``(N,)``.
+
+        Returns:
+            ``(shift, executed)``: the shift in the Box's units, float64 ``(N, D)``, and the
+            env's actions ``a_t + shift``, float32 ``(N, D)``.
+        """
+        batch = self.batch
+        if batch.steps_heads and not self._skipping:
+            improve = self._calls % self._improvement_every == 0
+            ran = self._attempt(
+                episode_starts,
+                lambda starts: batch.step_head(
+                    head,
+                    features,
+                    sample,
+                    mean,
+                    std,
+                    starts,
+                    use_policy_std=self.esa.use_policy_std,
+                    paired=self.esa.paired_response,
+                    stats=self._stats,
+                    improvement=improve,
+                ),
+            )
+            if ran is not None:
+                self.last_probes = None
+                self._calls += 1
+                return ran
+        scaled, gain, offset, units = head.step_inputs(features, sample, mean, std)
+        applied = self.step(scaled, episode_starts, LinearCritic(gain, offset), units)
+        shift = head.shift(scaled, applied)
+        return shift, head.executed(sample, shift)
+
+    def _attempt(
+        self, episode_starts: np.ndarray, run: Callable[[np.ndarray | None], _Ran]
+    ) -> _Ran | None:
+        """``run(episode_starts)``, riding out lost sessions and an unreachable server.
+
+        Lost sessions are recreated and ``run(None)`` starts every episode anew (they are
+        flagged). Returns None while ESA is off (``on_unavailable="skip"``): the caller
+        applies the sampled actions.
+        """
         batch = self.batch
         restored = batch.sessions_restored
         try:
             if self._skipping:
                 if not np.any(episode_starts):
-                    return self._without_esa(a)
+                    return None
                 # An episode starts: try the server once more; every session restarts.
                 batch.restore()
                 self._skipping = False
                 _log.warning("esa server at %s reachable again: ESA resumes", self.client.address)
-                probes, applied = self._run(a, q_fn, None, scale, want_probes)
-            else:
-                try:
-                    probes, applied = self._run(a, q_fn, episode_starts, scale, want_probes)
-                except SessionNotFound:
-                    batch.restore()
-                    probes, applied = self._run(a, q_fn, None, scale, want_probes)
+                return run(None)
+            try:
+                return run(episode_starts)
+            except SessionNotFound:
+                batch.restore()
+                return run(None)
         except ServerUnavailable as err:
             if self.on_unavailable == "raise":
                 raise
             if not self._skipping:
                 _log.warning("%s; continuing without ESA until the next episode start", err.message)
             self._skipping = True
-            return self._without_esa(a)
+            return None
         finally:
             if batch.sessions_restored > restored:
                 self._stats.add_count("sessions_restored", batch.sessions_restored - restored)
-        # Kept for trainers that execute the probe itself (exploration by the sinusoid); None
-        # after a step sent ahead, whose probes the server answers one step later.
-        self.last_probes = probes
-        n = len(a)
-        self._stats.add_step(a, applied, policy_std, self._clip)
-        if self._calls % self._improvement_every == 0:
-            both = np.asarray(q_fn(np.concatenate([a, applied])), dtype=np.float64)
-            self._stats.add_improvement(float((both[n:] - both[:n]).mean()))
-        self._calls += 1
-        return applied
 
     def _run(
         self,
@@ -349,7 +424,7 @@ class EsaRuntime:
         """Writes the mean stats since the last call to an SB3 logger and resets them."""
         for key, value in self._stats.means().items():
             logger.record(f"esa/{key}", value)
-        self._stats = _Stats()
+        self._stats.reset()
 
     def close(self) -> None:
         """Closes the sessions and the client (stopping a spawned server)."""
@@ -357,73 +432,3 @@ class EsaRuntime:
         with contextlib.suppress(EsaError):
             self.batch.close()
         self.client.close()
-
-
-_FOLD_EVERY = 256
-"""Steps whose statistics are computed together: a dozen numpy calls per step would cost
-as much as the ESA step itself, the same calls on a stack of steps almost nothing."""
-
-
-class _Stats:
-    """Running sums of what ESA did to the actions since the last log record."""
-
-    def __init__(self) -> None:
-        self.sums: dict[str, float] = {}
-        self.counts: dict[str, int] = {}
-        self._steps: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
-        self._clip: tuple[np.ndarray, np.ndarray] | None = None
-
-    def _add(self, key: str, values: np.ndarray) -> None:
-        """Adds one value per step."""
-        self.sums[key] = self.sums.get(key, 0.0) + float(values.sum())
-        self.counts[key] = self.counts.get(key, 0) + len(values)
-
-    def add_step(
-        self,
-        sampled: np.ndarray,
-        applied: np.ndarray,
-        policy_std: np.ndarray | None,
-        clip: tuple[np.ndarray, np.ndarray],
-    ) -> None:
-        if self._steps and (
-            sampled.shape != self._steps[0][0].shape
-            or (policy_std is None) != (self._steps[0][2] is None)
-        ):
-            self._fold()
-        # Copies: the caller owns the arrays and may reuse them before the fold.
-        std = None if policy_std is None else np.array(policy_std, dtype=np.float64)
-        self._steps.append((sampled.copy(), applied.copy(), std))
-        self._clip = clip
-        if len(self._steps) >= _FOLD_EVERY:
-            self._fold()
-
-    def _fold(self) -> None:
-        """Adds the per-step means of the held steps (all of one shape) to the sums."""
-        if not self._steps or self._clip is None:
-            return
-        sampled = np.stack([s for s, _, _ in self._steps])
-        applied = np.stack([a for _, a, _ in self._steps])
-        # All or none of the held steps have a std (add_step folds when that changes).
-        stds = [d for _, _, d in self._steps if d is not None]
-        self._steps = []
-        shift = applied - sampled
-        self._add("mean_abs_shift", np.abs(shift).mean(axis=(1, 2)))
-        clipped = (applied < self._clip[0]) | (applied > self._clip[1])
-        self._add("clipped_fraction", np.any(clipped, axis=2).mean(axis=1))
-        if stds:
-            z = shift / np.stack(stds)
-            self._add("shift_over_std", np.abs(z).mean(axis=(1, 2)))
-            # KL(behaviour || pi) of N(mu + v, s^2) against N(mu, s^2), per dimension.
-            self._add("kl_per_dim", (0.5 * z**2).mean(axis=(1, 2)))
-
-    def add_improvement(self, value: float) -> None:
-        self._add("improvement", np.array([value]))
-
-    def add_count(self, key: str, count: int) -> None:
-        # A count since the last record, not a mean.
-        self.sums[key] = self.sums.get(key, 0.0) + count
-        self.counts[key] = 1
-
-    def means(self) -> dict[str, float]:
-        self._fold()
-        return {key: self.sums[key] / self.counts[key] for key in self.sums}

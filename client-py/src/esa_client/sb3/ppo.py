@@ -227,17 +227,20 @@ class ESAPPO(EsaMixin, PPO):
         return pre.flatten(1).float()
 
     def _step_features(self, obs: th.Tensor | dict[str, th.Tensor]) -> np.ndarray:
-        """:meth:`_head_features` of one step's observations, float32 ``(N, F)`` in numpy.
+        """:meth:`_head_features` of one step's observations in numpy, for the head's Rust copy.
 
         For a Box that is not an image SB3 normalizes, its preprocessing is ``obs.float()``:
-        numpy's float32 cast rounds as torch's does, in one operation instead of five.
+        a float32 or float64 observation is handed over as it is (``(N, F)``), and the Rust
+        copy rounds float64 to float32 as torch's ``float()`` does, without a numpy cast per
+        step; other observations are float32 ``(N, F)``.
         """
         space = self.observation_space
         if isinstance(obs, th.Tensor) and isinstance(space, spaces.Box):
             if not (self.policy.normalize_images and is_image_space(space)):
-                host = obs.cpu().numpy().reshape(len(obs), -1)
-                features: np.ndarray = host.astype(np.float32, copy=False)
-                return features
+                host: np.ndarray = obs.cpu().numpy().reshape(len(obs), -1)
+                if host.dtype in (np.float32, np.float64):
+                    return host
+                return host.astype(np.float32)
         return self._head_features(obs).cpu().numpy()
 
     def _esa_mlp(self) -> AdvantageMlp:
@@ -273,6 +276,9 @@ class ESAPPO(EsaMixin, PPO):
         ``log_probs`` still ``log pi(a_t)``.
         """
         policy = self.policy
+        # The head changes only in train() or a load, outside a rollout: its Rust copy is
+        # taken (if it changed) once per rollout, not checked at every step.
+        mlp = self._esa_mlp()
 
         def forward(
             obs: th.Tensor, deterministic: bool = False
@@ -288,36 +294,31 @@ class ESAPPO(EsaMixin, PPO):
             distribution = policy._get_action_dist_from_latent(latent_pi)
             actions = distribution.get_actions(deterministic=deterministic)
             log_prob = distribution.log_prob(actions)
-            n = len(actions)
             if self._esa_active and not deterministic:
                 gaussian = _gaussian(distribution)
-                # numpy views of the sample, mean and std (copies on a GPU), (N, D) each.
-                sample, mean, std = (
-                    t.cpu().numpy().reshape(n, -1)
-                    for t in (actions, gaussian.mean, gaussian.stddev)
-                )
-                mlp = self._esa_mlp()
+                # numpy views (copies on a GPU) of the sample, mean and std: SB3's Box
+                # distributions give them flat, (N, D) each.
+                sample = actions.cpu().numpy()
+                mean, std = gaussian.mean.cpu().numpy(), gaussian.stddev.cpu().numpy()
+                head_in = self._step_features(obs)
+                executed: np.ndarray | None = None
                 if self.esa_shift == "gradient":
-                    shift = self._gradient_shift(self._esa_weights(obs)) * std
+                    shift = self._gradient_shift(mlp.weights(head_in)) * std
                 else:
-                    head_in = self._step_features(obs)
-                    scaled, gain, offset = mlp.step_inputs(head_in, sample, mean, std)
-                    applied = self._esa_runtime().step(
-                        scaled,
-                        np.asarray(self._last_episode_starts, dtype=bool),
-                        LinearCritic(gain, offset),
-                        std / self._esa_scaling()[1],
+                    starts = self._last_episode_starts
+                    assert starts is not None  # set by SB3 before its rollouts
+                    shift, executed = self._esa_runtime().step_head(
+                        mlp, head_in, sample, mean, std, starts
                     )
-                    # The shift in raw units: exactly 0 when v = 0.
-                    shift = mlp.shift(scaled, applied)
                 if self.esa_mode == "target":
                     self._esa_targets.append(shift / std)
                 else:
-                    # a + shift in float64, cast back to the policy's float32 (one call).
-                    executed = mlp.executed(sample, shift)
+                    if executed is None:
+                        # a + shift in float64, cast back to the policy's float32 (one call).
+                        executed = mlp.executed(sample, shift)
                     actions = th.from_numpy(executed).to(actions.device)
             elif self.esa_mode == "target" and not deterministic:
-                self._esa_targets.append(np.zeros((n, int(np.prod(self._esa_box().shape)))))
+                self._esa_targets.append(np.zeros((len(actions), self._esa_scaling()[0].size)))
             return actions.reshape((-1, *self._esa_box().shape)), values, log_prob
 
         # The hook itself: an instance attribute shadows the policy's forward in this block.

@@ -22,8 +22,12 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from typing import NamedTuple, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
+import numpy as np
+import numpy.typing as npt
+
+from .._native import AdvantageMlp, StepStats
 from .._proto.esa.v1 import esa_pb2
 from ..state import BoolArray, F64Array, I64Array, SessionState
 
@@ -137,6 +141,35 @@ class AheadBatch(Protocol):
         Raises the step's error (nothing of it was applied), or the wire's (whether it
         was applied is then unknown).
         """
+        ...
+
+
+@runtime_checkable
+class HeadBatch(Protocol):
+    """A batch that runs ESAPPO's whole step for its advantage head in one call.
+
+    The in-process engine's ``Engine.step_head``: the head's inputs, the step of its linear
+    critic, the batch's step bookkeeping (``steps`` and ``next_starts``, updated in place),
+    the step's statistics and the executed actions (see :meth:`SessionBatch.step_head`).
+    """
+
+    def step_head(
+        self,
+        steps: I64Array,
+        next_starts: BoolArray,
+        episode_starts: npt.ArrayLike | None,
+        head: AdvantageMlp,
+        features: npt.NDArray[Any],
+        actions: npt.NDArray[np.float32],
+        mean: npt.NDArray[np.float32],
+        std: npt.NDArray[np.float32],
+        *,
+        use_policy_std: bool,
+        paired: bool,
+        stats: StepStats,
+        improvement: bool,
+    ) -> tuple[F64Array, npt.NDArray[np.float32]]:
+        """``(shift, executed)`` of the step; all or nothing."""
         ...
 
 

@@ -11,10 +11,14 @@ processes: a trainer that needs its sessions elsewhere uses the sidecar.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
-from .._native import BatchHandle, Engine, EngineError
+import numpy as np
+import numpy.typing as npt
+
+from .._native import AdvantageMlp, BatchHandle, Engine, EngineError, StepStats
 from ..errors import TypedErrors
-from ..state import F64Array
+from ..state import BoolArray, F64Array, I64Array
 from .base import BatchProbe, BatchReport, InTurnBatch, LinearCritic
 from .native_calls import NativeSessionCalls
 
@@ -65,6 +69,40 @@ class InProcessBatch(InTurnBatch):
                 critic.gain,
                 critic.offset,
                 paired,
+            )
+
+    def step_head(
+        self,
+        steps: I64Array,
+        next_starts: BoolArray,
+        episode_starts: npt.ArrayLike | None,
+        head: AdvantageMlp,
+        features: npt.NDArray[Any],
+        actions: npt.NDArray[np.float32],
+        mean: npt.NDArray[np.float32],
+        std: npt.NDArray[np.float32],
+        *,
+        use_policy_std: bool,
+        paired: bool,
+        stats: StepStats,
+        improvement: bool,
+    ) -> tuple[F64Array, npt.NDArray[np.float32]]:
+        """ESAPPO's step for its advantage head in one engine call (``Engine.step_head``)."""
+        with _typed_errors:
+            return self._engine.step_head(
+                self._resolved(),
+                steps,
+                next_starts,
+                episode_starts,
+                head,
+                features,
+                actions,
+                mean,
+                std,
+                use_policy_std,
+                paired,
+                stats,
+                improvement,
             )
 
     def report(self, request: BatchReport) -> F64Array:
