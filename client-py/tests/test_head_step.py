@@ -15,6 +15,7 @@ from esa_client import EsaClient, EsaConfig, LinearCritic
 from esa_client.common.advantage_head import AdvantageHead
 from esa_client.common.runtime import EsaRuntime
 from esa_client.errors import InvalidArgument
+from esa_client.transports.base import HeadStep
 
 N, D, F = 3, 2, 5
 
@@ -40,6 +41,11 @@ def step_data(rng: np.random.Generator):
     return features, sample, mean, std, rng.random(N) < 0.1
 
 
+def head_step(head, rng: np.random.Generator) -> tuple[HeadStep, np.ndarray]:
+    *data, starts = step_data(rng)
+    return HeadStep(head, *data), starts
+
+
 def by_parts(rt: EsaRuntime, head, features, sample, mean, std, starts):
     """The generic path: the head's inputs, the runtime's step, the shift and executed action."""
     scaled, gain, offset, units = head.step_inputs(features, sample, mean, std)
@@ -60,7 +66,7 @@ def test_the_head_step_is_its_parts_bit_for_bit(head, paired, use_policy_std):
     moved = 0.0
     for _ in range(60):
         data = step_data(rng)
-        shift, executed = fused.step_head(head, *data)
+        shift, executed = fused.step_head(HeadStep(head, *data[:-1]), data[-1])
         want_shift, want_executed = by_parts(parts, head, *data)
         assert executed.dtype == np.float32
         np.testing.assert_array_equal(shift, want_shift)
@@ -85,17 +91,17 @@ def test_a_refused_head_step_changes_nothing(head):
     rt = runtime(EsaConfig(learning_rate=0.5, gate=None))
     rng = np.random.default_rng(7)
     for _ in range(5):
-        rt.step_head(head, *step_data(rng))
+        rt.step_head(*head_step(head, rng))
     before = (rt.batch.steps, rt.batch.states(), rt._stats.means())
-    features, sample, mean, std, starts = step_data(rng)
-    nan_std = std.copy()
+    step, starts = head_step(head, rng)
+    nan_std = step.std.copy()
     nan_std[1, 0] = np.nan
     with pytest.raises(InvalidArgument, match="critic_gains: expected finite values"):
-        rt.step_head(head, features, sample, mean, nan_std, starts)
+        rt.step_head(step._replace(std=nan_std), starts)
     with pytest.raises(ValueError, match="features: expected 5 columns"):
-        rt.step_head(head, features[:, :4], sample, mean, std, starts)
+        rt.step_head(step._replace(features=step.features[:, :4]), starts)
     with pytest.raises(ValueError, match="expected 3 rows of features and actions"):
-        rt.step_head(head, features[:2], sample[:2], mean[:2], std[:2], starts)
+        rt.step_head(HeadStep(head, *(array[:2] for array in step[1:])), starts)
     after = (rt.batch.steps, rt.batch.states(), rt._stats.means())
     np.testing.assert_array_equal(after[0], before[0])
     for got, want in zip(after[1], before[1], strict=True):
@@ -109,17 +115,8 @@ def test_only_an_in_process_batch_runs_the_head_step(client, head):
     esa = EsaConfig(gate=None)
     with client.create_batch(esa.session_config(D, 0.05), N) as batch:
         assert not batch.steps_heads
-        features, sample, mean, std, starts = step_data(np.random.default_rng(0))
+        step, starts = head_step(head, np.random.default_rng(0))
         with pytest.raises(ValueError, match="expected a batch on the in-process engine"):
             batch.step_head(
-                head,
-                features,
-                sample,
-                mean,
-                std,
-                starts,
-                use_policy_std=True,
-                paired=False,
-                stats=None,
-                improvement=False,
+                step, starts, use_policy_std=True, paired=False, stats=None, improvement=False
             )

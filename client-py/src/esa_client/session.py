@@ -19,12 +19,12 @@ runs over gRPC, Zenoh, N shards or an in-process engine.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from ._native import AdvantageMlp, EngineError, StepAhead, StepStats
+from ._native import EngineError, StepAhead, StepStats
 from .config import SessionConfig
 from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch, TypedErrors
 from .reconnect import Reconnect, RetriableErrors
@@ -41,10 +41,11 @@ from .transports.base import (
     AheadBatch,
     BatchProbe,
     BatchReport,
-    HeadBatch,
+    HeadStep,
     LinearCritic,
     Transport,
 )
+from .transports.in_process import InProcessBatch
 
 __all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
 
@@ -253,7 +254,7 @@ class SessionBatch:
         self._shifts: F64Array = np.zeros((self.n, self.action_dim))
         self._step_ahead: StepAhead | None = None
         self._ahead_batch = self._batch if isinstance(self._batch, AheadBatch) else None
-        self._head_batch = self._batch if isinstance(self._batch, HeadBatch) else None
+        self._head_batch = self._batch if isinstance(self._batch, InProcessBatch) else None
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
 
@@ -377,11 +378,7 @@ class SessionBatch:
 
     def step_head(
         self,
-        head: AdvantageMlp,
-        features: npt.NDArray[Any],
-        actions: npt.NDArray[np.float32],
-        mean: npt.NDArray[np.float32],
-        std: npt.NDArray[np.float32],
+        step: HeadStep,
         episode_starts: npt.ArrayLike | None = None,
         *,
         use_policy_std: bool,
@@ -391,10 +388,10 @@ class SessionBatch:
     ) -> tuple[F64Array, npt.NDArray[np.float32]]:
         """:meth:`step` of ESAPPO's advantage head as one native call, in-process only.
 
-        The head's inputs (:meth:`AdvantageMlp.step_inputs`), :meth:`step` of its linear
-        critic at the sample in ESA units (with the std in ESA units as the action scales
-        when ``use_policy_std``), the step's statistics added to ``stats`` (and the critic's
-        improvement when ``improvement``), and the shift and executed actions
+        The head's inputs (:meth:`AdvantageMlp.step_inputs` of ``step``), :meth:`step` of its
+        linear critic at the sample in ESA units (with the std in ESA units as the action
+        scales when ``use_policy_std``), the step's statistics added to ``stats`` (and the
+        critic's improvement when ``improvement``), and the shift and executed actions
         (:meth:`AdvantageMlp.shift`, :meth:`AdvantageMlp.executed`): the same bits as those
         calls one by one. All or nothing, as :meth:`step`.
 
@@ -416,11 +413,7 @@ class SessionBatch:
             self._steps,
             self._next_starts,
             episode_starts,
-            head,
-            features,
-            actions,
-            mean,
-            std,
+            step,
             use_policy_std=use_policy_std,
             paired=paired,
             stats=stats,

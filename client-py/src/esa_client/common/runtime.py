@@ -9,14 +9,14 @@ from typing import Any, Literal, Protocol, TypeVar, get_args
 
 import numpy as np
 
-from .._native import AdvantageMlp, StepStats
+from .._native import StepStats
 from ..base_client import BaseClient
 from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
 from ..errors import EsaError, ServerUnavailable, SessionNotFound
 from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
-from ..transports.base import LinearCritic
+from ..transports.base import HeadStep, LinearCritic
 
 _log = logging.getLogger("esa_client")
 
@@ -306,13 +306,7 @@ class EsaRuntime:
         return applied
 
     def step_head(
-        self,
-        head: AdvantageMlp,
-        features: np.ndarray,
-        sample: np.ndarray,
-        mean: np.ndarray,
-        std: np.ndarray,
-        episode_starts: np.ndarray,
+        self, step: HeadStep, episode_starts: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Algorithm 1's step with ESAPPO's advantage head as the critic.
 
@@ -323,11 +317,7 @@ class EsaRuntime:
         then None.
 
         Args:
-            head: The head's Rust copy.
-            features: The head's input at the N observations, ``(N, F)``.
-            sample: The policy's float32 samples ``a_t``, ``(N, D)``.
-            mean: The policy's float32 mean, ``(N, D)``.
-            std: The policy's float32 standard deviation, ``(N, D)``.
+            step: The head and its inputs at the N current observations.
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
 
         Returns:
@@ -340,11 +330,7 @@ class EsaRuntime:
             ran = self._attempt(
                 episode_starts,
                 lambda starts: batch.step_head(
-                    head,
-                    features,
-                    sample,
-                    mean,
-                    std,
+                    step,
                     starts,
                     use_policy_std=self.esa.use_policy_std,
                     paired=self.esa.paired_response,
@@ -356,10 +342,10 @@ class EsaRuntime:
                 self.last_probes = None
                 self._calls += 1
                 return ran
-        scaled, gain, offset, units = head.step_inputs(features, sample, mean, std)
+        scaled, gain, offset, units = step.head.step_inputs(*step[1:])
         applied = self.step(scaled, episode_starts, LinearCritic(gain, offset), units)
-        shift = head.shift(scaled, applied)
-        return shift, head.executed(sample, shift)
+        shift = step.head.shift(scaled, applied)
+        return shift, step.head.executed(step.actions, shift)
 
     def _attempt(
         self, episode_starts: np.ndarray, run: Callable[[np.ndarray | None], _Ran]

@@ -20,7 +20,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from .._native import AdvantageMlp
 from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from ..config import EsaConfig
-from ..transports.base import LinearCritic
+from ..transports.base import HeadStep, LinearCritic
 from .mixin import EsaMixin
 
 Mode = Literal["behaviour", "target"]
@@ -308,7 +308,7 @@ class ESAPPO(EsaMixin, PPO):
                     starts = self._last_episode_starts
                     assert starts is not None  # set by SB3 before its rollouts
                     shift, executed = self._esa_runtime().step_head(
-                        mlp, head_in, sample, mean, std, starts
+                        HeadStep(mlp, head_in, sample, mean, std), starts
                     )
                 if self.esa_mode == "target":
                     self._esa_targets.append(shift / std)

@@ -27,7 +27,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 import numpy.typing as npt
 
-from .._native import AdvantageMlp, StepStats
+from .._native import AdvantageMlp
 from .._proto.esa.v1 import esa_pb2
 from ..state import BoolArray, F64Array, I64Array, SessionState
 
@@ -144,33 +144,22 @@ class AheadBatch(Protocol):
         ...
 
 
-@runtime_checkable
-class HeadBatch(Protocol):
-    """A batch that runs ESAPPO's whole step for its advantage head in one call.
+class HeadStep(NamedTuple):
+    """One step's inputs for ESAPPO's advantage head (:meth:`SessionBatch.step_head`).
 
-    The in-process engine's ``Engine.step_head``: the head's inputs, the step of its linear
-    critic, the batch's step bookkeeping (``steps`` and ``next_starts``, updated in place),
-    the step's statistics and the executed actions (see :meth:`SessionBatch.step_head`).
+    Attributes:
+        head: The head's Rust copy (``AdvantageHead.snapshot``).
+        features: Its input at the N observations, ``(N, F)``, float32 or float64.
+        actions: The policy's float32 samples ``a_t``, ``(N, D)``.
+        mean: The policy's float32 mean, ``(N, D)``.
+        std: The policy's float32 standard deviation, ``(N, D)``.
     """
 
-    def step_head(
-        self,
-        steps: I64Array,
-        next_starts: BoolArray,
-        episode_starts: npt.ArrayLike | None,
-        head: AdvantageMlp,
-        features: npt.NDArray[Any],
-        actions: npt.NDArray[np.float32],
-        mean: npt.NDArray[np.float32],
-        std: npt.NDArray[np.float32],
-        *,
-        use_policy_std: bool,
-        paired: bool,
-        stats: StepStats,
-        improvement: bool,
-    ) -> tuple[F64Array, npt.NDArray[np.float32]]:
-        """``(shift, executed)`` of the step; all or nothing."""
-        ...
+    head: AdvantageMlp
+    features: npt.NDArray[Any]
+    actions: npt.NDArray[np.float32]
+    mean: npt.NDArray[np.float32]
+    std: npt.NDArray[np.float32]
 
 
 class InTurnBatch(ABC):

@@ -11,15 +11,14 @@ processes: a trainer that needs its sessions elsewhere uses the sidecar.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from .._native import AdvantageMlp, BatchHandle, Engine, EngineError, StepStats
+from .._native import BatchHandle, Engine, EngineError, StepStats
 from ..errors import TypedErrors
 from ..state import BoolArray, F64Array, I64Array
-from .base import BatchProbe, BatchReport, InTurnBatch, LinearCritic
+from .base import BatchProbe, BatchReport, HeadStep, InTurnBatch, LinearCritic
 from .native_calls import NativeSessionCalls
 
 _typed_errors = TypedErrors(EngineError)
@@ -76,11 +75,7 @@ class InProcessBatch(InTurnBatch):
         steps: I64Array,
         next_starts: BoolArray,
         episode_starts: npt.ArrayLike | None,
-        head: AdvantageMlp,
-        features: npt.NDArray[Any],
-        actions: npt.NDArray[np.float32],
-        mean: npt.NDArray[np.float32],
-        std: npt.NDArray[np.float32],
+        step: HeadStep,
         *,
         use_policy_std: bool,
         paired: bool,
@@ -94,11 +89,7 @@ class InProcessBatch(InTurnBatch):
                 steps,
                 next_starts,
                 episode_starts,
-                head,
-                features,
-                actions,
-                mean,
-                std,
+                *step,
                 use_policy_std,
                 paired,
                 stats,
