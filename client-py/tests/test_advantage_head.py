@@ -206,5 +206,6 @@ def test_the_rust_copy_follows_every_fit():
     obs = th.as_tensor(model._last_obs)
     with th.no_grad():
         want = model.esa_head.weights(model._head_features(obs)).numpy()
-    np.testing.assert_allclose(model._esa_weights(obs), want, rtol=1e-5, atol=1e-6)
+    got = model._esa_mlp().weights(model._step_features(obs))
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     model.esa_close()

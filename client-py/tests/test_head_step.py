@@ -102,6 +102,8 @@ def test_a_refused_head_step_changes_nothing(head):
         rt.step_head(step._replace(features=step.features[:, :4]), starts)
     with pytest.raises(ValueError, match="expected 3 rows of features and actions"):
         rt.step_head(HeadStep(head, *(array[:2] for array in step[1:])), starts)
+    with pytest.raises(ValueError, match=r"\(and 3 episode_starts\), got 3, 3, 3 and 2"):
+        rt.step_head(step, starts[:2])
     after = (rt.batch.steps, rt.batch.states(), rt._stats.means())
     np.testing.assert_array_equal(after[0], before[0])
     for got, want in zip(after[1], before[1], strict=True):

@@ -64,7 +64,7 @@ def test_esappo_target_mode_executes_the_sample_and_moves_the_policy(shift):
 def test_esappo_gradient_shift_is_the_trust_region_along_the_head():
     model = ppo(ESAPPO, esa=EsaConfig(gate=None), esa_shift="gradient")
     features = th.zeros(3, 4)
-    shift = model._gradient_shift(model._esa_weights(features))
+    shift = model._gradient_shift(model._esa_mlp().weights(model._step_features(features)))
     np.testing.assert_allclose(np.linalg.norm(shift, axis=1), EsaConfig().trust_region)
 
 

@@ -395,7 +395,7 @@ impl Engine {
         }
         let (scaled, applied) = (&inputs.scaled, &output.applied);
         let stats = stats.get();
-        stats.add(scaled, applied, &inputs.units)?;
+        stats.add(scaled, applied, &inputs.units);
         if improvement {
             // The critic at the applied minus at the sampled actions (the offsets cancel).
             let gained: f64 = (0..n * dim)

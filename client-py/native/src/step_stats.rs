@@ -44,10 +44,18 @@ pub(crate) struct StepStats {
     sums: Mutex<Sums>,
 }
 
+impl Sums {
+    /// Adds one step's `value` to the statistic `index` of `PER_STEP`.
+    fn add(&mut self, index: usize, value: f64) {
+        let (sum, steps) = &mut self.per_step[index];
+        *sum += value;
+        *steps += 1;
+    }
+}
+
 impl StepStats {
-    /// Adds one step of N envs: `sampled` and `applied` (N D values), `scales` the policy's
-    /// std in the same units (N D values) or empty.
-    pub(crate) fn add(&self, sampled: &[f64], applied: &[f64], scales: &[f64]) -> PyResult<()> {
+    /// Checks that `sampled` and `applied` hold N D values each and `scales` as many or none.
+    fn check(&self, sampled: &[f64], applied: &[f64], scales: &[f64]) -> PyResult<()> {
         let dim = self.clip_low.len();
         if sampled.len() != applied.len()
             || !sampled.len().is_multiple_of(dim)
@@ -61,8 +69,16 @@ impl StepStats {
                 scales.len()
             )));
         }
+        Ok(())
+    }
+
+    /// Adds one step of N envs: `sampled` and `applied` (N D values), `scales` the policy's
+    /// std in the same units (N D values) or empty, as `check` requires (`Engine.step_head`
+    /// builds them so). Cannot fail: the head step adds its statistics after the engine step.
+    pub(crate) fn add(&self, sampled: &[f64], applied: &[f64], scales: &[f64]) {
+        let dim = self.clip_low.len();
         if sampled.is_empty() {
-            return Ok(());
+            return;
         }
         let values = sampled.len() as f64;
         let (mut shift, mut over_std, mut kl) = (0.0, 0.0, 0.0);
@@ -87,26 +103,18 @@ impl StepStats {
         }
         let rows = (sampled.len() / dim) as f64;
         let mut sums = self.sums.lock();
-        let mut add = |index: usize, value: f64| {
-            let (sum, steps) = &mut sums.per_step[index];
-            *sum += value;
-            *steps += 1;
-        };
-        add(SHIFT, shift / values);
-        add(CLIPPED, clipped_rows as f64 / rows);
+        sums.add(SHIFT, shift / values);
+        sums.add(CLIPPED, clipped_rows as f64 / rows);
         if !scales.is_empty() {
             // KL(behaviour || pi) of N(mu + v, s^2) against N(mu, s^2), per dimension.
-            add(OVER_STD, over_std / values);
-            add(KL, kl / values);
+            sums.add(OVER_STD, over_std / values);
+            sums.add(KL, kl / values);
         }
-        Ok(())
     }
 
     /// Adds one step's `esa/improvement`: the critic at the applied minus at the sampled actions.
     pub(crate) fn add_improvement_value(&self, value: f64) {
-        let (sum, steps) = &mut self.sums.lock().per_step[IMPROVEMENT];
-        *sum += value;
-        *steps += 1;
+        self.sums.lock().add(IMPROVEMENT, value);
     }
 }
 
@@ -165,7 +173,11 @@ impl StepStats {
         }
         let (sampled, applied) = (Values::floats(sampled)?, Values::floats(applied)?);
         let scales = Values::floats_or_empty(scales)?;
-        self.add(sampled.as_slice(), applied.as_slice(), scales.as_slice())
+        let (sampled, applied, scales) =
+            (sampled.as_slice(), applied.as_slice(), scales.as_slice());
+        self.check(sampled, applied, scales)?;
+        self.add(sampled, applied, scales);
+        Ok(())
     }
 
     /// Adds one step's `esa/improvement`.

@@ -250,10 +250,6 @@ class ESAPPO(EsaMixin, PPO):
             self._esa_head_snapshot = (version, self.esa_head.snapshot(*self._esa_scaling()))
         return self._esa_head_snapshot[1]
 
-    def _esa_weights(self, obs: th.Tensor | dict[str, th.Tensor]) -> np.ndarray:
-        """The head's ``w(s)`` at the current observations, shape ``(N, D)``."""
-        return self._esa_mlp().weights(self._step_features(obs))
-
     def _esa_critic(
         self, obs: th.Tensor | dict[str, th.Tensor], mean: np.ndarray, std: np.ndarray
     ) -> LinearCritic:
@@ -344,7 +340,7 @@ class ESAPPO(EsaMixin, PPO):
         """``kappa w(s) / |w(s)|``: the head's action gradient as a shift in units of sigma.
 
         The head ``A(s, a) = w(s) . (a - mu) / sigma`` has the gradient ``w(s)`` (given, as
-        :meth:`_esa_weights` returns it) in units of sigma, so the step needs no autograd;
+        its Rust copy's ``weights`` returns it) in units of sigma, so the step needs no autograd;
         kappa is the trust region (1 when unset).
         """
         kappa = self.esa.trust_region if self.esa.trust_region is not None else 1.0
