@@ -4,7 +4,10 @@ A step's small operations cost two to three times more inside training than in a
 their own (the env and PPO's update evict them from the caches between steps), so this
 times them where they run: PPO, ESAPPO with its gate never open (``EsaConfig(gate=1.0)``:
 the head is fitted and gated every rollout, no ESA step) and the shipped ESAPPO, alternating,
-``--repeats`` times. Timers wrap SB3's ``collect_rollouts`` and ``train``, the policy's
+``--repeats`` times, after one short untimed run of each. ``--agents`` adds two controls:
+``PPO again`` (a second PPO in the alternation: the ratio an A/A pair gives) and ``ESAPPO
+unfitted`` (the head is never fitted or gated, so the gate stays closed: ESAPPO's hook and
+nothing else). Timers wrap SB3's ``collect_rollouts`` and ``train``, the policy's
 forward pass (the ESA hook in ESAPPO), ``ESAPPO._step_features`` (the head's input),
 ``EsaRuntime.step_head`` (the whole ESA step: one native call in-process; elsewhere the
 head's step inputs, ``EsaRuntime.step``'s probe and report, also timed, and the executed
@@ -15,7 +18,8 @@ torch on one thread, the in-process engine (``--engine sidecar-native`` for the 
 
 Usage::
 
-    python bench/profiles/step_parts.py [--repeats 3] [--engine inprocess] > step_parts.md
+    python bench/profiles/step_parts.py [--repeats 3] [--engine inprocess] \
+        [--agents "PPO,PPO again,ESAPPO gate closed,ESAPPO unfitted,ESAPPO"] > step_parts.md
 """
 
 from __future__ import annotations
@@ -41,6 +45,10 @@ from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 
 SECONDS: dict[str, float] = defaultdict(float)
 STEP_HEAD = "the ESA step (EsaRuntime.step_head)"
+AGENTS = ("PPO", "PPO again", "ESAPPO gate closed", "ESAPPO unfitted", "ESAPPO")
+WARMUP_STEPS = 2048
+"""One rollout and update: a process's first run pays one-time costs (torch's first kernels,
+MuJoCo's model) that would otherwise fall on the first timed run, PPO's."""
 
 
 def timed(label: str, function: Callable[..., Any]) -> Callable[..., Any]:
@@ -97,13 +105,15 @@ def run(agent: str, engine: str, steps: int) -> tuple[float, dict[str, float], i
     """One training: learn()'s seconds, the timers' seconds, ESA's active steps."""
     env = make_vec_env("InvertedPendulum-v5", n_envs=1, seed=0)
     common: dict[str, Any] = dict(n_steps=2048, seed=0, device="cpu", verbose=0)
-    if agent == "PPO":
+    if agent in ("PPO", "PPO again"):
         model: PPO = PPO("MlpPolicy", env, **common)
         # PPO's forward is the policy's method; timed per instance like the hook.
         model.policy.forward = timed("policy forward (with ESA's hook)", model.policy.forward)  # type: ignore[method-assign]
     else:
-        esa = EsaConfig(gate=1.0) if agent == "ESAPPO gate closed" else EsaConfig()
+        esa = EsaConfig(gate=1.0) if agent in ("ESAPPO gate closed", "ESAPPO unfitted") else EsaConfig()
         model = ESAPPO("MlpPolicy", env, esa=esa, **common, **ENGINES[engine])
+        if agent == "ESAPPO unfitted":
+            model._update_esa_head = lambda: None  # type: ignore[method-assign]
     active = 0
     if isinstance(model, ESAPPO):
         collect = model.collect_rollouts
@@ -131,11 +141,16 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--steps", type=int, default=12_288)
     parser.add_argument("--engine", choices=sorted(ENGINES), default="inprocess")
+    parser.add_argument("--agents", default="PPO,ESAPPO gate closed,ESAPPO")
     args = parser.parse_args()
+    agents = tuple(args.agents.split(","))
+    if agents[0] != "PPO" or not set(agents) <= set(AGENTS):
+        parser.error(f"expected PPO first, then some of {AGENTS}, got {agents}")
     th.set_num_threads(1)
-    agents = ("PPO", "ESAPPO gate closed", "ESAPPO")
     results: dict[str, list[tuple[float, dict[str, float], int]]] = defaultdict(list)
     with timers():
+        for agent in agents:
+            run(agent, args.engine, WARMUP_STEPS)
         for _ in range(args.repeats):
             for agent in agents:
                 results[agent].append(run(agent, args.engine, args.steps))
@@ -149,11 +164,14 @@ def main() -> None:
     for name, value in rows:
         cells = [f"{np.median([value(r) for r in results[a]]):.3f}" for a in agents]
         print(f"| {name} | " + " | ".join(cells) + " |")
-    active = int(np.median([r[2] for r in results["ESAPPO"]]))
-    plain = np.median([r[0] for r in results["PPO"]])
+    plain = np.asarray([r[0] for r in results["PPO"]])
     for agent in agents[1:]:
-        ratio = np.median([r[0] for r in results[agent]]) / plain
-        print(f"\n{agent} / PPO: {ratio:.3f}", end="")
+        pairs = np.asarray([r[0] for r in results[agent]]) / plain
+        print(f"\n{agent} / PPO: {np.median(pairs):.3f} (pairs {pairs.round(3).tolist()})", end="")
+    if "ESAPPO" not in results:
+        print()
+        return
+    active = int(np.median([r[2] for r in results["ESAPPO"]]))
     print(f"\n\nESAPPO's ESA steps (rollouts with the gate open): {active}")
     per_step_labels = ("head features (_step_features)", STEP_HEAD)
     per_step = {
