@@ -110,7 +110,8 @@ def run(agent: str, engine: str, steps: int) -> tuple[float, dict[str, float], i
         # PPO's forward is the policy's method; timed per instance like the hook.
         model.policy.forward = timed("policy forward (with ESA's hook)", model.policy.forward)  # type: ignore[method-assign]
     else:
-        esa = EsaConfig(gate=1.0) if agent in ("ESAPPO gate closed", "ESAPPO unfitted") else EsaConfig()
+        closed = agent in ("ESAPPO gate closed", "ESAPPO unfitted")
+        esa = EsaConfig(gate=1.0) if closed else EsaConfig()
         model = ESAPPO("MlpPolicy", env, esa=esa, **common, **ENGINES[engine])
         if agent == "ESAPPO unfitted":
             model._update_esa_head = lambda: None  # type: ignore[method-assign]
