@@ -11,7 +11,8 @@ nothing else). Timers wrap SB3's ``collect_rollouts`` and ``train``, the policy'
 forward pass (the ESA hook in ESAPPO), ``ESAPPO._step_features`` (the head's input),
 ``EsaRuntime.step_head`` (the whole ESA step: one native call in-process; elsewhere the
 head's step inputs, ``EsaRuntime.step``'s probe and report, also timed, and the executed
-action) and ``fit``.
+action) and ``fit`` where the trainer runs it (the head-fit worker's fits are not timed: with
+a worker serving, the row is 0 but for the fits made before it started).
 
 Settings as ``run_one.py``: InvertedPendulum-v5, 1 env, SB3's default PPO, 12,288 steps,
 torch on one thread, the in-process engine (``--engine sidecar-native`` for the sidecar).
@@ -115,6 +116,7 @@ def run(agent: str, engine: str, steps: int) -> tuple[float, dict[str, float], i
         model = ESAPPO("MlpPolicy", env, esa=esa, **common, **ENGINES[engine])
         if agent == "ESAPPO unfitted":
             model._update_esa_head = lambda: None  # type: ignore[method-assign]
+            model._finish_esa_head_fit = lambda pending: None  # type: ignore[method-assign]
     active = 0
     if isinstance(model, ESAPPO):
         collect = model.collect_rollouts

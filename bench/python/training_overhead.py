@@ -77,7 +77,7 @@ class Agent:
 
     plain: str
     esa: EsaConfig | None = None
-    options: tuple[tuple[str, str], ...] = ()
+    options: tuple[tuple[str, object], ...] = ()
     engine_free: bool = False
 
 
@@ -85,6 +85,7 @@ GRADIENT = (("esa_shift", "gradient"),)
 TARGET = (("esa_mode", "target"),)
 AGENTS = {
     "ESAPPO": Agent("PPO"),
+    "ESAPPO inline fit": Agent("PPO", options=(("esa_head_worker", False),)),
     "ESAPPO ungated": Agent("PPO", EsaConfig(gate=None)),
     "ESAPPO target": Agent("PPO", options=TARGET),
     "ESAPPO qgrad": Agent("PPO", options=GRADIENT, engine_free=True),
@@ -146,6 +147,8 @@ TIMED = [
     # ESAPPO's ESA step (EsaRuntime.step inside it, on other engines, counts once).
     (EsaRuntime, "step_head", "esa_step"),
     (ESAPPO, "_update_esa_head", "critic_fit"),
+    # The fit itself where it runs in-process, else taking the worker's fit in.
+    (ESAPPO, "_finish_esa_head_fit", "critic_fit"),
 ]
 
 ENGINES = {

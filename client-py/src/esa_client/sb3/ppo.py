@@ -19,6 +19,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from .._native import AdvantageMlp
 from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
+from ..common.head_fit_worker import FitJob, HeadFitWorker, PendingFit, shared_worker
 from ..config import EsaConfig
 from ..transports.base import HeadStep, LinearCritic
 from .mixin import EsaMixin
@@ -83,6 +84,12 @@ class ESAPPO(EsaMixin, PPO):
         esa_head_epochs: Passes over its data each time the head is fitted.
         esa_head_batch_size: Minibatch size when fitting the head.
         esa_head_rollouts: How many of the latest rollouts the head is fitted on.
+        esa_head_worker: Fit the head in a worker process while PPO updates the policy
+            (:mod:`esa_client.common.head_fit_worker`), so that the fit costs no wall-clock
+            where a second CPU is free; the results are the same bits as fitting it here.
+            ``None`` (default): on a CPU device with two or more CPUs available to the
+            process (an extra Python process with torch, about 300 MB); ``False``: never;
+            ``True``: on a CPU device whatever the CPU count.
         esa_mode: ``"behaviour"``: the env executes ``a_t + v(t)`` (Algorithm 1).
             ``"target"``: the env executes the policy's own sample (exact on-policy data)
             while the sessions still run on it, and a bounded auxiliary loss in PPO's
@@ -115,6 +122,7 @@ class ESAPPO(EsaMixin, PPO):
         esa_head_epochs: int = 5,
         esa_head_batch_size: int = 256,
         esa_head_rollouts: int = 4,
+        esa_head_worker: bool | None = None,
         esa_mode: Mode = "behaviour",
         esa_shift: Shift = "esc",
         esa_target_weight: float = 1.0,
@@ -143,12 +151,17 @@ class ESAPPO(EsaMixin, PPO):
                 raise ValueError(f"expected {name} an integer >= 1, got {value!r}")
         if not esa_head_learning_rate > 0:
             raise ValueError(f"expected esa_head_learning_rate > 0, got {esa_head_learning_rate}")
+        if not (esa_head_worker is None or isinstance(esa_head_worker, bool)):
+            raise ValueError(
+                f"expected esa_head_worker True, False or None, got {esa_head_worker!r}"
+            )
         # Set before the SB3 constructor: its _setup_model builds the head from them.
         self.esa_head_hidden = esa_head_hidden
         self.esa_head_learning_rate = esa_head_learning_rate
         self.esa_head_epochs = esa_head_epochs
         self.esa_head_batch_size = esa_head_batch_size
         self.esa_head_rollouts = esa_head_rollouts
+        self.esa_head_worker = esa_head_worker
         self._esa_head_data: list[Rollout] = []
         self._esa_head_fitted = False
         self._esa_active = False
@@ -182,6 +195,19 @@ class ESAPPO(EsaMixin, PPO):
             self.esa_head.parameters(), lr=self.esa_head_learning_rate, fused=fused
         )
         self._esa_rng = np.random.default_rng(self.seed)
+        if self.esa_head_worker and self.device.type != "cpu":
+            raise ValueError(
+                f"expected esa_head_worker False or None on a {self.device.type} device (the "
+                "worker fits on the CPU), got True"
+            )
+        # Started now, so that it has imported torch by the first fit.
+        self._esa_fit_worker()
+
+    def _esa_fit_worker(self) -> HeadFitWorker | None:
+        """The process's head-fit worker if this model uses one, else None."""
+        if self.esa_head_worker is False or self.device.type != "cpu":
+            return None
+        return shared_worker(force=bool(self.esa_head_worker))
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
@@ -349,17 +375,22 @@ class ESAPPO(EsaMixin, PPO):
         return kappa * unit
 
     def train(self) -> None:
-        """Checks the gate and fits the advantage head on the rollout, then runs PPO's update.
+        """Checks the gate and fits the advantage head on the rollout, runs PPO's update.
 
-        In the target mode, PPO's update also pulls the mean toward ``mu_old + v_t``.
+        The fit runs beside PPO's update where a worker serves (``esa_head_worker``), and
+        the head holds it when this returns. In the target mode, PPO's update also pulls
+        the mean toward ``mu_old + v_t``.
         """
-        self._update_esa_head()
-        targets = self._esa_targets if self.esa_mode == "target" else []
-        if not any(np.any(z != 0) for z in targets):
-            super().train()
-            return
-        with self._esa_target_loss(np.stack(targets)):
-            super().train()
+        pending = self._update_esa_head()
+        try:
+            targets = self._esa_targets if self.esa_mode == "target" else []
+            if not any(np.any(z != 0) for z in targets):
+                super().train()
+                return
+            with self._esa_target_loss(np.stack(targets)):
+                super().train()
+        finally:
+            self._finish_esa_head_fit(pending)
 
     @contextlib.contextmanager
     def _esa_target_loss(self, targets: np.ndarray) -> Iterator[None]:
@@ -421,7 +452,12 @@ class ESAPPO(EsaMixin, PPO):
                 self.logger.record("esa/target_loss", float(np.mean(losses)))
             self.logger.record("esa/target_shift_over_std", float(z[shifted].abs().mean()))
 
-    def _update_esa_head(self) -> None:
+    def _update_esa_head(self) -> PendingFit | None:
+        """Checks the gate on the new rollout and sends the head's fit on it to the worker.
+
+        Returns:
+            The worker's fit, or None (the fit runs in :meth:`_finish_esa_head_fit`).
+        """
         buffer = self.rollout_buffer
         obs = buffer.to_torch(buffer.observations.reshape(-1, *buffer.obs_shape))
         actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
@@ -438,19 +474,36 @@ class ESAPPO(EsaMixin, PPO):
             self.logger.record("esa/gate_correlation", quality)
             self._esa_active = gate is None or quality >= gate
         self._esa_head_data = [*self._esa_head_data, rollout][-self.esa_head_rollouts :]
-        loss = fit(
-            self.esa_head,
-            self.esa_head_optimizer,
-            self._esa_head_data,
-            epochs=self.esa_head_epochs,
-            batch_size=self.esa_head_batch_size,
-            rng=self._esa_rng,
-        )
-        self.logger.record("esa/head_loss", loss)
+        worker = self._esa_fit_worker()
+        pending = None
+        if worker is not None:
+            job = FitJob.of(
+                self.esa_head, self.esa_head_optimizer, self._esa_head_data, **self._esa_fit_args()
+            )
+            pending = worker.submit(job)
         if not self._esa_head_fitted and gate is None:
             self._esa_active = True
         self._esa_head_fitted = True
         self.logger.record("esa/active", float(self._esa_active))
+        return pending
+
+    def _finish_esa_head_fit(self, pending: PendingFit | None) -> None:
+        """Writes the worker's fit into the head, or fits the head here; records the loss."""
+        result = pending() if pending is not None else None
+        if result is None:
+            # From the state the job copied, so the bits the worker would have given.
+            data = self._esa_head_data
+            loss = fit(self.esa_head, self.esa_head_optimizer, data, **self._esa_fit_args())
+        else:
+            self._esa_rng = result.apply(self.esa_head, self.esa_head_optimizer)
+            loss = result.loss
+        self.logger.record("esa/head_loss", loss)
+        self.logger.record("esa/head_fit_in_worker", float(result is not None))
+
+    def _esa_fit_args(self) -> dict[str, Any]:
+        return dict(
+            rng=self._esa_rng, epochs=self.esa_head_epochs, batch_size=self.esa_head_batch_size
+        )
 
 
 def _gaussian(distribution: Distribution) -> th.distributions.Normal:
