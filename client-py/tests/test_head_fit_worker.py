@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import copy
 import logging
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch as th
 
+from esa_client.common import head_fit_worker
 from esa_client.common.advantage_head import AdvantageHead, Rollout, fit
 from esa_client.common.head_fit_worker import FitJob, FitResult, HeadFitWorker, shared_worker
 from esa_client.sb3 import ESAPPO, EsaConfig
@@ -127,6 +129,23 @@ def test_a_job_that_fails_there_is_left_to_the_trainer(worker, caplog):
     with caplog.at_level(logging.WARNING):
         assert pending() is None
     assert "size mismatch" in caplog.text
+
+
+def test_an_interrupted_wait_retires_the_worker(worker, monkeypatch, caplog):
+    # Its answer, left in the pipe, would otherwise be read as the next job's.
+    head, optimizer, rollouts = job_parts()
+    job = FitJob.of(head, optimizer, rollouts, rng=np.random.default_rng(0), **SETTINGS)
+    pending = worker.submit(job)
+    assert pending is not None
+
+    def interrupted(*args: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(head_fit_worker, "select", SimpleNamespace(select=interrupted))
+    with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
+        pending()
+    assert not worker.usable
+    assert worker.submit(job) is None
 
 
 def test_close_ends_the_worker():

@@ -24,6 +24,7 @@ import logging
 import os
 import pickle
 import select
+import signal
 import struct
 import subprocess
 import sys
@@ -191,10 +192,13 @@ class HeadFitWorker:
                 return None
             assert self._process.stdin is not None
             _write(self._process.stdin, job)
-        except (OSError, EOFError, pickle.PicklingError) as err:
+        except BaseException as err:
+            # Interrupted mid-message too (Ctrl+C): the channel is out of step for good.
             self._fail(err)
             self._lock.release()
-            return None
+            if isinstance(err, (OSError, EOFError, pickle.PicklingError)):
+                return None
+            raise
         return self._result
 
     def _result(self) -> FitResult | None:
@@ -208,9 +212,13 @@ class HeadFitWorker:
             if not isinstance(answer, FitResult):
                 raise RuntimeError(f"its fit failed: {answer}")
             return answer
-        except (OSError, EOFError, RuntimeError, pickle.UnpicklingError) as err:
+        except BaseException as err:
+            # Interrupted too (Ctrl+C): the answer left in the pipe would pass for the next
+            # job's.
             self._fail(err)
-            return None
+            if isinstance(err, (OSError, EOFError, RuntimeError, pickle.UnpicklingError)):
+                return None
+            raise
         finally:
             self._lock.release()
 
@@ -295,6 +303,9 @@ def _warm_up() -> None:
 
 def main() -> None:
     """The worker: announces itself, then answers each job until its stdin closes."""
+    # Ctrl+C reaches the whole process group: the trainer decides, and the worker ends when
+    # its stdin closes.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # Its own stdout is the channel: anything printed goes to stderr instead.
     channel = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())

@@ -88,8 +88,9 @@ class ESAPPO(EsaMixin, PPO):
             (:mod:`esa_client.common.head_fit_worker`), so that the fit costs no wall-clock
             where a second CPU is free; the results are the same bits as fitting it here.
             ``None`` (default): on a CPU device with two or more CPUs available to the
-            process (an extra Python process with torch, about 300 MB); ``False``: never;
-            ``True``: on a CPU device whatever the CPU count.
+            process; ``False``: never; ``True``: on a CPU device whatever the CPU count.
+            The worker is one extra Python process with torch, shared by the process's
+            models: about 400 MB of memory of its own.
         esa_mode: ``"behaviour"``: the env executes ``a_t + v(t)`` (Algorithm 1).
             ``"target"``: the env executes the policy's own sample (exact on-policy data)
             while the sessions still run on it, and a bounded auxiliary loss in PPO's
