@@ -238,8 +238,9 @@ class HeadFitWorker:
 
     def _fail(self, err: BaseException) -> None:
         _log.warning(
-            "the advantage head's fit worker failed (%s): ESAPPO fits its head in-process "
-            "from now on, with the same results",
+            "the advantage head's fit worker failed (%s: %s): ESAPPO fits its head "
+            "in-process from now on, with the same results",
+            type(err).__name__,
             err,
         )
         self._broken = True
