@@ -201,6 +201,10 @@ def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]
 
         cls = _of_family({"ppo": ESAPPO, "sac": ESASAC, "td3": ESATD3}, spec.family)
         kwargs["esa"] = EsaConfig(**hp.pop("esa"))
+        if spec.family == "ppo":
+            # The runner gives each job a core (--jobs N fills N): a head-fit worker would
+            # only compete with the other jobs and hold ~400 MB. Same bits either way.
+            kwargs["esa_head_worker"] = False
         kwargs.update(hp.pop("esa_options", {}))
     elif spec.addon == "param_noise":
         cls = _of_family({"ppo": PPOParamNoise, "sac": SACParamNoise}, spec.family)
