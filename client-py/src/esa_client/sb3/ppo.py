@@ -88,7 +88,9 @@ class ESAPPO(EsaMixin, PPO):
             (:mod:`esa_client.common.head_fit_worker`), so that the fit costs no wall-clock
             where a second CPU is free; the results are the same bits as fitting it here.
             ``None`` (default): on a CPU device with two or more CPUs available to the
-            process; ``False``: never; ``True``: on a CPU device whatever the CPU count.
+            process; ``False``: never; ``True``: on a CPU device whatever the CPU count. On
+            another device (a GPU) the head is fitted there, in the trainer, so that a model
+            saved on a CPU host loads anywhere.
             The worker is one extra Python process with torch, shared by the process's
             models: about 400 MB of memory of its own.
         esa_mode: ``"behaviour"``: the env executes ``a_t + v(t)`` (Algorithm 1).
@@ -196,11 +198,6 @@ class ESAPPO(EsaMixin, PPO):
             self.esa_head.parameters(), lr=self.esa_head_learning_rate, fused=fused
         )
         self._esa_rng = np.random.default_rng(self.seed)
-        if self.esa_head_worker and self.device.type != "cpu":
-            raise ValueError(
-                f"expected esa_head_worker False or None on a {self.device.type} device (the "
-                "worker fits on the CPU), got True"
-            )
         # Started now, so that it has imported torch by the first fit.
         self._esa_fit_worker()
 
