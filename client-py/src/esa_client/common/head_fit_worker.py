@@ -45,6 +45,8 @@ _FRAME = struct.Struct("<Q")
 _READY = "ready"
 _POLL_S = 1.0
 """How often a trainer waiting for a fit checks that the worker is still alive."""
+_CHANNEL_ERRORS = (OSError, EOFError, RuntimeError, pickle.PickleError)
+"""What a failed worker or a broken channel raises: the trainer fits the head itself."""
 
 
 @dataclass
@@ -196,7 +198,7 @@ class HeadFitWorker:
             # Interrupted mid-message too (Ctrl+C): the channel is out of step for good.
             self._fail(err)
             self._lock.release()
-            if isinstance(err, (OSError, EOFError, pickle.PicklingError)):
+            if isinstance(err, _CHANNEL_ERRORS):
                 return None
             raise
         return self._result
@@ -216,7 +218,7 @@ class HeadFitWorker:
             # Interrupted too (Ctrl+C): the answer left in the pipe would pass for the next
             # job's.
             self._fail(err)
-            if isinstance(err, (OSError, EOFError, RuntimeError, pickle.UnpicklingError)):
+            if isinstance(err, _CHANNEL_ERRORS):
                 return None
             raise
         finally:
@@ -232,7 +234,7 @@ class HeadFitWorker:
                 if _read(stdout) != _READY:
                     raise RuntimeError("it did not announce itself")
                 self._ready = True
-        except (OSError, EOFError, RuntimeError, pickle.UnpicklingError) as err:
+        except _CHANNEL_ERRORS as err:
             self._fail(err)
         return self._ready
 
