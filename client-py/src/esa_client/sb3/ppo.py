@@ -198,8 +198,12 @@ class ESAPPO(EsaMixin, PPO):
             self.esa_head.parameters(), lr=self.esa_head_learning_rate, fused=fused
         )
         self._esa_rng = np.random.default_rng(self.seed)
-        # Started now, so that it has imported torch by the first fit.
+
+    def _setup_learn(self, *args: Any, **kwargs: Any) -> Any:
+        # The worker starts with training, not with the model (a model loaded only to act
+        # never fits), and has imported torch by the first fit a rollout later.
         self._esa_fit_worker()
+        return super()._setup_learn(*args, **kwargs)
 
     def _esa_fit_worker(self) -> HeadFitWorker | None:
         """The process's head-fit worker if this model uses one, else None."""
