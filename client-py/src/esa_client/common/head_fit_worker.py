@@ -249,15 +249,14 @@ class HeadFitWorker:
         self.close()
 
     def close(self) -> None:
-        """Ends the worker (its stdin closes, then it exits)."""
+        """Ends the worker now."""
+        # It holds no state; waiting for it to notice its closed stdin could hold the
+        # trainer's exit for seconds (torch's import, a fit).
         for stream in (self._process.stdin, self._process.stdout):
             if stream is not None:
                 stream.close()
-        try:
-            self._process.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            self._process.kill()
-            self._process.wait()
+        self._process.kill()
+        self._process.wait()
 
 
 _SHARED: HeadFitWorker | None = None
@@ -305,7 +304,11 @@ def _warm_up() -> None:
 
 
 def main() -> None:
-    """The worker: announces itself, then answers each job until its stdin closes."""
+    """The worker: announces itself, then answers each job until its stdin closes.
+
+    It ends quietly when its trainer has gone (a closed stdin, or a closed channel when it
+    writes).
+    """
     # Ctrl+C reaches the whole process group: the trainer decides, and the worker ends when
     # its stdin closes.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -313,14 +316,14 @@ def main() -> None:
     channel = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
     _warm_up()
-    _write(channel, _READY)
-    while True:
-        try:
+    try:
+        _write(channel, _READY)
+        while True:
             job = _read(sys.stdin.buffer)
-        except EOFError:
-            return
-        try:
-            answer: object = job.run() if isinstance(job, FitJob) else f"not a FitJob: {job!r}"
-        except Exception as err:  # noqa: BLE001 - reported to the trainer, which fits itself
-            answer = f"{type(err).__name__}: {err}"
-        _write(channel, answer)
+            try:
+                answer: object = job.run() if isinstance(job, FitJob) else f"not a FitJob: {job!r}"
+            except Exception as err:  # noqa: BLE001 - reported to the trainer, which fits
+                answer = f"{type(err).__name__}: {err}"
+            _write(channel, answer)
+    except (EOFError, BrokenPipeError):
+        return
