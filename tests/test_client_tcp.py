@@ -14,8 +14,8 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture
 def tcp_server():
-    # The client's own lookup: ESA_SERVER_BIN (`make test`), a wheel's bundled
-    # server, or this checkout's target/release/esa-server (never built here).
+    # The client's own lookup: ESA_SERVER_BIN (`make test`), an installed esa-server
+    # wheel, or this checkout's target/release/esa-server (never built here).
     try:
         binary = str(find_server_binary(checkout=REPO_ROOT, build=False))
     except EsaError as err:

@@ -5,11 +5,13 @@ executable, it does not run it (except the cargo build, which these tests disabl
 """
 
 import os
+import sys
+import types
 from pathlib import Path
 
 import pytest
 from esa_client import EsaError, sidecar
-from esa_client.sidecar import BINARY_ENV, bundled_server_binary, find_server_binary
+from esa_client.sidecar import BINARY_ENV, find_server_binary, server_wheel_binary
 
 
 def fake_executable(path: Path) -> Path:
@@ -29,22 +31,46 @@ def fake_checkout(root: Path, built: bool = True) -> Path:
 
 @pytest.fixture
 def isolated(tmp_path, monkeypatch):
-    """No env var, nothing on PATH, esa_client imported from a wheel (_bin here)."""
+    """No env var, nothing on PATH, esa_client imported from a wheel, no esa-server wheel.
+
+    Returns the scripts folder where :func:`server_wheel` installs the esa-server wheel.
+    """
     monkeypatch.delenv(BINARY_ENV, raising=False)
     monkeypatch.delenv("CARGO_TARGET_DIR", raising=False)
     empty = tmp_path / "empty-path"
     empty.mkdir()
     monkeypatch.setenv("PATH", str(empty))
-    package = tmp_path / "site-packages" / "esa_client"
-    package.mkdir(parents=True)
     # sidecar.py of a wheel install: parents[3] is no checkout.
     monkeypatch.setattr(sidecar, "_REPO_ROOT", tmp_path / "site-packages")
-    monkeypatch.setattr(sidecar.resources, "files", lambda name: package)
-    return package
+    # None in sys.modules makes `import esa_server` raise ImportError: not installed.
+    monkeypatch.setitem(sys.modules, "esa_server", None)
+    return tmp_path / "venv" / "bin"
 
 
-def test_env_var_wins_over_the_bundled_server(isolated, tmp_path, monkeypatch):
-    fake_executable(isolated / "_bin" / "esa-server")
+@pytest.fixture
+def server_wheel(isolated, monkeypatch):
+    """Installs a fake esa-server wheel: its package finds the executable in ``isolated``."""
+
+    def install(executable=True):
+        path = fake_executable(isolated / "esa-server")
+        if not executable:
+            path.chmod(0o644)
+        package = types.ModuleType("esa_server")
+
+        def find_esa_server_bin():
+            if not path.is_file():
+                raise FileNotFoundError(f"looked at {path}")
+            return path
+
+        package.find_esa_server_bin = find_esa_server_bin
+        monkeypatch.setitem(sys.modules, "esa_server", package)
+        return path
+
+    return install
+
+
+def test_env_var_wins_over_the_server_wheel(server_wheel, tmp_path, monkeypatch):
+    server_wheel()
     chosen = fake_executable(tmp_path / "mine" / "esa-server")
     monkeypatch.setenv(BINARY_ENV, str(chosen))
     assert find_server_binary() == chosen
@@ -53,19 +79,19 @@ def test_env_var_wins_over_the_bundled_server(isolated, tmp_path, monkeypatch):
     assert find_server_binary(other) == other
 
 
-def test_a_broken_env_var_is_an_error_not_skipped(isolated, tmp_path, monkeypatch):
-    fake_executable(isolated / "_bin" / "esa-server")
+def test_a_broken_env_var_is_an_error_not_skipped(server_wheel, tmp_path, monkeypatch):
+    server_wheel()
     monkeypatch.setenv(BINARY_ENV, str(tmp_path / "missing"))
     with pytest.raises(EsaError, match="expected an executable esa-server"):
         find_server_binary()
 
 
-def test_the_bundled_server_wins_over_a_checkout_and_path(isolated, tmp_path):
-    bundled = fake_executable(isolated / "_bin" / "esa-server")
+def test_the_server_wheel_wins_over_a_checkout_and_path(server_wheel, tmp_path):
+    installed = server_wheel()
     checkout = fake_checkout(tmp_path / "repo")
     fake_executable(tmp_path / "empty-path" / "esa-server")
-    assert bundled_server_binary() == bundled
-    assert find_server_binary(checkout=checkout, build=False) == bundled
+    assert server_wheel_binary() == installed
+    assert find_server_binary(checkout=checkout, build=False) == installed
 
 
 def test_a_checkout_build_wins_over_path(isolated, tmp_path):
@@ -93,28 +119,39 @@ def test_nothing_found_says_how_to_get_one(isolated, tmp_path):
     with pytest.raises(EsaError, match="cannot find esa-server") as info:
         find_server_binary(checkout=unbuilt, build=False)
     message = str(info.value)
-    assert "make wheel" in message and BINARY_ENV in message and str(unbuilt) in message
+    assert 'pip install "esa-client[server]"' in message
+    assert (
+        BINARY_ENV in message and str(unbuilt) in message and "cargo build" in message
+    )
+    # Outside any checkout the build hint still names the command.
+    with pytest.raises(EsaError, match="cargo build --release -p esa-server"):
+        find_server_binary(build=False)
 
 
-def test_an_editable_install_ignores_a_leftover_bin_folder(
-    isolated, tmp_path, monkeypatch
+def test_an_editable_install_ignores_the_server_wheel(
+    server_wheel, tmp_path, monkeypatch
 ):
-    # esa_client imported from a checkout: src/esa_client/_bin is what an interrupted
-    # `make wheel` left behind, not a bundled server; the checkout's build is used.
+    # esa_client imported from a checkout: the checkout's build belongs to it, a server wheel
+    # in the same environment may be of another version.
     checkout = fake_checkout(tmp_path / "repo")
-    fake_executable(isolated / "_bin" / "esa-server")
+    server_wheel()
     monkeypatch.setattr(sidecar, "_REPO_ROOT", checkout)
-    assert bundled_server_binary() is None
+    assert server_wheel_binary() is None
     assert (
         find_server_binary(build=False)
         == checkout / "target" / "release" / "esa-server"
     )
 
 
-def test_a_bundled_server_without_its_mode_is_a_clear_error(isolated):
-    bundled = fake_executable(isolated / "_bin" / "esa-server")
-    bundled.chmod(0o644)
-    if os.access(bundled, os.X_OK):  # root may execute anything
+def test_a_server_wheel_without_its_mode_is_a_clear_error(server_wheel):
+    installed = server_wheel(executable=False)
+    if os.access(installed, os.X_OK):  # root may execute anything
         pytest.skip("this user can execute files without the x bit")
     with pytest.raises(EsaError, match="not executable"):
+        find_server_binary()
+
+
+def test_a_server_wheel_that_lost_its_executable_says_so(server_wheel):
+    server_wheel().unlink()
+    with pytest.raises(EsaError, match="looked at"):
         find_server_binary()

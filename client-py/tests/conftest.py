@@ -42,7 +42,7 @@ def server_bin() -> str:
     """The esa-server executable, found as the client finds it (``find_server_binary``).
 
     ``make test`` exports ESA_SERVER_BIN as the binary it built, which wins; otherwise the
-    installed wheel's bundled server, else this checkout's target/release/esa-server (never
+    installed esa-server wheel, else this checkout's target/release/esa-server (never
     built here: a test run does not start a cargo build).
     """
     try:

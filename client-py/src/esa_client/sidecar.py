@@ -23,7 +23,6 @@ import tempfile
 import time
 import weakref
 from collections.abc import Sequence
-from importlib import resources
 from pathlib import Path
 
 from .errors import EsaError, ServerUnavailable, StatusCode
@@ -68,29 +67,32 @@ def _executable(path: Path) -> bool:
     return path.is_file() and os.access(path, os.X_OK)
 
 
-def bundled_server_binary() -> Path | None:
-    """The ``esa-server`` an installed wheel carries (``esa_client/_bin/esa-server``), or None.
+def server_wheel_binary() -> Path | None:
+    """The ``esa-server`` of the installed esa-server wheel (``esa-client[server]``), or None.
 
-    ``make wheel`` puts it there. An esa_client imported from a source checkout (an editable
-    install) has no bundled server: a ``_bin`` folder there is a leftover of an interrupted
-    ``make wheel``, so it is ignored and the checkout's own build is used instead.
+    None also for an esa_client imported from a source checkout (an editable install), which
+    uses that checkout's own build instead, so that client and server come from one source.
 
     Raises:
-        EsaError: If the wheel's copy exists but is not executable (an installer that dropped
-            the file mode).
+        EsaError: If the wheel is installed but its executable is missing or not executable
+            (an installer that dropped the file mode), saying how to repair it.
     """
     if _is_checkout(_REPO_ROOT):
         return None
-    candidate = resources.files(__package__) / "_bin" / BINARY_NAME
-    # A package imported from a zip archive has no file that could be executed.
-    if not isinstance(candidate, Path) or not candidate.is_file():
+    try:
+        from esa_server import find_esa_server_bin
+    except ImportError:
         return None
-    if not os.access(candidate, os.X_OK):
+    try:
+        path = find_esa_server_bin()
+    except FileNotFoundError as error:
+        raise EsaError(str(error)) from None
+    if not os.access(path, os.X_OK):
         raise EsaError(
-            f"the bundled {BINARY_NAME} at {candidate} is not executable: `chmod +x` it, "
+            f"the esa-server wheel's {path} is not executable: `chmod +x` it, "
             f"or set {BINARY_ENV} to another esa-server"
         )
-    return candidate
+    return path
 
 
 def find_server_binary(
@@ -105,7 +107,8 @@ def find_server_binary(
 
     1. ``binary``, if given;
     2. the ``ESA_SERVER_BIN`` environment variable;
-    3. the server bundled in the installed wheel (:func:`bundled_server_binary`);
+    3. the installed esa-server wheel (:func:`server_wheel_binary`), which
+       ``pip install "esa-client[server]"`` brings at the client's own version;
     4. a source checkout: ``checkout`` if given and a checkout, else the checkout this package
        is imported from (an editable install). With ``build`` and ``cargo`` on ``PATH`` it runs
        ``cargo build --release -p esa-server`` there and uses the result; otherwise it uses
@@ -115,10 +118,11 @@ def find_server_binary(
 
     Why this order: an explicit choice (1, 2) always wins, so ``make test`` and ``make demo``,
     which export ``ESA_SERVER_BIN`` as the binary they just built, use that binary even where
-    a wheel is installed. Without one, the server that belongs to the imported esa_client is
-    used: the wheel's own copy for a wheel install (3), the checkout's build for an editable
-    install (4), so client and server come from the same sources. ``PATH`` (5) is the last
-    resort because a binary found there may be of another version.
+    the server wheel is installed. Without one, the server that belongs to the imported
+    esa_client is used: the server wheel its ``server`` extra pins for a wheel install (3),
+    the checkout's build for an editable install (4), so client and server come from the same
+    sources. ``PATH`` (5) is the last resort because a binary found there may be of another
+    version.
     An ``ESA_SERVER_BIN`` (or ``binary``) that is not an executable is an error, never skipped.
 
     Args:
@@ -138,9 +142,9 @@ def find_server_binary(
         if not _executable(path):
             raise EsaError(f"expected an executable esa-server at {path}, got none")
         return path
-    bundled = bundled_server_binary()
-    if bundled is not None:
-        return bundled
+    from_wheel = server_wheel_binary()
+    if from_wheel is not None:
+        return from_wheel
     roots = [Path(checkout)] if checkout is not None else []
     repo = next((root for root in [*roots, _REPO_ROOT] if _is_checkout(root)), None)
     if repo is not None:
@@ -153,14 +157,15 @@ def find_server_binary(
     on_path = shutil.which(BINARY_NAME)
     if on_path:
         return Path(on_path)
-    hint = (
-        f"build it in {repo} with `cargo build --release -p {BINARY_NAME}` (or `make build`), "
+    build_hint = (
+        f"build it in {repo} with `cargo build --release -p {BINARY_NAME}` (or `make build`)"
         if repo is not None
-        else ""
+        else f"build it from a clone with `cargo build --release -p {BINARY_NAME}`"
     )
     raise EsaError(
-        f"cannot find {BINARY_NAME}: {hint}install the esa-client wheel that bundles it "
-        f"(`make wheel`), set {BINARY_ENV} to its path, or put it on PATH"
+        f"cannot find {BINARY_NAME}, which the sidecar and shared-server engines need "
+        f"(the in-process engine, EsaClient.in_process(), needs none): install it with "
+        f'`pip install "esa-client[server]"`, set {BINARY_ENV} to its path, or {build_hint}'
     )
 
 
