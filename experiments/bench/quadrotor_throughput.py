@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Literal
 
 import gymnasium as gym
 import numpy as np
+import tyro
 
 from esa_experiments import QUADROTOR_ENV_ID
-from esa_experiments.cli import parse_args
 
 
 @dataclass(frozen=True)
@@ -25,9 +26,13 @@ class Args:
     """Quadrotor env step throughput."""
 
     steps: int = 100_000
-    path: str = "circle"
+    """Env steps per measurement."""
+    path: Literal["circle", "eight", "hover"] = "circle"
+    """Reference path of the env."""
     seed: int = 0
+    """Seed of the random actions and of the first reset."""
     repeats: int = 3
+    """Measurements per env; the best one is printed."""
 
 
 def measure(env: gym.Env, actions: np.ndarray, seed: int) -> tuple[float, float]:
@@ -57,4 +62,4 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    main(parse_args(Args))
+    main(tyro.cli(Args))

@@ -14,18 +14,20 @@ Usage (prints a table; the committed outputs are in results/advantage_head_quali
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
 import torch as th
+import tyro
 from esa_client.common.advantage_head import rank_correlation
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from torch import nn
 from torch.nn import functional as F
+from tyro.conf import Positional, arg
 
 
 def mlp(inputs: int, hidden: int, outputs: int, layers: int) -> nn.Sequential:
@@ -153,23 +155,37 @@ class ScoreHeads(BaseCallback):
             variant.fit(self.model, batch, self.rng)
 
 
-def main(env_id: str, steps: int, n_steps: int, seed: int) -> None:
+@dataclass
+class Args:
+    """Advantage-head designs scored on plain PPO's rollouts (positional, in this order)."""
+
+    env_id: Annotated[Positional[str], arg(metavar="ENV_ID")]
+    """Gymnasium id of the env."""
+    steps: Annotated[Positional[int], arg(metavar="STEPS")]
+    """PPO training steps."""
+    n_steps: Annotated[Positional[int], arg(metavar="N_STEPS")]
+    """PPO rollout length per env (4 envs)."""
+    seed: Annotated[Positional[int], arg(metavar="SEED")] = 0
+    """Seed of PPO and its envs."""
+
+
+def main(args: Args) -> None:
     th.set_num_threads(1)
-    env = make_vec_env(env_id, n_envs=4, seed=seed)
+    env = make_vec_env(args.env_id, n_envs=4, seed=args.seed)
     model = PPO(
         "MlpPolicy",
         env,
-        n_steps=n_steps,
+        n_steps=args.n_steps,
         batch_size=64,
         n_epochs=10,
         policy_kwargs={"net_arch": [64, 64]},
-        seed=seed,
+        seed=args.seed,
         device="cpu",
     )
     start = time.time()
-    model.learn(steps, callback=ScoreHeads())
+    model.learn(args.steps, callback=ScoreHeads())
     rollouts = len(VARIANTS[0].scores)
-    print(f"{env_id} seed {seed} rollouts {rollouts} time {time.time() - start:.0f}")
+    print(f"{args.env_id} seed {args.seed} rollouts {rollouts} time {time.time() - start:.0f}")
     for variant in VARIANTS:
         s = np.array(variant.scores[1:])
         k = len(s)
@@ -181,9 +197,4 @@ def main(env_id: str, steps: int, n_steps: int, seed: int) -> None:
 
 
 if __name__ == "__main__":
-    main(
-        sys.argv[1],
-        int(sys.argv[2]),
-        int(sys.argv[3]),
-        int(sys.argv[4]) if len(sys.argv) > 4 else 0,
-    )
+    main(tyro.cli(Args))

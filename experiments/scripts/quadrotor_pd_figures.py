@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium as gym
+import tyro
 
 from esa_experiments import QUADROTOR_ENV_ID
-from esa_experiments.cli import parse_args
 from esa_experiments.envs.pd_controller import PDController
 from esa_experiments.envs.quadrotor_rollout import record_episode
 from esa_experiments.envs.trajectory_plot import plot_tracking
@@ -27,7 +27,9 @@ class Args:
     """PD controller tracking figures for esa_experiments/Quadrotor-v0."""
 
     seed: int = 0
+    """Seed of the episodes' reset."""
     out_dir: str = str(RESULTS)
+    """Folder of the PNGs."""
 
 
 def main(args: Args) -> None:
@@ -52,4 +54,4 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    main(parse_args(Args))
+    main(tyro.cli(Args))

@@ -16,12 +16,12 @@ Usage (writes CSV and Markdown next to the other results):
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 import torch as th
+import tyro
 from esa_client.sb3.sac import PROBE_CRITICS
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
@@ -33,13 +33,22 @@ from esa_experiments.tables import to_markdown
 
 @dataclass
 class Args:
+    """Steadiness of SAC's critics for ESA's probes."""
+
     env: str = "Hopper-v5"
+    """Gymnasium id of the env."""
     steps: int = 30_000
+    """SAC training steps, split evenly among the checkpoints (the gaps come on top)."""
     checkpoints: int = 6
+    """Measurements, evenly spread over the training."""
     gap: int = 50
+    """SAC steps between the two responses of a measurement."""
     states: int = 512
+    """Replay-buffer states per measurement."""
     amplitude: float = 0.2
+    """Probe amplitude K in the squashed action space."""
     seed: int = 0
+    """Seed of SAC, the env and the sampled states."""
 
 
 def _q(model: SAC, name: str, obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
@@ -109,10 +118,7 @@ def main(args: Args) -> pd.DataFrame:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for name, default in vars(Args()).items():
-        parser.add_argument(f"--{name}", type=type(default), default=default)
-    args = Args(**vars(parser.parse_args()))
+    args = tyro.cli(Args)
     frame = main(args)
     out = EXPERIMENTS_DIR / "results" / "sac_probe_critic"
     out.mkdir(parents=True, exist_ok=True)

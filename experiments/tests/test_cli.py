@@ -2,7 +2,7 @@
 
 import pytest
 
-from esa_experiments.commands import main
+from esa_experiments.commands import Plot, Run, main, parse
 from esa_experiments.studies import STUDY_NAMES
 
 
@@ -73,3 +73,51 @@ def test_list_shows_every_study(tmp_path, capsys):
     assert code == 0
     for name in ("example1", "mujoco", "ablation", "quadrotor"):
         assert f"{name}:" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["run", "example1", "--jobs", "x"], "--jobs"),
+        (["run", "example1", "--bogus"], "--bogus"),
+        (["run"], "STUDY"),
+        (["nope"], "nope"),
+        ([], "subcommand"),
+    ],
+)
+def test_malformed_command_lines_exit_with_code_2(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.setenv("COLUMNS", "400")
+    with pytest.raises(SystemExit) as exit_:
+        run_cli(tmp_path, capsys, *argv)
+    assert exit_.value.code == 2
+    assert message in " ".join(capsys.readouterr().err.split())
+    assert not (tmp_path / "results-smoke").exists()
+
+
+def test_run_options_parse_into_the_run_command(tmp_path):
+    cli = parse(
+        ["--root", str(tmp_path), "run", "mujoco", "--budget", "full", "--seeds", "0-4"]
+        + ["--jobs", "2", "--methods", "ppo", "sac,td3", "--envs", "Hopper-v5", "--dry-run"]
+    )
+    assert cli.root == tmp_path
+    assert cli.command == Run(
+        study="mujoco",
+        budget="full",
+        seeds="0-4",
+        jobs=2,
+        methods=("ppo", "sac,td3"),
+        envs=("Hopper-v5",),
+        dry_run=True,
+    )
+    assert parse(["plot", "mujoco"]).command == Plot(study="mujoco", budget="smoke")
+
+
+def test_help_documents_every_run_option(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "400")  # one line per option, whatever the terminal
+    with pytest.raises(SystemExit) as exit_:
+        parse(["run", "--help"])
+    assert exit_.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for flag in ("--budget", "--seeds", "--jobs", "--methods", "--envs", "--dry-run"):
+        assert flag in text
+    assert "one of example1, mujoco" in text and "Parallel worker processes" in text

@@ -11,12 +11,15 @@ Examples::
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
+import tyro
 from rich.console import Console
+from tyro.conf import Positional, arg, subcommand
 
 from esa_experiments.runs import BUDGETS, EXPERIMENTS_DIR, RunStore, parse_seeds
 from esa_experiments.studies import STUDY_NAMES, Study, load_study
@@ -26,7 +29,66 @@ class CliError(Exception):
     """Bad command-line input; reported as ``error: ...`` with exit code 2."""
 
 
-def _selection(kind: str, given: Sequence[str] | None, allowed: Sequence[str]) -> tuple[str, ...]:
+@dataclass(frozen=True)
+class ListStudies:
+    """List the studies, their envs, methods and finished runs."""
+
+
+@dataclass(frozen=True)
+class _StudyCommand:
+    # Plain strs rather than Literals: main() checks them, so that the error names what is
+    # known the way the rest of the suite does, and main() returns its exit code.
+    study: Annotated[Positional[str], arg(metavar="STUDY", help=f"one of {', '.join(STUDY_NAMES)}")]
+    budget: Annotated[str, arg(help=f"one of {', '.join(BUDGETS)}")] = "smoke"
+
+
+@dataclass(frozen=True)
+class Run(_StudyCommand):
+    """Run a study (finished runs are skipped)."""
+
+    seeds: Annotated[
+        str | None, arg(metavar="SEEDS", help_behavior_hint="(default: the study's)")
+    ] = None
+    """E.g. 0-4, 3 or 0,2,5-7."""
+    jobs: int = 1
+    """Parallel worker processes."""
+    methods: Annotated[tuple[str, ...], arg(help_behavior_hint="(default: all)")] = ()
+    """Subset of the study's methods (space- or comma-separated)."""
+    envs: Annotated[tuple[str, ...], arg(help_behavior_hint="(default: all)")] = ()
+    """Subset of the study's envs (space- or comma-separated)."""
+    dry_run: bool = False
+    """Only show what would run."""
+
+
+@dataclass(frozen=True)
+class Plot(_StudyCommand):
+    """Write a study's figures and tables, update RESULTS.md."""
+
+
+@dataclass(frozen=True)
+class Cli:
+    """ESA reproduction suite."""
+
+    command: (
+        Annotated[ListStudies, subcommand("list", prefix_name=False)]
+        | Annotated[Run, subcommand("run", prefix_name=False)]
+        | Annotated[Plot, subcommand("plot", prefix_name=False)]
+    )
+    root: Path = EXPERIMENTS_DIR
+    """Folder holding results/, results-smoke/ and RESULTS.md."""
+
+
+def parse(argv: Sequence[str] | None = None) -> Cli:
+    """Parses ``argv`` (default: ``sys.argv[1:]``); malformed input exits with code 2."""
+    return tyro.cli(
+        Cli,
+        args=argv,
+        prog="python -m esa_experiments",
+        config=(tyro.conf.OmitArgPrefixes, tyro.conf.FlagCreatePairsOff),
+    )
+
+
+def _selection(kind: str, given: Sequence[str], allowed: Sequence[str]) -> tuple[str, ...]:
     if not given:
         return tuple(allowed)
     names = [name for item in given for name in item.split(",") if name]
@@ -36,36 +98,13 @@ def _selection(kind: str, given: Sequence[str] | None, allowed: Sequence[str]) -
     return tuple(dict.fromkeys(names))
 
 
-def _study(name: str) -> Study:
+def _study(command: _StudyCommand) -> Study:
+    if command.budget not in BUDGETS:
+        raise CliError(f"--budget: expected one of {list(BUDGETS)}, got {command.budget!r}")
     try:
-        return load_study(name)
+        return load_study(command.study)
     except ValueError as err:
         raise CliError(str(err)) from None
-
-
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m esa_experiments", description="ESA reproduction suite."
-    )
-    parser.add_argument(
-        "--root",
-        type=Path,
-        default=EXPERIMENTS_DIR,
-        help="folder holding results/, results-smoke/ and RESULTS.md (default: experiments/)",
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("list", help="list the studies, their envs, methods and finished runs")
-    run = sub.add_parser("run", help="run a study (finished runs are skipped)")
-    plot = sub.add_parser("plot", help="write a study's figures and tables, update RESULTS.md")
-    for command in (run, plot):
-        command.add_argument("study", help=f"one of {', '.join(STUDY_NAMES)}")
-        command.add_argument("--budget", default="smoke", help=f"one of {', '.join(BUDGETS)}")
-    run.add_argument("--seeds", help="e.g. 0-4, 3 or 0,2,5-7 (default: the study's)")
-    run.add_argument("--jobs", type=int, default=1, help="parallel worker processes")
-    run.add_argument("--methods", nargs="+", help="subset of the study's methods")
-    run.add_argument("--envs", nargs="+", help="subset of the study's envs")
-    run.add_argument("--dry-run", action="store_true", help="only show what would run")
-    return parser
 
 
 def _list(root: Path, console: Console) -> None:
@@ -81,10 +120,10 @@ def _list(root: Path, console: Console) -> None:
             console.print(f"  {budget}: {finished} finished run(s) in {runs}")
 
 
-def _run(options: argparse.Namespace, console: Console) -> int:
+def _run(options: Run, root: Path, console: Console) -> int:
     from esa_experiments.execution import execute
 
-    study = _study(options.study)
+    study = _study(options)
     try:
         seeds = parse_seeds(options.seeds or study.DEFAULT_SEEDS)
     except ValueError as err:
@@ -94,7 +133,7 @@ def _run(options: argparse.Namespace, console: Console) -> int:
     drive = getattr(study, "drive", None)
     if drive is not None:
         # A study that decides its runs as it goes (a search); it is resumable itself.
-        drive(options.budget, seeds, options.jobs, options.root, console)
+        drive(options.budget, seeds, options.jobs, root, console)
         console.print(
             f"Next: python -m esa_experiments plot {study.NAME} --budget {options.budget}"
         )
@@ -102,7 +141,7 @@ def _run(options: argparse.Namespace, console: Console) -> int:
     envs = _selection("envs", options.envs, study.ENVS)
     methods = _selection("methods", options.methods, study.METHODS)
     specs = study.specs(study.BUDGETS[options.budget], options.budget, seeds, envs, methods)
-    store = RunStore(study.NAME, options.budget, options.root)
+    store = RunStore(study.NAME, options.budget, root)
     statuses = [store.status(spec) for spec in specs]
     pending = [spec for spec, status in zip(specs, statuses, strict=True) if status != "done"]
     console.print(
@@ -114,7 +153,7 @@ def _run(options: argparse.Namespace, console: Console) -> int:
         for spec in pending:
             console.print(f"  would run {spec.label} ({spec.config['total_steps']} steps)")
         return 0
-    outcomes = execute(pending, options.jobs, options.root, console)
+    outcomes = execute(pending, options.jobs, root, console)
     failed = [o for o in outcomes if o.error]
     for outcome in failed:
         console.print(f"[red]FAILED[/] {outcome.spec.label}\n{outcome.error}")
@@ -125,11 +164,11 @@ def _run(options: argparse.Namespace, console: Console) -> int:
     return 1 if failed else 0
 
 
-def _plot(options: argparse.Namespace, console: Console) -> int:
+def _plot(options: Plot, root: Path, console: Console) -> int:
     from esa_experiments.reporting import update_results
 
-    study = _study(options.study)
-    store = RunStore(study.NAME, options.budget, options.root)
+    study = _study(options)
+    store = RunStore(study.NAME, options.budget, root)
     try:
         section = study.report(store, study.BUDGETS[options.budget])
     except FileNotFoundError as err:
@@ -141,16 +180,15 @@ def _plot(options: argparse.Namespace, console: Console) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    parser = _parser()
-    options = parser.parse_args(argv)
+    cli = parse(argv)
     console = Console()
     try:
-        if getattr(options, "budget", BUDGETS[0]) not in BUDGETS:
-            raise CliError(f"--budget: expected one of {list(BUDGETS)}, got {options.budget!r}")
-        if options.command == "list":
-            _list(options.root, console)
-            return 0
-        return _run(options, console) if options.command == "run" else _plot(options, console)
+        if isinstance(cli.command, Run):
+            return _run(cli.command, cli.root, console)
+        if isinstance(cli.command, Plot):
+            return _plot(cli.command, cli.root, console)
+        _list(cli.root, console)
+        return 0
     except CliError as err:
         console.print(f"[red]error:[/] {err}", highlight=False)
         return 2
