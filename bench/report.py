@@ -23,7 +23,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
+import tyro
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -872,19 +872,22 @@ def section_1b_section(
     return lines
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """Writes BENCHMARKS.md and the latency plot from the results of one bench run."""
+
+    results: Path = REPO_ROOT / "bench/results"
+    """Folder of the run's JSON results (the plot goes there too)."""
+    criterion: Path = REPO_ROOT / "target/criterion"
+    """Criterion's output folder, for the core bench medians."""
+    out: Path = REPO_ROOT / "BENCHMARKS.md"
+    """The page to write."""
+    snapshot_core: Path | None = None
+    """Only write the core bench medians from ``criterion`` to this JSON file."""
+
+
+def main(args: Args) -> None:
     """Reads the results and writes BENCHMARKS.md and the PNG."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--results", type=Path, default=REPO_ROOT / "bench/results")
-    parser.add_argument("--criterion", type=Path, default=REPO_ROOT / "target/criterion")
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "BENCHMARKS.md")
-    parser.add_argument(
-        "--snapshot-core",
-        type=Path,
-        metavar="PATH",
-        help="only write the core bench medians from --criterion to PATH (JSON)",
-    )
-    args = parser.parse_args()
     if args.snapshot_core:
         snapshot_core(args.criterion, args.snapshot_core)
         return
@@ -950,4 +953,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

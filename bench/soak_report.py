@@ -11,9 +11,11 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
+
+import tyro
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 HEADING = "## Soak"
@@ -188,12 +190,18 @@ def splice(page: str, section: list[str]) -> str:
     return "\n".join([*lines[:start], *section, *([""] if end < len(lines) else []), *lines[end:]])
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """Puts the soak section of one ``make soak`` run into BENCHMARKS.md."""
+
+    results: Path = REPO_ROOT / "bench/results/soak.json"
+    """The soak run's JSON."""
+    out: Path = REPO_ROOT / "BENCHMARKS.md"
+    """The page whose soak section is replaced (or appended)."""
+
+
+def main(args: Args) -> None:
     """Puts the soak section of ``--results`` into ``--out``."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--results", type=Path, default=REPO_ROOT / "bench/results/soak.json")
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "BENCHMARKS.md")
-    args = parser.parse_args()
     section = soak_section(json.loads(args.results.read_text()))
     page = args.out.read_text() if args.out.is_file() else ""
     args.out.write_text(splice(page, section))
@@ -201,4 +209,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

@@ -17,14 +17,16 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch as th
+import tyro
 from esa_client import SessionBatch
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
@@ -56,13 +58,20 @@ def timed(method: Callable, times: list[float]) -> Callable:
     return wrapper
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """Where a step sent ahead spends its time inside training, through a native sidecar."""
+
+    agent: Literal["ESAPPO", "ESASAC", "ESATD3"] = "ESAPPO"
+    """The ESA drop-in to train."""
+    steps: int | None = None
+    """Training steps (default: the bench's for the agent)."""
+    n_envs: int = 1
+    """Training envs."""
+
+
+def main(args: Args) -> None:
     """Trains once with the timers in place and prints what they measured."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--agent", choices=sorted(AGENTS), default="ESAPPO")
-    parser.add_argument("--steps", type=int, help="default: the bench's for the agent")
-    parser.add_argument("--n-envs", type=int, default=1)
-    args = parser.parse_args()
     steps = args.steps or STEPS[args.agent]
     th.set_num_threads(1)
     os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
@@ -96,4 +105,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

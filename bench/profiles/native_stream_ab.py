@@ -13,30 +13,41 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import tyro
 from esa_client import EsaClient
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "python"))
-from client_latency import Args, measure, section_1b_config  # noqa: E402
+from client_latency import Args as LatencyArgs  # noqa: E402
+from client_latency import measure, section_1b_config  # noqa: E402
 from servers import server_binary  # noqa: E402
 
 MODES = {"unary": ("pair", False), "stream": ("pipelined", True)}
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """Algorithm 1's step through the native client: unary calls against its StepStream."""
+
+    envs: str = "1,8"
+    """Batch sizes N (envs), comma-separated."""
+    rounds: int = 6
+    """Rounds of one window per mode."""
+    window: float = 1.0
+    """Seconds per window."""
+    out: str = ""
+    """JSON of the step times (empty: print only)."""
+
+
+def main(options: Args) -> None:
     """Runs the alternating windows and prints (and optionally writes) the step times."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--envs", default="1,8")
-    parser.add_argument("--rounds", type=int, default=6)
-    parser.add_argument("--window", type=float, default=1.0)
-    parser.add_argument("--out")
-    options = parser.parse_args()
-    args = Args(window=options.window, warmup=0.3)
+    args = LatencyArgs(window=options.window, warmup=0.3)
     rows = []
     with EsaClient.spawn(server_binary(), timeout=30.0, native=True) as client:
         for n in (int(n) for n in options.envs.split(",")):
@@ -51,8 +62,10 @@ def main() -> None:
                 rows.append({"envs": n, "mode": mode, "median_us": median, "windows_us": values})
                 print(f"N={n:<3} {mode:<7} median {median:6.1f} us  windows {np.round(values, 1)}")
     if options.out:
-        Path(options.out).write_text(json.dumps({"args": vars(options), "rows": rows}, indent=1))
+        Path(options.out).write_text(
+            json.dumps({"args": dataclasses.asdict(options), "rows": rows}, indent=1)
+        )
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

@@ -19,13 +19,15 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
 
 import torch as th
+import tyro
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESATD3, EsaConfig
 from esa_client.sb3.off_policy import OffPolicyEsaMixin
@@ -57,15 +59,24 @@ def timed(method: Callable, key: str, seconds: dict, calls: dict) -> Callable:
     return wrapper
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """Where ESATD3's time goes inside training, against plain TD3."""
+
+    agent: Literal["TD3", "ESATD3"] = "ESATD3"
+    """The agent to train."""
+    engine: Literal["inprocess", "sidecar-native"] = "inprocess"
+    """ESATD3's engine."""
+    steps: int = 4000
+    """Training steps."""
+    seed: int = 0
+    """Seed of the agent and the env."""
+    esa_learning_rate: float | None = None
+    """ESA's learning rate (default: the shipped config's)."""
+
+
+def main(args: Args) -> None:
     """Trains once with the timers in place and prints what they measured."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--agent", choices=["TD3", "ESATD3"], default="ESATD3")
-    parser.add_argument("--engine", choices=["inprocess", "sidecar-native"], default="inprocess")
-    parser.add_argument("--steps", type=int, default=4000)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--esa-learning-rate", type=float, help="default: the shipped config's")
-    args = parser.parse_args()
     th.set_num_threads(1)
     os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
     seconds: dict[str, float] = defaultdict(float)
@@ -91,4 +102,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

@@ -16,16 +16,20 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import os
 import time
+from dataclasses import dataclass
+from typing import Literal
 
 import torch as th
+import tyro
 from esa_client.sb3 import ESAPPO
 from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 
+EngineName = Literal["inprocess", "sidecar", "sidecar-native"]
+"""The keys of ``ENGINES``, as a command-line choice."""
 ENGINES = {
     "inprocess": {"esa_engine": "inprocess"},
     "sidecar": {"esa_engine": "sidecar", "esa_spawn": {"transport": "grpc"}},
@@ -54,15 +58,24 @@ def build(
     return model
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """One training run, for a profiler to watch."""
+
+    agent: Literal["PPO", "ESAPPO"] = "ESAPPO"
+    """The agent to train."""
+    engine: EngineName = "inprocess"
+    """ESAPPO's engine."""
+    n_envs: int = 1
+    """Training envs."""
+    steps: int = 12_288
+    """Training steps."""
+    ungated: bool = False
+    """ESAPPO without its gate (``EsaConfig(gate=None)``)."""
+
+
+def main(args: Args) -> None:
     """Trains once and prints the CPU seconds."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--agent", choices=["PPO", "ESAPPO"], default="ESAPPO")
-    parser.add_argument("--engine", choices=sorted(ENGINES), default="inprocess")
-    parser.add_argument("--n-envs", type=int, default=1)
-    parser.add_argument("--steps", type=int, default=12_288)
-    parser.add_argument("--ungated", action="store_true")
-    args = parser.parse_args()
     th.set_num_threads(1)
     os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
     model = build(args.agent, args.engine, args.n_envs, args.ungated)
@@ -75,4 +88,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args, config=(tyro.conf.FlagCreatePairsOff,)))

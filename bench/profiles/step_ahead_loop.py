@@ -15,20 +15,28 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import time
+from dataclasses import dataclass
 
 import numpy as np
+import tyro
 from esa_client import EsaClient, LinearCritic, SessionConfig
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """The client's cost of one ESAPPO-shaped step through the native sidecar, in a loop."""
+
+    n: int = 1
+    """Sessions (envs)."""
+    steps: int = 20_000
+    """Steps per mode."""
+    modes: str = "ahead,step,ahead,step"
+    """Modes to run in order, comma-separated: ahead and/or step."""
+
+
+def main(args: Args) -> None:
     """Runs the modes one after another on one server and prints their cost per step."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=1, help="sessions (envs)")
-    parser.add_argument("--steps", type=int, default=20_000)
-    parser.add_argument("--modes", default="ahead,step,ahead,step")
-    args = parser.parse_args()
     config = SessionConfig(
         action_dim=1, dt=0.04, amplitude=[0.2], frequency=[30.0], learning_rate=[0.1]
     )
@@ -55,4 +63,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

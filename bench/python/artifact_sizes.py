@@ -20,16 +20,17 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from cli import parse_dataclass
+import tyro
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass
 class Args:
-    """Benchmark settings (all overridable on the command line)."""
+    """Sizes of the wheel, the bundled server and the extension."""
 
     out: str = "bench/results/sizes.json"
+    """JSON of the sizes."""
 
 
 def sizes(root: Path) -> dict[str, dict[str, object]]:
@@ -61,7 +62,7 @@ def sizes(root: Path) -> dict[str, dict[str, object]]:
 
 def main() -> None:
     """Writes the sizes found to ``--out``."""
-    args = parse_dataclass(Args, __doc__.splitlines()[0])
+    args = tyro.cli(Args)
     found = sizes(REPO_ROOT)
     for name, entry in found.items():
         print(f"{name:<15} {entry['bytes'] / 2**20:8.2f} MiB  {entry['path']}")

@@ -16,15 +16,16 @@ Prints ``listening on HOST:PORT`` once it accepts calls; stops on SIGINT/SIGTERM
 
 from __future__ import annotations
 
-import argparse
 import signal
 import threading
 import uuid
 from collections.abc import Iterator
 from concurrent import futures
+from dataclasses import dataclass
 
 import grpc
 import numpy as np
+import tyro
 from esa_client._proto.esa.v1 import esa_pb2, esa_pb2_grpc
 
 
@@ -258,12 +259,18 @@ class BaselineServicer(esa_pb2_grpc.EsaServiceServicer):
                 yield esa_pb2.StepStreamResponse(error=error)
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """A plain Python grpcio server of the esa API, the baseline of the benchmarks."""
+
+    listen: str = "127.0.0.1:0"
+    """Loopback host:port (port 0: a free one, printed on start)."""
+    workers: int = 8
+    """Thread-pool size."""
+
+
+def main(args: Args) -> None:
     """Serves until SIGINT or SIGTERM."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--listen", default="127.0.0.1:0", help="loopback host:port")
-    parser.add_argument("--workers", type=int, default=8, help="thread-pool size")
-    args = parser.parse_args()
     server = grpc.server(futures.ThreadPoolExecutor(max_workers=args.workers))
     esa_pb2_grpc.add_EsaServiceServicer_to_server(BaselineServicer(), server)
     host = args.listen.rpartition(":")[0]
@@ -278,4 +285,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

@@ -44,9 +44,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import tyro
 from esa_client import EsaClient, SessionConfig, ZenohEsaClient
 
-from cli import parse_dataclass
 from servers import baseline_server, esa_server_tcp, server_binary
 
 # Steps per episode, as in the MuJoCo tasks (the episode start rides on a probe).
@@ -55,18 +55,26 @@ EPISODE_STEPS = 1000
 
 @dataclass
 class Args:
-    """Benchmark settings (all overridable on the command line)."""
+    """SessionBatch pair latency from Python, per transport."""
 
     envs: str = "1,8,64"
+    """Batch sizes N (envs) of the main table, comma-separated."""
     dim: int = 6
+    """Action dimension D."""
     warmup: float = 0.3
+    """Seconds of untimed pairs before each measurement."""
     window: float = 2.0
+    """Seconds of timed pairs per measurement (at most ``max_pairs``)."""
     max_pairs: int = 20_000
+    """Timed pairs per measurement at most."""
     out: str = "bench/results/python.json"
-    # Which measurements: "main" (the table of every transport) and/or "1b".
+    """JSON of the main table."""
     parts: str = "main,1b"
+    """Which measurements: "main" (the table of every transport) and/or "1b"."""
     section_1b_envs: str = "8"
+    """Batch sizes N of the section 1b rows, comma-separated."""
     section_1b_out: str = "bench/results/section_1b.json"
+    """JSON of the section 1b rows."""
 
 
 def session_config(dim: int) -> SessionConfig:
@@ -294,7 +302,7 @@ def write(path: str, args: Args, rows: list[dict]) -> None:
 
 def main() -> None:
     """Measures the requested parts and writes their JSON results."""
-    args = parse_dataclass(Args, __doc__.splitlines()[0])
+    args = tyro.cli(Args)
     parts = set(args.parts.split(","))
     unknown = parts - {"main", "1b"}
     if unknown:

@@ -21,15 +21,17 @@ comparison in one process.
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch as th
+import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "profiles"))
 from run_one import build  # noqa: E402
@@ -68,21 +70,27 @@ def run(
     return cpu, server, wall
 
 
-def main() -> None:
+@dataclass
+class Args:
+    """CPU-time and wall-clock ratios ESAPPO / PPO, in alternating runs."""
+
+    n_envs: str = "1,8"
+    """Numbers of training envs, comma-separated."""
+    engines: str = "inprocess,sidecar-native"
+    """ESAPPO engines, comma-separated."""
+    steps: int = 12_288
+    """Training steps per run."""
+    repeats: int = 3
+    """Runs per agent and number of envs."""
+    out: str = ""
+    """JSON of the ratios (empty: print only)."""
+    before: str = ""
+    """A folder holding a copy of an earlier esa_client named esa_client_before: its ESAPPO
+    runs alternate with the current one's."""
+
+
+def main(args: Args) -> None:
     """Alternates PPO and the ESAPPO engines; prints and writes the median ratios."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n-envs", default="1,8")
-    parser.add_argument("--engines", default="inprocess,sidecar-native")
-    parser.add_argument("--steps", type=int, default=12_288)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", default="")
-    parser.add_argument(
-        "--before",
-        default="",
-        help="a folder holding a copy of an earlier esa_client named esa_client_before: "
-        "its ESAPPO runs alternate with the current one's",
-    )
-    args = parser.parse_args()
     th.set_num_threads(1)
     os.environ.setdefault("ESA_SERVER_BIN", "target/release/esa-server")
     configs = [("PPO", "inprocess", "")] + [("ESAPPO", e, "") for e in args.engines.split(",")]
@@ -133,8 +141,10 @@ def main() -> None:
                 f"median {np.median(wall_ratios):.3f} {wall_ratios.round(3)}"
             )
     if args.out:
-        Path(args.out).write_text(json.dumps({"args": vars(args), "rows": results}, indent=2))
+        Path(args.out).write_text(
+            json.dumps({"args": dataclasses.asdict(args), "rows": results}, indent=2)
+        )
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import tyro
 from esa_client import EsaClient
 
-from cli import parse_dataclass
 from client_latency import Args as LatencyArgs
 from client_latency import measure, session_config
 from servers import baseline_server, server_binary
@@ -41,19 +41,25 @@ from servers import baseline_server, server_binary
 
 @dataclass
 class Args:
-    """Benchmark settings (all overridable on the command line)."""
+    """Batch throughput, esa-server vs the Python grpcio baseline, in alternating windows."""
 
     envs: int = 64
+    """Batch size N (envs)."""
     dim: int = 6
+    """Action dimension D."""
     rounds: int = 8
+    """Rounds of one window per server and api, the order rotating."""
     warmup: float = 0.3
+    """Seconds of untimed pairs before each window."""
     window: float = 1.5
+    """Seconds per window."""
     out: str = "bench/results/throughput_ab.json"
+    """JSON of the windows and the ratios."""
 
 
 def main() -> None:
     """Runs the rounds, prints each, writes the medians to ``--out``."""
-    args = parse_dataclass(Args, __doc__.splitlines()[0])
+    args = tyro.cli(Args)
     window = LatencyArgs(dim=args.dim, warmup=args.warmup, window=args.window)
     config = session_config(args.dim)
     with contextlib.ExitStack() as stack:

@@ -52,6 +52,7 @@ from pathlib import Path
 
 import numpy as np
 import torch as th
+import tyro
 from esa_client import SessionBatch
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3, EsaConfig
@@ -60,7 +61,6 @@ from esa_client.transports.native import NativeGrpcStepBatch
 from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
-from cli import parse_dataclass
 from servers import server_binary
 
 
@@ -105,23 +105,34 @@ ENGINE_FREE = "none"
 
 @dataclass
 class Args:
-    """Benchmark settings (all overridable on the command line)."""
+    """Training wall-clock with and without ESA, each agent against its ESA drop-in."""
 
     env_id: str = "InvertedPendulum-v5"
+    """Gymnasium id of the env."""
     n_envs: str = "1"
+    """Numbers of training envs, comma-separated."""
     ppo_steps: int = 12_288
+    """Training steps of PPO and ESAPPO."""
     ppo_n_steps: int = 2048
+    """PPO rollout length per env."""
     sac_steps: int = 8_000
+    """Training steps of the off-policy agents."""
     sac_learning_starts: int = 800
+    """Random-action steps of the off-policy agents before they learn."""
     repeats: int = 2
+    """Timed pairs per agent, engine and number of envs."""
     warmup_runs: int = 1
     """Short untimed runs of every agent first: a process's first training pays one-time
     costs (torch's first kernels, MuJoCo's model, the server binary read from disk) that
     would otherwise fall on the first timed run, PPO's, and favour the ESA agent."""
     agents: str = ",".join(AGENTS)
+    """ESA agents to time, comma-separated."""
     engines: str = "inprocess,sidecar,sidecar-native"
+    """ESA engines to time, comma-separated."""
     seed: int = 0
+    """Seed of the agents and the envs."""
     out: str = "bench/results/training.json"
+    """JSON of the timings."""
     remeasure_why: str = ""
     """Non-empty: a partial re-measurement; replace only these rows in ``out`` and say why."""
 
@@ -237,7 +248,7 @@ def train_seconds(
 
 def main() -> None:
     """Times every agent ``repeats`` times per env count, alternating, and writes the ratios."""
-    args = parse_dataclass(Args, __doc__.splitlines()[0])
+    args = tyro.cli(Args)
     out = Path(args.out)
     if args.remeasure_why and not out.exists():
         # Checked before the measurement, which takes minutes, not after it.
