@@ -14,8 +14,6 @@ behaviour log-probability, so the PPO ratio stays an importance ratio.
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import random
 import time
 from dataclasses import dataclass
@@ -24,6 +22,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
+import tyro
 from torch import nn, optim
 
 from esa_client import EsaConfig
@@ -32,22 +31,36 @@ from esa_client.vector_wrapper import EsaVectorWrapper
 
 @dataclass
 class Args:
-    """Command-line arguments (``--total-timesteps 1000``, ``--no-esa``, ...)."""
+    """PPO with ESA on a gymnasium env (``--total-timesteps 1000``, ``--no-esa``, ...)."""
 
     env_id: str = "Pendulum-v1"
+    """Gymnasium id of the env."""
     seed: int = 1
+    """Seed of python, numpy, torch and the envs."""
     num_envs: int = 4
+    """Parallel envs of the vector env."""
     total_timesteps: int = 100_000
+    """Env steps of the whole run, over all envs."""
     num_steps: int = 512
+    """Steps per env in each rollout."""
     learning_rate: float = 3e-4
+    """Adam learning rate of the policy and value networks."""
     gamma: float = 0.99
+    """Discount factor."""
     gae_lambda: float = 0.95
+    """Lambda of the generalized advantage estimate."""
     num_minibatches: int = 32
+    """Minibatches per epoch of the PPO update."""
     update_epochs: int = 10
+    """Epochs of the PPO update per rollout."""
     clip_coef: float = 0.2
+    """Clipping range of the PPO ratio."""
     ent_coef: float = 0.0
+    """Weight of the entropy bonus."""
     vf_coef: float = 0.5
+    """Weight of the value loss."""
     max_grad_norm: float = 0.5
+    """Global norm the gradients are clipped to."""
     esa: bool = True
     """Improve the actions with ESA."""
     head_epochs: int = 5
@@ -57,16 +70,8 @@ class Args:
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
-    """The dataclass as argparse flags: ``--field-name value``, ``--flag`` / ``--no-flag``."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for field in dataclasses.fields(Args):
-        flag = "--" + field.name.replace("_", "-")
-        if field.type in ("bool", bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=field.default)
-        else:
-            kind = {"int": int, "float": float, "str": str}[str(field.type)]
-            parser.add_argument(flag, type=kind, default=field.default)
-    args = Args(**vars(parser.parse_args(argv)))
+    """Reads ``Args`` from ``argv`` (default: the command line); ``--ci`` shrinks the budget."""
+    args = tyro.cli(Args, args=argv)
     if args.ci:
         args.num_envs, args.num_steps, args.total_timesteps = 2, 128, 512
         args.num_minibatches, args.update_epochs = 4, 2

@@ -12,8 +12,6 @@ and the replay buffer stores ``info["esa_action"]``, the action the envs execute
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import random
 import time
 from dataclasses import dataclass
@@ -23,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 import torch.nn.functional as F
+import tyro
 from torch import nn, optim
 
 from esa_client import EsaConfig
@@ -31,38 +30,43 @@ from esa_client.vector_wrapper import EsaVectorWrapper
 
 @dataclass
 class Args:
-    """Command-line arguments (``--total-timesteps 1000``, ``--no-esa``, ...)."""
+    """SAC with ESA on a gymnasium env (``--total-timesteps 1000``, ``--no-esa``, ...)."""
 
     env_id: str = "Pendulum-v1"
+    """Gymnasium id of the env."""
     seed: int = 1
+    """Seed of python, numpy, torch and the envs."""
     num_envs: int = 2
+    """Parallel envs of the vector env."""
     total_timesteps: int = 20_000
+    """Env steps of the whole run, over all envs."""
     buffer_size: int = 100_000
+    """Transitions the replay buffer keeps."""
     gamma: float = 0.99
+    """Discount factor."""
     tau: float = 0.005
+    """Soft-update rate of the target critics."""
     batch_size: int = 256
+    """Transitions per gradient step."""
     learning_starts: int = 1_000
+    """Random-action steps before learning starts."""
     policy_lr: float = 3e-4
+    """Adam learning rate of the policy."""
     q_lr: float = 1e-3
+    """Adam learning rate of the critics."""
     alpha: float = 0.2
+    """Entropy coefficient (fixed)."""
     esa: bool = True
     """Improve the actions with ESA."""
     esa_amplitude: float = 0.1
+    """Amplitude K of ESA's probe (``EsaConfig.amplitude``)."""
     ci: bool = False
     """A tiny budget for CI: 500 steps (one episode per env), learning from step 100."""
 
 
 def parse_args(argv: list[str] | None = None) -> Args:
-    """The dataclass as argparse flags: ``--field-name value``, ``--flag`` / ``--no-flag``."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for field in dataclasses.fields(Args):
-        flag = "--" + field.name.replace("_", "-")
-        if field.type in ("bool", bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=field.default)
-        else:
-            kind = {"int": int, "float": float, "str": str}[str(field.type)]
-            parser.add_argument(flag, type=kind, default=field.default)
-    args = Args(**vars(parser.parse_args(argv)))
+    """Reads ``Args`` from ``argv`` (default: the command line); ``--ci`` shrinks the budget."""
+    args = tyro.cli(Args, args=argv)
     if args.ci:
         args.total_timesteps, args.learning_starts, args.batch_size = 500, 100, 32
     return args

@@ -14,24 +14,32 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import time
+from dataclasses import dataclass
 
 import ray
+import tyro
 from ray.rllib.algorithms.sac import SACConfig
 
 from esa_client import EsaConfig
 from esa_client.rllib import with_esa
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--iterations", type=int, default=20)
-    parser.add_argument("--env-runners", type=int, default=2)
-    parser.add_argument("--envs-per-runner", type=int, default=2)
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+@dataclass
+class Args:
+    """RLlib SAC with ESA on Pendulum-v1."""
 
+    iterations: int = 20
+    """Training iterations (about 1,000 env steps each)."""
+    env_runners: int = 2
+    """RLlib EnvRunner actors, each with its env copies."""
+    envs_per_runner: int = 2
+    """Env copies per EnvRunner, each with its own ESA session."""
+    seed: int = 0
+    """Seed of RLlib's config."""
+
+
+def main(args: Args) -> None:
     ray.init(num_cpus=args.env_runners + 1, include_dashboard=False, logging_level="ERROR")
     config = (
         SACConfig()
@@ -75,4 +83,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(tyro.cli(Args))
