@@ -3,8 +3,9 @@
 import numpy as np
 import pandas as pd
 import pytest
+from rliable import metrics
 
-from esa_experiments.reliability import probability_of_improvement, statistics, verdict
+from esa_experiments.reliability import iqm_curve, probability_of_improvement, statistics, verdict
 
 
 def runs(method: str, env: str, aucs: list[float]) -> pd.DataFrame:
@@ -60,3 +61,38 @@ def test_statistics_table_compares_each_arm_with_its_baseline():
     # Reproducible: the bootstrap is seeded.
     again = statistics(frame, ["E"], ["ppo", "ppo_esa", "ppo_esa_null"]).set_index("method")
     pd.testing.assert_frame_equal(table, again)
+
+
+def test_iqm_curve_is_the_interquartile_mean_at_every_point():
+    # Four seeds: the IQM drops the lowest and the highest, so the outlier 1000 does not count.
+    scores = np.array([[5.0, 0.0], [5.0, 10.0], [5.0, 20.0], [5.0, 1000.0]])
+    iqm, low, high = iqm_curve(scores)
+    np.testing.assert_allclose(iqm, [5.0, 15.0])
+    expected = [metrics.aggregate_iqm(scores[:, point]) for point in range(scores.shape[1])]
+    np.testing.assert_allclose(iqm, expected)
+    # Identical seeds leave nothing to resample: the band is the point.
+    assert low[0] == high[0] == 5.0
+    assert 0.0 <= low[1] < 15.0 < high[1] <= 1000.0
+
+
+def test_iqm_curve_band_is_the_statistics_table_confidence_interval():
+    aucs = [3.0, 8.0, 1.0, 9.0, 4.0, 7.0]
+    table = statistics(runs("ppo", "E", aucs), ["E"], ["ppo"])
+    iqm, low, high = iqm_curve(np.array(aucs)[:, None])
+    assert table["IQM AUC [95% CI]"].iloc[0] == f"{iqm[0]:.1f} [{low[0]:.1f}, {high[0]:.1f}]"
+    # Seeded on every call: the same scores give the same band, whatever was drawn before.
+    np.random.rand(7)
+    np.testing.assert_array_equal(iqm_curve(np.array(aucs)[:, None])[1], low)
+
+
+@pytest.mark.parametrize(
+    ("scores", "message"),
+    [
+        (np.zeros((0, 3)), r"expected a non-empty array \(runs, points\), got shape \(0, 3\)"),
+        (np.zeros(3), r"expected a non-empty array \(runs, points\), got shape \(3,\)"),
+        (np.array([[1.0, np.nan]]), "expected finite scores, got 1 NaN or infinite value"),
+    ],
+)
+def test_iqm_curve_rejects_what_is_not_a_finite_runs_by_points_array(scores, message):
+    with pytest.raises(ValueError, match=message):
+        iqm_curve(scores)

@@ -6,7 +6,7 @@ import pytest
 
 from esa_experiments.reporting import update_results
 from esa_experiments.runs import RunStore
-from esa_experiments.tables import over_seeds, summary, to_markdown
+from esa_experiments.tables import summary, to_markdown
 
 
 def curve(method, seed, returns, seconds):
@@ -50,11 +50,6 @@ def test_summary_metrics():
     assert esa[column] == "1.50x / 1.50x" and ppo[column] == ""
     assert ppo["train s (wall / CPU)"] == "10.0 / 5.0"
     assert ppo["seeds"] == 2 and ppo["steps"] == 200
-
-
-def test_over_seeds_single_seed_has_zero_error():
-    stats = over_seeds(curve("ppo", 0, [1.0, 2.0], 1.0), "step", "return_mean")
-    assert stats["sem"].tolist() == [0.0, 0.0]
 
 
 def test_markdown_table():

@@ -1,4 +1,4 @@
-"""Figures: curves with mean +- standard error over seeds."""
+"""Figures: curves of the IQM over seeds with its 95 % bootstrap CI, the verdicts' statistic."""
 
 from __future__ import annotations
 
@@ -12,7 +12,10 @@ import pandas as pd
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from esa_experiments.tables import over_seeds
+from esa_experiments.reliability import iqm_curve
+
+STATISTIC = "IQM, 95% bootstrap CI"
+"""What every curve and band of these figures shows (legend title)."""
 
 
 @dataclass(frozen=True)
@@ -30,17 +33,17 @@ class Panel:
     methods: Sequence[str]
 
 
-def _band(ax: Axes, stats: pd.DataFrame, x: str, label: str, **style: Any) -> object:
-    """Draws the mean with a +- SE band; returns the line's colour."""
-    line = ax.plot(stats[x], stats["mean"], label=label, **style)[0]
-    ax.fill_between(
-        stats[x],
-        stats["mean"] - stats["sem"],
-        stats["mean"] + stats["sem"],
-        color=line.get_color(),
-        alpha=0.2,
-        linewidth=0,
-    )
+def _by_seed(runs: pd.DataFrame, x: str, y: str) -> pd.DataFrame:
+    """``y`` with one row per seed and one column per ``x`` value that every seed reached."""
+    return runs.pivot(index="seed", columns=x, values=y).dropna(axis="columns")
+
+
+def _band(ax: Axes, runs: pd.DataFrame, x: str, y: str, label: str, **style: Any) -> object:
+    """Draws the IQM of ``y`` over seeds with its 95 % bootstrap CI band; returns its colour."""
+    curves = _by_seed(runs, x, y)
+    iqm, low, high = iqm_curve(curves.to_numpy(float))
+    line = ax.plot(curves.columns, iqm, label=label, **style)[0]
+    ax.fill_between(curves.columns, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
     return line.get_color()
 
 
@@ -55,6 +58,9 @@ def learning_curves(
     per_seed: bool = False,
 ) -> Path:
     """Evaluation return vs environment steps, one subplot per panel.
+
+    Each method's curve is the IQM over seeds with its 95 % stratified-bootstrap CI
+    (``reliability.iqm_curve``), the statistic the verdicts use.
 
     Args:
         frame: finished runs (``RunStore.load``) with ``step`` and ``return_mean``.
@@ -74,18 +80,18 @@ def learning_curves(
             runs = frame[(frame.env == panel.env) & (frame.method == method)]
             if runs.empty:
                 continue
-            stats = over_seeds(runs, "step", "return_mean")
             seeds = runs.seed.nunique()
-            line = _band(ax, stats, "step", f"{labels.get(method, method)} (n={seeds})")
+            label = f"{labels.get(method, method)} (n={seeds})"
+            line = _band(ax, runs, "step", "return_mean", label)
             if per_seed:
                 for _, run in runs.groupby("seed"):
                     run = run.sort_values("step")
                     ax.plot(run.step, run.return_mean, color=line, alpha=0.25, linewidth=0.7)
         ax.set_title(panel.title)
         ax.set_xlabel("environment steps")
-        ax.set_ylabel("eval return (deterministic)")
+        ax.set_ylabel("eval return (deterministic), IQM over seeds")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, title=STATISTIC, title_fontsize=7)
     for ax in list(axes.flat)[len(panels) :]:
         ax.set_visible(False)
     if suptitle:
@@ -95,7 +101,7 @@ def learning_curves(
 
 
 def example1_figure(frame: pd.DataFrame, labels: dict[str, str], path: Path) -> Path:
-    """The two panels of the paper's Figure 2: J vs time, static and time-varying."""
+    """The two panels of the paper's Figure 2: J vs time, static and time-varying (IQM, CI)."""
     fig = Figure(figsize=(12, 4.2), layout="constrained")
     axes = fig.subplots(1, 2)
     titles = {"static": "(a) static J(u)", "timevarying": "(b) time-varying J(u, t)"}
@@ -104,15 +110,16 @@ def example1_figure(frame: pd.DataFrame, labels: dict[str, str], path: Path) -> 
             runs = frame[(frame.env == env) & (frame.method == method)]
             if runs.empty:
                 continue
-            _band(ax, over_seeds(runs, "t", "J"), "t", label)
+            _band(ax, runs, "t", "J", label)
             if method == "esc":
-                probe = over_seeds(runs, "t", "J_probe")
-                ax.plot(probe.t, probe["mean"], ":", color="C0", alpha=0.6, label="ESC probe u(t)")
+                _band(
+                    ax, runs, "t", "J_probe", "ESC probe u(t)", linestyle=":", color="C0", alpha=0.6
+                )
         ax.set_yscale("log")
         ax.set_title(titles[env])
         ax.set_xlabel("t [s]")
-        ax.set_ylabel("J")
+        ax.set_ylabel("J, IQM over seeds")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, title=STATISTIC, title_fontsize=7)
     fig.savefig(path, dpi=120)
     return path

@@ -21,13 +21,6 @@ import numpy as np
 import pandas as pd
 
 
-def over_seeds(runs: pd.DataFrame, x: str, y: str) -> pd.DataFrame:
-    """Mean and standard error of ``y`` over seeds at each ``x`` (SE = 0 with one seed)."""
-    grouped = runs.groupby(x)[y]
-    stats = pd.DataFrame({"mean": grouped.mean(), "sem": grouped.sem().fillna(0.0)})
-    return stats.reset_index()
-
-
 def _mean_sem(values: Sequence[float], fmt: str = "{:.1f}") -> str:
     array = np.asarray(values, dtype=float)
     sem = array.std(ddof=1) / np.sqrt(len(array)) if len(array) > 1 else 0.0
