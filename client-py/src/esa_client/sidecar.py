@@ -163,9 +163,10 @@ def find_server_binary(
         else f"build it from a clone with `cargo build --release -p {BINARY_NAME}`"
     )
     raise EsaError(
-        f"cannot find {BINARY_NAME}, which the sidecar and shared-server engines need "
-        f"(the in-process engine, EsaClient.in_process(), needs none): install it with "
-        f'`pip install "esa-client[server]"`, set {BINARY_ENV} to its path, or {build_hint}'
+        f"cannot find {BINARY_NAME}, which EsaClient.spawn() and the sidecar engine start "
+        f"(EsaClient.in_process() and a running server's EsaClient.connect() need none): "
+        f'install it with `pip install "esa-client[server]"`, set {BINARY_ENV} to its path, '
+        f"or {build_hint}"
     )
 
 
