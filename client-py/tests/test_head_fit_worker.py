@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import copy
 import logging
+import subprocess
+import sys
 from types import SimpleNamespace
 
 import numpy as np
@@ -154,7 +156,7 @@ def test_close_ends_the_worker():
     assert started._process.returncode is not None
 
 
-def esappo(worker: bool | None, **kwargs) -> ESAPPO:
+def esappo(worker: object, **kwargs) -> ESAPPO:
     return ESAPPO(
         "MlpPolicy",
         "InvertedPendulum-v5",
@@ -207,7 +209,33 @@ def test_a_saved_model_holds_the_workers_fit(tmp_path):
         one.esa_close()
 
 
-@pytest.mark.parametrize("value", ["yes", 1, 0.0])
+@pytest.mark.parametrize("value", ["yes", 1, 0.0, None])
 def test_a_bad_esa_head_worker_is_refused(value):
-    with pytest.raises(ValueError, match="expected esa_head_worker True, False or None"):
+    with pytest.raises(ValueError, match="expected esa_head_worker True or False"):
         esappo(value)
+
+
+def test_esappo_starts_no_process_by_default():
+    # In a fresh interpreter: this one may hold the worker other tests started.
+    script = """
+import os
+from esa_client.sb3 import ESAPPO
+
+model = ESAPPO("MlpPolicy", "InvertedPendulum-v5", n_steps=64, batch_size=64, seed=0)
+model.learn(3 * 64)
+assert model.esa_head_worker is False
+children = []
+for pid in filter(str.isdigit, os.listdir("/proc")):
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            parent = int(stat.read().rsplit(")", 1)[1].split()[1])
+    except OSError:
+        continue
+    if parent == os.getpid():
+        children.append(pid)
+print(len(children))
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=True
+    )
+    assert done.stdout.strip().splitlines()[-1] == "0", done.stdout + done.stderr

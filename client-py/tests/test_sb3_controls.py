@@ -64,8 +64,12 @@ def test_esappo_target_mode_executes_the_sample_and_moves_the_policy(shift):
 def test_esappo_gradient_shift_is_the_trust_region_along_the_head():
     model = ppo(ESAPPO, esa=EsaConfig(gate=None), esa_shift="gradient")
     features = th.zeros(3, 4)
-    shift = model._gradient_shift(model._esa_mlp().weights(model._step_features(features)))
+    weights = model._esa_mlp().weights(model._step_features(features))
+    shift = model._gradient_shift(weights, 1.0)
     np.testing.assert_allclose(np.linalg.norm(shift, axis=1), EsaConfig().trust_region)
+    # Under a fade the control shrinks with ESA's strength.
+    faded = model._gradient_shift(weights, 0.25)
+    np.testing.assert_allclose(np.linalg.norm(faded, axis=1), 0.25 * EsaConfig().trust_region)
 
 
 def test_esatd3_with_learning_rate_zero_is_plain_td3():
@@ -94,9 +98,8 @@ def test_gradient_control_moves_every_action_by_the_bound():
     model = td3(ESATD3, esa=EsaConfig.off_policy(gate=None), esa_shift="gradient")
     assert model._esa is None, "the gradient control opens no session"
     obs, _ = model.policy.obs_to_tensor(np.zeros((2, 3), dtype=np.float32))
-    sampled = np.zeros((2, 1))
-    applied = model._gradient_step(obs, sampled, np.full((2, 1), 0.1))
-    np.testing.assert_allclose(np.abs(applied), OFF_POLICY_TRUST_REGION * 0.1)
+    shift = model._gradient_shift(obs, np.zeros((2, 1)), np.full((2, 1), 0.1))
+    np.testing.assert_allclose(np.abs(shift), OFF_POLICY_TRUST_REGION * 0.1)
 
 
 def test_probe_as_exploration_executes_the_sinusoid():

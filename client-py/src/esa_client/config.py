@@ -310,6 +310,14 @@ class EsaConfig:
         dt: Seconds per environment step. None reads it from the environment
             (``env.unwrapped.dt``, else ``1 / metadata["render_fps"]``); set it when the
             environment has neither, or to override it.
+        fade: The paper's fading of ESA over training (its ablation on the decay of the ESA
+            learning rate): the fraction of the training budget, in (0, 1], over which ESA's
+            strength falls linearly from full to 0; after it the policy's samples are
+            applied unchanged. The trainer sends ``f * sigma`` as each probe's action scale
+            (CONTRACT.md section 1b, "Fading ESA over training"), which scales both the
+            normalized step and the trust region ``kappa sigma``, so the bound itself fades
+            from ``kappa`` to 0. Needs ``normalize_response`` (the section 1 step does not
+            scale with sigma). None = no fade.
     """
 
     # The shipped default: trial 21 of `default_search` (InvertedPendulum-v5, tuning seeds
@@ -332,6 +340,7 @@ class EsaConfig:
     use_policy_std: bool = True
     gate: float | None = 0.0
     dt: float | None = None
+    fade: float | None = None
 
     def __post_init__(self) -> None:
         """Checks every field that does not depend on the environment.
@@ -359,6 +368,20 @@ class EsaConfig:
                 isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0,
                 "dt finite and > 0 (or None: read from the env)",
                 self.dt,
+            )
+        if self.fade is not None:
+            _check(
+                isinstance(self.fade, (int, float))
+                and not isinstance(self.fade, bool)
+                and 0 < self.fade <= 1,
+                "fade a fraction of the training budget in (0, 1] (or None)",
+                self.fade,
+            )
+            _check(
+                self.normalize_response,
+                "normalize_response=True with fade (only the normalized step scales with "
+                "the action scale a fading trainer sends)",
+                self.normalize_response,
             )
         # The session rules, with as many dimensions as the vector fields name and (unless dt
         # is set) a time step so fine that only the environment's own dt can break Nyquist.
@@ -407,6 +430,18 @@ class EsaConfig:
         """
         values: dict[str, Any] = {"trust_region": OFF_POLICY_TRUST_REGION, **overrides}
         return cls(**values)
+
+    def strength(self, elapsed: float) -> float:
+        """ESA's strength ``f`` in [0, 1] once ``elapsed`` of the training budget has passed.
+
+        ``1 - elapsed / fade`` clipped to [0, 1] (:attr:`fade`); always 1 without a fade.
+
+        Args:
+            elapsed: The fraction of the budget done, e.g. ``num_timesteps / total``.
+        """
+        if self.fade is None:
+            return 1.0
+        return float(min(1.0, max(0.0, 1.0 - elapsed / self.fade)))
 
     def frequencies(self, action_dim: int, dt: float) -> tuple[float, ...]:
         """Returns the per-dimension frequencies for ``action_dim`` dimensions and step ``dt``."""

@@ -60,6 +60,8 @@ def capture_states(
     model: ESAPPO, env: gym.Env, states: int, *, save_every: int, seed: int
 ) -> list[SavedState]:
     """Runs ``model`` (a trained ESAPPO) with ESA on ``env`` until ``states`` are saved."""
+    from esa_client import LinearCritic
+
     m = model
     config = m._esa_session_config()
     wide_config = dataclasses.replace(config, trust_region=WIDE_TRUST_REGION)
@@ -85,7 +87,9 @@ def capture_states(
                     sampled = (mean + std * th.randn(mean.shape, generator=generator)).numpy()[0]
                 scaled = (sampled - center) / half_width
                 sigma = std.numpy()[0] / half_width
-                q_fn = m._esa_critic(obs_t, mean.numpy(), std.numpy())
+                q_fn = LinearCritic(
+                    *m._esa_mlp().critic(m._step_features(obs_t), mean.numpy(), std.numpy())
+                )
                 shifts, gains = [], []
                 for session in sessions:
                     probe, applied = session.probe_applied(

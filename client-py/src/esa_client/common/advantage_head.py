@@ -200,8 +200,13 @@ def rank_correlation(x: np.ndarray, y: np.ndarray) -> float:
     return float((rx * ry).sum() / np.sqrt((rx**2).sum() * (ry**2).sum()))
 
 
-def critic_quality(head: AdvantageHead, rollout: Rollout, advantages: th.Tensor) -> float:
-    """Rank correlation of ``A(s, a) - A(s, mu) = w(s) . z`` with the GAE advantages of ``a``."""
+def critic_quality(head: nn.Module, rollout: Rollout, advantages: th.Tensor) -> float:
+    """Rank correlation of ``A(s, a) - A(s, mu)`` with the GAE advantages of ``a``.
+
+    ``head`` is any critic of ``(features, z)``: the linear head (``A(s, mu) = 0``), or a
+    curved one of :mod:`esa_client.common.action_critics`.
+    """
     with th.no_grad():
-        predicted = head(rollout.features, rollout.z)
+        z = rollout.z
+        predicted = head(rollout.features, z) - head(rollout.features, th.zeros_like(z))
     return rank_correlation(predicted.cpu().numpy(), advantages.cpu().numpy())

@@ -247,9 +247,8 @@ class EsaRuntime:
         self._stats = StepStats(
             [float(v) for v in clip_low.reshape(-1)], [float(v) for v in clip_high.reshape(-1)]
         )
-        low = -np.inf if config.action_low is None else config.action_low
-        high = np.inf if config.action_high is None else config.action_high
-        self._bounds = (np.asarray(low, np.float64), np.asarray(high, np.float64))
+        # An unbounded side is stored empty: vector() spells it as +-inf per dimension.
+        self._bounds = (config.vector("action_low"), config.vector("action_high"))
         self._improvement_every = improvement_every
         self._calls = 0
         self.on_unavailable = "raise"
@@ -264,6 +263,7 @@ class EsaRuntime:
         policy_std: np.ndarray | None = None,
         *,
         want_probes: bool = False,
+        strength: float = 1.0,
     ) -> np.ndarray:
         """Runs Algorithm 1's step for all envs and returns the actions to apply.
 
@@ -276,6 +276,10 @@ class EsaRuntime:
                 action scale when ``use_policy_std`` (else 1).
             want_probes: Wait for the server's probes of this step (``last_probes``), for
                 trainers that execute the probe itself.
+            strength: ESA's strength ``f`` in [0, 1] under a fade (:meth:`EsaConfig.strength`):
+                the action scale sent is ``f`` times the usual one, which scales the step and
+                the trust region; at 0 the samples are applied without a session step
+                (counted as ``esa/faded_steps``).
 
         Returns:
             ``a_t + v(t)`` (clipped to the session's bounds, if it has any), float64,
@@ -289,11 +293,15 @@ class EsaRuntime:
             # trust region and the scaled step then keep v at 0 there, as sigma = 0 means.
             policy_std = np.maximum(policy_std, SMALLEST_SCALE)
         scale = policy_std if self.esa.use_policy_std else None
+        if strength < 1.0:
+            if strength <= 0.0:
+                return self._without_esa(a, "faded_steps")
+            scale = strength * (np.ones_like(a) if scale is None else scale)
         ran = self._attempt(
             episode_starts, lambda starts: self._run(a, q_fn, starts, scale, want_probes)
         )
         if ran is None:
-            return self._without_esa(a)
+            return self._without_esa(a, "unavailable_steps")
         # Kept for trainers that execute the probe itself (exploration by the sinusoid); None
         # after a step sent ahead, whose probes the server answers one step later.
         self.last_probes, applied = ran
@@ -306,7 +314,7 @@ class EsaRuntime:
         return applied
 
     def step_head(
-        self, step: HeadStep, episode_starts: np.ndarray
+        self, step: HeadStep, episode_starts: np.ndarray, strength: float = 1.0
     ) -> tuple[np.ndarray, np.ndarray]:
         """Algorithm 1's step with ESAPPO's advantage head as the critic.
 
@@ -319,13 +327,15 @@ class EsaRuntime:
         Args:
             step: The head and its inputs at the N current observations.
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
+            strength: As for :meth:`step`; below 1 the step runs in parts (the fused call
+                takes the policy's own scale).
 
         Returns:
             ``(shift, executed)``: the shift in the Box's units, float64 ``(N, D)``, and the
             env's actions ``a_t + shift``, float32 ``(N, D)``.
         """
         batch = self.batch
-        if batch.steps_heads and not self._skipping:
+        if batch.steps_heads and not self._skipping and strength >= 1.0:
             improve = self._calls % self._improvement_every == 0
             ran = self._attempt(
                 episode_starts,
@@ -343,7 +353,9 @@ class EsaRuntime:
                 self._calls += 1
                 return ran
         scaled, gain, offset, units = step.head.step_inputs(*step[1:])
-        applied = self.step(scaled, episode_starts, LinearCritic(gain, offset), units)
+        applied = self.step(
+            scaled, episode_starts, LinearCritic(gain, offset), units, strength=strength
+        )
         shift = step.head.shift(scaled, applied)
         return shift, step.head.executed(step.actions, shift)
 
@@ -399,9 +411,12 @@ class EsaRuntime:
             return None, applied
         return self.batch.step(a, q_fn, starts, action_scales=scale, paired=paired)
 
-    def _without_esa(self, sampled: np.ndarray) -> np.ndarray:
-        """The sampled actions, clipped to the sessions' bounds: a step without ESA."""
-        self._stats.add_count("unavailable_steps", len(sampled))
+    def _without_esa(self, sampled: np.ndarray, why: str) -> np.ndarray:
+        """The sampled actions, clipped to the sessions' bounds: a step without ESA.
+
+        ``why`` names the count it adds to (``unavailable_steps``, ``faded_steps``).
+        """
+        self._stats.add_count(why, len(sampled))
         applied: np.ndarray = np.asarray(np.clip(sampled, *self._bounds), dtype=np.float64)
         self.last_probes = applied
         return applied

@@ -180,6 +180,13 @@ class EsaMixin(_Algorithm):
             )
         return self._esa
 
+    def _esa_strength(self) -> float:
+        """ESA's strength under the config's fade at this point of ``learn()``'s budget."""
+        # SB3 sets _total_timesteps to where the current learn() ends, counted like
+        # num_timesteps (a learn() that keeps the count fades over the whole count).
+        total = max(getattr(self, "_total_timesteps", 0), 1)
+        return self.esa.strength(self.num_timesteps / total)
+
     def esa_close(self) -> None:
         """Closes the ESA sessions and stops a spawned server (also done on garbage collection)."""
         if self._esa is not None:

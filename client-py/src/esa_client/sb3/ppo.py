@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from typing import Any, Literal, cast
 
 import numpy as np
@@ -15,22 +14,41 @@ from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.distributions import Distribution
 from stable_baselines3.common.preprocessing import is_image_space, preprocess_obs
+from stable_baselines3.common.utils import explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
+from torch import nn
 
 from .._native import AdvantageMlp
+from ..common.action_critics import (
+    CRITIC_KINDS,
+    CriticAtStep,
+    CriticKind,
+    fit_critic,
+    make_critic,
+)
 from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
+from ..common.controls import RandomDirections, shift_report
 from ..common.head_fit_worker import FitJob, HeadFitWorker, PendingFit, shared_worker
+from ..common.runtime import SMALLEST_SCALE
 from ..config import EsaConfig
-from ..transports.base import HeadStep, LinearCritic
+from ..transports.base import HeadStep
+from .esa_buffer import EsaRolloutBuffer, EsaRolloutBufferSamples
 from .mixin import EsaMixin
 
 Mode = Literal["behaviour", "target"]
 """Where ESA's shift goes: into the executed action, or into the policy update's target."""
 MODES: tuple[str, ...] = ("behaviour", "target")
 
-Shift = Literal["esc", "gradient"]
-"""How the shift is found: ESA's extremum seeking, or the advantage head's gradient."""
-SHIFTS: tuple[str, ...] = ("esc", "gradient")
+Shift = Literal["esc", "gradient", "placebo"]
+"""How the shift is found: ESA's extremum seeking, the critic's gradient, or the placebo."""
+SHIFTS: tuple[str, ...] = ("esc", "gradient", "placebo")
+
+Objective = Literal["clip", "decoupled"]
+"""PPO's clipped objective, or the decoupled one (clip around pi_old, weight b -> pi_old)."""
+OBJECTIVES: tuple[str, ...] = ("clip", "decoupled")
+
+REPORT_EVERY = 8
+"""One step in this many records what the shifts did (:func:`shift_report`)."""
 
 
 class ESAPPO(EsaMixin, PPO):
@@ -46,16 +64,27 @@ class ESAPPO(EsaMixin, PPO):
     The policy's standard deviation is the action scale, so the trust region bounds the
     shift in units of it.
 
-    The critic ESA probes is an advantage head ``A(s, a) = w(s) . (a - mu) / sigma``
-    (:mod:`esa_client.common.advantage_head`), fitted on the normalized GAE advantages of
-    the last ``esa_head_rollouts`` rollouts. ESA intervenes only while the head passes
-    ``EsaConfig.gate``: the rank correlation of its ``A(s, a) - A(s, mu)`` with the GAE
-    advantages of a rollout it was not trained on (logged as ``esa/gate_correlation``
-    and ``esa/active``).
+    The critic ESA probes (``esa_critic``), each fitted on the normalized GAE advantages
+    of the last ``esa_head_rollouts`` rollouts:
+
+    * ``"linear"`` (default): ``A(s, a) = w(s) . (a - mu) / sigma``
+      (:mod:`esa_client.common.advantage_head`), evaluated by the engine itself. It has no
+      extremum: ESA integrates ``w(s)`` up to its bound (``docs/guides/sb3.md``).
+    * ``"quadratic"``: ``A = w(s) . z + sum_j u_j(s) (z_j^2 - 1)``, ``u <= 0``, with a maximum
+      ESA converges to; ``"qnet"``: a Q-network ``Q(s, z)`` as in the paper's Algorithm 1
+      (:mod:`esa_client.common.action_critics`). Both are evaluated at the action the env
+      executes (clipped to the Box).
+
+    ESA intervenes only while the critic passes ``EsaConfig.gate``: the rank correlation
+    of its ``A(s, a) - A(s, mu)`` with the GAE advantages of a rollout it was not trained
+    on (logged as ``esa/gate_correlation`` and ``esa/active``). ``EsaConfig.fade`` fades
+    ESA over the training budget. Per rollout the logger also gets ``esa/noise_cosine``
+    (``cos(v, mu - a_t)``: how much of the shift removes exploration noise),
+    ``esa/at_bound``, ``esa/undone_by_clip`` and ``esa/shift_over_sigma``.
 
     With ``EsaConfig(learning_rate=0)`` the shift stays 0 and training is bit for bit
     plain PPO with the same seed: the executed and stored actions, their log-probabilities
-    and every random draw are PPO's (the head is initialized on a forked torch generator
+    and every random draw are PPO's (the critic is initialized on a forked torch generator
     and draws its minibatches from its own numpy generator).
 
     ESA works in the policy's action space scaled to [-1, 1] by the Box bounds (the same
@@ -79,33 +108,39 @@ class ESAPPO(EsaMixin, PPO):
             when ``esa_engine`` is ``"sidecar"``.
         esa_engine: ``"inprocess"`` (esa-core in this process) or ``"sidecar"`` (an
             esa-server); None: ``esa_address``'s server when given, else in-process.
-        esa_head_hidden: Hidden units of each of the advantage head's two layers.
-        esa_head_learning_rate: Adam learning rate of the advantage head.
-        esa_head_epochs: Passes over its data each time the head is fitted.
-        esa_head_batch_size: Minibatch size when fitting the head.
-        esa_head_rollouts: How many of the latest rollouts the head is fitted on.
-        esa_head_worker: Fit the head in a worker process while PPO updates the policy
-            (:mod:`esa_client.common.head_fit_worker`), so that the fit costs no wall-clock
-            where a second CPU is free; the results are the same bits as fitting it here.
-            ``None`` (default): on a CPU device with two or more CPUs available to the
-            process; ``False``: never; ``True``: on a CPU device whatever the CPU count. On
-            another device (a GPU) the head is fitted there, in the trainer, so that a model
-            saved on a CPU host loads anywhere.
-            The worker is one extra Python process with torch, shared by the process's
-            models: about 400 MB of memory of its own.
+        esa_critic: ``"linear"``, ``"quadratic"`` or ``"qnet"`` (see above).
+        esa_head_hidden: Hidden units of each of the critic's two layers.
+        esa_head_learning_rate: Adam learning rate of the critic.
+        esa_head_epochs: Passes over its data each time the critic is fitted.
+        esa_head_batch_size: Minibatch size when fitting the critic.
+        esa_head_rollouts: How many of the latest rollouts the critic is fitted on.
+        esa_head_worker: Fit the linear head in a worker process while PPO updates the
+            policy (:mod:`esa_client.common.head_fit_worker`): the same bits, about 6-8 %
+            less wall-clock where a second CPU is free, and one more Python process with
+            torch (about 400 MB). Off by default: ESAPPO starts no process of its own.
+            Only on a CPU device and with the linear head; elsewhere the fit runs here.
         esa_mode: ``"behaviour"``: the env executes ``a_t + v(t)`` (Algorithm 1).
             ``"target"``: the env executes the policy's own sample (exact on-policy data)
             while the sessions still run on it, and a bounded auxiliary loss in PPO's
             minibatch loop pulls the policy mean toward ``mu_old(s) + v_t``, in units of
             ``sigma_old`` (dual policy iteration's improve-then-project step): ESA as an
             improvement target instead of behaviour. Box observations only.
-        esa_shift: ``"esc"`` (ESA's sessions) or ``"gradient"`` (the control: a shift of the
-            trust region's size, ``kappa sigma w(s) / |w(s)|``, along the head's action
-            gradient; no session).
+        esa_shift: ``"esc"`` (ESA's sessions), ``"gradient"`` (the control: a shift of the
+            trust region's size, faded like ESA's, along the critic's action gradient at the
+            sample; no session) or ``"placebo"`` (the control: ESA's ``|v|`` per dimension,
+            schedule and temporal correlation, with a random sign vector per env and
+            episode; :class:`~esa_client.common.controls.RandomDirections`).
         esa_target_weight: Weight of the target mode's auxiliary loss: a Huber loss of the
             shortfall ``max(0, sign(z) (z - (mu - mu_old) / sigma_old))`` with
             ``z = v_t / sigma_old``, over the samples ESA shifted. One-sided: the mean is
             pulled at least ``v_t`` along ``v_t`` and never held back beyond it.
+        esa_objective: ``"clip"``: PPO's objective, its ratio taken against the behaviour
+            density. ``"decoupled"``: the decoupled objective of Hilton, Cobbe and Schulman
+            (2022, "Batch size-invariance for policy optimization"): the ratio is clipped
+            around the collecting policy ``pi_old`` at the executed action and weighted by
+            ``min(pi_old(x) / b(x), esa_weight_cap)``, so a shift of a sizeable fraction of
+            sigma does not fight the clip. Box observations only.
+        esa_weight_cap: The decoupled objective's cap on ``pi_old / b`` (>= 1).
         **kwargs: Any other PPO argument.
 
     Raises:
@@ -120,30 +155,36 @@ class ESAPPO(EsaMixin, PPO):
         *args: Any,
         esa: EsaConfig | Mapping[str, Any] | None = None,
         esa_address: str | None = None,
+        esa_critic: CriticKind = "linear",
         esa_head_hidden: int = 64,
         esa_head_learning_rate: float = 1e-3,
         esa_head_epochs: int = 5,
         esa_head_batch_size: int = 256,
         esa_head_rollouts: int = 4,
-        esa_head_worker: bool | None = None,
+        esa_head_worker: bool = False,
         esa_mode: Mode = "behaviour",
         esa_shift: Shift = "esc",
         esa_target_weight: float = 1.0,
+        esa_objective: Objective = "clip",
+        esa_weight_cap: float = 2.0,
         **kwargs: Any,
     ) -> None:
-        """Creates the PPO model and the advantage head."""
+        """Creates the PPO model and the critic ESA probes."""
         for option, choice, allowed in (
+            ("esa_critic", esa_critic, CRITIC_KINDS),
             ("esa_mode", esa_mode, MODES),
             ("esa_shift", esa_shift, SHIFTS),
+            ("esa_objective", esa_objective, OBJECTIVES),
         ):
             if choice not in allowed:
                 raise ValueError(f"expected {option} in {allowed}, got {choice!r}")
-        if not (isinstance(esa_target_weight, (int, float)) and esa_target_weight > 0):
-            raise ValueError(f"expected esa_target_weight > 0, got {esa_target_weight!r}")
-        self.esa_mode = esa_mode
-        self.esa_shift = esa_shift
-        self.esa_target_weight = float(esa_target_weight)
-        self._esa_targets: list[np.ndarray] = []
+        for name, number, least, rule in (
+            ("esa_target_weight", esa_target_weight, np.nextafter(0.0, 1.0), "> 0"),
+            ("esa_weight_cap", esa_weight_cap, 1.0, ">= 1"),
+        ):
+            real = isinstance(number, (int, float)) and not isinstance(number, bool)
+            if not (real and np.isfinite(number) and number >= least):
+                raise ValueError(f"expected {name} finite and {rule}, got {number!r}")
         for name, value in (
             ("esa_head_hidden", esa_head_hidden),
             ("esa_head_epochs", esa_head_epochs),
@@ -154,11 +195,15 @@ class ESAPPO(EsaMixin, PPO):
                 raise ValueError(f"expected {name} an integer >= 1, got {value!r}")
         if not esa_head_learning_rate > 0:
             raise ValueError(f"expected esa_head_learning_rate > 0, got {esa_head_learning_rate}")
-        if not (esa_head_worker is None or isinstance(esa_head_worker, bool)):
-            raise ValueError(
-                f"expected esa_head_worker True, False or None, got {esa_head_worker!r}"
-            )
-        # Set before the SB3 constructor: its _setup_model builds the head from them.
+        if not isinstance(esa_head_worker, bool):
+            raise ValueError(f"expected esa_head_worker True or False, got {esa_head_worker!r}")
+        self.esa_critic = esa_critic
+        self.esa_mode = esa_mode
+        self.esa_shift = esa_shift
+        self.esa_target_weight = float(esa_target_weight)
+        self.esa_objective = esa_objective
+        self.esa_weight_cap = float(esa_weight_cap)
+        # Set before the SB3 constructor: its _setup_model builds the critic from them.
         self.esa_head_hidden = esa_head_hidden
         self.esa_head_learning_rate = esa_head_learning_rate
         self.esa_head_epochs = esa_head_epochs
@@ -170,27 +215,41 @@ class ESAPPO(EsaMixin, PPO):
         self._esa_active = False
         self._esa_scale: tuple[np.ndarray, np.ndarray] | None = None
         self._esa_head_snapshot: tuple[tuple[int, ...], AdvantageMlp] | None = None
+        self._esa_placebo: RandomDirections | None = None
+        self._esa_steps = 0
         super().__init__(policy, env, *args, esa=esa, esa_address=esa_address, **kwargs)
 
     def _setup_model(self) -> None:
+        box_obs = not isinstance(self.observation_space, spaces.Dict)
+        if self.rollout_buffer_class is None and box_obs:
+            self.rollout_buffer_class = EsaRolloutBuffer
         super()._setup_model()
         if self.policy.squash_output:
             raise ValueError(
                 "expected a policy without squash_output for ESAPPO (the shifted sample "
                 "must have a density under the policy), got squash_output=True"
             )
-        if self.esa_mode == "target" and isinstance(self.observation_space, spaces.Dict):
-            raise ValueError(
-                "expected a Box observation space for esa_mode='target', got "
-                f"{self.observation_space}"
-            )
+        for option, value, default in (
+            ("esa_mode", self.esa_mode, "behaviour"),
+            ("esa_objective", self.esa_objective, "clip"),
+        ):
+            if value != default and not isinstance(self.rollout_buffer, EsaRolloutBuffer):
+                raise ValueError(
+                    f"expected a Box observation space (ESAPPO's rollout buffer) for "
+                    f"{option}={value!r}, got {self.observation_space} and "
+                    f"{type(self.rollout_buffer).__name__}"
+                )
         features_dim = spaces.flatdim(self.observation_space)
         action_dim = int(np.prod(self.action_space.shape or ()))
-        # A forked generator: building the head must not move PPO's random stream.
+        # A forked generator: building the critic must not move PPO's random stream.
         with th.random.fork_rng(devices=[]):
-            self.esa_head = AdvantageHead(features_dim, action_dim, self.esa_head_hidden)
+            self.esa_head: nn.Module = (
+                AdvantageHead(features_dim, action_dim, self.esa_head_hidden)
+                if self.esa_critic == "linear"
+                else make_critic(self.esa_critic, features_dim, action_dim, self.esa_head_hidden)
+            )
         self.esa_head.to(self.device)
-        # fused: Adam's update of all six tensors in one kernel; the per-tensor kernels cost
+        # fused: Adam's update of all tensors in one kernel; the per-tensor kernels cost
         # as much as the head's gradients (bench/profiles/README.md). torch >= 2.4 has it on
         # the CPU and CUDA; elsewhere the default implementation.
         fused = self.device.type in ("cpu", "cuda") or None
@@ -207,18 +266,18 @@ class ESAPPO(EsaMixin, PPO):
 
     def _esa_fit_worker(self) -> HeadFitWorker | None:
         """The process's head-fit worker if this model uses one, else None."""
-        if self.esa_head_worker is False or self.device.type != "cpu":
+        if not self.esa_head_worker or self.device.type != "cpu" or self.esa_critic != "linear":
             return None
-        return shared_worker(force=bool(self.esa_head_worker))
+        return shared_worker(force=True)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "esa_head", "esa_head_optimizer"], variables
 
     def _excluded_save_params(self) -> list[str]:
-        # The head's training data are rebuilt from the next rollouts, the scaling from the
-        # action space, the snapshot from the head.
-        excluded = ["_esa_head_data", "_esa_scale", "_esa_targets", "_esa_head_snapshot"]
+        # The critic's training data are rebuilt from the next rollouts, the scaling from the
+        # action space, the snapshot from the head, the placebo's signs at the next episode.
+        excluded = ["_esa_head_data", "_esa_scale", "_esa_head_snapshot", "_esa_placebo"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -248,7 +307,7 @@ class ESAPPO(EsaMixin, PPO):
         return scaled
 
     def _head_features(self, obs: th.Tensor | dict[str, th.Tensor]) -> th.Tensor:
-        """The observation as the head sees it: preprocessed as SB3 does, flattened."""
+        """The observation as the critic sees it: preprocessed as SB3 does, flattened."""
         pre = preprocess_obs(obs, self.observation_space, self.policy.normalize_images)
         if isinstance(pre, dict):
             return th.cat([pre[key].flatten(1).float() for key in sorted(pre)], dim=1)
@@ -272,85 +331,146 @@ class ESAPPO(EsaMixin, PPO):
         return self._head_features(obs).cpu().numpy()
 
     def _esa_mlp(self) -> AdvantageMlp:
-        """The head in Rust, copied again whenever its parameters changed (a fit, a load)."""
-        version = self.esa_head.version()
+        """The linear head in Rust, copied again whenever its parameters changed (a fit, a load)."""
+        head = cast(AdvantageHead, self.esa_head)
+        version = head.version()
         if self._esa_head_snapshot is None or self._esa_head_snapshot[0] != version:
-            self._esa_head_snapshot = (version, self.esa_head.snapshot(*self._esa_scaling()))
+            self._esa_head_snapshot = (version, head.snapshot(*self._esa_scaling()))
         return self._esa_head_snapshot[1]
 
-    def _esa_critic(
+    def _critic_at(
         self, obs: th.Tensor | dict[str, th.Tensor], mean: np.ndarray, std: np.ndarray
-    ) -> LinearCritic:
-        """The head at the current observations, for actions in ESA units.
+    ) -> CriticAtStep:
+        """The curved critic at the current observations, over actions in ESA units."""
+        center, half_width = self._esa_scaling()
+        low, high = self._esa_env_bounds()
+        return CriticAtStep(
+            self.esa_head,
+            self._head_features(obs),
+            (mean - center) / half_width,
+            np.maximum(std / half_width, SMALLEST_SCALE),
+            low,
+            high,
+        )
 
-        ``A = w . (a - mu) / sigma`` is linear in the action: with ``a`` in ESA units,
-        ``A = g . a + b`` for ``g = w h / sigma`` and ``b = w . (c - mu) / sigma`` (``c``,
-        ``h``: the Box's center and half-width), which the in-process engine evaluates
-        itself. ``mean`` and ``std`` are the policy's, float32 ``(N, D)``.
-        """
-        return LinearCritic(*self._esa_mlp().critic(self._step_features(obs), mean, std))
+    def _policy_forward(
+        self, obs: th.Tensor | dict[str, th.Tensor]
+    ) -> tuple[Distribution, th.Tensor]:
+        """The policy's action distribution and value at ``obs``.
 
-    @contextlib.contextmanager
-    def _esa_forward(self) -> Iterator[None]:
-        """Within the block, the policy's forward pass returns ESA's executed actions.
-
-        SB3's ``collect_rollouts`` calls ``policy(obs)`` for ``(actions, values,
-        log_probs)``, clips the actions for the env and stores them unclipped: this forward
-        is SB3's ``ActorCriticPolicy.forward`` with ``a_t`` replaced by ``a_t + v(t)``,
-        ``log_probs`` still ``log pi(a_t)``.
+        SB3's ``forward`` up to the sample, so that the sample draws what SB3's own would.
         """
         policy = self.policy
-        # The head changes only in train() or a load, outside a rollout: its Rust copy is
-        # taken (if it changed) once per rollout, not checked at every step.
-        mlp = self._esa_mlp()
+        features = policy.extract_features(obs)
+        if policy.share_features_extractor:
+            latent_pi, latent_vf = policy.mlp_extractor(features)
+        else:
+            pi_features, vf_features = features
+            latent_pi = policy.mlp_extractor.forward_actor(pi_features)
+            latent_vf = policy.mlp_extractor.forward_critic(vf_features)
+        return policy._get_action_dist_from_latent(latent_pi), policy.value_net(latent_vf)
 
-        def forward(
-            obs: th.Tensor, deterministic: bool = False
-        ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-            features = policy.extract_features(obs)
-            if policy.share_features_extractor:
-                latent_pi, latent_vf = policy.mlp_extractor(features)
-            else:
-                pi_features, vf_features = features
-                latent_pi = policy.mlp_extractor.forward_actor(pi_features)
-                latent_vf = policy.mlp_extractor.forward_critic(vf_features)
-            values = policy.value_net(latent_vf)
-            distribution = policy._get_action_dist_from_latent(latent_pi)
-            actions = distribution.get_actions(deterministic=deterministic)
-            log_prob = distribution.log_prob(actions)
-            if self._esa_active and not deterministic:
-                gaussian = _gaussian(distribution)
-                # numpy views (copies on a GPU) of the sample, mean and std: SB3's Box
-                # distributions give them flat, (N, D) each.
-                sample = actions.cpu().numpy()
-                mean, std = gaussian.mean.cpu().numpy(), gaussian.stddev.cpu().numpy()
-                head_in = self._step_features(obs)
-                executed: np.ndarray | None = None
-                if self.esa_shift == "gradient":
-                    shift = self._gradient_shift(mlp.weights(head_in)) * std
-                else:
-                    starts = self._last_episode_starts
-                    assert starts is not None  # set by SB3 before its rollouts
-                    shift, executed = self._esa_runtime().step_head(
-                        HeadStep(mlp, head_in, sample, mean, std), starts
-                    )
-                if self.esa_mode == "target":
-                    self._esa_targets.append(shift / std)
-                else:
-                    if executed is None:
-                        # a + shift in float64, cast back to the policy's float32 (one call).
-                        executed = mlp.executed(sample, shift)
-                    actions = th.from_numpy(executed).to(actions.device)
-            elif self.esa_mode == "target" and not deterministic:
-                self._esa_targets.append(np.zeros((len(actions), self._esa_scaling()[0].size)))
-            return actions.reshape((-1, *self._esa_box().shape)), values, log_prob
+    def _esa_policy_step(
+        self, obs: th.Tensor | dict[str, th.Tensor]
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, np.ndarray]:
+        """SB3's ``policy(obs)`` with ESA: ``(executed, values, log pi(a_t), shift / sigma)``.
 
-        # The hook itself: an instance attribute shadows the policy's forward in this block.
-        policy.forward = forward  # type: ignore[method-assign]
-        try:
-            yield
-        finally:
-            del policy.forward
+        The executed action is ``a_t + v(t)`` in the behaviour mode (the sample in the
+        target mode), its log-probability still ``log pi(a_t)``; the shift in units of
+        sigma is what the target mode pulls the mean toward (0 where ESA is off).
+        """
+        distribution, values = self._policy_forward(obs)
+        actions = distribution.get_actions()
+        log_prob = distribution.log_prob(actions)
+        dim = self._esa_scaling()[0].size
+        strength = self._esa_strength() if self._esa_active else 0.0
+        if strength <= 0.0:
+            return (
+                actions.reshape((-1, *self._esa_box().shape)),
+                values,
+                log_prob,
+                np.zeros((len(actions), dim)),
+            )
+        gaussian = _gaussian(distribution)
+        # numpy views (copies on a GPU) of the sample, mean and std: SB3's Box distributions
+        # give them flat, (N, D) each.
+        sample = actions.cpu().numpy()
+        mean, std = gaussian.mean.cpu().numpy(), gaussian.stddev.cpu().numpy()
+        starts = self._last_episode_starts
+        assert starts is not None  # set by SB3 before its rollouts
+        shift = self._esa_shift(obs, sample, mean, std, starts, strength)
+        if self.esa_shift == "placebo":
+            if self._esa_placebo is None:
+                self._esa_placebo = RandomDirections(len(sample), dim, self.seed)
+            shift = self._esa_placebo(shift, starts)
+        if self._esa_steps % REPORT_EVERY == 0:
+            self._record_shift(sample, shift, mean, std, strength)
+        self._esa_steps += 1
+        if self.esa_mode == "behaviour":
+            # a + shift in float64, cast back to the policy's float32.
+            executed = (sample.astype(np.float64) + shift).astype(sample.dtype)
+            actions = th.from_numpy(executed).to(actions.device)
+        return actions.reshape((-1, *self._esa_box().shape)), values, log_prob, shift / std
+
+    def _esa_shift(
+        self,
+        obs: th.Tensor | dict[str, th.Tensor],
+        sample: np.ndarray,
+        mean: np.ndarray,
+        std: np.ndarray,
+        starts: np.ndarray,
+        strength: float,
+    ) -> np.ndarray:
+        """ESA's shift (or the gradient control's) in the Box's units, float64 ``(N, D)``."""
+        runtime = self._esa_runtime()
+        if self.esa_critic == "linear":
+            mlp = self._esa_mlp()
+            head_in = self._step_features(obs)
+            if self.esa_shift == "gradient":
+                weights: np.ndarray = mlp.weights(head_in)
+                gradient_shift: np.ndarray = self._gradient_shift(weights, strength) * std
+                return gradient_shift
+            head_step = HeadStep(mlp, head_in, sample, mean, std)
+            linear_shift: np.ndarray = runtime.step_head(head_step, starts, strength)[0]
+            return linear_shift
+        critic = self._critic_at(obs, mean, std)
+        center, half_width = self._esa_scaling()
+        scaled = (sample - center) / half_width
+        if self.esa_shift == "gradient":
+            curved: np.ndarray = self._gradient_shift(critic.gradient(scaled), strength) * std
+            return curved
+        applied = runtime.step(scaled, starts, critic, critic.std, strength=strength)
+        shift: np.ndarray = (applied - scaled) * half_width
+        return shift
+
+    def _gradient_shift(self, gradient: np.ndarray, strength: float) -> np.ndarray:
+        """``f kappa g / |g|``: the critic's action gradient ``g`` in units of sigma as a shift.
+
+        ``kappa`` is the trust region (1 when unset) and ``f`` the fade's strength, so the
+        control's shift is as large as ESA's bound allows at every point of training.
+        """
+        kappa = self.esa.trust_region if self.esa.trust_region is not None else 1.0
+        norm = np.linalg.norm(gradient, axis=1, keepdims=True)
+        unit: np.ndarray = np.divide(gradient, norm, out=np.zeros_like(gradient), where=norm > 0)
+        return strength * kappa * unit
+
+    def _record_shift(
+        self, sample: np.ndarray, shift: np.ndarray, mean: np.ndarray, std: np.ndarray, f: float
+    ) -> None:
+        box = self._esa_box()
+        kappa = self.esa.trust_region
+        report = shift_report(
+            sample,
+            shift,
+            mean,
+            std,
+            box.low.reshape(-1),
+            box.high.reshape(-1),
+            None if kappa is None else f * kappa,
+        )
+        for key, value in report.items():
+            self.logger.record_mean(f"esa/{key}", value)
+        self.logger.record_mean("esa/strength", f)
 
     def collect_rollouts(
         self,
@@ -359,103 +479,241 @@ class ESAPPO(EsaMixin, PPO):
         rollout_buffer: RolloutBuffer,
         n_rollout_steps: int,
     ) -> bool:
-        """SB3's ``collect_rollouts``, with the ESA step inside the policy's forward pass."""
-        self._esa_targets = []
-        with th.no_grad(), self._esa_forward():
-            return super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
+        """SB3's ``OnPolicyAlgorithm.collect_rollouts`` with ESA's step in the policy's place.
 
-    def _gradient_shift(self, w: np.ndarray) -> np.ndarray:
-        """``kappa w(s) / |w(s)|``: the head's action gradient as a shift in units of sigma.
-
-        The head ``A(s, a) = w(s) . (a - mu) / sigma`` has the gradient ``w(s)`` (given, as
-        its Rust copy's ``weights`` returns it) in units of sigma, so the step needs no autograd;
-        kappa is the trust region (1 when unset).
+        The env gets ``clip(a_t + v(t))``; the buffer stores ``a_t + v(t)`` unclipped with
+        ``log pi(a_t)``, and (target mode) the shift in units of sigma.
         """
-        kappa = self.esa.trust_region if self.esa.trust_region is not None else 1.0
-        norm = np.linalg.norm(w, axis=1, keepdims=True)
-        unit: np.ndarray = np.divide(w, norm, out=np.zeros_like(w), where=norm > 0)
-        return kappa * unit
+        assert self._last_obs is not None, "No previous observation was provided"
+        self.policy.set_training_mode(False)
+        n_steps = 0
+        rollout_buffer.reset()
+        targets: np.ndarray | None = None
+        if self.esa_mode == "target" and isinstance(rollout_buffer, EsaRolloutBuffer):
+            dim = self._esa_scaling()[0].size
+            targets = np.zeros(
+                (rollout_buffer.buffer_size, rollout_buffer.n_envs, dim), dtype=np.float32
+            )
+            rollout_buffer.extras["esa_target"] = targets
+        if self.use_sde:
+            self.policy.reset_noise(env.num_envs)
+        callback.on_rollout_start()
+        while n_steps < n_rollout_steps:
+            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+                self.policy.reset_noise(env.num_envs)
+            with th.no_grad():
+                obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
+                actions_t, values, log_probs, target = self._esa_policy_step(obs_tensor)
+            actions = actions_t.cpu().numpy()
+            # PPO's Gaussian is unbounded: the env gets the sample clipped to its Box.
+            box = self._esa_box()
+            clipped_actions = np.clip(actions, box.low, box.high)
+            new_obs, rewards, dones, infos = env.step(clipped_actions)
+            self.num_timesteps += env.num_envs
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            self._update_info_buffer(infos, dones)
+            n_steps += 1
+            # A truncated episode bootstraps with the value of its last observation (SB3 #633).
+            for idx, done in enumerate(dones):
+                if (
+                    done
+                    and infos[idx].get("terminal_observation") is not None
+                    and infos[idx].get("TimeLimit.truncated", False)
+                ):
+                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
+                    with th.no_grad():
+                        terminal_value = self.policy.predict_values(terminal_obs)[0]
+                    rewards[idx] += self.gamma * terminal_value
+            if targets is not None:
+                targets[rollout_buffer.pos] = target
+            rollout_buffer.add(
+                self._last_obs,  # type: ignore[arg-type]
+                actions,
+                rewards,
+                self._last_episode_starts,  # type: ignore[arg-type]
+                values,
+                log_probs,
+            )
+            self._last_obs = new_obs  # type: ignore[assignment]
+            self._last_episode_starts = dones
+        with th.no_grad():
+            values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
+        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
 
     def train(self) -> None:
-        """Checks the gate and fits the advantage head on the rollout, runs PPO's update.
+        """Checks the gate and fits the critic on the rollout, then PPO's update.
 
-        The fit runs beside PPO's update where a worker serves (``esa_head_worker``), and
-        the head holds it when this returns. In the target mode, PPO's update also pulls
-        the mean toward ``mu_old + v_t``.
+        SB3's ``PPO.train`` with two additions: the decoupled objective (``esa_objective``)
+        and, in the target mode, the auxiliary loss that pulls the mean toward
+        ``mu_old + v_t``. With neither, the same operations in the same order as SB3's.
+        The critic's fit runs beside PPO's update where a worker serves
+        (``esa_head_worker``), and the critic holds it when this returns.
         """
         pending = self._update_esa_head()
         try:
-            targets = self._esa_targets if self.esa_mode == "target" else []
-            if not any(np.any(z != 0) for z in targets):
-                super().train()
-                return
-            with self._esa_target_loss(np.stack(targets)):
-                super().train()
+            self._train_policy()
         finally:
             self._finish_esa_head_fit(pending)
 
-    @contextlib.contextmanager
-    def _esa_target_loss(self, targets: np.ndarray) -> Iterator[None]:
-        """Within the block, each of PPO's optimizer steps also descends the target loss.
+    def _train_policy(self) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
+        if self.clip_range_vf is not None:
+            clip_range_vf = self.clip_range_vf(self._current_progress_remaining)  # type: ignore[operator]
+        targeted = self._prepare_esa_update()
+        entropy_losses, pg_losses, value_losses, clip_fractions = [], [], [], []
+        target_losses: list[float] = []
+        continue_training = True
+        for epoch in range(self.n_epochs):
+            approx_kl_divs = []
+            for rollout_data in self.rollout_buffer.get(self.batch_size):
+                actions = rollout_data.actions
+                values, log_prob, entropy = self.policy.evaluate_actions(
+                    rollout_data.observations, actions
+                )
+                values = values.flatten()
+                advantages = rollout_data.advantages
+                # Normalization does not make sense if mini batchsize == 1 (SB3 #325).
+                if self.normalize_advantage and len(advantages) > 1:
+                    advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+                # The decoupled objective's ratio is to the proximal policy pi_old at the
+                # executed action, weighted by pi_old / b (capped); PPO's is to b itself.
+                reference = rollout_data.old_log_prob
+                weight: th.Tensor | float = 1.0
+                if self.esa_objective == "decoupled":
+                    samples = cast(EsaRolloutBufferSamples, rollout_data)
+                    reference = samples.extras["proximal_log_prob"].flatten()
+                    weight = th.exp(reference - rollout_data.old_log_prob).clamp(
+                        max=self.esa_weight_cap
+                    )
+                ratio = th.exp(log_prob - reference)
+                policy_loss_1 = advantages * ratio
+                policy_loss_2 = advantages * th.clamp(ratio, 1 - clip_range, 1 + clip_range)
+                policy_loss = -(weight * th.min(policy_loss_1, policy_loss_2)).mean()
+                pg_losses.append(policy_loss.item())
+                clip_fraction = th.mean((th.abs(ratio - 1) > clip_range).float()).item()
+                clip_fractions.append(clip_fraction)
+                if self.clip_range_vf is None:
+                    values_pred = values
+                else:
+                    values_pred = rollout_data.old_values + th.clamp(
+                        values - rollout_data.old_values, -clip_range_vf, clip_range_vf
+                    )
+                value_loss = F.mse_loss(rollout_data.returns, values_pred)
+                value_losses.append(value_loss.item())
+                if entropy is None:
+                    entropy_loss = -th.mean(-log_prob)
+                else:
+                    entropy_loss = -th.mean(entropy)
+                entropy_losses.append(entropy_loss.item())
+                loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
+                # Schulman's estimator of the KL to the policy the ratio is taken against.
+                with th.no_grad():
+                    log_ratio = log_prob - reference
+                    approx_kl_div = th.mean((th.exp(log_ratio) - 1) - log_ratio).cpu().numpy()
+                    approx_kl_divs.append(approx_kl_div)
+                if self.target_kl is not None and approx_kl_div > 1.5 * self.target_kl:
+                    continue_training = False
+                    if self.verbose >= 1:
+                        print(
+                            f"Early stopping at step {epoch} due to reaching max kl: "
+                            f"{approx_kl_div:.2f}"
+                        )
+                    break
+                self.policy.optimizer.zero_grad()
+                loss.backward()
+                th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+                if targeted:
+                    # After PPO's clipping: the target's pull is bounded by its Huber loss.
+                    target_losses.extend(
+                        self._target_loss(cast(EsaRolloutBufferSamples, rollout_data))
+                    )
+                self.policy.optimizer.step()
+            self._n_updates += 1
+            if not continue_training:
+                break
+        explained_var = explained_variance(
+            self.rollout_buffer.values.flatten(), self.rollout_buffer.returns.flatten()
+        )
+        self.logger.record("train/entropy_loss", np.mean(entropy_losses))
+        self.logger.record("train/policy_gradient_loss", np.mean(pg_losses))
+        self.logger.record("train/value_loss", np.mean(value_losses))
+        self.logger.record("train/approx_kl", np.mean(approx_kl_divs))
+        self.logger.record("train/clip_fraction", np.mean(clip_fractions))
+        self.logger.record("train/loss", loss.item())
+        self.logger.record("train/explained_variance", explained_var)
+        if hasattr(self.policy, "log_std"):
+            self.logger.record("train/std", th.exp(self.policy.log_std).mean().item())
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/clip_range", clip_range)
+        if self.clip_range_vf is not None:
+            self.logger.record("train/clip_range_vf", clip_range_vf)
+        if target_losses:
+            self.logger.record("esa/target_loss", float(np.mean(target_losses)))
 
-        SB3's ``PPO.train`` has no hook for an extra loss term, so two are added for the
-        block: the rollout buffer remembers the indices of the minibatch it last served,
-        and the policy optimizer's ``step`` first back-propagates the target loss on
-        those samples (after PPO's gradient clipping, with a Huber loss that bounds it).
+    def _prepare_esa_update(self) -> bool:
+        """Fills the buffer's extras the update needs from the policy that collected it.
+
+        Returns:
+            Whether the target mode's loss runs (some sample was shifted).
         """
         buffer = self.rollout_buffer
-        flatten = RolloutBuffer.swap_and_flatten
-        obs = buffer.to_torch(flatten(buffer.observations))
-        z = buffer.to_torch(flatten(targets.astype(np.float32)))
-        shifted = (z != 0).any(dim=1)
+        if not isinstance(buffer, EsaRolloutBuffer):
+            return False
+        targets = buffer.extras.get("esa_target")
+        targeted = targets is not None and bool(np.any(targets != 0))
+        if not (targeted or self.esa_objective == "decoupled"):
+            return False
+        flat = (buffer.buffer_size, buffer.n_envs)
+        obs = buffer.to_torch(buffer.observations.reshape(-1, *buffer.obs_shape))
         with th.no_grad():
             # The policy that collected the rollout: train() has not updated it yet.
-            old = _gaussian(self.policy.get_distribution(obs))
-            mu_old = old.mean.reshape(len(obs), -1)
-            sigma_old = old.stddev.reshape(len(obs), -1)
-        served: list[np.ndarray] = []
-        get_samples = buffer._get_samples
-        optimizer = self.policy.optimizer
-        step = optimizer.step
-        losses: list[float] = []
+            old = self.policy.get_distribution(obs)
+            if self.esa_objective == "decoupled":
+                actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
+                proximal = old.log_prob(actions)
+                buffer.extras["proximal_log_prob"] = proximal.cpu().numpy().reshape(flat)
+            if targeted:
+                gaussian = _gaussian(old)
+                for name, values in (("old_mean", gaussian.mean), ("old_std", gaussian.stddev)):
+                    buffer.extras[name] = values.cpu().numpy().reshape(*flat, -1)
+        if targeted and targets is not None:
+            shifted = np.abs(targets[np.any(targets != 0, axis=2)])
+            self.logger.record("esa/target_shift_over_std", float(shifted.mean()))
+        return targeted
 
-        def remembering_get_samples(batch_inds: np.ndarray, env: Any = None) -> Any:
-            served[:] = [batch_inds]
-            return get_samples(batch_inds, env)
+    def _target_loss(self, samples: EsaRolloutBufferSamples) -> list[float]:
+        """Back-propagates the target mode's loss on a minibatch's shifted samples.
 
-        def step_with_target(*args: Any, **kwargs: Any) -> Any:
-            idx = th.as_tensor(served[0], device=obs.device)
-            idx = idx[shifted[idx]]
-            if len(idx):
-                new = _gaussian(self.policy.get_distribution(obs[idx]))
-                moved = (new.mean.reshape(len(idx), -1) - mu_old[idx]) / sigma_old[idx]
-                target = z[idx]
-                # One-sided: only the part of the target the mean has not yet covered. A
-                # symmetric loss toward mu_old + v anchored the policy at mu_old (v is a
-                # fraction of sigma) and stalled PPO: return 116 against 457 on
-                # InvertedPendulum-v5 with v ~ 0.001 sigma.
-                shortfall = F.relu(th.sign(target) * (target - moved))
-                loss = self.esa_target_weight * F.smooth_l1_loss(
-                    shortfall, th.zeros_like(shortfall)
-                )
-                loss.backward()
-                losses.append(loss.item())
-            return step(*args, **kwargs)
-
-        # Instance attributes shadow the methods for the block (as in _esa_forward).
-        buffer._get_samples = remembering_get_samples  # type: ignore[method-assign]
-        optimizer.step = step_with_target  # type: ignore[method-assign]
-        try:
-            yield
-        finally:
-            del buffer._get_samples
-            del optimizer.step
-            if losses:
-                self.logger.record("esa/target_loss", float(np.mean(losses)))
-            self.logger.record("esa/target_shift_over_std", float(z[shifted].abs().mean()))
+        Returns:
+            The loss (one value), or nothing when no sample of the minibatch was shifted.
+        """
+        z = samples.extras["esa_target"]
+        shifted = (z != 0).any(dim=1)
+        if not bool(shifted.any()):
+            return []
+        obs = samples.observations[shifted]
+        mu_old = samples.extras["old_mean"][shifted]
+        sigma_old = samples.extras["old_std"][shifted]
+        new = _gaussian(self.policy.get_distribution(obs))
+        moved = (new.mean.reshape(len(obs), -1) - mu_old) / sigma_old
+        target = z[shifted]
+        # One-sided: only the part of the target the mean has not yet covered. A symmetric
+        # loss toward mu_old + v anchored the policy at mu_old (v is a fraction of sigma)
+        # and stalled PPO: return 116 against 457 on InvertedPendulum-v5 with v ~ 0.001 sigma.
+        shortfall = F.relu(th.sign(target) * (target - moved))
+        loss = self.esa_target_weight * F.smooth_l1_loss(shortfall, th.zeros_like(shortfall))
+        loss.backward()
+        return [loss.item()]
 
     def _update_esa_head(self) -> PendingFit | None:
-        """Checks the gate on the new rollout and sends the head's fit on it to the worker.
+        """Checks the gate on the new rollout and sends the linear head's fit to the worker.
 
         Returns:
             The worker's fit, or None (the fit runs in :meth:`_finish_esa_head_fit`).
@@ -480,7 +738,10 @@ class ESAPPO(EsaMixin, PPO):
         pending = None
         if worker is not None:
             job = FitJob.of(
-                self.esa_head, self.esa_head_optimizer, self._esa_head_data, **self._esa_fit_args()
+                cast(AdvantageHead, self.esa_head),
+                self.esa_head_optimizer,
+                self._esa_head_data,
+                **self._esa_fit_args(),
             )
             pending = worker.submit(job)
         if not self._esa_head_fitted and gate is None:
@@ -490,15 +751,22 @@ class ESAPPO(EsaMixin, PPO):
         return pending
 
     def _finish_esa_head_fit(self, pending: PendingFit | None) -> None:
-        """Writes the worker's fit into the head, or fits the head here; records the loss."""
+        """Writes the worker's fit into the head, or fits the critic here; records the loss."""
         result = pending() if pending is not None else None
-        if result is None:
+        if result is not None:
+            self._esa_rng = result.apply(
+                cast(AdvantageHead, self.esa_head), self.esa_head_optimizer
+            )
+            loss = result.loss
+        else:
             # From the state the job copied, so the bits the worker would have given.
             data = self._esa_head_data
-            loss = fit(self.esa_head, self.esa_head_optimizer, data, **self._esa_fit_args())
-        else:
-            self._esa_rng = result.apply(self.esa_head, self.esa_head_optimizer)
-            loss = result.loss
+            if isinstance(self.esa_head, AdvantageHead):
+                loss = fit(self.esa_head, self.esa_head_optimizer, data, **self._esa_fit_args())
+            else:
+                loss = fit_critic(
+                    self.esa_head, self.esa_head_optimizer, data, **self._esa_fit_args()
+                )
         self.logger.record("esa/head_loss", loss)
         self.logger.record("esa/head_fit_in_worker", float(result is not None))
 

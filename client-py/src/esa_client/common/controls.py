@@ -1,0 +1,119 @@
+"""Controls that share everything with ESA but what they test, and what a shift did.
+
+A gain of ESA over its baseline may come from the critic's direction, from the mere size
+and temporal correlation of the perturbation, or from more exploration. The placebo here
+keeps ESA's shift magnitudes per dimension, its schedule and its correlation over time, and
+draws the direction at random (``RandomDirections``); ``shift_report`` measures, per step,
+how much of a shift removes the policy's own exploration noise, how often it sits at the
+trust region, and how often the env's clip undoes it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class RandomDirections:
+    """The placebo's shift: ESA's ``|v|`` per dimension with a random sign vector.
+
+    Each env draws a sign vector (each element +-1 with probability 1/2) at every episode
+    start and keeps it through the episode, so the placebo's shift has ESA's magnitude,
+    schedule and temporal correlation, but a direction that knows nothing of the critic.
+
+    Args:
+        n_envs: The number of envs N.
+        action_dim: The action dimension D.
+        seed: Seed of the placebo's own generator (None: fresh entropy); it draws from no
+            other generator, so the learner's random stream is untouched.
+    """
+
+    def __init__(self, n_envs: int, action_dim: int, seed: int | None) -> None:
+        """Draws the first episode's signs."""
+        if n_envs < 1 or action_dim < 1:
+            raise ValueError(
+                f"expected n_envs >= 1 and action_dim >= 1, got {n_envs} and {action_dim}"
+            )
+        self._rng = np.random.default_rng(seed)
+        self.signs = self._draw(n_envs, action_dim)
+
+    def _draw(self, rows: int, action_dim: int) -> np.ndarray:
+        signs: np.ndarray = self._rng.choice(np.array([-1.0, 1.0]), size=(rows, action_dim))
+        return signs
+
+    def __call__(self, shift: np.ndarray, episode_starts: np.ndarray) -> np.ndarray:
+        """The placebo's shift for ESA's ``shift`` ``(N, D)`` at this step.
+
+        Args:
+            shift: ESA's shift ``v(t)`` per env and dimension.
+            episode_starts: True where an env starts an episode at this step: its signs are
+                drawn anew.
+
+        Returns:
+            ``|shift| * signs``, float64 ``(N, D)``.
+        """
+        shift = np.asarray(shift, dtype=np.float64)
+        if shift.shape != self.signs.shape:
+            raise ValueError(f"expected a shift of shape {self.signs.shape}, got {shift.shape}")
+        self.start(episode_starts)
+        placebo: np.ndarray = np.abs(shift) * self.signs
+        return placebo
+
+    def start(self, episode_starts: np.ndarray) -> None:
+        """Draws new signs for the envs that start an episode (True in ``episode_starts``)."""
+        starts = np.asarray(episode_starts, dtype=bool).reshape(-1)
+        if starts.shape != (len(self.signs),):
+            raise ValueError(
+                f"expected episode_starts of shape ({len(self.signs)},), got {starts.shape}"
+            )
+        if starts.any():
+            self.signs[starts] = self._draw(int(starts.sum()), self.signs.shape[1])
+
+
+def shift_report(
+    sampled: np.ndarray,
+    shift: np.ndarray,
+    mean: np.ndarray,
+    std: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    bound: float | None,
+) -> dict[str, float]:
+    """What one step's shifts did, averaged over envs (and dimensions where per dimension).
+
+    All arrays are ``(N, D)`` in one unit (ESA's), ``low``/``high`` ``(D,)``.
+
+    Args:
+        sampled: The policy's samples ``a_t``.
+        shift: The shift ``v`` applied on top of them.
+        mean: The policy's mean ``mu``.
+        std: The policy's standard deviation sigma.
+        low: The env's lower bounds (it clips the executed action to them).
+        high: The env's upper bounds.
+        bound: The trust region kappa in units of sigma (None: no bound).
+
+    Returns:
+        ``noise_cosine``: the mean cosine between ``v`` and ``mu - a_t`` over the envs whose
+        shift is non-zero (1: the shift only pulls the sample back to the mean);
+        ``shift_over_sigma``: the mean ``|v| / sigma``; ``at_bound``: the share of shifted
+        elements within 1 % of ``kappa sigma``; ``undone_by_clip``: the share of shifted
+        elements the env's clip turns into no change of the executed action.
+    """
+    noise = mean - sampled
+    norms = np.linalg.norm(shift, axis=1) * np.linalg.norm(noise, axis=1)
+    moved = norms > 0
+    cosine = (shift * noise).sum(axis=1)[moved] / norms[moved] if moved.any() else np.zeros(0)
+    shifted = shift != 0
+    executed = np.clip(sampled + shift, low, high)
+    undone = shifted & (executed == np.clip(sampled, low, high))
+    at_bound = (
+        shifted & (np.abs(shift) >= 0.99 * bound * std)
+        if bound is not None
+        else np.zeros_like(shifted)
+    )
+    count = max(int(shifted.sum()), 1)
+    return {
+        "noise_cosine": float(cosine.mean()) if cosine.size else 0.0,
+        "shift_over_sigma": float((np.abs(shift) / std).mean()),
+        "at_bound": float(at_bound.sum() / count),
+        "undone_by_clip": float(undone.sum() / count),
+    }

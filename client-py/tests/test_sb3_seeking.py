@@ -1,0 +1,215 @@
+"""ESA that seeks, PPO side: critics with curvature, the fade, the placebo, the decoupled
+objective. Real SB3 models on real gymnasium / MuJoCo envs, sessions in-process."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import PPO
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
+
+from esa_client import EsaConfig
+from esa_client.common.action_critics import CriticAtStep, QNetwork, QuadraticHead
+from esa_client.common.controls import RandomDirections, shift_report
+from esa_client.sb3 import ESAPPO
+
+PPO_KWARGS = dict(n_steps=128, batch_size=64, n_epochs=2, policy_kwargs=dict(net_arch=[32]))
+
+
+def parameters(model) -> th.Tensor:
+    return th.cat([p.detach().flatten() for p in model.policy.parameters()])
+
+
+def ppo(cls, env_id: str = "InvertedPendulum-v5", rollouts: int = 4, log=None, **extra):
+    env = make_vec_env(env_id, n_envs=2, seed=3)
+    model = cls("MlpPolicy", env, seed=3, **PPO_KWARGS, **extra)
+    if log is not None:
+        model.set_logger(configure(str(log), ["csv"]))
+    model.learn(rollouts * 128 * 2)
+    return model
+
+
+def logged(path) -> dict[str, list[float]]:
+    """The CSV logger's columns: what each rollout recorded (SB3 clears its values per dump)."""
+    with open(path / "progress.csv") as f:
+        rows = list(csv.DictReader(f))
+    return {key: [float(r[key]) for r in rows if r.get(key)] for key in rows[0]}
+
+
+@pytest.mark.parametrize("critic", ["quadratic", "qnet"])
+@pytest.mark.parametrize("shift", ["esc", "gradient", "placebo"])
+def test_curved_critics_shift_within_the_trust_region_and_log_what_the_shift_did(
+    critic, shift, tmp_path
+):
+    esa = EsaConfig(gate=None, trust_region=0.5)
+    ppo(ESAPPO, "Hopper-v5", log=tmp_path, esa=esa, esa_critic=critic, esa_shift=shift)
+    columns = logged(tmp_path)
+    # The critic is fitted after the first rollout; ESA shifts from the second on.
+    assert columns["esa/head_loss"] and all(loss > 0 for loss in columns["esa/head_loss"])
+    assert all(-1.0 <= c <= 1.0 for c in columns["esa/noise_cosine"])
+    assert all(0.0 <= u <= 1.0 for u in columns["esa/undone_by_clip"])
+    assert all(0.0 <= b <= 1.0 for b in columns["esa/at_bound"])
+    # Within the trust region (the placebo and gradient shifts are as large as ESA's bound).
+    sizes = columns["esa/shift_over_sigma"]
+    assert sizes and all(0.0 < size <= 0.5 + 1e-6 for size in sizes)
+
+
+def test_quadratic_head_has_its_maximum_where_esc_converges():
+    head = QuadraticHead(3, 2, hidden=8)
+    features = th.randn(5, 3)
+    w, u = head.coefficients(features)
+    assert (u <= 0).all()
+    z_star = (-w / (2 * u)).detach().requires_grad_(True)
+    (grad,) = th.autograd.grad(head(features, z_star).sum(), z_star)
+    assert th.allclose(grad, th.zeros_like(grad), atol=1e-5)
+
+
+def test_a_critic_at_a_step_is_flat_past_the_box():
+    critic = QNetwork(3, 2, hidden=8)
+    at = CriticAtStep(
+        critic,
+        th.randn(1, 3),
+        np.zeros((1, 2)),
+        np.full((1, 2), 0.5),
+        np.array([-1.0, -1.0]),
+        np.array([1.0, 1.0]),
+    )
+    assert at(np.array([[3.0, 0.2]]))[0] == pytest.approx(at(np.array([[1.0, 0.2]]))[0])
+    gradient = at.gradient(np.array([[3.0, 0.2]]))
+    assert gradient[0, 0] == 0.0 and gradient[0, 1] != 0.0
+
+
+def test_the_placebo_keeps_the_shift_size_and_draws_signs_per_episode():
+    placebo = RandomDirections(3, 4, seed=0)
+    shift = np.arange(12, dtype=float).reshape(3, 4) - 5.0
+    first = placebo(shift, np.array([True, True, True]))
+    assert np.array_equal(np.abs(first), np.abs(shift))
+    # Mid-episode the signs stay; an episode start redraws that env's only.
+    assert np.array_equal(placebo(shift, np.array([False, False, False])), first)
+    signs = placebo.signs.copy()
+    for _ in range(20):
+        placebo(shift, np.array([False, True, False]))
+    assert np.array_equal(placebo.signs[[0, 2]], signs[[0, 2]])
+    assert set(np.unique(placebo.signs)) <= {-1.0, 1.0}
+
+
+@pytest.mark.parametrize(
+    ("shift", "starts", "match"),
+    [
+        (np.zeros((2, 4)), np.array([True, True, True]), "shape"),
+        (np.zeros((3, 4)), np.array([True]), "episode_starts"),
+    ],
+)
+def test_the_placebo_refuses_bad_shapes(shift, starts, match):
+    with pytest.raises(ValueError, match=match):
+        RandomDirections(3, 4, seed=0)(shift, starts)
+
+
+def test_shift_report_measures_noise_removal_bound_and_clip():
+    sampled = np.array([[0.5, 2.0]])
+    mean = np.zeros((1, 2))
+    std = np.ones((1, 2))
+    shift = np.array([[-0.5, -0.5]])
+    report = shift_report(sampled, shift, mean, std, -np.ones(2), np.ones(2), bound=0.5)
+    assert report["at_bound"] == 1.0
+    # The second dimension's sample lies past the bound by more than the shift.
+    assert report["undone_by_clip"] == 0.5
+    assert report["noise_cosine"] == pytest.approx((0.25 + 1.0) / (np.sqrt(0.5) * np.sqrt(4.25)))
+
+
+def test_the_fade_falls_linearly_to_zero():
+    esa = EsaConfig(fade=0.5)
+    assert [esa.strength(p) for p in (0.0, 0.25, 0.5, 0.9)] == [1.0, 0.5, 0.0, 0.0]
+    assert EsaConfig().strength(0.9) == 1.0
+
+
+@pytest.mark.parametrize(
+    ("fields", "match"),
+    [
+        ({"fade": 0.0}, "fade"),
+        ({"fade": 1.5}, "fade"),
+        ({"fade": True}, "fade"),
+        ({"fade": 0.5, "normalize_response": False}, "normalize_response=True with fade"),
+    ],
+)
+def test_a_bad_fade_is_refused(fields, match):
+    with pytest.raises(ValueError, match=match):
+        EsaConfig(**fields)
+
+
+def test_a_faded_esappo_executes_the_samples_once_the_fade_is_over(tmp_path):
+    model = ppo(ESAPPO, esa=EsaConfig(gate=None, fade=0.5), rollouts=4, log=tmp_path)
+    # Fitted after rollout 1, ESA fades from 1/2 to 0 over rollout 2 and is off after it.
+    assert len(logged(tmp_path)["esa/strength"]) == 1
+    assert 0.0 < logged(tmp_path)["esa/strength"][0] <= 0.5
+    runtime = model._esa_runtime()
+    before = runtime.batch.steps.copy()
+    sample = np.array([[0.3], [-0.2]])
+    applied = runtime.step(sample, np.zeros(2, bool), lambda a: a[:, 0], strength=0.0)
+    assert np.array_equal(applied, sample)
+    assert np.array_equal(runtime.batch.steps, before)
+
+
+def test_the_decoupled_objective_without_a_shift_is_ppos():
+    null = EsaConfig(learning_rate=0.0, gate=None)
+    decoupled = ppo(ESAPPO, esa=null, esa_objective="decoupled")
+    # pi_old at the executed action is the behaviour density: weight 1, the same ratio, up
+    # to the rounding of one forward pass over the rollout against the rollout's own.
+    assert th.allclose(parameters(ppo(PPO)), parameters(decoupled), atol=1e-4)
+
+
+def test_the_decoupled_objective_trains_with_large_shifts():
+    model = ppo(ESAPPO, esa=EsaConfig(gate=None, trust_region=1.0), esa_objective="decoupled")
+    logged = model.logger.name_to_value
+    assert np.isfinite(logged["train/loss"]) and logged["train/approx_kl"] >= 0
+
+
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [
+        ({"esa_critic": "cubic"}, "expected esa_critic in"),
+        ({"esa_shift": "random"}, "expected esa_shift in"),
+        ({"esa_objective": "ppo2"}, "expected esa_objective in"),
+        ({"esa_weight_cap": 0.5}, "expected esa_weight_cap"),
+        ({"esa_weight_cap": float("nan")}, "expected esa_weight_cap"),
+        ({"esa_target_weight": 0.0}, "expected esa_target_weight"),
+        ({"esa_head_worker": None}, "expected esa_head_worker True or False"),
+    ],
+)
+def test_bad_seeking_options_are_refused(extra, match):
+    env = make_vec_env("InvertedPendulum-v5", n_envs=1, seed=0)
+    with pytest.raises(ValueError, match=match):
+        ESAPPO("MlpPolicy", env, **extra)
+
+
+def test_the_decoupled_objective_needs_box_observations():
+    import gymnasium as gym
+
+    class DictObs(gym.ObservationWrapper):
+        def __init__(self, env):
+            super().__init__(env)
+            self.observation_space = spaces.Dict({"x": env.observation_space})
+
+        def observation(self, observation):
+            return {"x": observation}
+
+    env = DictObs(gym.make("InvertedPendulum-v5"))
+    with pytest.raises(ValueError, match="expected a Box observation space"):
+        ESAPPO("MultiInputPolicy", env, esa_objective="decoupled")
+
+
+@pytest.mark.parametrize("critic", ["quadratic", "qnet"])
+def test_curved_critics_save_and_load(critic, tmp_path):
+    model = ppo(ESAPPO, esa=EsaConfig(gate=None), esa_critic=critic, rollouts=2)
+    model.save(tmp_path / "model")
+    loaded = ESAPPO.load(tmp_path / "model")
+    assert loaded.esa_critic == critic
+    for mine, theirs in zip(
+        model.esa_head.state_dict().values(), loaded.esa_head.state_dict().values(), strict=True
+    ):
+        assert th.equal(mine, theirs)
