@@ -90,6 +90,24 @@ def check_ground_truth_run(frame: pd.DataFrame, states: int, method: str) -> Non
     np.testing.assert_allclose(frame.delta_wide, frame.return_wide - frame.return_sampled)
 
 
+def check_seeking_offline_run(frame: pd.DataFrame, config: dict, method: str) -> None:
+    from esa_experiments.seeking_probes import branch_names as seeking_branches
+
+    assert len(frame) == config["states"] * len(config["checkpoints"])
+    assert sorted(set(frame.checkpoint)) == config["checkpoints"]
+    for name in seeking_branches():
+        for kind in ("delta", "predicted", "size"):
+            assert np.isfinite(frame[f"{kind} {name}"]).all(), (kind, name)
+    # The placebo's shift is ESA's in size, |v| / sigma per dimension; SAC's squashed space
+    # clips it where its sign points out of [-1, 1].
+    for kappa in config["kappas"]:
+        placebo, esc = frame[f"size placebo {kappa:g}"], frame[f"size esc {kappa:g}"]
+        if method == "sac":
+            assert (placebo <= esc + 1e-12).all()
+        else:
+            np.testing.assert_allclose(placebo, esc)
+
+
 def check_example1_run(frame: pd.DataFrame, total_steps: int, env: str, method: str) -> None:
     assert list(frame.columns) == ["t", "J", "J_probe"] and len(frame) == total_steps
     assert np.isfinite(frame.to_numpy(float)).all()
@@ -116,6 +134,8 @@ def test_smoke_budget(name, root, capsys):
         frame = pd.read_csv(store.csv_path(spec))
         if name == "example1":
             check_example1_run(frame, spec.config["total_steps"], spec.env, spec.method)
+        elif name == "seeking_offline":
+            check_seeking_offline_run(frame, spec.config, spec.method)
         elif name == "ground_truth":
             check_ground_truth_run(frame, spec.config["states"], spec.method)
             check_rl_run(
@@ -134,6 +154,10 @@ def test_smoke_budget(name, root, capsys):
     # run, ESA and the gradient at each trust region.
     if name == "ground_truth":
         assert len(rows) == sum(len(study._branches(spec.method)) for spec in specs)
+    elif name == "seeking_offline":
+        # One row per learner, env and kappa; E1 writes the picks E2 reads.
+        assert len(rows) == len(specs) * len(study.KAPPAS)
+        assert set(json.loads((store.dir / "picks.json").read_text())) == {"ppo", "off_policy"}
     else:
         assert len(rows) == len(specs)
     section = (store.dir / "section.md").read_text()

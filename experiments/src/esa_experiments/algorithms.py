@@ -12,15 +12,20 @@ the shipped ``EsaConfig()`` (the PPO family's), ``off_policy`` the off-policy fa
 stays 0: it isolates what the data handling alone does), ``sine`` the off-policy default
 with learning rate 0 (with ``esa_execute='probe'``: exploration by the sinusoid alone),
 ``paper`` ``EsaConfig.paper()`` and ``target`` the PPO target mode's setting (picked by
-``target_search`` on InvertedPendulum-v5 tuning seeds). A method's ``options`` are
-further drop-in arguments: the gradient controls (``esa_shift='gradient'``: the same
-bound, normalisation and gate, the shift along the critic's action gradient) and the
-target mode.
+``target_search`` on InvertedPendulum-v5 tuning seeds), ``seeking_off_policy`` the
+off-policy default faded over ``SEEKING_FADE`` of the budget (study ``seeking``). A
+method's ``options`` are further drop-in arguments: the gradient controls
+(``esa_shift='gradient'``: the same bound, normalisation and gate, the shift along the
+critic's action gradient), the placebos (``esa_shift='placebo'``: ESA's shift sizes in
+random directions), the mean anchor (``esa_anchor='mean'``) and the target mode. The
+matched-noise arms are plain TD3 whose noise has the variance of ``td3_sine``'s
+executed probe (``noise_match``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,6 +49,8 @@ class Method:
         addon: ``none``, ``esa``, ``param_noise``, ``ou`` or ``pink``.
         esa: the ESA preset of an ESA method (see :func:`esa_preset`).
         options: further keyword arguments of the ESA drop-in.
+        noise_match: an ESA preset whose executed probe TD3's action noise matches in
+            variance (:func:`matched_noise_sigma`); empty: the configured ``noise_sigma``.
     """
 
     label: str
@@ -51,6 +58,7 @@ class Method:
     addon: str
     esa: str = ""
     options: tuple[tuple[str, Any], ...] = ()
+    noise_match: str = ""
 
     @property
     def off_policy(self) -> bool:
@@ -73,6 +81,29 @@ METHODS: dict[str, Method] = {
         "target",
         (("esa_mode", "target"), ("esa_shift", "gradient")),
     ),
+    # Study `seeking_offline` (E1): plain PPO (learning rate 0) fitting each critic ESA probes.
+    "ppo_fit_linear": Method("PPO, linear head", "ppo", "esa", "null", (("esa_critic", "linear"),)),
+    "ppo_fit_quadratic": Method(
+        "PPO, quadratic head", "ppo", "esa", "null", (("esa_critic", "quadratic"),)
+    ),
+    "ppo_fit_qnet": Method("PPO, Q-network", "ppo", "esa", "null", (("esa_critic", "qnet"),)),
+    # Study `seeking` (E2), PPO arms: each critic's ESA, placebo and gradient control, all
+    # faded and under the decoupled objective (seeking_ppo); the study sets kappa from E1.
+    **{
+        f"ppo_seek_{arm}_{critic}": Method(
+            f"PPO+{label} ({critic})",
+            "ppo",
+            "esa",
+            "seeking_ppo",
+            (("esa_critic", critic), ("esa_objective", "decoupled"), *shift),
+        )
+        for critic in ("linear", "quadratic", "qnet")
+        for arm, label, shift in (
+            ("esa", "ESA", ()),
+            ("placebo", "placebo", (("esa_shift", "placebo"),)),
+            ("qgrad", "gradient", (("esa_shift", "gradient"),)),
+        )
+    },
     "sac": Method("SAC", "sac", "none"),
     "sac_esa": Method("SAC+ESA", "sac", "esa", "off_policy"),
     "sac_qgrad": Method("SAC+gradient", "sac", "esa", "off_policy", (("esa_shift", "gradient"),)),
@@ -83,6 +114,47 @@ METHODS: dict[str, Method] = {
     "td3_qgrad": Method("TD3+gradient", "td3", "esa", "off_policy", (("esa_shift", "gradient"),)),
     "td3_pink": Method("TD3+pink noise", "td3", "pink"),
     "ddpg_ou": Method("DDPG+OU", "ddpg", "ou"),
+    # Study `seeking` (issue 42), off-policy arms: every ESA arm fades (seeking_off_policy).
+    "sac_esa_fade": Method("SAC+ESA (fade)", "sac", "esa", "seeking_off_policy"),
+    "sac_placebo": Method(
+        "SAC+placebo", "sac", "esa", "seeking_off_policy", (("esa_shift", "placebo"),)
+    ),
+    "sac_qgrad_fade": Method(
+        "SAC+gradient (fade)", "sac", "esa", "seeking_off_policy", (("esa_shift", "gradient"),)
+    ),
+    "sac_mean_esa": Method(
+        "SAC+ESA at the mean", "sac", "esa", "seeking_off_policy", (("esa_anchor", "mean"),)
+    ),
+    "sac_mean_qgrad": Method(
+        "SAC+gradient at the mean",
+        "sac",
+        "esa",
+        "seeking_off_policy",
+        (("esa_anchor", "mean"), ("esa_shift", "gradient")),
+    ),
+    "td3_esa_fade": Method("TD3+ESA (fade)", "td3", "esa", "seeking_off_policy"),
+    "td3_placebo": Method(
+        "TD3+placebo", "td3", "esa", "seeking_off_policy", (("esa_shift", "placebo"),)
+    ),
+    "td3_qgrad_fade": Method(
+        "TD3+gradient (fade)", "td3", "esa", "seeking_off_policy", (("esa_shift", "gradient"),)
+    ),
+    "td3_mean_esa": Method(
+        "TD3+ESA at the mean", "td3", "esa", "seeking_off_policy", (("esa_anchor", "mean"),)
+    ),
+    "td3_mean_qgrad": Method(
+        "TD3+gradient at the mean",
+        "td3",
+        "esa",
+        "seeking_off_policy",
+        (("esa_anchor", "mean"), ("esa_shift", "gradient")),
+    ),
+    "td3_gauss_matched": Method(
+        "TD3+Gaussian noise (sine's variance)", "td3", "none", noise_match="sine"
+    ),
+    "td3_pink_matched": Method(
+        "TD3+pink noise (sine's variance)", "td3", "pink", noise_match="sine"
+    ),
 }
 
 LABELS = {name: method.label for name, method in METHODS.items()}
@@ -101,6 +173,18 @@ BASELINE_OF = {
     "td3_sine": "td3",
     "td3_qgrad": "td3",
     "td3_pink": "td3",
+    "sac_esa_fade": "sac",
+    "sac_placebo": "sac",
+    "sac_qgrad_fade": "sac",
+    "sac_mean_esa": "sac",
+    "sac_mean_qgrad": "sac",
+    "td3_esa_fade": "td3",
+    "td3_placebo": "td3",
+    "td3_qgrad_fade": "td3",
+    "td3_mean_esa": "td3",
+    "td3_mean_qgrad": "td3",
+    "td3_gauss_matched": "td3",
+    "td3_pink_matched": "td3",
 }
 """Which method an ESA method is compared with (returns and wall-clock overhead)."""
 
@@ -110,12 +194,80 @@ GRADIENT_CONTROL_OF = {
     "ppo_esa_target": "ppo_qgrad_target",
     "sac_esa": "sac_qgrad",
     "td3_esa": "td3_qgrad",
+    "sac_esa_fade": "sac_qgrad_fade",
+    "sac_mean_esa": "sac_mean_qgrad",
+    "td3_esa_fade": "td3_qgrad_fade",
+    "td3_mean_esa": "td3_mean_qgrad",
 }
 """The gradient control of an ESA method: ESC is credited only where it beats it."""
+
+PLACEBO_OF = {
+    "sac_esa": "sac_placebo",
+    "sac_esa_fade": "sac_placebo",
+    "td3_esa": "td3_placebo",
+    "td3_esa_fade": "td3_placebo",
+}
+"""The placebo of an ESA method (ESA's shift sizes in random directions): direction is
+credited only where ESC beats it. Keyed by method and by study ``seeking``'s arm names."""
+
+SEEKING_OFF_POLICY_ARMS = {
+    "sac": "sac",
+    "sac_esa": "sac_esa_fade",
+    "sac_placebo": "sac_placebo",
+    "sac_qgrad": "sac_qgrad_fade",
+    "sac_mean_esa": "sac_mean_esa",
+    "sac_mean_qgrad": "sac_mean_qgrad",
+    "td3": "td3",
+    "td3_esa": "td3_esa_fade",
+    "td3_placebo": "td3_placebo",
+    "td3_qgrad": "td3_qgrad_fade",
+    "td3_mean_esa": "td3_mean_esa",
+    "td3_mean_qgrad": "td3_mean_qgrad",
+    "td3_sine": "td3_sine",
+    "td3_gauss_matched": "td3_gauss_matched",
+    "td3_pink_matched": "td3_pink_matched",
+}
+"""Study ``seeking``'s off-policy arms (the names its runs are stored under) -> method.
+
+``sac_esa``, ``sac_qgrad``, ``td3_esa`` and ``td3_qgrad`` name the confirmation campaign's
+unfaded methods, whose finished runs must stay valid: the seeking arms of those names run
+the faded ``*_fade`` methods. ``td3_sine`` (unfaded: its sinusoid is the lead the matched
+noise arms test) is the arm they match. SAC has no arm executing the sinusoid, so nothing
+to match: its exploration is its own entropy-tuned policy, no action noise to widen.
+"""
 
 TARGET_TRUST_REGION = 1.0
 TARGET_WEIGHT = 0.03
 """The PPO target mode's bound (policy stds) and loss weight (``target_search``)."""
+
+SEEKING_FADE = 0.5
+"""The seeking arms' fade, fixed a priori by study ``seeking``'s rules (not tuned)."""
+
+
+def seeking_methods(family: str, learner: str) -> dict[str, str]:
+    """Study ``seeking``'s candidate arms of ``family`` -> method, for E1's pick ``learner``.
+
+    Args:
+        family: ``ppo``, ``sac`` or ``td3``.
+        learner: E1's picked learner (``ppo_fit_<critic>`` for PPO, ``sac`` off-policy).
+
+    Raises:
+        ValueError: for an unknown family or a learner of another family.
+    """
+    if family == "ppo":
+        critic = learner.removeprefix("ppo_fit_")
+        if critic not in ("linear", "quadratic", "qnet") or critic == learner:
+            raise ValueError(f"expected a PPO learner ppo_fit_<critic>, got {learner!r}")
+        return {f"ppo_{arm}": f"ppo_seek_{arm}_{critic}" for arm in ("esa", "placebo", "qgrad")}
+    if family not in ("sac", "td3") or learner != "sac":
+        raise ValueError(
+            f"expected family sac or td3 with E1's learner 'sac', got {family!r} and {learner!r}"
+        )
+    return {
+        arm: method
+        for arm, method in SEEKING_OFF_POLICY_ARMS.items()
+        if arm.startswith(f"{family}_") and get_method(method).esa == "seeking_off_policy"
+    }
 
 
 def esa_preset(name: str) -> dict[str, Any]:
@@ -133,8 +285,27 @@ def esa_preset(name: str) -> dict[str, Any]:
         "off_policy": EsaConfig.off_policy(),
         "sine": EsaConfig.off_policy(learning_rate=0.0),
         "target": EsaConfig(trust_region=TARGET_TRUST_REGION),
+        "seeking_off_policy": EsaConfig.off_policy(fade=SEEKING_FADE),
+        "seeking_ppo": EsaConfig(fade=SEEKING_FADE),
     }
     return dataclasses.asdict(lookup(presets, name, "an ESA preset"))
+
+
+def matched_noise_sigma(sigma: float, preset: str) -> float:
+    """TD3's noise sigma with the variance of TD3 executing ``preset``'s probe.
+
+    ``sqrt(sigma^2 + K^2 / 2)``: per dimension, TD3's Gaussian noise (``sigma``) plus the
+    probe's sinusoid of amplitude ``K`` (variance ``K^2 / 2`` over whole periods), which
+    ``td3_sine`` executes on top of it. Resolved from the preset, so the matched arms
+    follow a change of the shipped amplitude (and their runs are redone).
+
+    Raises:
+        ValueError: for a preset whose amplitude is not one number.
+    """
+    amplitude = esa_preset(preset)["amplitude"]
+    if np.ndim(amplitude) != 0:
+        raise ValueError(f"expected a scalar amplitude in preset {preset!r}, got {amplitude!r}")
+    return math.sqrt(sigma**2 + float(amplitude) ** 2 / 2)
 
 
 def get_method(name: str) -> Method:
@@ -158,6 +329,8 @@ def resolve_hyperparams(
     """
     spec = get_method(method)
     hp = algorithm_hyperparams(spec.family, env)
+    if spec.noise_match:
+        hp["noise_sigma"] = matched_noise_sigma(hp["noise_sigma"], spec.noise_match)
     if spec.addon != "param_noise":
         hp.pop("param_noise", None)
     if spec.addon == "esa":

@@ -36,6 +36,8 @@ STUDY_NAMES = (
     "ground_truth",
     "target_search",
     "confirmation",
+    "seeking_offline",
+    "seeking",
 )
 
 
