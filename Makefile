@@ -14,7 +14,7 @@ export ESA_SERVER_BIN := $(SERVER_BIN)
 export MUJOCO_GL ?= egl
 
 PY_PACKAGES := client-py experiments tests
-PY_LINT := $(PY_PACKAGES) bench deploy/container
+PY_LINT := $(PY_PACKAGES) server-py bench deploy/container
 # rllib: Ray RLlib, so that make test also runs the RLlib tests (client-py/tests/test_rllib*.py).
 PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,zoo,dev,docs]" -e "experiments[dev]"
 
@@ -101,37 +101,44 @@ soak: setup ## a few minutes of load with floods and faults -> the soak section 
 	PY=$(PY) CARGO=$(CARGO) bash bench/soak.sh
 
 .PHONY: wheel
-# What would be uploaded to PyPI, in dist/: the sdist and one manylinux wheel. The wheel carries
-# esa_client, its extension esa_client._native (maturin) and an esa-server built with the
-# size-optimised cargo profile `dist`, copied into the package only while the wheel is built.
-# Both binaries are linked against this machine's glibc, so the tag is the oldest manylinux that
-# both fit (auditwheel show checks every ELF file in the wheel, the bundled server included);
-# maturin refuses to write the wheel if the extension needs a newer glibc than MANYLINUX.
-MANYLINUX ?= manylinux_2_34
+# What would be uploaded to PyPI, in dist/: an sdist and one manylinux wheel for each of
+# esa-client (esa_client and its extension esa_client._native) and esa-server (server-py/: the
+# executable, built with the size-optimised cargo profile `dist`, as ruff and uv ship theirs;
+# `esa-client[server]` pulls it). zig links both binaries against the symbols of an old glibc
+# (maturin --zig), so the tag says which hosts run them, not which host built them; auditwheel
+# show checks every ELF file in each wheel against MANYLINUX.
+MANYLINUX ?= manylinux_2_17
+# zig-linked builds have their own target directory: target/release, which make build and the
+# tests use, stays as it is.
+WHEEL_TARGET_DIR ?= $(CURDIR)/target/zig
+WHEEL_PROJECTS := client-py server-py
 # The release tools live in a venv of their own: building a wheel touches nothing in .venv.
 RELEASE_VENV := .venv-release
-$(RELEASE_VENV)/.installed:
+$(RELEASE_VENV)/.installed: tools/release/requirements.txt
 	test -x $(RELEASE_VENV)/bin/python || $(PYTHON) -m venv $(RELEASE_VENV)
-	$(RELEASE_VENV)/bin/python -m pip install --quiet "maturin>=1.9.4,<2" "auditwheel>=6" "twine>=6"
+	$(RELEASE_VENV)/bin/python -m pip install --quiet -r $<
 	touch $@
+# maturin --zig runs zig as `python3 -m ziglang`: the release venv's python3 must come first.
+MATURIN := PATH="$(CURDIR)/$(RELEASE_VENV)/bin:$$PATH" CARGO_TARGET_DIR=$(WHEEL_TARGET_DIR) \
+	$(CURDIR)/$(RELEASE_VENV)/bin/maturin
 
-wheel: $(RELEASE_VENV)/.installed ## build dist/: the sdist and the manylinux wheel (extension + bundled esa-server), checked
-	$(CARGO) build --profile dist -p esa-server
-	rm -rf client-py/src/esa_client/_bin dist/esa_client-*
-	install -D -m 755 $(or $(CARGO_TARGET_DIR),target)/dist/esa-server \
-		client-py/src/esa_client/_bin/esa-server
-	cd client-py && $(CURDIR)/$(RELEASE_VENV)/bin/maturin build --compatibility $(MANYLINUX) \
-		--out $(CURDIR)/dist; status=$$?; rm -rf src/esa_client/_bin; exit $$status
-	cd client-py && $(CURDIR)/$(RELEASE_VENV)/bin/maturin sdist --out $(CURDIR)/dist
-	$(RELEASE_VENV)/bin/auditwheel show dist/esa_client-*.whl | tee dist/auditwheel.txt
-	grep -q '"$(MANYLINUX)_x86_64"' dist/auditwheel.txt
+wheel: $(RELEASE_VENV)/.installed ## build dist/: sdists and manylinux wheels of esa-client and esa-server, checked
+	rm -rf dist/esa_client-* dist/esa_server-*
+	for project in $(WHEEL_PROJECTS); do \
+		(cd $$project && $(MATURIN) build --zig --compatibility $(MANYLINUX) --out $(CURDIR)/dist && \
+			$(MATURIN) sdist --out $(CURDIR)/dist) || exit 1; \
+	done
+	for wheel in dist/esa_client-*.whl dist/esa_server-*.whl; do \
+		$(RELEASE_VENV)/bin/auditwheel show $$wheel | tee dist/auditwheel.txt && \
+		grep -q '"$(MANYLINUX)_x86_64"' dist/auditwheel.txt || exit 1; \
+	done
 	rm dist/auditwheel.txt
-	$(RELEASE_VENV)/bin/twine check --strict dist/esa_client-*
-	@ls -l dist/esa_client-*
+	$(RELEASE_VENV)/bin/twine check --strict dist/esa_client-* dist/esa_server-*
+	@ls -l dist/esa_client-* dist/esa_server-*
 
 .PHONY: sdist-check
 # Not part of `make test`: builds the extension from the sdist (cargo, a few minutes) in a clean venv.
-sdist-check: ## make wheel, then pip install the sdist (built from source with cargo) in a clean venv and import it
+sdist-check: ## make wheel, then pip install the client's sdist (built with cargo) in a clean venv, import it
 	$(MAKE) wheel
 	$(PYTHON) client-py/scripts/sdist_check.py
 
@@ -179,7 +186,7 @@ k8s-check: $(RELEASE_VENV)/.k8s ## validate deploy/k8s/*.yaml strictly against t
 
 .PHONY: wheel-check
 # Not part of `make test`: the clean venv downloads torch and stable-baselines3 from PyPI.
-wheel-check: ## make wheel, install only it (+ sb3 extra) in a clean venv, run a user script without Rust
+wheel-check: ## make wheel; in a clean venv without Rust: esa-client[sb3] runs README's snippet, then [server]
 	$(PYTHON) client-py/scripts/wheel_check.py
 
 clean: ## remove build outputs and the venv

@@ -8,7 +8,8 @@
    ``esa_client.__version__`` is the sdist's version and that the in-process engine (the
    compiled extension) answers a probe.
 
-An sdist carries no esa-server (only the wheel bundles one), so the check does not spawn one.
+The client's sdist carries no esa-server (the esa-server distribution, server-py/, does), so
+the check does not spawn one.
 Not part of ``make test``: it needs the network and cargo.
 
 Usage: python client-py/scripts/sdist_check.py [--sdist PATH] [--python PY] [--keep]
