@@ -163,9 +163,9 @@ def ratio_interval(row: dict) -> str:
     return f"{text} [{low:.2f}, {high:.2f}]"
 
 
-# Rows priced for comparison, not held to a budget: ESAPPO with its head fitted in the
-# trainer (esa_head_worker=False, what a one-CPU machine gets) shows what the worker saves.
-REFERENCE_ROWS = ("ESAPPO inline fit [",)
+# Rows priced for comparison, not held to a budget: ESAPPO with the opt-in head-fit worker
+# (what the worker saves) and with the curved critics of issue 42 (what they cost).
+REFERENCE_ROWS = ("ESAPPO head-fit worker [", "ESAPPO quadratic [", "ESAPPO Q-network [")
 
 
 def training_limit(row: dict) -> float | None:
@@ -525,9 +525,9 @@ def python_section(python: dict) -> list[str]:
         '`EsaClient.spawn()`, what the SB3 drop-ins use with `esa_engine="sidecar"`; '
         "`esa-native` = `EsaClient.in_process()` (esa-core in-process, their default). "
         "`python-grpcio` = `bench/python/baseline_server.py`. "
-        "`zenoh` = `ZenohEsaClient.spawn()` (esa-server `--zenoh` on loopback): `batch` = "
-        "queries on `esa/v1/ProbeBatch`/`ReportBatch`, `stream` = one query per StepStream "
-        "message on `esa/v1/StepStream`.",
+        '`zenoh` = `EsaClient.spawn(transport="zenoh")` (esa-server `--zenoh` on '
+        "loopback): queries on `esa/v1/ProbeBatch`/`ReportBatch` (`batch` and `stream` "
+        "alike: a Zenoh query is one message already).",
         "",
     ]
     rows = [

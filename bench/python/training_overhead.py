@@ -56,8 +56,8 @@ import tyro
 from esa_client import SessionBatch
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3, EsaConfig
+from esa_client.transports.grpc import GrpcStepBatch
 from esa_client.transports.in_process import InProcessBatch
-from esa_client.transports.native import NativeGrpcStepBatch
 from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -85,7 +85,9 @@ GRADIENT = (("esa_shift", "gradient"),)
 TARGET = (("esa_mode", "target"),)
 AGENTS = {
     "ESAPPO": Agent("PPO"),
-    "ESAPPO inline fit": Agent("PPO", options=(("esa_head_worker", False),)),
+    "ESAPPO head-fit worker": Agent("PPO", options=(("esa_head_worker", True),)),
+    "ESAPPO quadratic": Agent("PPO", options=(("esa_critic", "quadratic"),)),
+    "ESAPPO Q-network": Agent("PPO", options=(("esa_critic", "qnet"),)),
     "ESAPPO ungated": Agent("PPO", EsaConfig(gate=None)),
     "ESAPPO target": Agent("PPO", options=TARGET),
     "ESAPPO qgrad": Agent("PPO", options=GRADIENT, engine_free=True),
@@ -151,9 +153,9 @@ TIMED = [
     # A step sent ahead through the native client's stream (a linear critic, or the critic's
     # values at probes computed here): the send, and reading the answer one step later
     # (mostly arrived by then).
-    (NativeGrpcStepBatch, "send_step_linear", "round_trips"),
-    (NativeGrpcStepBatch, "send_step", "round_trips"),
-    (NativeGrpcStepBatch, "receive_step", "round_trips"),
+    (GrpcStepBatch, "send_step_linear", "round_trips"),
+    (GrpcStepBatch, "send_step", "round_trips"),
+    (GrpcStepBatch, "receive_step", "round_trips"),
     (EsaRuntime, "step", "esa_step"),
     # ESAPPO's ESA step (EsaRuntime.step inside it, on other engines, counts once).
     (EsaRuntime, "step_head", "esa_step"),
@@ -165,7 +167,7 @@ TIMED = [
 ENGINES = {
     "inprocess": {"esa_engine": "inprocess"},
     "sidecar": {"esa_engine": "sidecar", "esa_spawn": {"transport": "grpc"}},
-    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"transport": "native"}},
+    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {}},
 }
 """Engine name -> the ESA agent's arguments that choose it."""
 
