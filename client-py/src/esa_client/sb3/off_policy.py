@@ -9,6 +9,7 @@ import torch as th
 from stable_baselines3.common.noise import ActionNoise
 
 from ..common.advantage_head import rank_correlation
+from ..common.controls import RandomDirections, shift_report
 from ..common.runtime import SMALLEST_SCALE
 from ..config import EsaConfig
 from .mixin import EsaMixin, tile_obs
@@ -22,9 +23,18 @@ else:
 ProbeCritic = Literal["online_min", "online_mean", "target_min", "target_mean"]
 PROBE_CRITICS: tuple[str, ...] = ("online_min", "online_mean", "target_min", "target_mean")
 
-Shift = Literal["esc", "gradient"]
-"""How the shift is found: ESA's extremum seeking, or the critic's action gradient."""
-SHIFTS: tuple[str, ...] = ("esc", "gradient")
+Shift = Literal["esc", "gradient", "placebo"]
+"""How the shift is found: ESA's extremum seeking, the critic's action gradient, or ESA's
+shift in a random direction (the placebo)."""
+SHIFTS: tuple[str, ...] = ("esc", "gradient", "placebo")
+
+SHIFT_REPORT_EVERY = 8
+"""Shifted steps per :func:`shift_report`: TD3 needs an actor call for ``mu`` and the report
+costs about as much again, a few % of an off-policy step when run on every one."""
+
+Anchor = Literal["sample", "mean"]
+"""Where the shift is found: at the policy's sample ``a_t``, or at its mean ``mu``."""
+ANCHORS: tuple[str, ...] = ("sample", "mean")
 
 Execute = Literal["shifted", "probe"]
 """What the env executes: ``a_t + v(t)``, or the probe ``a_t + v(t) + K sin(w t)``."""
@@ -37,14 +47,43 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
     Works in the squashed action space [-1, 1] (the replay buffer's). Subclasses say
     where the policy's action is and how wide it is (:meth:`_policy_mean_and_std`).
 
-    Two controls share everything but the shift, so that a gain can be credited:
+    Controls share everything but the shift, so that a gain can be credited:
 
     * ``esa_shift="gradient"``: the shift is ``kappa sigma u`` with ``u`` the probed
-      critic's action gradient at ``a_t`` in units of sigma, normalised to length 1, and
-      ``kappa`` the config's ``trust_region`` (the bound ESA's shift lives in; 1 when
+      critic's action gradient at the anchor in units of sigma, normalised to length 1,
+      and ``kappa`` the config's ``trust_region`` (the bound ESA's shift lives in; 1 when
       unset). Computed here with autograd; no ESA session is used.
+    * ``esa_shift="placebo"``: ESA's sessions run exactly as for ``"esc"``, and the env
+      executes ``clip(a_t + |v| s)``: ESA's shift ``v`` per dimension with a random sign
+      vector ``s`` drawn per env at each episode start
+      (:class:`~esa_client.common.controls.RandomDirections`, seeded from the model's
+      ``seed``). Same size, schedule and temporal correlation as ESA's shift, a direction
+      that knows nothing of the critic: tells direction from mere perturbation.
     * ``esa_execute="probe"``: the env executes the probe itself; with
       ``EsaConfig(learning_rate=0)`` that is exploration by the sinusoid alone.
+
+    ``esa_anchor`` says where the shift is found. ``"sample"``: at ``a_t``, the policy's
+    sample. ``"mean"``: at ``mu``, the policy's action without its exploration noise
+    (SAC's ``tanh(mean)``, TD3's actor output); ESA's session (or the critic's gradient)
+    runs on ``mu`` and the env executes ``clip(a_t + v)``, so the policy's noise is kept
+    on top of a shifted mean, as Optimistic Actor-Critic shifts its mean along an
+    optimistic Q. Why: the actor already maximises Q at ``mu``, so a shift that starts at
+    ``a_t = mu + noise`` largely points back toward ``mu`` and removes exploration
+    (``esa/noise_cosine`` near 1); at ``mu`` the shift can only say where the critic
+    sees more than the actor has learned.
+
+    Under ``EsaConfig.fade`` every shift (ESC, placebo, gradient) is scaled by the same
+    strength ``f``, falling from 1 to 0 over that fraction of the budget of ``learn()``
+    (:meth:`EsaMixin._esa_strength`); from ``f = 0`` on the env executes ``a_t`` and no
+    session steps.
+
+    On one in ``SHIFT_REPORT_EVERY`` of the steps a shift is applied on,
+    :func:`~esa_client.common.controls.shift_report` of it is averaged into the logger:
+    ``esa/noise_cosine`` (``cos(v, mu - a_t)``), ``esa/at_bound`` (the share of elements
+    at the faded bound ``f kappa sigma``) and ``esa/undone_by_clip`` (the share the box's
+    clip turns into no change). The sample anchored ESC shift is read as ``applied - a_t``
+    after the session's own clip to the box, so the clip undoes none of it there by
+    construction.
     """
 
     critic: ContinuousCritic
@@ -59,25 +98,30 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         esa_gate_every: int = 1000,
         esa_shift: Shift = "esc",
         esa_execute: Execute = "shifted",
+        esa_anchor: Anchor = "sample",
         **kwargs: Any,
     ) -> None:
         """Checks the off-policy ESA arguments, then creates the model.
 
         Raises:
-            ValueError: For an unknown ``esa_probe_critic``, ``esa_shift`` or ``esa_execute``,
-                an ``esa_gate_every`` below 1, or the probe executed by the gradient control.
+            ValueError: For an unknown ``esa_probe_critic``, ``esa_shift``, ``esa_execute``
+                or ``esa_anchor``, an ``esa_gate_every`` below 1, or the probe executed
+                by anything but ESC at the sample.
         """
         for name, value, allowed in (
             ("esa_probe_critic", esa_probe_critic, PROBE_CRITICS),
             ("esa_shift", esa_shift, SHIFTS),
             ("esa_execute", esa_execute, EXECUTES),
+            ("esa_anchor", esa_anchor, ANCHORS),
         ):
             if value not in allowed:
                 raise ValueError(f"expected {name} in {allowed}, got {value!r}")
-        if esa_shift == "gradient" and esa_execute == "probe":
+        if esa_execute == "probe" and (esa_shift != "esc" or esa_anchor != "sample"):
             raise ValueError(
-                "expected esa_execute='shifted' with esa_shift='gradient' (the gradient "
-                f"control has no probe), got esa_execute={esa_execute!r}"
+                "expected esa_execute='shifted' unless esa_shift='esc' and "
+                "esa_anchor='sample' (the probe is ESA's own, around the sample), got "
+                f"esa_execute={esa_execute!r} with esa_shift={esa_shift!r} and "
+                f"esa_anchor={esa_anchor!r}"
             )
         if not (isinstance(esa_gate_every, int) and esa_gate_every >= 1):
             raise ValueError(f"expected esa_gate_every >= 1, got {esa_gate_every!r}")
@@ -85,8 +129,11 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         self.esa_gate_every = esa_gate_every
         self.esa_shift = esa_shift
         self.esa_execute = esa_execute
+        self.esa_anchor = esa_anchor
         self._esa_active = False
         self._esa_gate_checked_at = 0
+        self._esa_placebo: RandomDirections | None = None
+        self._esa_shifted_steps = 0
         super().__init__(policy, env, *args, **kwargs)
 
     @staticmethod
@@ -100,6 +147,15 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
     def _policy_std(self, obs: Any, n: int) -> th.Tensor:
         """The policy's spread sigma in [-1, 1] units for ``n`` observations, ``(n, D)``."""
         return self._policy_mean_and_std(obs)[1]
+
+    def esa_close(self) -> None:
+        """Closes the ESA sessions (:meth:`EsaMixin.esa_close`); the placebo restarts with them."""
+        self._esa_placebo = None
+        super().esa_close()
+
+    def _excluded_save_params(self) -> list[str]:
+        # Like the sessions, the placebo's signs belong to one run on one VecEnv.
+        return [*super()._excluded_save_params(), "_esa_placebo"]
 
     def _esa_space(self) -> tuple[np.ndarray, np.ndarray]:
         dim = int(np.prod(self.action_space.shape or ()))
@@ -134,41 +190,111 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         self._update_gate(learning_starts)
         if not self._esa_active:
             return action, buffer_action
-        assert self._last_obs is not None and self._last_episode_starts is not None  # in rollouts
+        assert self._last_obs is not None  # in rollouts
         obs, _ = self.policy.obs_to_tensor(self._last_obs)
-        std = self._policy_std(obs, n_envs)
+        strength = self._esa_strength()
+        report = strength > 0 and self._esa_shifted_steps % SHIFT_REPORT_EVERY == 0
+        mu: np.ndarray | None = None
+        if self.esa_anchor == "mean" or report:
+            mean, std = self._policy_mean_and_std(obs)
+            mu = mean.reshape(n_envs, -1).cpu().numpy().astype(np.float64)
+        else:
+            std = self._policy_std(obs, n_envs)
         sigma = np.maximum(std.reshape(n_envs, -1).cpu().numpy(), SMALLEST_SCALE)
         sampled = buffer_action.reshape(n_envs, -1)
+        anchor = mu if self.esa_anchor == "mean" and mu is not None else sampled
+        executed, shift = self._shifted(obs, sampled, anchor, sigma, strength)
+        if strength > 0:
+            self._esa_shifted_steps += 1
+        if report and mu is not None:
+            gradient = self.esa_shift == "gradient"
+            bound = self._gradient_kappa() if gradient else self.esa.trust_region
+            low, high = self._esa_env_bounds()
+            values = shift_report(sampled, shift, mu, strength * sigma, low, high, bound)
+            for key, value in values.items():
+                self.logger.record_mean(f"esa/{key}", value)
+        buffer_action = executed.reshape(buffer_action.shape).astype(buffer_action.dtype)
+        return self.policy.unscale_action(buffer_action), buffer_action
+
+    def _shifted(
+        self,
+        obs: Any,
+        sampled: np.ndarray,
+        anchor: np.ndarray,
+        sigma: np.ndarray,
+        strength: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The env's actions and the shift on top of ``a_t`` they come from, each ``(N, D)``.
+
+        Args:
+            obs: The current observations, as the policy takes them.
+            sampled: The policy's samples ``a_t`` (with TD3's noise) in [-1, 1].
+            anchor: Where the shift is found: ``sampled``, or the policy's action without
+                its noise (``esa_anchor="mean"``).
+            sigma: The action scale.
+            strength: ESA's strength under the fade, in [0, 1].
+        """
         if self.esa_shift == "gradient":
-            applied = self._gradient_step(obs, sampled, sigma)
+            shift = self._gradient_shift(obs, anchor, sigma, strength)
         else:
+            assert self._last_episode_starts is not None  # set by _setup_learn and each step
             runtime = self._esa_runtime()
             execute_probe = self.esa_execute == "probe"
             applied = runtime.step(
-                sampled,
+                anchor,
                 self._last_episode_starts,
                 self._esa_q(obs),
                 sigma,
                 want_probes=execute_probe,
+                strength=strength,
             )
             if execute_probe:
                 assert runtime.last_probes is not None  # the step waited for its probes
-                applied = np.clip(runtime.last_probes, -1.0, 1.0)
-        buffer_action = applied.reshape(buffer_action.shape).astype(buffer_action.dtype)
-        return self.policy.unscale_action(buffer_action), buffer_action
+                return np.clip(runtime.last_probes, -1.0, 1.0), applied - sampled
+            if self.esa_shift == "esc" and self.esa_anchor == "sample":
+                # The session's own action, not a_t + (applied - a_t): the same bits as ever.
+                return applied, applied - sampled
+            shift = applied - anchor
+            if self.esa_shift == "placebo":
+                shift = self._placebo(shift)
+        executed: np.ndarray = np.clip(sampled + shift, -1.0, 1.0)
+        return executed, shift
 
-    def _gradient_step(self, obs: Any, sampled: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-        """``a_t + kappa sigma u``: the gradient control's action, clipped to [-1, 1]."""
-        kappa = self.esa.trust_region if self.esa.trust_region is not None else 1.0
-        actions = th.as_tensor(sampled, dtype=th.float32, device=self.device).requires_grad_(True)
+    def _placebo(self, shift: np.ndarray) -> np.ndarray:
+        """ESA's ``shift`` with the placebo's random signs, which live with the sessions."""
+        if self._esa_placebo is None:
+            n_envs, action_dim = shift.shape
+            self._esa_placebo = RandomDirections(n_envs, action_dim, self.seed)
+        assert self._last_episode_starts is not None  # set by _setup_learn and each step
+        return self._esa_placebo(shift, self._last_episode_starts)
+
+    def _gradient_kappa(self) -> float:
+        """The gradient control's step in units of sigma: the trust region, 1 when unset."""
+        return self.esa.trust_region if self.esa.trust_region is not None else 1.0
+
+    def _gradient_shift(
+        self, obs: Any, anchor: np.ndarray, sigma: np.ndarray, strength: float = 1.0
+    ) -> np.ndarray:
+        """``f kappa sigma u``: the gradient control's shift, ``u`` the unit gradient at ``anchor``.
+
+        Args:
+            obs: The current observations, as the policy takes them.
+            anchor: Where the critic's action gradient is taken, ``(N, D)`` in [-1, 1].
+            sigma: The action scale, ``(N, D)``.
+            strength: ESA's strength ``f`` under the fade; at 0 no gradient is computed.
+        """
+        if strength <= 0:
+            return np.zeros(anchor.shape)
+        scale = strength * self._gradient_kappa()
+        actions = th.as_tensor(anchor, dtype=th.float32, device=self.device).requires_grad_(True)
         # autograd.grad, not backward: the critics' own .grad must not collect this.
         (grad,) = th.autograd.grad(self._probe_q(obs, actions).sum(), actions)
         scaled = grad.cpu().numpy().astype(np.float64) * sigma
         norm = np.linalg.norm(scaled, axis=1, keepdims=True)
         unit = np.divide(scaled, norm, out=np.zeros_like(scaled), where=norm > 0)
-        self.logger.record_mean("esa/shift_over_std", float(kappa * np.abs(unit).mean()))
-        applied: np.ndarray = np.clip(sampled + kappa * sigma * unit, -1.0, 1.0)
-        return applied
+        self.logger.record_mean("esa/shift_over_std", float(scale * np.abs(unit).mean()))
+        shift: np.ndarray = scale * sigma * unit
+        return shift
 
     def _update_gate(self, learning_starts: int) -> None:
         warming_up = self.num_timesteps < learning_starts and not (

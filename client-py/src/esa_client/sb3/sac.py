@@ -27,6 +27,9 @@ class ESASAC(OffPolicyEsaMixin, SAC):
     transitions collected since the last check, the rank correlation between the
     critic's ``Q(s, a) - Q(s, mu)`` and the one-step advantage ``r + gamma V(s') - V(s)``
     with ``V(s) = Q(s, mu)``. With ``gate=None`` ESA starts at ``learning_starts``.
+    With ``EsaConfig(fade=...)`` ESA's shift fades to 0 over that fraction of the budget
+    of ``learn()``; the placebo (``esa_shift="placebo"``), the gradient control and the
+    mean anchor (``esa_anchor="mean"``) are :class:`OffPolicyEsaMixin`'s.
 
     With ``EsaConfig(learning_rate=0)`` the shift stays 0 and training equals plain SAC
     step for step (the gate and the probes draw no random numbers).
@@ -50,9 +53,16 @@ class ESASAC(OffPolicyEsaMixin, SAC):
         esa_probe_critic: Which critic ESA probes: the online or the Polyak target
             networks, the minimum or the mean of the twins.
         esa_gate_every: Env steps between two checks of the gate.
-        esa_shift: ``"esc"`` (ESA) or ``"gradient"`` (the control: a step of the trust
-            region's size along the probed critic's action gradient, no session).
-        esa_execute: ``"shifted"`` (``a_t + v(t)``) or ``"probe"`` (the probe itself).
+        esa_shift: ``"esc"`` (ESA), ``"gradient"`` (the control: a step of the trust
+            region's size along the probed critic's action gradient, no session) or
+            ``"placebo"`` (ESA's shift per dimension with a random sign vector per env and
+            episode, seeded from ``seed``: the control for direction).
+        esa_execute: ``"shifted"`` (``a_t + v(t)``) or ``"probe"`` (the probe itself;
+            only with ``esa_shift="esc"`` and ``esa_anchor="sample"``).
+        esa_anchor: Where the shift is found: ``"sample"`` (at SAC's sample ``a_t``) or
+            ``"mean"`` (at ``tanh(mean)``, then executed as ``clip(a_t + v)``: the
+            policy's noise kept on top of a shifted mean; :class:`OffPolicyEsaMixin`
+            says why).
         **kwargs: Any other SAC argument.
 
     Raises:

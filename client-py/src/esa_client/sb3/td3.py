@@ -21,9 +21,12 @@ class ESATD3(OffPolicyEsaMixin, TD3):
     [-1, 1]. TD3 has no policy distribution, so the action scale sigma is the exploration
     noise's standard deviation (a ``NormalActionNoise``'s sigma), or ``esa_action_scale``.
 
-    The gate, the gradient control (``esa_shift="gradient"``) and the probe-as-exploration
-    control (``esa_execute="probe"``) are ESASAC's (:class:`OffPolicyEsaMixin`). With
-    ``EsaConfig(learning_rate=0)`` training equals plain TD3 step for step.
+    The gate, the fade (``EsaConfig.fade``), the gradient control (``esa_shift="gradient"``),
+    the placebo (``esa_shift="placebo"``), the probe-as-exploration control
+    (``esa_execute="probe"``) and the mean anchor (``esa_anchor="mean"``: the shift is
+    found at the actor's action and added to the noisy one) are ESASAC's
+    (:class:`OffPolicyEsaMixin`). With ``EsaConfig(learning_rate=0)`` training equals
+    plain TD3 step for step.
 
     Example::
 
