@@ -109,3 +109,15 @@ def test_interrupted_write_leaves_run_todo(tmp_path, monkeypatch):
 def test_load_without_runs_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="run the study first"):
         RunStore("s", "full", tmp_path).load()
+
+
+def test_finished_campaign_runs_stay_valid_when_esa_config_gains_a_field():
+    """EsaConfig's later fields (fade) must not make the committed runs stale."""
+    from esa_experiments.studies import confirmation
+
+    args = confirmation.BUDGETS["full"]
+    specs = confirmation.specs(args, "full", [0], confirmation.ENVS, confirmation.METHODS)
+    store = RunStore("confirmation", "full")
+    assert {spec.label: store.status(spec) for spec in specs} == {
+        spec.label: "done" for spec in specs
+    }

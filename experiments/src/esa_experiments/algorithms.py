@@ -270,6 +270,10 @@ def seeking_methods(family: str, learner: str) -> dict[str, str]:
     }
 
 
+ADDED_FIELDS = ("fade",)
+"""``EsaConfig`` fields added after the confirmation campaign (None = unset, not stored)."""
+
+
 def esa_preset(name: str) -> dict[str, Any]:
     """The ``EsaConfig`` fields of an ESA preset (see the module docstring).
 
@@ -288,7 +292,10 @@ def esa_preset(name: str) -> dict[str, Any]:
         "seeking_off_policy": EsaConfig.off_policy(fade=SEEKING_FADE),
         "seeking_ppo": EsaConfig(fade=SEEKING_FADE),
     }
-    return dataclasses.asdict(lookup(presets, name, "an ESA preset"))
+    fields = dataclasses.asdict(lookup(presets, name, "an ESA preset"))
+    # Fields EsaConfig gained after runs were stored join a run's config only when set, so
+    # that the finished runs' fingerprints (and with them their results) stay valid.
+    return {k: v for k, v in fields.items() if not (k in ADDED_FIELDS and v is None)}
 
 
 def matched_noise_sigma(sigma: float, preset: str) -> float:
