@@ -270,6 +270,11 @@ class ESAPPO(EsaMixin, PPO):
             return None
         return shared_worker(force=True)
 
+    def esa_close(self) -> None:
+        """Closes the ESA sessions; the placebo's signs go with them (a new env, new signs)."""
+        super().esa_close()
+        self._esa_placebo = None
+
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "esa_head", "esa_head_optimizer"], variables
