@@ -10,7 +10,8 @@ version="$(sed -n '/^\[workspace.package\]/,/^\[/s/^version = "\(.*\)"/\1/p' "$r
 image="${1:-localhost/esa-server:$version}"
 binary="${ESA_SERVER_BIN:-$repo/target/dist/esa-server}"
 if [[ -z "${ESA_SERVER_BIN:-}" ]]; then
-    (cd "$repo" && cargo build --profile dist -p esa-server)
+    # The image serves Zenoh (EXPOSE 7447) whatever esa-server's default features are.
+    (cd "$repo" && cargo build --profile dist -p esa-server --features zenoh)
 fi
 
 rootfs="$here/rootfs"

@@ -1,14 +1,18 @@
 //! Command-line flags of the `esa-server` binary.
 
-use std::net::{IpAddr, SocketAddr};
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
 
 use esa_server::codec::MAX_REQUEST_BYTES;
-use esa_server::zenoh_transport::{loopback_config, Shard, DEFAULT_PREFIX};
 use esa_server::{ServerBuilder, StartError, TlsSettings};
+
+#[cfg(feature = "zenoh")]
+mod zenoh_flags;
+#[cfg(feature = "zenoh")]
+use zenoh_flags::ZenohFlags;
 
 /// Extremum-Seeking Action selection (ESA) as a gRPC service: keeps the
 /// per-episode extremum-seeking state of many RL environments (sessions) and
@@ -146,45 +150,10 @@ pub struct Cli {
     #[arg(long, value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
 
-    /// Also serve the API over Zenoh, beside gRPC and on the same sessions:
-    /// one queryable per RPC at PREFIX/<RpcName>. Prints `zenoh listening
-    /// on LOCATOR` for each listen endpoint before `listening on`.
-    #[arg(long)]
-    pub zenoh: bool,
-
-    /// Zenoh key prefix of the queryables.
-    #[arg(long, value_name = "PREFIX", default_value = DEFAULT_PREFIX, requires = "zenoh")]
-    pub zenoh_prefix: String,
-
-    /// A Zenoh json5 config file (any mode and endpoints) instead of the
-    /// default: a peer listening on tcp/127.0.0.1:0, with multicast scouting
-    /// and gossip off.
-    #[arg(long, value_name = "FILE", requires = "zenoh")]
-    pub zenoh_config: Option<PathBuf>,
-
-    /// Zenoh endpoint to listen on instead of tcp/127.0.0.1:0 (repeatable).
-    #[arg(
-        long,
-        value_name = "ENDPOINT",
-        requires = "zenoh",
-        conflicts_with = "zenoh_config"
-    )]
-    pub zenoh_listen: Vec<String>,
-
-    /// Zenoh endpoint to connect to, e.g. a zenohd router (repeatable).
-    #[arg(
-        long,
-        value_name = "ENDPOINT",
-        requires = "zenoh",
-        conflicts_with = "zenoh_config"
-    )]
-    pub zenoh_connect: Vec<String>,
-
-    /// Serve shard i of N (0 <= i < N): the queryables move to
-    /// PREFIX/shard/<i>/<RpcName>; clients pick a session's shard by a
-    /// stable hash of its id (deploy/README.md).
-    #[arg(long, value_name = "i/N", requires = "zenoh", value_parser = parse_shard)]
-    pub shard: Option<Shard>,
+    /// The Zenoh transport's flags (cargo feature `zenoh`, on by default).
+    #[cfg(feature = "zenoh")]
+    #[command(flatten)]
+    pub zenoh: ZenohFlags,
 }
 
 /// How log lines are written.
@@ -296,67 +265,10 @@ impl Cli {
                 ));
             }
         }
-        if self.zenoh {
-            for endpoint in &self.zenoh_listen {
-                if is_loopback_endpoint(endpoint) {
-                    continue;
-                }
-                // Endpoints given here carry no certificates: TLS needs --zenoh-config.
-                let advice = if has_token {
-                    "without TLS: the auth token and every query cross the network in clear \
-                     text. Use a --zenoh-config with mutual TLS (deploy/zenoh/mtls-*.json5)"
-                } else {
-                    "with neither TLS nor access control: anyone who can reach it can read, \
-                     reset and close every session, or answer a trainer's queries. Use a \
-                     --zenoh-config with mutual TLS (deploy/zenoh/mtls-*.json5) and \
-                     --auth-token-file"
-                };
-                warnings.push(format!(
-                    "Zenoh on {endpoint} is reachable beyond this host {advice}"
-                ));
-            }
-        }
+        #[cfg(feature = "zenoh")]
+        warnings.extend(self.zenoh.exposure_warnings(has_token));
         warnings
     }
-
-    /// The Zenoh config and key prefix these flags ask for; None without `--zenoh`.
-    pub fn zenoh(&self) -> Result<Option<(zenoh::Config, String)>, StartError> {
-        if !self.zenoh {
-            return Ok(None);
-        }
-        let config = match &self.zenoh_config {
-            Some(path) => zenoh::Config::from_file(path).map_err(|err| {
-                StartError::Zenoh(format!("cannot load config {}: {err}", path.display()))
-            })?,
-            None => loopback_config(&self.zenoh_listen, &self.zenoh_connect)?,
-        };
-        let prefix = match self.shard {
-            Some(shard) => shard.prefix(&self.zenoh_prefix),
-            None => self.zenoh_prefix.clone(),
-        };
-        Ok(Some((config, prefix)))
-    }
-}
-
-/// Whether a Zenoh endpoint (`tcp/HOST:PORT`, `unixsock-stream/PATH`, ...) stays on this host.
-fn is_loopback_endpoint(endpoint: &str) -> bool {
-    let Some((protocol, address)) = endpoint.split_once('/') else {
-        return false;
-    };
-    if protocol.starts_with("unixsock") {
-        return true;
-    }
-    let address = address.split('#').next().unwrap_or(address);
-    let host = address
-        .rsplit_once(':')
-        .map_or(address, |(host, _)| host)
-        .trim_start_matches('[')
-        .trim_end_matches(']');
-    host == "localhost" || host.parse::<IpAddr>().is_ok_and(|ip| ip.is_loopback())
-}
-
-fn parse_shard(text: &str) -> Result<Shard, String> {
-    text.parse().map_err(|err: StartError| err.to_string())
 }
 
 /// A finite, non-negative number of seconds that fits a `Duration`.
@@ -421,6 +333,7 @@ mod tests {
         );
     }
 
+    #[cfg(feature = "zenoh")]
     #[test]
     fn zenoh_flags_need_zenoh_and_shift_the_prefix_per_shard() {
         let parse = |args: &[&str]| Cli::try_parse_from([&["esa-server"], args].concat());
@@ -435,11 +348,16 @@ mod tests {
             "tcp/127.0.0.1:1"
         ])
         .is_err());
-        assert!(parse(&[]).unwrap().zenoh().unwrap().is_none());
+        assert!(parse(&[]).unwrap().zenoh.config().unwrap().is_none());
         let cli = parse(&["--zenoh", "--shard", "1/2", "--zenoh-prefix", "lab/esa"]).unwrap();
-        let (_, prefix) = cli.zenoh().unwrap().unwrap();
+        let (_, prefix) = cli.zenoh.config().unwrap().unwrap();
         assert_eq!(prefix, "lab/esa/shard/1");
-        let (_, prefix) = parse(&["--zenoh"]).unwrap().zenoh().unwrap().unwrap();
+        let (_, prefix) = parse(&["--zenoh"])
+            .unwrap()
+            .zenoh
+            .config()
+            .unwrap()
+            .unwrap();
         assert_eq!(prefix, "esa/v1");
     }
 
@@ -503,6 +421,14 @@ mod tests {
         assert!(parse(&[&wide[..], &mutual].concat())
             .exposure_warnings(false)
             .is_empty());
+    }
+
+    /// The endpoints given on the command line carry no TLS, so every one beyond loopback is
+    /// warned about, with or without a token.
+    #[cfg(feature = "zenoh")]
+    #[test]
+    fn zenoh_listening_beyond_loopback_is_warned_about() {
+        let parse = |args: &[&str]| Cli::try_parse_from([&["esa-server"], args].concat()).unwrap();
         let zenoh = parse(&[
             "--zenoh",
             "--zenoh-listen",

@@ -74,6 +74,7 @@ pub enum StartError {
     #[error("reflection: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
     /// The Zenoh session could not be opened, declared on or closed.
+    #[cfg(feature = "zenoh")]
     #[error("zenoh: {0}")]
     Zenoh(String),
 }

@@ -1,7 +1,8 @@
 //! esa-server: Extremum-Seeking Action selection as a service.
 //!
 //! Layers, each a thin wrapper over the next: transports ([`grpc`],
-//! [`zenoh_transport`], and any other adapter) and the HTTP metrics endpoint
+//! `zenoh_transport` with the cargo feature `zenoh`, on by default, and any other
+//! adapter) and the HTTP metrics endpoint
 //! ([`metrics_endpoint`]) call the transport-independent
 //! [`handler::EsaHandler`], which validates requests and runs them against the
 //! [`store::SessionStore`] of `esa_core::Session`s (concurrency, TTL and
@@ -23,6 +24,7 @@ pub mod server;
 pub mod store;
 pub mod throttle;
 pub mod tls;
+#[cfg(feature = "zenoh")]
 pub mod zenoh_transport;
 
 pub use error::{Error, StartError};

@@ -13,6 +13,7 @@ use clap::Parser;
 use esa_server::error::io_context;
 use esa_server::metrics_endpoint::serve_metrics;
 use esa_server::resources;
+#[cfg(feature = "zenoh")]
 use esa_server::zenoh_transport::ZenohService;
 use esa_server::{Listener, StartError};
 use tracing_subscriber::EnvFilter;
@@ -71,26 +72,36 @@ async fn run(cli: &Cli) -> Result<(), StartError> {
             }
         });
     }
-    let zenoh = match cli.zenoh()? {
-        Some((config, prefix)) => {
-            let service = ZenohService::start(server.handler(), config, &prefix).await?;
-            for locator in service.locators().await {
-                announce(&format!("zenoh listening on {locator}"));
-            }
-            Some(service)
-        }
-        None => None,
-    };
+    #[cfg(feature = "zenoh")]
+    let zenoh = start_zenoh(cli, &server).await?;
     let shutdown = shutdown_signal(cli.parent_pid)?;
     // The line launchers (tests, the Python client) wait for; it comes after
     // binding, so connecting as soon as it is read succeeds.
     announce(&format!("listening on {}", listener.address()?));
     server.serve(listener, shutdown).await?;
+    #[cfg(feature = "zenoh")]
     if let Some(service) = zenoh {
         service.close().await?;
     }
     tracing::info!("stopped");
     Ok(())
+}
+
+/// Starts the Zenoh service `--zenoh` asks for, on `server`'s sessions, and announces where it
+/// listens; None without `--zenoh`.
+#[cfg(feature = "zenoh")]
+async fn start_zenoh(
+    cli: &Cli,
+    server: &esa_server::EsaServer,
+) -> Result<Option<ZenohService>, StartError> {
+    let Some((config, prefix)) = cli.zenoh.config()? else {
+        return Ok(None);
+    };
+    let service = ZenohService::start(server.handler(), config, &prefix).await?;
+    for locator in service.locators().await {
+        announce(&format!("zenoh listening on {locator}"));
+    }
+    Ok(Some(service))
 }
 
 /// Prints a machine-readable line to stdout (logs go to stderr) and logs it.

@@ -2,13 +2,12 @@
 //! over gRPC and Zenoh, the private Unix socket, and complete queryables.
 
 use std::os::unix::fs::PermissionsExt as _;
-use std::time::Duration;
 
 use esa_server::pb;
 use esa_server::pb::esa_service_client::EsaServiceClient;
+#[cfg(feature = "zenoh")]
 use esa_server::zenoh_transport::{loopback_config, ZenohService};
 use esa_server::{EsaServer, Listener};
-use prost::Message as _;
 use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
 use tonic::transport::Channel;
@@ -99,8 +98,12 @@ async fn with_a_token_only_requests_that_present_it_are_served() {
     server.stop().await;
 }
 
+#[cfg(feature = "zenoh")]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn over_zenoh_the_token_is_the_query_attachment() {
+    use prost::Message as _;
+    use std::time::Duration;
+
     let server = start_with(EsaServer::builder().auth_token(TOKEN)).await;
     let zenoh = ZenohService::start(
         server.handler.clone(),

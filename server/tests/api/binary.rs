@@ -35,13 +35,6 @@ fn help_documents_every_flag() {
         "--remove-dir-on-exit",
         "--shutdown-grace",
         "--log-format",
-        "--zenoh",
-        "--zenoh-prefix",
-        "--zenoh-config",
-        "--zenoh-listen",
-        "--zenoh-connect",
-        "--shard",
-        "zenoh listening on",
         "--help",
         "--version",
         "RUST_LOG",
@@ -49,6 +42,31 @@ fn help_documents_every_flag() {
     ] {
         assert!(help.contains(flag), "--help lacks {flag}:\n{help}");
     }
+    let zenoh_flags = [
+        "--zenoh",
+        "--zenoh-prefix",
+        "--zenoh-config",
+        "--zenoh-listen",
+        "--zenoh-connect",
+        "--shard",
+    ];
+    for flag in zenoh_flags {
+        assert_eq!(
+            help.contains(flag),
+            cfg!(feature = "zenoh"),
+            "{flag}:\n{help}"
+        );
+    }
+}
+
+/// A gRPC-only build (`--no-default-features`) refuses the Zenoh flags by name.
+#[cfg(not(feature = "zenoh"))]
+#[test]
+fn without_the_zenoh_feature_its_flags_are_refused() {
+    let output = Command::new(BIN).arg("--zenoh").output().unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("unexpected argument '--zenoh'"), "{stderr}");
 }
 
 #[test]
@@ -138,6 +156,7 @@ async fn serves_a_unix_socket_and_removes_it_on_sigint() {
 }
 
 // Zenoh needs a multi-thread Tokio runtime.
+#[cfg(feature = "zenoh")]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serves_a_zenoh_shard_beside_grpc() {
     use esa_server::pb;
@@ -183,6 +202,7 @@ async fn serves_a_zenoh_shard_beside_grpc() {
     );
 }
 
+#[cfg(feature = "zenoh")]
 #[test]
 fn a_bad_zenoh_config_stops_the_server_with_a_message() {
     let output = Command::new(BIN)

@@ -13,6 +13,8 @@ mod lifecycle;
 mod limits;
 mod memory;
 mod robustness;
+// Section 1b over every wire, Zenoh among them.
+#[cfg(feature = "zenoh")]
 mod section_1b;
 mod stream;
 mod tls;
@@ -20,5 +22,7 @@ mod transport;
 mod ttl;
 mod update_law;
 mod warnings;
+#[cfg(feature = "zenoh")]
 mod zenoh_tls;
+#[cfg(feature = "zenoh")]
 mod zenoh_transport;
