@@ -448,8 +448,8 @@ def test_sigkill_and_restart_under_two_gymnasium_wrapper_loops(server):
         EsaActionWrapper(
             gym.make("Pendulum-v1", max_episode_steps=EPISODE),
             lambda obs, action: float(-np.sum((action - 0.3) ** 2)),
-            EsaConfig(gate=None),
-            client,
+            esa=EsaConfig(gate=None),
+            client=client,
         )
         for client in clients
     ]

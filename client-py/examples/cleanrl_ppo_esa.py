@@ -133,7 +133,7 @@ def main(args: Args) -> dict[str, Any]:
             o = torch.as_tensor(obs, dtype=torch.float32)
             return agent.advantage(o, torch.as_tensor(actions, dtype=torch.float32)).numpy()
 
-        envs = EsaVectorWrapper(envs, q_fn, EsaConfig())
+        envs = EsaVectorWrapper(envs, q_fn, esa=EsaConfig())
 
     n, steps = args.num_envs, args.num_steps
     obs_buf = torch.zeros((steps, n, obs_dim))

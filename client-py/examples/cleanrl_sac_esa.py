@@ -145,7 +145,7 @@ def main(args: Args) -> dict[str, Any]:
             a = torch.as_tensor(actions, dtype=torch.float32)
             return ((qf1_target(o, a) + qf2_target(o, a)) / 2).squeeze(1).numpy()
 
-        envs = EsaVectorWrapper(envs, q_fn, EsaConfig.off_policy(amplitude=args.esa_amplitude))
+        envs = EsaVectorWrapper(envs, q_fn, esa=EsaConfig.off_policy(amplitude=args.esa_amplitude))
 
     n = args.num_envs
     buffer = {

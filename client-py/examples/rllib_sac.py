@@ -62,7 +62,7 @@ def main(args: Args) -> None:
         .debugging(seed=args.seed, log_level="ERROR")
     )
     # ESA's defaults; the gate holds ESA back until the critic ranks actions well.
-    algo = with_esa(config, EsaConfig()).build_algo()
+    algo = with_esa(config, esa=EsaConfig.off_policy()).build_algo()
     start = time.monotonic()
     print(f"{'iter':>4} {'env steps':>9} {'return':>8} {'ESA on':>6} {'|shift|':>7} {'time':>6}")
     try:

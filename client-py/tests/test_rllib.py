@@ -9,6 +9,7 @@ equals plain RLlib bit for bit (see ``test_learning_rate_zero_equals_plain_rllib
 where RLlib is deterministic).
 """
 
+import dataclasses
 import gc
 import json
 import os
@@ -174,7 +175,7 @@ def wait_stopped(sidecar, timeout=15.0):
 
 
 def two_runner_run(config, iterations):
-    algo = with_esa(config, UNGATED, record_shift=True).build_algo()
+    algo = with_esa(config, esa=UNGATED, record_shift=True).build_algo()
     try:
         results = [algo.train() for _ in range(iterations)]
         samples = algo.env_runner_group.foreach_env_runner(collect, local_env_runner=False)
@@ -255,7 +256,7 @@ def test_a_runner_goes_on_without_esa_once_its_server_stays_away(ray_session, se
         service = EsaService(
             address=line.split()[-1], timeout=0.5, reconnect_timeout=0.5, on_unavailable="skip"
         )
-        algo = with_esa(sac_config(runners=0), UNGATED, service=service).build_algo()
+        algo = with_esa(sac_config(runners=0), esa=UNGATED, service=service).build_algo()
         try:
             # ESA acts once the learner has trained (SAC's first steps are random).
             results = [algo.train()["env_runners"] for _ in range(3)]
@@ -305,7 +306,7 @@ def test_learning_rate_zero_equals_plain_rllib(ray_session, algorithm):
     """
     make = sac_config if algorithm == "sac" else ppo_config
     plain_weights, plain_actions = local_run(make(runners=0, seed=3), iterations=2)
-    config = with_esa(make(runners=0, seed=3), EsaConfig(learning_rate=0.0, gate=None))
+    config = with_esa(make(runners=0, seed=3), esa=EsaConfig(learning_rate=0.0, gate=None))
     esa_weights, esa_actions = local_run(config, iterations=2)
     assert plain_weights.keys() == esa_weights.keys()
     for key in plain_weights:
@@ -331,6 +332,16 @@ def test_with_esa_refuses_what_it_cannot_do():
     factory = with_esa(config)._module_to_env_connector
     assert factory.previous is None
     assert json.dumps(config.rl_module_spec.model_config["esa"])  # plain data
+
+
+@pytest.mark.parametrize(
+    ("make", "default"), [(SACConfig, EsaConfig.off_policy()), (PPOConfig, EsaConfig())]
+)
+def test_with_esa_defaults_as_the_sb3_drop_ins(make, default):
+    config = with_esa(make())
+    assert config._module_to_env_connector.kwargs["esa"] == default
+    settings = config.rl_module_spec.model_config["esa"]["config"]
+    assert settings == dataclasses.asdict(default)
 
 
 def test_the_shared_esa_code_imports_without_stable_baselines3():

@@ -32,7 +32,7 @@ def _counting_critic(calls: list[int]) -> Any:
 def test_one_critic_call_per_step_for_all_envs(mode: str) -> None:
     calls: list[int] = []
     envs = gym.make_vec("Pendulum-v1", num_envs=3, vectorization_mode=mode)
-    wrapped = EsaVectorWrapper(envs, _counting_critic(calls), EsaConfig())
+    wrapped = EsaVectorWrapper(envs, _counting_critic(calls), esa=EsaConfig())
     try:
         wrapped.reset(seed=0)
         for _ in range(30):
@@ -54,7 +54,7 @@ def test_unpaired_and_next_step_autoreset_start_new_episodes() -> None:
         wrappers=[lambda env: gym.wrappers.TimeLimit(env.unwrapped, max_episode_steps=5)],
     )
     wrapped = EsaVectorWrapper(
-        envs, _counting_critic(calls), EsaConfig(paired_response=False), action_scale=0.5
+        envs, _counting_critic(calls), esa=EsaConfig(paired_response=False), action_scale=0.5
     )
     try:
         wrapped.reset(seed=0)

@@ -19,14 +19,16 @@ def q_fn(obs, action):
 @pytest.mark.filterwarnings("ignore:.*different from the unwrapped version")
 @pytest.mark.filterwarnings("ignore:.*symmetric and normalized space")
 def test_wrapper_passes_check_env(client):
-    env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn, EsaConfig(learning_rate=0.5), client)
+    env = EsaActionWrapper(
+        gym.make("Pendulum-v1"), q_fn, esa=EsaConfig(learning_rate=0.5), client=client
+    )
     check_env(env, skip_render_check=True)
     env.close()
 
 
 def test_wrapper_applies_the_improved_action(client):
     esa = EsaConfig(amplitude=0.3, learning_rate=2.0)
-    env = EsaActionWrapper(gym.make("InvertedPendulum-v5"), q_fn, esa, client)
+    env = EsaActionWrapper(gym.make("InvertedPendulum-v5"), q_fn, esa=esa, client=client)
     applied = []
     inner_step = env.env.step
     env.env.step = lambda action: (applied.append(np.array(action)), inner_step(action))[1]

@@ -62,12 +62,12 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
     Args:
         env: A vector env with a ``Box`` single action space.
         q_fn: ``q_fn(obs_batch, actions_batch) -> (M,)``, called once per step.
-        esa_config: ESA hyperparameters (default ``EsaConfig()``).
+        esa: ESA hyperparameters (default ``EsaConfig()``).
         client: The client to create the sessions on; None = ``EsaClient.in_process()``
             (esa-core in this process, no server), closed by ``close()``.
         action_scale: sigma (the policy's standard deviation if the learner has one): a
             scalar, one value per action dimension, ``(N, D)``, or ``f(obs_batch)``.
-        dt: The envs' control period; None = ``esa_config.dt``, else the first sub-env's
+        dt: The envs' control period; None = ``esa.dt``, else the first sub-env's
             ``dt`` attribute (read with ``get_attr``), else 0.05.
     """
 
@@ -75,7 +75,8 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         self,
         env: gym.vector.VectorEnv,
         q_fn: BatchQFunction,
-        esa_config: EsaConfig | None = None,
+        *,
+        esa: EsaConfig | None = None,
         client: BaseClient | None = None,
         action_scale: BatchActionScale | None = None,
         dt: float | None = None,
@@ -85,7 +86,7 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         space = env.single_action_space
         if not isinstance(space, gym.spaces.Box):
             raise ValueError(f"expected a Box single action space, got {space}")
-        esa = esa_config if esa_config is not None else EsaConfig()
+        esa = esa if esa is not None else EsaConfig()
         config = esa.session_config(
             int(np.prod(space.shape)),
             self._dt(env, esa, dt),

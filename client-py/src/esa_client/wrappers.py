@@ -42,8 +42,8 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     Args:
         env: A gymnasium env with a ``Box`` action space.
         q_fn: ``q_fn(observation, action) -> float``, evaluated once per step.
-        esa_config: ESA hyperparameters (default ``EsaConfig()``); amplitudes are in
-            the env's action units.
+        esa: ESA hyperparameters (default ``EsaConfig()``); amplitudes are in the env's
+            action units.
         client: The client to create the session on (``EsaClient``, ``ZenohEsaClient``,
             ...); None spawns a private server that is stopped by ``close()``.
         action_scale: sigma for the trust region and the normalized step (the policy's
@@ -55,20 +55,21 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         self,
         env: gym.Env,
         q_fn: QFunction,
-        esa_config: EsaConfig | None = None,
+        *,
+        esa: EsaConfig | None = None,
         client: BaseClient | None = None,
         action_scale: ActionScale | None = None,
     ) -> None:
         """Creates the ESA session for this env."""
         # Recorded so that gymnasium can re-create the wrapper from the env spec.
         gym.utils.RecordConstructorArgs.__init__(
-            self, q_fn=q_fn, esa_config=esa_config, client=client, action_scale=action_scale
+            self, q_fn=q_fn, esa=esa, client=client, action_scale=action_scale
         )
         gym.ActionWrapper.__init__(self, env)
         space = env.action_space
         if not isinstance(space, gym.spaces.Box):
             raise ValueError(f"expected a Box action space, got {space}")
-        esa = esa_config if esa_config is not None else EsaConfig()
+        esa = esa if esa is not None else EsaConfig()
         config = esa.session_config(
             int(np.prod(space.shape)),
             env_dt(env, esa.dt),

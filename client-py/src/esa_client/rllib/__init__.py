@@ -11,8 +11,11 @@ Install with ``pip install "esa-client[rllib]"``. One call adds ESA to a config:
         .environment("Pendulum-v1")
         .env_runners(num_env_runners=2, num_envs_per_env_runner=2)
     )
-    algo = with_esa(config, EsaConfig()).build_algo()
+    algo = with_esa(config, esa=EsaConfig.off_policy()).build_algo()
     algo.train()
+
+Without ``esa=`` SAC gets ``EsaConfig.off_policy()`` and PPO ``EsaConfig()``, the defaults of
+the SB3 drop-ins ``ESASAC`` and ``ESAPPO``.
 
 Every env copy of every EnvRunner gets its own ESA session. The env executes, and the
 episode stores, Algorithm 1's action ``a_t + v(t)`` (PPO: unclipped, with its exact

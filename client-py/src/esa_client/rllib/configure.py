@@ -28,8 +28,8 @@ def _positive_int(name: str, value: object) -> int:
 
 def with_esa(
     config: Any,
-    esa: EsaConfig | None = None,
     *,
+    esa: EsaConfig | None = None,
     service: EsaService | None = None,
     probe_critic: str = "target_mean",
     gate_every: int = 1000,
@@ -59,15 +59,16 @@ def with_esa(
         from esa_client.rllib import with_esa
 
         config = SACConfig().environment("Pendulum-v1").env_runners(num_env_runners=2)
-        algo = with_esa(config, EsaConfig()).build_algo()  # a sidecar per node
+        algo = with_esa(config, esa=EsaConfig.off_policy()).build_algo()  # a sidecar per node
         algo.train()
 
     Args:
         config: A ``SACConfig`` or ``PPOConfig`` (changed in place, like RLlib's own
             setters).
-        esa: The ESA hyperparameters (default ``EsaConfig()``), in the module's action
-            units: with RLlib's default ``normalize_actions=True``, the Box scaled to
-            [-1, 1] (PPO) or SAC's squashed [-1, 1], the units ESAPPO and ESASAC use.
+        esa: The ESA hyperparameters, in the module's action units: with RLlib's default
+            ``normalize_actions=True``, the Box scaled to [-1, 1] (PPO) or SAC's squashed
+            [-1, 1], the units ESAPPO and ESASAC use. Default: ``EsaConfig.off_policy()``
+            for SAC and ``EsaConfig()`` for PPO, as for ``ESASAC`` and ``ESAPPO``.
         service: Where the sessions live (default: one sidecar per node).
         probe_critic: SAC: the critic ESA probes, as ``ESASAC``'s ``esa_probe_critic``.
         gate_every: SAC: sampled env steps between two gate checks.
@@ -88,7 +89,8 @@ def with_esa(
             torch, a multi-agent setup, a custom RLModule or learner class that is not
             one of ours (or a subclass), or a bad setting.
     """
-    esa = esa if esa is not None else EsaConfig()
+    if esa is None:
+        esa = EsaConfig.off_policy() if isinstance(config, SACConfig) else EsaConfig()
     if not isinstance(esa, EsaConfig):
         raise ValueError(f"expected esa to be an EsaConfig, got {esa!r}")
     service = service if service is not None else EsaService()

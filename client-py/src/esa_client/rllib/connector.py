@@ -175,7 +175,8 @@ class EsaModuleToEnv(ConnectorV2):
     Args:
         input_observation_space: As for every ConnectorV2.
         input_action_space: As for every ConnectorV2.
-        esa: The ESA hyperparameters (default ``EsaConfig()``).
+        esa: The ESA hyperparameters (:func:`~esa_client.rllib.with_esa` passes its own or
+            the algorithm's default).
         service: Where the sessions live (default: the node's sidecar).
         dt: Seconds per env step when ``EsaConfig.dt`` is None (``with_esa`` reads it
             from the EnvRunner's env).
@@ -194,7 +195,7 @@ class EsaModuleToEnv(ConnectorV2):
         input_observation_space: Any = None,
         input_action_space: Any = None,
         *,
-        esa: EsaConfig | None = None,
+        esa: EsaConfig,
         service: EsaService | None = None,
         dt: float | None = None,
         record_shift: bool = False,
@@ -204,9 +205,9 @@ class EsaModuleToEnv(ConnectorV2):
     ) -> None:
         """Builds the piece; nothing connects before the first exploring step."""
         super().__init__(input_observation_space, input_action_space, **kwargs)
-        self.esa = esa if esa is not None else EsaConfig()
-        if not isinstance(self.esa, EsaConfig):
-            raise ValueError(f"expected esa to be an EsaConfig, got {self.esa!r}")
+        if not isinstance(esa, EsaConfig):
+            raise ValueError(f"expected esa to be an EsaConfig, got {esa!r}")
+        self.esa = esa
         if improvement_every < 1:
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
         self.service = service if service is not None else EsaService()
