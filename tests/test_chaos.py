@@ -236,10 +236,8 @@ def _run(trainers: list[BatchTrainer], chaos: Callable[[], None], limit: float) 
 WIRES: dict[str, dict[str, object]] = {
     "grpc": {"use_stream": True},
     "grpc-unary": {"use_stream": False},
-    "native": {"use_stream": True, "transport": "native"},
-    "native-unary": {"use_stream": False, "transport": "native"},
 }
-"""The ways a batch reaches the server: grpcio or the Rust client, StepStream or unary calls."""
+"""The ways a batch reaches the server over gRPC: a StepStream or unary calls."""
 
 
 @pytest.mark.parametrize("transport", list(WIRES))
@@ -262,7 +260,7 @@ def test_sigkill_and_restart_under_three_batch_trainers(server, transport):
         assert trainer.batch.sessions_restored == N_ENVS
 
 
-@pytest.mark.parametrize("transport", ["grpc", "native"])
+@pytest.mark.parametrize("transport", list(WIRES))
 def test_sigstop_stall_then_sigcont(server, transport):
     trainers = [
         BatchTrainer(
@@ -287,7 +285,7 @@ def test_sigstop_stall_then_sigcont(server, transport):
         assert trainer.batch.sessions_restored == 0  # the sessions never left
 
 
-@pytest.mark.parametrize("transport", ["grpc", "native"])
+@pytest.mark.parametrize("transport", ["grpc"])
 def test_connection_cut_mid_step_stream(server, transport):
     proxy = Proxy(server.address)
     trainers = [

@@ -41,7 +41,10 @@ def test_client_over_tcp_matches_reference(tcp_server):
         action_dim=2, dt=0.04, amplitude=0.2, frequency=[31.4, 15.7], learning_rate=0.3
     )
     rng = np.random.default_rng(0)
-    with EsaClient(tcp_server, timeout=5.0) as client, EsaClient.in_process() as engine:
+    with (
+        EsaClient.connect(tcp_server, timeout=5.0) as client,
+        EsaClient.in_process() as engine,
+    ):
         client.wait_ready(timeout=10)
         batch = client.create_batch(config, 4, use_stream=True)
         reference = engine.create_batch(config, 4)  # esa-core in-process: the baseline

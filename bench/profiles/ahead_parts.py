@@ -30,15 +30,15 @@ import tyro
 from esa_client import SessionBatch
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
-from esa_client.transports.native import NativeGrpcStepBatch
+from esa_client.transports.grpc import GrpcStepBatch
 from stable_baselines3.common.env_util import make_vec_env
 
 TIMED = [
     (EsaRuntime, "step"),
     (SessionBatch, "step_ahead"),
-    (NativeGrpcStepBatch, "send_step_linear"),
-    (NativeGrpcStepBatch, "send_step"),
-    (NativeGrpcStepBatch, "receive_step"),
+    (GrpcStepBatch, "send_step_linear"),
+    (GrpcStepBatch, "send_step"),
+    (GrpcStepBatch, "receive_step"),
 ]
 AGENTS = {"ESAPPO": ESAPPO, "ESASAC": ESASAC, "ESATD3": ESATD3}
 STEPS = {"ESAPPO": 12_288, "ESASAC": 8_000, "ESATD3": 8_000}
@@ -85,7 +85,7 @@ def main(args: Args) -> None:
         "MlpPolicy",
         env,
         esa_engine="sidecar",
-        esa_spawn={"transport": "native"},
+        esa_spawn={},
         seed=0,
         **off_policy,
     )

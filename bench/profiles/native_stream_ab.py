@@ -49,7 +49,7 @@ def main(options: Args) -> None:
     """Runs the alternating windows and prints (and optionally writes) the step times."""
     args = LatencyArgs(window=options.window, warmup=0.3)
     rows = []
-    with EsaClient.spawn(server_binary(), timeout=30.0, native=True) as client:
+    with EsaClient.spawn(server_binary(), timeout=30.0) as client:
         for n in (int(n) for n in options.envs.split(",")):
             means: dict[str, list[float]] = {mode: [] for mode in MODES}
             for _ in range(options.rounds):

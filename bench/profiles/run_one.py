@@ -33,7 +33,7 @@ EngineName = Literal["inprocess", "sidecar", "sidecar-native"]
 ENGINES = {
     "inprocess": {"esa_engine": "inprocess"},
     "sidecar": {"esa_engine": "sidecar", "esa_spawn": {"transport": "grpc"}},
-    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {"transport": "native"}},
+    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {}},
 }
 
 

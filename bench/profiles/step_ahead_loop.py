@@ -44,7 +44,7 @@ def main(args: Args) -> None:
     actions = rng.normal(size=(args.n, 1))
     critic = LinearCritic(np.ones((args.n, 1)), np.zeros(args.n))
     starts = np.zeros(args.n, dtype=bool)
-    with EsaClient.spawn(transport="native") as client:
+    with EsaClient.spawn() as client:
         for mode in args.modes.split(","):
             batch = client.create_batch(config, args.n, use_stream=True)
             wall, cpu = time.perf_counter(), time.process_time()

@@ -7,8 +7,8 @@ N = 1, 8, 64 envs of D = 6 against:
 - esa-server over loopback TCP and a Unix socket (``EsaClient.spawn``), each with
   ``ProbeBatch``/``ReportBatch`` calls and with the ``StepStream``, through grpcio, and
   with the calls through the Rust client of ``esa_client._native`` (api ``native``,
-  ``EsaClient(..., native=True)``);
-- esa-server with ``--zenoh`` on loopback (``ZenohEsaClient.spawn``): the same two
+  ``EsaClient.connect(...)``);
+- esa-server with ``--zenoh`` on loopback (``EsaClient.spawn(transport="zenoh")``): the same two
   ways, as queries on ``esa/v1/ProbeBatch``/``ReportBatch`` or one query per
   StepStream message on ``esa/v1/StepStream``;
 - ``EsaClient.in_process()``: esa-core in this process (``esa_client._native``), the
@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 import tyro
-from esa_client import EsaClient, SessionConfig, ZenohEsaClient
+from esa_client import EsaClient, SessionConfig
 
 from servers import baseline_server, esa_server_tcp, server_binary
 
@@ -164,9 +164,9 @@ def measure(batch, args: Args, law: str = "1", mode: str = "pair") -> dict:
 
 
 @contextmanager
-def client_at(address: AbstractContextManager[str], native: bool = False) -> Iterator[EsaClient]:
-    """An ``EsaClient`` (grpcio, or the Rust client) on the address a server context yields."""
-    with address as target, EsaClient(target, timeout=30.0, native=native) as client:
+def client_at(address: AbstractContextManager[str]) -> Iterator[EsaClient]:
+    """An ``EsaClient`` (gRPC, the Rust client) on the address a server context yields."""
+    with address as target, EsaClient.connect(target, timeout=30.0) as client:
         yield client
 
 
@@ -187,7 +187,7 @@ def targets() -> list[Target]:
                 "esa-server",
                 "zenoh",
                 api,
-                lambda: ZenohEsaClient.spawn(server_binary(), timeout=30.0),
+                lambda: EsaClient.spawn(server_binary(), transport="zenoh", timeout=30.0),
             )
         )
         out.append(("python-grpcio", "tcp", api, lambda: client_at(baseline_server())))
@@ -199,12 +199,12 @@ def targets() -> list[Target]:
 def native_targets() -> list[Target]:
     """esa-server over TCP and a Unix socket through the Rust client (batch calls)."""
     return [
-        ("esa-server", "tcp", "native", lambda: client_at(esa_server_tcp(), native=True)),
+        ("esa-server", "tcp", "native", lambda: client_at(esa_server_tcp())),
         (
             "esa-server",
             "uds",
             "native",
-            lambda: EsaClient.spawn(server_binary(), timeout=30.0, native=True),
+            lambda: EsaClient.spawn(server_binary(), timeout=30.0),
         ),
     ]
 
@@ -228,7 +228,7 @@ def section_1b_targets() -> list[Target]:
                 "esa-server",
                 "uds",
                 api,
-                lambda: EsaClient.spawn(server_binary(), timeout=30.0, native=True),
+                lambda: EsaClient.spawn(server_binary(), timeout=30.0),
             )
         )
     out.append(("esa-native", "in-process", "-", EsaClient.in_process))

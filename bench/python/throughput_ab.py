@@ -9,7 +9,7 @@ median reported. Each window is ``client_latency``'s measurement (its pair,
 ``batch.probe`` + the critic + ``batch.report``, after a warm-up; session-steps/s from
 the mean pair time), N = ``--envs`` sessions of D = ``--dim``:
 
-- esa-server on a Unix socket through the Rust client (``EsaClient.spawn(native=True)``,
+- esa-server on a Unix socket through the Rust client (``EsaClient.spawn()``,
   the fastest path from Python in ``client_latency``'s table), with ``ProbeBatch``/
   ``ReportBatch`` calls and with its ``StepStream``;
 - ``baseline_server.py`` on loopback TCP through grpcio, with the same two apis.
@@ -63,8 +63,8 @@ def main() -> None:
     window = LatencyArgs(dim=args.dim, warmup=args.warmup, window=args.window)
     config = session_config(args.dim)
     with contextlib.ExitStack() as stack:
-        esa = stack.enter_context(EsaClient.spawn(server_binary(), timeout=30.0, native=True))
-        base = stack.enter_context(EsaClient(stack.enter_context(baseline_server())))
+        esa = stack.enter_context(EsaClient.spawn(server_binary(), timeout=30.0))
+        base = stack.enter_context(EsaClient.connect(stack.enter_context(baseline_server())))
         batches = {
             "esa-server uds native batch": esa.create_batch(config, args.envs),
             "esa-server uds native stream": esa.create_batch(config, args.envs, use_stream=True),

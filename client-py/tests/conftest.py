@@ -17,24 +17,24 @@ from esa_client.sidecar import find_server_binary
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
-def _load_reference_law() -> None:
-    """Makes ``import reference_law`` work in the test modules (the law in numpy).
+def _load_helper(name: str) -> None:
+    """Makes ``import <name>`` work in the test modules for a helper module of this folder.
 
     ``--import-mode=importlib`` keeps this folder off ``sys.path``, so the module is
     loaded here, once, before any test module is imported.
     """
-    if "reference_law" in sys.modules:
+    if name in sys.modules:
         return
-    spec = importlib.util.spec_from_file_location(
-        "reference_law", Path(__file__).with_name("reference_law.py")
-    )
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
-    sys.modules["reference_law"] = module
+    sys.modules[name] = module
     spec.loader.exec_module(module)
 
 
-_load_reference_law()
+# reference_law: the law in numpy; raw_grpc: a grpcio peer for raw requests.
+for _helper in ("reference_law", "raw_grpc"):
+    _load_helper(_helper)
 
 
 @pytest.fixture(scope="session")
@@ -167,5 +167,6 @@ def zenoh_client(server_bin):
 @pytest.fixture(scope="session")
 def zenoh_grpc_client(zenoh_client):
     """A gRPC client of the same server as ``zenoh_client``: same sessions, other transport."""
-    with EsaClient(zenoh_client.server.address, token=zenoh_client.server.token) as c:
+    server = zenoh_client.server
+    with EsaClient.connect(server.address, token=server.token) as c:
         yield c

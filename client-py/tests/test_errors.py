@@ -5,6 +5,7 @@ import uuid
 
 import numpy as np
 import pytest
+import raw_grpc
 
 from esa_client import (
     EsaClient,
@@ -19,7 +20,6 @@ from esa_client import (
 )
 from esa_client._proto.esa.v1 import esa_pb2
 from esa_client.errors import error_for, esa_error
-from esa_client.transports.stub import call
 
 CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
 
@@ -153,7 +153,7 @@ def test_the_failing_item_travels_as_data(client, use_stream):
         batch.report([1.0, 2.0, 3.0], steps=[0, 5, 0])
     assert info.value.index == 1
     with pytest.raises(InvalidArgument) as info:  # the whole request, no item
-        call(client.stub.ProbeBatch, esa_pb2.ProbeBatchRequest(), client.timeout)
+        raw_grpc.call(raw_grpc.stub(client).ProbeBatch, esa_pb2.ProbeBatchRequest(), client.timeout)
     assert info.value.index is None
     with pytest.raises(SessionNotFound) as info:
         client.get_session(unique("missing"))
@@ -173,10 +173,10 @@ def test_raw_batch_requests_with_wrong_lengths(client):
     ]
     for request in requests:
         with pytest.raises(InvalidArgument):
-            call(client.stub.ProbeBatch, request, client.timeout)
+            raw_grpc.call(raw_grpc.stub(client).ProbeBatch, request, client.timeout)
     report = esa_pb2.ReportBatchRequest(session_ids=batch.ids, steps=[0, 0], q_values=[1.0])
     with pytest.raises(InvalidArgument):
-        call(client.stub.ReportBatch, report, client.timeout)
+        raw_grpc.call(raw_grpc.stub(client).ReportBatch, report, client.timeout)
 
 
 def test_session_limit_is_resource_exhausted(server_bin):

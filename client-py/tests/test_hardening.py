@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import raw_grpc
 
 from esa_client import (
     EsaClient,
@@ -22,9 +23,8 @@ from esa_client import (
     Unauthenticated,
 )
 from esa_client._proto.esa.v1 import esa_pb2
-from esa_client.base_client import resolve_token
+from esa_client.client import resolve_token
 from esa_client.errors import esa_error
-from esa_client.transports.stub import call
 
 CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
 TOKEN = "s3cret-" + "x" * 20
@@ -57,9 +57,9 @@ def test_batch_ids_are_independent_uuids(client):
 
 
 def test_undecodable_requests_are_invalid_argument(client):
-    garbage = client._channel.unary_unary("/esa.v1.EsaService/ProbeBatch")
+    garbage = raw_grpc.channel(client.server.address).unary_unary("/esa.v1.EsaService/ProbeBatch")
     with pytest.raises(InvalidArgument, match="expected an encoded"):
-        call(garbage, b"\xff\xff\xff", client.timeout)
+        raw_grpc.call(garbage, b"\xff\xff\xff", client.timeout)
 
 
 def test_an_oversize_request_is_resource_exhausted(server_bin):
@@ -113,7 +113,10 @@ def test_without_the_token_calls_are_unauthenticated(guarded):
     with pytest.raises(Unauthenticated, match="auth token") as info:
         stranger.create_session(CONFIG)
     assert info.value.code == StatusCode.UNAUTHENTICATED
-    with EsaClient(stranger.address, token="wrong") as wrong, pytest.raises(Unauthenticated):
+    with (
+        EsaClient.connect(stranger.address, token="wrong") as wrong,
+        pytest.raises(Unauthenticated),
+    ):
         wrong.create_session(CONFIG)
 
 
@@ -124,7 +127,7 @@ def test_the_token_can_come_from_an_argument_a_file_or_the_environment(
     stranger, token_file = guarded
     monkeypatch.setenv("ESA_AUTH_TOKEN", TOKEN)
     for kwargs in (dict(token=TOKEN), dict(token_file=token_file), {}):
-        with EsaClient(stranger.address, **kwargs) as owner:
+        with EsaClient.connect(stranger.address, **kwargs) as owner:
             batch = owner.create_batch(CONFIG, 2, use_stream=use_stream)
             assert batch.probe(np.zeros((2, 2)), [True, True]).shape == (2, 2)
             batch.close()

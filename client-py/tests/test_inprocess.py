@@ -291,6 +291,6 @@ def test_the_transport_takes_an_engine(make_config):
     with pytest.raises(InvalidArgument):
         transport.get_session("")
     client = EsaClient.in_process()
-    assert repr(client) == "BaseClient('in-process')" and client.healthy()
+    assert repr(client) == "EsaClient('in-process', InProcessTransport())" and client.healthy()
     client.close()
     client.close()

@@ -89,11 +89,11 @@ def test_env_var_locates_the_binary(server_bin, monkeypatch):
 def test_address_validation():
     for bad in ("localhost", "unix:", "host:port", ":50051"):
         with pytest.raises(ValueError, match="expected"):
-            EsaClient(bad)
+            EsaClient.connect(bad)
 
 
 def test_unreachable_server_fails_fast():
-    client = EsaClient("unix:/nonexistent/esa.sock", timeout=5.0)
+    client = EsaClient.connect("unix:/nonexistent/esa.sock", timeout=5.0)
     start = time.monotonic()
     with pytest.raises(ServerUnavailable):
         client.create_session(CONFIG)

@@ -14,6 +14,7 @@ import uuid
 import grpc
 import numpy as np
 import pytest
+import raw_grpc
 
 from esa_client import EsaClient, SessionConfig
 from esa_client._native import (
@@ -85,7 +86,10 @@ class Pair:
         for session_id, config in zip(self.ids, configs, strict=True):
             message = config.to_proto()
             request = esa_pb2.CreateSessionRequest(session_id=session_id, config=message)
-            assert self.client.stub.CreateSession(request, timeout=5).session_id == session_id
+            assert (
+                raw_grpc.stub(self.client).CreateSession(request, timeout=5).session_id
+                == session_id
+            )
             assert engine.create_session(session_id, config_bytes(message)) == session_id
         self.handle = engine.resolve(self.ids)
         self.steps = np.zeros(len(configs), dtype=np.uint64)
@@ -102,7 +106,7 @@ class Pair:
             action_scales=[] if scales is None else np.ravel(scales).tolist(),
         )
         server = server_outcome(
-            lambda: self.client.stub.ProbeBatch(request, timeout=10),
+            lambda: raw_grpc.stub(self.client).ProbeBatch(request, timeout=10),
         )
         native = native_outcome(
             lambda: self.engine.probe(
@@ -122,7 +126,7 @@ class Pair:
             q_values=np.ravel(q).tolist(),
             q_references=[] if references is None else np.ravel(references).tolist(),
         )
-        server = server_outcome(lambda: self.client.stub.ReportBatch(request, timeout=10))
+        server = server_outcome(lambda: raw_grpc.stub(self.client).ReportBatch(request, timeout=10))
         native = native_outcome(
             lambda: self.engine.report(
                 self.handle if handle is None else handle,
@@ -135,7 +139,7 @@ class Pair:
 
     def end_episode(self, i: int) -> int:
         request = esa_pb2.EndEpisodeRequest(session_id=self.ids[i])
-        server = self.client.stub.EndEpisode(request, timeout=5).episodes_completed
+        server = raw_grpc.stub(self.client).EndEpisode(request, timeout=5).episodes_completed
         native = self.engine.end_episode(self.ids[i])
         assert server == native
         return native
@@ -145,7 +149,7 @@ class Pair:
         snapshots = []
         for session_id in self.ids:
             request = esa_pb2.GetSessionRequest(session_id=session_id)
-            server = self.client.stub.GetSession(request, timeout=5)
+            server = raw_grpc.stub(self.client).GetSession(request, timeout=5)
             native = esa_pb2.GetSessionResponse.FromString(self.engine.get_session(session_id))
             server_bytes = server.SerializeToString(deterministic=True)
             assert native.SerializeToString(deterministic=True) == server_bytes, (
@@ -177,7 +181,7 @@ class Pair:
 
     def close(self):
         for session_id in self.ids:
-            self.client.stub.CloseSession(
+            raw_grpc.stub(self.client).CloseSession(
                 esa_pb2.CloseSessionRequest(session_id=session_id), timeout=5
             )
             self.engine.close_session(session_id)
@@ -329,7 +333,7 @@ def test_unknown_repeated_and_malformed_ids(client, make_config):
         request = esa_pb2.ProbeBatchRequest(
             session_ids=ids, steps=[1] * len(ids), actions=good[: 2 * len(ids) - 1].tolist()
         )
-        server = server_outcome(lambda r=request: client.stub.ProbeBatch(r, timeout=5))
+        server = server_outcome(lambda r=request: raw_grpc.stub(client).ProbeBatch(r, timeout=5))
         native = native_outcome(lambda ids=ids: engine.resolve(ids))
         assert (server.code, server.index) == (code, index), server
         assert (native.code, native.index) == (code, index), native
@@ -337,7 +341,7 @@ def test_unknown_repeated_and_malformed_ids(client, make_config):
             assert native.message == server.message
     too_many = [f"x{i}" for i in range(MAX_BATCH_ITEMS + 1)]
     request = esa_pb2.ProbeBatchRequest(session_ids=too_many, steps=[0] * len(too_many))
-    server = server_outcome(lambda: client.stub.ProbeBatch(request, timeout=30))
+    server = server_outcome(lambda: raw_grpc.stub(client).ProbeBatch(request, timeout=30))
     native = native_outcome(lambda: engine.resolve(too_many))
     # (The server's wire decoder refuses it before the handler, in its own words.)
     assert (server.code, server.index) == (native.code, native.index) == (INVALID_ARGUMENT, None)
@@ -346,13 +350,15 @@ def test_unknown_repeated_and_malformed_ids(client, make_config):
     # A session closed after its handle was resolved is NOT_FOUND for its item, on both sides;
     # the others are untouched.
     stale = engine.resolve(pair.ids)
-    client.stub.CloseSession(esa_pb2.CloseSessionRequest(session_id=pair.ids[1]), timeout=5)
+    raw_grpc.stub(client).CloseSession(
+        esa_pb2.CloseSessionRequest(session_id=pair.ids[1]), timeout=5
+    )
     engine.close_session(pair.ids[1])
     pair.refused(pair.probe([1, 1, 1], good, handle=stale), NOT_FOUND, 1)
     pair.refused(pair.report([1, 1, 1], np.ones(3), handle=stale), NOT_FOUND, 1)
     # Created again under the same id, the handle finds the new session (as the server does).
     config = make_config(np.random.default_rng(8), 1)
-    client.stub.CreateSession(
+    raw_grpc.stub(client).CreateSession(
         esa_pb2.CreateSessionRequest(session_id=pair.ids[1], config=config.to_proto()), timeout=5
     )
     engine.create_session(pair.ids[1], config_bytes(config))
@@ -380,7 +386,7 @@ def test_unary_calls_and_create_session_match_the_server(client, make_config):
     def create(sid, message):
         request = esa_pb2.CreateSessionRequest(session_id=sid, config=message)
         return both(
-            lambda: client.stub.CreateSession(request, timeout=5).session_id,
+            lambda: raw_grpc.stub(client).CreateSession(request, timeout=5).session_id,
             lambda: engine.create_session(sid, config_bytes(message)),
         )
 
@@ -406,7 +412,7 @@ def test_unary_calls_and_create_session_match_the_server(client, make_config):
     for sid, code in [(session_id, None), (f"native-none-{uuid.uuid4()}", NOT_FOUND), ("", 3)]:
         request = esa_pb2.GetSessionRequest(session_id=sid)
         server, native = both(
-            lambda r=request: client.stub.GetSession(r, timeout=5),
+            lambda r=request: raw_grpc.stub(client).GetSession(r, timeout=5),
             lambda sid=sid: engine.get_session(sid),
         )
         assert native.code == code
@@ -417,14 +423,14 @@ def test_unary_calls_and_create_session_match_the_server(client, make_config):
             )
         request = esa_pb2.EndEpisodeRequest(session_id=sid)
         server, native = both(
-            lambda r=request: client.stub.EndEpisode(r, timeout=5).episodes_completed,
+            lambda r=request: raw_grpc.stub(client).EndEpisode(r, timeout=5).episodes_completed,
             lambda sid=sid: engine.end_episode(sid),
         )
         assert server.value == native.value
     request = esa_pb2.CloseSessionRequest(session_id=session_id)
     for _ in range(2):  # closed, then NOT_FOUND
         server, native = both(
-            lambda: client.stub.CloseSession(request, timeout=5),
+            lambda: raw_grpc.stub(client).CloseSession(request, timeout=5),
             lambda: engine.close_session(session_id),
         )
     assert native.code == NOT_FOUND
@@ -438,7 +444,9 @@ def test_the_session_limit_is_resource_exhausted(server_bin, make_config):
     with EsaClient.spawn(server_bin, max_sessions=2) as limited:
         for i in range(3):
             request = esa_pb2.CreateSessionRequest(session_id=f"s{i}", config=config)
-            server = server_outcome(lambda r=request: limited.stub.CreateSession(r, timeout=5))
+            server = server_outcome(
+                lambda r=request: raw_grpc.stub(limited).CreateSession(r, timeout=5)
+            )
             native = native_outcome(
                 lambda i=i: engine.create_session(f"s{i}", config_bytes(config))
             )
@@ -465,7 +473,7 @@ def test_too_many_action_values_in_one_batch(client):
     assert native.message.startswith("session_ids: the sessions' action_dim add up to 1052672")
     # The server's wire decoder refuses the same values before looking the sessions up.
     request = esa_pb2.ProbeBatchRequest(session_ids=ids, steps=[0] * n, actions=actions.ravel())
-    server = server_outcome(lambda: client.stub.ProbeBatch(request, timeout=60))
+    server = server_outcome(lambda: raw_grpc.stub(client).ProbeBatch(request, timeout=60))
     assert (server.code, server.index) == (INVALID_ARGUMENT, None)
 
 

@@ -35,7 +35,7 @@ def lost(what: str) -> ServerUnavailable:
     return ServerUnavailable(f"simulated: {what}", StatusCode.UNAVAILABLE)
 
 
-class FlakyBatch:
+class FlakyBatch(BatchTransport):
     """Fails the round trips that ``plan`` names: ``call number -> mode``."""
 
     def __init__(

@@ -17,7 +17,7 @@ import pytest
 from esa_client import EsaClient
 from esa_client.errors import EsaError
 from esa_client.rllib.service import EsaService, NodeSidecar, _alive
-from esa_client.transports.native import NativeGrpcTransport
+from esa_client.transports.grpc import GrpcTransport
 
 RUNNER = """
 import json, sys, time
@@ -75,7 +75,7 @@ def test_runners_starting_at_once_share_one_sidecar_which_stops_after_the_last(s
     assert not mine.started and mine.address == joined[0]["address"]
     for p in processes:
         assert p.wait(timeout=30) == 0
-    with EsaClient(mine.address) as client:
+    with EsaClient.connect(mine.address) as client:
         client.wait_ready(5.0)  # still up: this process holds it
     assert (sidecar_dir / "server.json").exists()
     mine.release()
@@ -96,7 +96,7 @@ def test_a_killed_sidecar_is_replaced_by_the_next_runner(sidecar_dir):
     second = NodeSidecar(sidecar_dir)
     assert second.started and second.address != first.address
     successor = json.loads((sidecar_dir / "server.json").read_text())["keeper_pid"]
-    with EsaClient(second.address) as client:
+    with EsaClient.connect(second.address) as client:
         client.wait_ready(5.0)
     first.release()
     second.release()
@@ -143,7 +143,7 @@ def test_runners_follow_a_sidecar_killed_mid_training(sidecar_dir):
     service = EsaService(sidecar_dir=str(sidecar_dir), timeout=1.0, reconnect_timeout=20)
     clients = [service.connect() for _ in range(2)]
     # The runners reach their sidecar through the Rust client, its batches on a StepStream.
-    assert all(isinstance(c.transport.client.transport, NativeGrpcTransport) for c in clients)
+    assert all(isinstance(c.transport.client.transport, GrpcTransport) for c in clients)
     batches = [c.create_batch(config, 2, use_stream=True) for c in clients]
     errors, steps = [], 250
 

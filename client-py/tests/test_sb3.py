@@ -24,8 +24,8 @@ from stable_baselines3.common.noise import NormalActionNoise
 from esa_client import EsaClient, EsaConfig, SessionBatch
 from esa_client.common.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
+from esa_client.transports.grpc import GrpcTransport
 from esa_client.transports.in_process import InProcessTransport
-from esa_client.transports.native import NativeGrpcTransport
 
 N_ENVS = 4
 pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")
@@ -79,7 +79,7 @@ def esa_calls(monkeypatch):
         return applied
 
     monkeypatch.setattr(SessionBatch, "probe_applied", recording)
-    # ESAPPO's linear critic through the native client's stream.
+    # ESAPPO's linear critic through the gRPC client's stream.
     monkeypatch.setattr(SessionBatch, "step_ahead", recording_ahead)
     return calls
 
@@ -411,14 +411,14 @@ def test_esa_spawn_arguments_are_checked_when_the_server_starts(server_bin, monk
 
 
 def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
-    """The in-process engine and a private server (through grpcio's StepStream and the Rust
-    client's) give the same actions with the same seed."""
+    """The in-process engine and a private server (over gRPC, and over Zenoh) give the same
+    actions with the same seed."""
     monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
     runs = {}
     for name, engine, spawn in (
         ("inprocess", "inprocess", None),
-        ("sidecar", "sidecar", {"transport": "grpc"}),
-        ("sidecar-native", "sidecar", None),  # a spawned server's default client
+        ("sidecar", "sidecar", None),  # a spawned server's default client: gRPC
+        ("sidecar-zenoh", "sidecar", {"transport": "zenoh"}),
     ):
         env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=4, wrapper_class=RecordActions)
         model = ESAPPO(
@@ -437,8 +437,8 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
         assert model._esa is not None and model._esa_active
         in_process = isinstance(model._esa.client.transport, InProcessTransport)
         assert in_process == (engine == "inprocess")
-        native = isinstance(model._esa.client.transport, NativeGrpcTransport)
-        assert native == (name == "sidecar-native")
+        grpc = isinstance(model._esa.client.transport, GrpcTransport)
+        assert grpc == (name == "sidecar")
         assert (model._esa.client.server is None) == in_process
         runs[name] = ([np.stack(e.actions) for e in env.envs], parameters(model))
         model.esa_close()
@@ -456,7 +456,7 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
     ids=["esatd3", "esatd3-probe", "esasac"],
 )
 def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatch, cls, execute):
-    """In-process and through a native sidecar (whose steps go ahead, the critic evaluated
+    """In-process and through a sidecar over gRPC (whose steps go ahead, the critic evaluated
     at probes computed here, unless the env executes the server's probe) give the same
     replay buffer and parameters with the same seed."""
     monkeypatch.setenv("ESA_SERVER_BIN", server_bin)

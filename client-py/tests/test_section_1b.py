@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from reference_law import ReferenceBatch, ReferenceSession
 
-from esa_client import InvalidArgument, SessionConfig
+from esa_client import EsaClient, InvalidArgument, SessionConfig
 
 TOL = dict(rtol=1e-9, atol=1e-9)
 
@@ -224,13 +224,12 @@ def test_zenoh_matches_reference(zenoh_client, make_config, assert_same_states):
 def test_sharded_batches_split_and_merge_scales_references_and_applied_actions(
     server_bin, use_stream, assert_same_states
 ):
-    from esa_client import ShardedEsaClient
     from esa_client.sharding import shard_of
 
     config = good_config(normalize_response=True, shift_leak=0.01, trust_region=1.0)
     ids = [f"1b-shard-{k}" for k in range(6)]
     assert {shard_of(i, 2) for i in ids} == {0, 1}, "ids must span both shards"
-    with ShardedEsaClient.spawn(server_bin, shards=2) as sharded:
+    with EsaClient.spawn(server_bin, transport="zenoh", shards=2) as sharded:
         batch = sharded.create_batch(config, 6, ids=ids, use_stream=use_stream)
         reference = ReferenceBatch([config] * 6, ids)
         got = run_batch(batch, np.random.default_rng(3), 6, 2, 40, defer=True)

@@ -41,7 +41,7 @@ N = 3
 @pytest.fixture(scope="module")
 def native(server_bin):
     """A private server through the native client (whose StepStream pipelines)."""
-    with EsaClient.spawn(server_bin, transport="native") as client:
+    with EsaClient.spawn(server_bin) as client:
         yield client
 
 

@@ -22,11 +22,10 @@ from esa_client import (
     StatusCode,
     StepMismatch,
     Unauthenticated,
-    ZenohEsaClient,
 )
 from esa_client._proto.esa.v1 import esa_pb2
 from esa_client.sidecar import ServerProcess
-from esa_client.transports.zenoh_query import TwoServersAnswered, peer_config
+from esa_client.transports.zenoh import TwoServersAnswered, ZenohTransport, peer_config
 
 CONFIG = SessionConfig(action_dim=2, dt=0.05, amplitude=0.2, frequency=10.0, learning_rate=0.5)
 
@@ -77,7 +76,7 @@ def test_already_exists(zenoh_client):
 
 
 def test_resource_exhausted(server_bin):
-    with ZenohEsaClient.spawn(server_bin, max_sessions=1) as small:
+    with EsaClient.spawn(server_bin, transport="zenoh", max_sessions=1) as small:
         small.create_session(CONFIG)
         with pytest.raises(ResourceExhausted) as info:
             small.create_session(CONFIG)
@@ -121,13 +120,9 @@ def test_garbage_bytes_get_a_stream_error_payload(zenoh_client):
 
 def test_without_the_token_calls_are_unauthenticated(zenoh_client):
     with EsaClient.connect(
-        zenoh_client.address, transport="zenoh", timeout=5.0, wait_ready=False
+        zenoh_client.address.split(","), transport="zenoh", timeout=5.0, wait_ready=False
     ) as stranger:
-        assert isinstance(stranger, ZenohEsaClient)
-        with pytest.raises(Unauthenticated):
-            stranger.create_session(CONFIG)
-    # The deprecated constructor, kept for one release, builds the same client.
-    with ZenohEsaClient(zenoh_client.address, timeout=5.0, wait_ready=False) as stranger:
+        assert isinstance(stranger.transport, ZenohTransport)
         with pytest.raises(Unauthenticated):
             stranger.create_session(CONFIG)
 
@@ -140,7 +135,7 @@ def test_a_second_server_on_the_same_keys_is_detected(server_bin, zenoh_client):
     try:
         locators = impostor.announced("zenoh listening on ", 30.0)
         endpoints = [*zenoh_client.address.split(","), *locators]
-        with ZenohEsaClient(endpoints, timeout=5.0, token=token) as confused:
+        with EsaClient.connect(endpoints, transport="zenoh", timeout=5.0, token=token) as confused:
             with pytest.raises(TwoServersAnswered, match="answered 2 times"):
                 confused.create_session(CONFIG)
     finally:
@@ -148,8 +143,12 @@ def test_a_second_server_on_the_same_keys_is_detected(server_bin, zenoh_client):
 
 
 def test_no_server_on_the_prefix_is_unavailable_at_once(zenoh_client):
-    with ZenohEsaClient(
-        zenoh_client.address, prefix="nobody/here", timeout=5.0, wait_ready=False
+    with EsaClient.connect(
+        zenoh_client.address.split(","),
+        transport="zenoh",
+        prefix="nobody/here",
+        timeout=5.0,
+        wait_ready=False,
     ) as lost:
         assert not lost.healthy()
         start = time.monotonic()
@@ -162,12 +161,12 @@ def test_no_server_on_the_prefix_is_unavailable_at_once(zenoh_client):
 def test_unreachable_endpoint_is_unavailable():
     start = time.monotonic()
     with pytest.raises(ServerUnavailable, match="tcp/127.0.0.1:1"):
-        ZenohEsaClient("tcp/127.0.0.1:1", timeout=1.0)
+        EsaClient.connect("tcp/127.0.0.1:1", transport="zenoh", timeout=1.0)
     assert time.monotonic() - start < 5.0
 
 
 def test_a_stopped_server_gives_deadline_exceeded(server_bin):
-    with ZenohEsaClient.spawn(server_bin, timeout=0.5) as client:
+    with EsaClient.spawn(server_bin, transport="zenoh", timeout=0.5) as client:
         session = client.create_session(CONFIG)
         os.kill(client.server.pid, signal.SIGSTOP)
         # kill() returns before the child has stopped; waiting for the stop proves it.
@@ -185,10 +184,26 @@ def test_a_stopped_server_gives_deadline_exceeded(server_bin):
         assert session.probe([0.0, 0.0], episode_start=True).shape == (2,)
 
 
-def test_bad_arguments_are_value_errors():
-    with pytest.raises(ValueError, match="endpoint"):
-        ZenohEsaClient("127.0.0.1:7447")
-    with pytest.raises(ValueError, match="prefix"):
-        ZenohEsaClient("tcp/127.0.0.1:7447", prefix="esa/*")
-    with pytest.raises(ValueError, match="timeout"):
-        ZenohEsaClient("tcp/127.0.0.1:7447", timeout=0)
+@pytest.mark.parametrize(
+    ("address", "arguments", "match"),
+    [
+        ("127.0.0.1:7447", {}, "endpoint"),
+        ([], {}, "at least one Zenoh endpoint"),
+        ("tcp/127.0.0.1:7447", {"prefix": "esa/*"}, "prefix"),
+        ("tcp/127.0.0.1:7447", {"timeout": 0}, "timeout"),
+        ("tcp/127.0.0.1:7447", {"shards": 0}, "shards >= 1"),
+        ("tcp/127.0.0.1:7447", {"tls": object()}, "tls=None"),
+    ],
+)
+def test_bad_arguments_are_value_errors(address, arguments, match):
+    with pytest.raises(ValueError, match=match):
+        EsaClient.connect(address, transport="zenoh", **arguments)
+
+
+def test_bad_spawn_arguments_start_no_server(server_bin):
+    with pytest.raises(ValueError, match="shards >= 1"):
+        EsaClient.spawn(server_bin, transport="zenoh", shards=0)
+    with pytest.raises(ValueError, match="without wildcards"):
+        EsaClient.spawn(server_bin, transport="zenoh", prefix="esa/**")
+    with pytest.raises(ValueError, match="shards with transport='zenoh' only"):
+        EsaClient.spawn(server_bin, shards=2)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from esa_client import EsaClient, SessionConfig, SessionNotFound
-from esa_client.transports.zenoh_query import peer_config
+from esa_client.transports.zenoh import peer_config
 
 CONFIG = SessionConfig(
     action_dim=2,

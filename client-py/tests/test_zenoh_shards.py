@@ -15,10 +15,8 @@ from esa_client import (
     ServerUnavailable,
     SessionConfig,
     SessionNotFound,
-    ShardedEsaClient,
     StatusCode,
 )
-from esa_client._proto.esa.v1 import esa_pb2
 from esa_client.sharding import shard_of
 
 CONFIG = SessionConfig(
@@ -43,7 +41,7 @@ def sharded(server_bin):
 @pytest.fixture(scope="module")
 def shard_grpc(sharded):
     """A gRPC client per shard process, to see which process holds which session."""
-    clients = [EsaClient(server.address, token=server.token) for server in sharded.servers]
+    clients = [EsaClient.connect(s.address, token=s.token) for s in sharded.servers]
     yield clients
     for client in clients:
         client.close()
@@ -63,13 +61,13 @@ def test_sessions_live_on_their_shard_only(sharded, shard_grpc):
     ids = spread_ids("spread", 16)
     for session_id in ids:
         sharded.create_session(CONFIG, session_id)
-    owners = [sharded.shard_of(i) for i in ids]
+    owners = [shard_of(i, 2) for i in ids]
     for session_id, owner in zip(ids, owners, strict=True):
         assert shard_grpc[owner].session_state(session_id).config == CONFIG
         with pytest.raises(SessionNotFound):
             shard_grpc[1 - owner].session_state(session_id)
     generated = sharded.create_session(CONFIG)  # a client-made id, routed the same way
-    assert shard_grpc[sharded.shard_of(generated.id)].session_state(generated.id).step == 0
+    assert shard_grpc[shard_of(generated.id, 2)].session_state(generated.id).step == 0
 
 
 @pytest.mark.parametrize("use_stream", [False, True], ids=["batch", "stream"])
@@ -105,24 +103,8 @@ def test_batch_errors_name_the_item_of_the_whole_batch(sharded):
     assert batch.report(np.arange(6.0)).shape == (6, 2)
 
 
-def test_raw_batches_must_stay_on_one_shard(sharded):
-    by_shard = {0: [], 1: []}
-    while min(len(v) for v in by_shard.values()) < 2:
-        session_id = f"raw-{uuid.uuid4()}"
-        by_shard[shard_of(session_id, 2)].append(session_id)
-    ids = by_shard[0][:2] + by_shard[1][:2]
-    for session_id in ids:
-        sharded.create_session(CONFIG, session_id)
-    request = esa_pb2.ProbeBatchRequest(session_ids=ids, steps=[0] * 4, actions=[0.0] * 8)
-    with pytest.raises(InvalidArgument, match="SessionBatch"):
-        sharded.stub.ProbeBatch(request)
-    one_shard = by_shard[0][:2]
-    request = esa_pb2.ProbeBatchRequest(session_ids=one_shard, steps=[0, 0], actions=[0.0] * 4)
-    assert len(sharded.stub.ProbeBatch(request).probes) == 4
-
-
 def test_a_killed_shard_fails_fast_and_the_other_keeps_serving(server_bin):
-    with ShardedEsaClient.spawn(server_bin, shards=2, timeout=5.0) as client:
+    with EsaClient.spawn(server_bin, transport="zenoh", shards=2, timeout=5.0) as client:
         client.reconnect_timeout = 0  # batches raise the first failure, as unary calls do
         ids = spread_ids("kill", 8)
         batch = client.create_batch(CONFIG, 8, ids=ids)

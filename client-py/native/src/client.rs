@@ -14,7 +14,7 @@ use pyo3::types::{PyBytes, PyTuple};
 use tonic::Code;
 
 use esa_client::blocking::{Client as Remote, StreamThread};
-use esa_client::{Answer, Options, Step, StepStream};
+use esa_client::{Answer, Options, Step, StepStream, Tls};
 use esa_proto::v1 as pb;
 
 use crate::arrays::{shaped, shaped_tuple, Values};
@@ -46,6 +46,33 @@ fn closed() -> PyErr {
     StatusError::new_err("the client is closed")
 }
 
+/// TLS trusting `ca` (else the Mozilla roots), presenting `cert` and `key` (mutual TLS) and
+/// checking the server's certificate against `domain` (else the address's host).
+fn tls_settings(
+    ca: Option<&[u8]>,
+    cert: Option<&[u8]>,
+    key: Option<&[u8]>,
+    domain: Option<String>,
+) -> PyResult<Tls> {
+    let mut tls = match ca {
+        Some(pem) => Tls::default().ca_pem(pem),
+        None => Tls::default().webpki_roots(),
+    };
+    match (cert, key) {
+        (Some(cert), Some(key)) => tls = tls.identity(cert, key),
+        (None, None) => {}
+        _ => {
+            return Err(PyValueError::new_err(
+                "expected both cert and key (mutual TLS) or neither, got one",
+            ))
+        }
+    }
+    if let Some(domain) = domain {
+        tls = tls.domain(domain);
+    }
+    Ok(tls)
+}
+
 /// A connection to one esa-server; see the module stub for the API.
 #[pyclass(frozen, module = "esa_client._native")]
 pub(crate) struct GrpcClient {
@@ -69,13 +96,33 @@ impl GrpcClient {
 #[pymethods]
 impl GrpcClient {
     #[new]
-    #[pyo3(signature = (address, timeout, token = None))]
-    fn new(address: &str, timeout: f64, token: Option<&str>) -> PyResult<Self> {
+    #[pyo3(signature = (
+        address, timeout, token = None, *, tls = false, ca = None, cert = None, key = None,
+        domain = None
+    ))]
+    #[allow(clippy::too_many_arguments)] // the connection's settings, each a keyword
+    fn new(
+        address: &str,
+        timeout: f64,
+        token: Option<&str>,
+        tls: bool,
+        ca: Option<&[u8]>,
+        cert: Option<&[u8]>,
+        key: Option<&[u8]>,
+        domain: Option<String>,
+    ) -> PyResult<Self> {
         let timeout = Duration::try_from_secs_f64(timeout)
             .map_err(|err| PyValueError::new_err(format!("timeout: {err}")))?;
         let mut options = Options::default().timeout(timeout);
         if let Some(token) = token {
             options = options.token(token);
+        }
+        if tls {
+            options = options.tls(tls_settings(ca, cert, key, domain)?);
+        } else if ca.is_some() || cert.is_some() || key.is_some() || domain.is_some() {
+            return Err(PyValueError::new_err(
+                "expected tls=True with ca, cert, key or domain, got tls=False",
+            ));
         }
         let remote = Remote::connect(address, options)
             .map_err(|err| PyValueError::new_err(err.message().to_string()))?;

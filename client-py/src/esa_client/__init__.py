@@ -10,18 +10,16 @@ Quick start::
         probes = batch.probe(actions, episode_starts)       # (4, 1)
         improved = batch.report(critic(observations, probes))  # (4, 1)
 
-One class builds every client: ``EsaClient.connect(address, transport="grpc" | "native"
-| "zenoh")`` for a running server (``shards=N`` over Zenoh), ``EsaClient.spawn(...)`` for a
-private one, ``EsaClient.in_process()`` for esa-core in this process; the transports are
-in :mod:`esa_client.transports`. ``ZenohEsaClient`` and ``ShardedEsaClient`` (extra
-``esa-client[zenoh]``) are what ``transport="zenoh"`` returns; building them directly is
-deprecated. Stable-baselines3 drop-ins live in :mod:`esa_client.sb3`, RLlib's in
-:mod:`esa_client.rllib`, a gymnasium wrapper in :mod:`esa_client.wrappers`.
+One class, three ways to build it: ``EsaClient.connect(address)`` for a running server
+(``transport="zenoh"`` over Zenoh, extra ``esa-client[zenoh]``, ``shards=N`` for N of
+them), ``EsaClient.spawn(...)`` for a private one, ``EsaClient.in_process()`` for esa-core
+in this process; the transports are in :mod:`esa_client.transports`. Stable-baselines3
+drop-ins live in :mod:`esa_client.sb3`, RLlib's in :mod:`esa_client.rllib`, gymnasium
+wrappers in :mod:`esa_client.wrappers` and :mod:`esa_client.vector_wrapper`.
 """
 
 from importlib import metadata as _metadata
 
-from .base_client import BaseClient
 from .client import EsaClient, TransportName
 from .config import EsaConfig, SessionConfig
 from .errors import (
@@ -38,23 +36,9 @@ from .errors import (
 )
 from .session import Session, SessionBatch, SessionState
 from .transports.base import LinearCritic
-from .transports.grpcio import TlsConfig
-
-# Zenoh is an optional extra (esa-client[zenoh]): its clients load on first use.
-_ZENOH_EXPORTS = {"ZenohEsaClient", "ShardedEsaClient"}
-
-
-def __getattr__(name: str) -> object:
-    """Imports the Zenoh clients lazily, so that the package works without eclipse-zenoh."""
-    if name in _ZENOH_EXPORTS:
-        from . import zenoh_client
-
-        return getattr(zenoh_client, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
+from .transports.grpc import TlsConfig
 
 __all__ = [
-    "BaseClient",
     "DeadlineExceeded",
     "EsaClient",
     "EsaConfig",
@@ -69,13 +53,11 @@ __all__ = [
     "SessionConfig",
     "SessionNotFound",
     "SessionState",
-    "ShardedEsaClient",
     "StatusCode",
     "StepMismatch",
     "TlsConfig",
     "TransportName",
     "Unauthenticated",
-    "ZenohEsaClient",
 ]
 
 try:

@@ -632,12 +632,30 @@ class GrpcClient:
         address: ``host:port`` (TCP) or ``unix:/path/to/socket``.
         timeout: Deadline of every call, in seconds.
         token: The server's auth token, or None.
+        tls: Connect over TLS (rustls), to a ``host:port`` address.
+        ca: PEM of the CA(s) that issued the server's certificate; None trusts the Mozilla
+            roots. TLS only.
+        cert: PEM of this client's certificate chain (mutual TLS), with ``key``. TLS only.
+        key: PEM of the certificate's private key. TLS only.
+        domain: The name to check the server's certificate against instead of the
+            address's host. TLS only.
 
     Raises:
-        ValueError: A malformed address, timeout or token.
+        ValueError: A malformed address, timeout, token or TLS setting.
     """
 
-    def __init__(self, address: str, timeout: float, token: str | None = None) -> None: ...
+    def __init__(
+        self,
+        address: str,
+        timeout: float,
+        token: str | None = None,
+        *,
+        tls: bool = False,
+        ca: bytes | None = None,
+        cert: bytes | None = None,
+        key: bytes | None = None,
+        domain: str | None = None,
+    ) -> None: ...
     def create_session(self, session_id: str, config: bytes) -> str:
         """CreateSession with an encoded ``esa.v1.SessionConfig``; returns the id."""
 

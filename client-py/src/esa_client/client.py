@@ -1,40 +1,80 @@
-"""``EsaClient``: the one way to build a client, whatever the transport.
+"""``EsaClient``: the session API, and the three ways to build a client.
 
-- :meth:`EsaClient.connect` reaches a running server: over gRPC (grpcio, the default),
-  over gRPC through the Rust client of ``esa_client._native`` (``transport="native"``),
-  or over Zenoh (``transport="zenoh"``, one server or ``shards=N``);
+- :meth:`EsaClient.connect` reaches running servers: over gRPC (``host:port`` or
+  ``unix:/path``), or over Zenoh (``transport="zenoh"``: one server, or ``shards=N``);
 - :meth:`EsaClient.spawn` starts a private server first (gRPC on a Unix socket, or
   ``esa-server --zenoh`` on loopback, N of them with ``shards=N``) and owns it;
 - :meth:`EsaClient.in_process` needs no server: esa-core compiled into this package.
 
-Every one returns a :class:`~esa_client.base_client.BaseClient`: the same session API
-over its :class:`~esa_client.transports.base.Transport` (:mod:`esa_client.transports`).
-The older constructors, ``EsaClient(address, native=...)``, ``ZenohEsaClient(...)`` and
-``ShardedEsaClient(...)``, still work for this release and are deprecated.
+Each builds the :class:`~esa_client.transports.base.Transport` it needs
+(:mod:`esa_client.transports`) and wraps it in an :class:`EsaClient`, whose sessions and
+batches (:mod:`esa_client.session`) are written against that interface only.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Sequence
-from functools import partial
-from typing import TYPE_CHECKING, Literal, get_args
+import secrets
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal, TypedDict, TypeVar, get_args
 
-from .base_client import BaseClient, check_timeout, connect_spawned, resolve_token
-from .reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
+from ._proto.esa.v1 import esa_pb2
+from .config import SessionConfig
+from .errors import EsaError, ServerUnavailable, StatusCode
+from .reconnect import DEFAULT_RECONNECT_TIMEOUT, Reconnect, check_reconnect_timeout
+from .session import Session, SessionBatch, restore_sessions
 from .sidecar import ServerProcess
-from .transports.grpcio import GrpcTransport, TlsConfig
-from .transports.stub import ServiceStub
+from .state import SessionState, as_batch_configs
+from .transports.base import Transport
+from .transports.grpc import GrpcTransport, TlsConfig
 
 if TYPE_CHECKING:
     import zenoh
 
-    from .transports.native import NativeGrpcTransport
-
-TransportName = Literal["grpc", "native", "zenoh"]
+TransportName = Literal["grpc", "zenoh"]
 """How :meth:`EsaClient.connect` and :meth:`EsaClient.spawn` reach the server."""
 
 _TRANSPORTS: tuple[str, ...] = get_args(TransportName)
+
+TOKEN_ENV = "ESA_AUTH_TOKEN"
+
+_LOCATOR_LINE = "zenoh listening on "
+
+_Client = TypeVar("_Client", bound="EsaClient")
+
+
+def check_timeout(timeout: float) -> float:
+    """Returns ``timeout`` as a float if it is a positive number of seconds."""
+    if not timeout > 0:
+        raise ValueError(f"expected timeout > 0 seconds, got {timeout}")
+    return float(timeout)
+
+
+def resolve_token(token: str | None, token_file: str | os.PathLike[str] | None) -> str | None:
+    """The auth token to send: ``token``, else ``token_file``'s content, else ``$ESA_AUTH_TOKEN``.
+
+    Surrounding whitespace is removed, as the server does with its ``--auth-token-file``.
+
+    Raises:
+        ValueError: If both are given, or the token found is empty.
+        OSError: If ``token_file`` cannot be read.
+    """
+    if token is not None and token_file is not None:
+        raise ValueError(f"expected token or token_file, got both (token_file={token_file!r})")
+    source = "token"
+    if token_file is not None:
+        token, source = Path(token_file).read_text(), f"token_file {token_file}"
+    elif token is None:
+        token, source = os.environ.get(TOKEN_ENV), f"${TOKEN_ENV}"
+    if token is None:
+        return None
+    if not token.strip():
+        raise ValueError(f"expected a non-empty auth token in {source}, got {token!r}")
+    return token.strip()
 
 
 def _check_address(address: str) -> str:
@@ -57,13 +97,74 @@ def _check_transport(transport: str, **zenoh_only: object) -> None:
         raise ValueError(f"expected {', '.join(given)} with transport='zenoh' only")
 
 
-class EsaClient(BaseClient):
-    """A client of an esa server: build one with :meth:`connect`, :meth:`spawn`, :meth:`in_process`.
+def _grpc_transport(
+    address: str, timeout: float, token: str | None, tls: TlsConfig | None
+) -> GrpcTransport:
+    """The gRPC transport to ``address``, checked."""
+    address = _check_address(address)
+    if tls is not None and address.startswith("unix:"):
+        raise ValueError(
+            f"expected a host:port address with tls (the server serves TLS on TCP only), "
+            f"got {address!r}"
+        )
+    return GrpcTransport(address, timeout, token, tls)
+
+
+class _Limits(TypedDict):
+    """The server limits every spawned process gets (``ServerProcess`` arguments)."""
+
+    session_ttl: float | None
+    max_sessions: int | None
+    max_session_memory: int | None
+
+
+def _spawn_zenoh_servers(
+    binary: str | os.PathLike[str] | None,
+    args: Sequence[str],
+    shards: int | None,
+    limits: _Limits,
+    startup_timeout: float,
+) -> tuple[list[ServerProcess], list[str]]:
+    """Starts ``esa-server --zenoh`` (``--shard i/N`` each with ``shards``) on loopback.
+
+    Zenoh listens on a loopback TCP port that every local user can reach, so the servers
+    require one fresh random token on every query (and gRPC call, on their private Unix
+    sockets). Returns the servers and the locators they announced.
+    """
+    token = secrets.token_urlsafe(32)
+    parts: list[list[str]] = (
+        [[]] if shards is None else [["--shard", f"{i}/{shards}"] for i in range(shards)]
+    )
+    servers: list[ServerProcess] = []
+    locators: list[str] = []
+    try:
+        for shard in parts:
+            server = ServerProcess(
+                binary, **limits, token=token, extra_args=["--zenoh", *shard, *args]
+            )
+            servers.append(server)
+            announced = server.announced(_LOCATOR_LINE, startup_timeout)
+            if not announced:
+                raise ServerUnavailable(
+                    f"{server.binary} announced no Zenoh locator; its output:\n"
+                    f"{server.output_tail()}",
+                    StatusCode.UNAVAILABLE,
+                )
+            locators += announced
+    except BaseException:
+        for server in servers:
+            server.stop()
+        raise
+    return servers, locators
+
+
+class EsaClient:
+    """A client of esa sessions, built by :meth:`connect`, :meth:`spawn` or :meth:`in_process`.
 
     Every call has a deadline of ``timeout`` seconds; a lost connection raises
     :class:`~esa_client.errors.ServerUnavailable` at once instead of waiting, except in a
-    batch (:meth:`create_batch`), which retries for up to ``reconnect_timeout`` seconds
-    (set by :meth:`connect` and :meth:`spawn`, default 60) and then raises it.
+    batch (:meth:`create_batch`), which retries for up to :attr:`reconnect_timeout`
+    seconds and then raises it.
 
     Example::
 
@@ -72,90 +173,46 @@ class EsaClient(BaseClient):
             probe = session.probe([0.3], episode_start=True)
             action = session.report(q_value=critic(obs, probe))
 
-    An ``EsaClient`` instance is the gRPC client (grpcio, or the Rust client); the
-    constructor itself is what :meth:`connect` calls for those two transports.
-
-    .. deprecated::
-        Calling ``EsaClient(address, ...)`` directly, and its ``native=True``, are kept
-        for one release: use ``EsaClient.connect(address)`` and
-        ``EsaClient.connect(address, transport="native")``.
+    The constructor wraps a :class:`~esa_client.transports.base.Transport` of your own (the
+    three constructors build theirs); the client owns it and closes it.
 
     Args:
-        address: ``host:port`` or ``unix:/path/to/socket``.
-        timeout: Deadline in seconds for every call.
-        token: The auth token of a server started with ``--auth-token-file``, sent as
-            ``authorization: Bearer <token>`` metadata with every call.
-        token_file: A file holding the token instead (e.g. the server's own token file).
-            With neither, the ``ESA_AUTH_TOKEN`` environment variable is used if set.
-        tls: Connect over TLS (a server started with ``--tls-cert``), e.g.
-            ``TlsConfig(ca="ca.pem")``, with ``cert=`` and ``key=`` for mutual TLS; the
-            token then travels encrypted. None: plaintext (loopback or a Unix socket).
-        native: Call through the Rust gRPC client of ``esa_client._native``
-            (:class:`~esa_client.transports.native.NativeGrpcTransport`: several times
-            faster per round trip, ``StepStream`` batches, no TLS) instead of grpcio.
+        transport: The transport; the client closes it.
+        address: Where the transport goes, for messages.
+        timeout: The per-call deadline of the transport, in seconds.
 
     Attributes:
-        address: The gRPC target.
+        transport: The transport.
+        address: Where it goes.
         timeout: The per-call deadline in seconds.
-        stub: The generated ``EsaServiceStub`` (for raw access to the wire API); grpcio's
-            only, so not with ``native=True``.
-        transport: The :class:`~esa_client.transports.grpcio.GrpcTransport`, or the
-            :class:`~esa_client.transports.native.NativeGrpcTransport` with ``native=True``.
-        server: The :class:`~esa_client.sidecar.ServerProcess` when started by
-            :meth:`spawn`, else None.
-        sessions_restored: How many sessions :meth:`restore_sessions` recreated.
+        servers: The server processes :meth:`spawn` started (``servers[i]`` serves shard
+            i), stopped by :meth:`close`; empty otherwise.
+        sessions_restored: How many sessions :meth:`restore_sessions` (or a batch's
+            :meth:`~esa_client.SessionBatch.restore`) recreated.
+        reconnect_timeout: How long a batch keeps retrying when the server is unreachable
+            (down, restarting, stalled, or the connection or stream broke), in seconds,
+            before it raises ``ServerUnavailable``; 0 raises the first failure. Set by
+            ``connect``/``spawn`` (default 60); read by :meth:`create_batch`.
     """
 
-    transport: GrpcTransport | NativeGrpcTransport
-
-    def __init__(
-        self,
-        address: str = "127.0.0.1:50051",
-        *,
-        timeout: float = 5.0,
-        token: str | None = None,
-        token_file: str | os.PathLike[str] | None = None,
-        tls: TlsConfig | None = None,
-        native: bool = False,
-    ) -> None:
-        """Opens a channel to ``address`` (connecting lazily).
+    def __init__(self, transport: Transport, *, address: str, timeout: float) -> None:
+        """Takes ownership of ``transport``.
 
         Raises:
-            ValueError: If the address, timeout or token is malformed, or TLS is asked for
-                on a Unix socket (the server serves TLS on TCP only) or with ``native``.
-            OSError: If a token or TLS file cannot be read.
+            TypeError: If ``transport`` is an address (use :meth:`connect`).
         """
-        timeout = check_timeout(timeout)
-        address = _check_address(address)
-        if tls is not None and address.startswith("unix:"):
-            raise ValueError(
-                f"expected a host:port address with tls (the server serves TLS on TCP only), "
-                f"got {address!r}"
+        if isinstance(transport, str):
+            raise TypeError(
+                f"expected a Transport, got the address {transport!r}: "
+                f"use EsaClient.connect({transport!r})"
             )
-        resolved = resolve_token(token, token_file)
-        transport: GrpcTransport | NativeGrpcTransport
-        if native:
-            if tls is not None:
-                raise ValueError("expected tls=None with native=True (grpcio serves TLS)")
-            # Imported here: the extension module loads only for those who use it.
-            from .transports.native import NativeGrpcTransport
-
-            transport = NativeGrpcTransport(address, timeout, resolved)
-        else:
-            transport = GrpcTransport(address, timeout, resolved, tls)
-            self._channel = transport.channel
-        super().__init__(transport, address=address, timeout=timeout)
-
-    @property
-    def stub(self) -> ServiceStub:
-        """The generated ``EsaServiceStub`` of the grpcio channel.
-
-        Raises:
-            AttributeError: With ``native=True`` (no grpcio channel).
-        """
-        if not isinstance(self.transport, GrpcTransport):
-            raise AttributeError("EsaClient(native=True) has no grpcio stub")
-        return self.transport.stub
+        self.transport = transport
+        self.address = address
+        self.timeout = timeout
+        self.servers: tuple[ServerProcess, ...] = ()
+        self.sessions_restored = 0
+        self.reconnect_timeout = DEFAULT_RECONNECT_TIMEOUT
+        self._closed = False
 
     @classmethod
     def connect(
@@ -172,24 +229,26 @@ class EsaClient(BaseClient):
         zenoh_config: zenoh.Config | None = None,
         wait_ready: bool | None = None,
         reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
-    ) -> BaseClient:
+    ) -> EsaClient:
         """A client of the running server(s) at ``address``, over ``transport``.
 
         Example::
 
-            EsaClient.connect("127.0.0.1:50051")                     # grpcio
-            EsaClient.connect("unix:/run/esa.sock", transport="native")
-            EsaClient.connect("tcp/10.0.0.5:7447", transport="zenoh", shards=4)
+            EsaClient.connect("127.0.0.1:50051")                     # gRPC
+            EsaClient.connect("esa-host:50051", tls=TlsConfig(ca="ca.pem"), token_file="token")
+            EsaClient.connect("unix:/run/esa.sock")                  # gRPC on a Unix socket
+            EsaClient.connect("tcp/10.0.0.5:7447", transport="zenoh")
+            EsaClient.connect(routers, transport="zenoh", shards=4)  # 4 servers, --shard i/4
 
         Args:
-            address: gRPC (``"grpc"``, ``"native"``): ``host:port`` or
-                ``unix:/path/to/socket``. Zenoh: the endpoint(s) of the server or router,
-                e.g. ``tcp/127.0.0.1:7447``.
-            transport: ``"grpc"`` (grpcio: TLS, ``StepStream``), ``"native"`` (the Rust
-                gRPC client: faster per round trip, ``StepStream``, no TLS) or
-                ``"zenoh"`` (extra ``esa-client[zenoh]``).
+            address: gRPC: ``host:port`` or ``unix:/path/to/socket``. Zenoh: the
+                endpoint(s) of the server or router, e.g. ``tcp/127.0.0.1:7447``.
+            transport: ``"grpc"`` (the Rust client of ``esa_client._native``: TLS, token,
+                health, one ``StepStream`` per batch with ``use_stream``) or ``"zenoh"``
+                (queries; extra ``esa-client[zenoh]``). The same sessions and calls either
+                way; a server serves both when started with ``--zenoh``.
             timeout: Deadline in seconds for every call (and, over Zenoh, connecting).
-            token: The servers' auth token (``--auth-token-file``).
+            token: The servers' auth token (``--auth-token-file``), sent with every call.
             token_file: A file holding the token instead; with neither,
                 ``$ESA_AUTH_TOKEN`` if set.
             tls: gRPC over TLS (``"grpc"`` only), see :class:`~esa_client.TlsConfig`.
@@ -204,50 +263,43 @@ class EsaClient(BaseClient):
                 backoff with jitter) when the server is unreachable, restarting or
                 stalled, before they raise ``ServerUnavailable``; 0: raise at once.
 
-        Returns:
-            An :class:`EsaClient` for gRPC; for Zenoh a ``ZenohEsaClient`` (one server)
-            or a ``ShardedEsaClient`` (``shards=N``), with the same API.
-
         Raises:
             ValueError: A malformed argument, or one the transport does not take.
+            OSError: If a token or TLS file cannot be read.
             ServerUnavailable: ``wait_ready`` and no server answered in time.
         """
         _check_transport(transport, shards=shards, prefix=prefix, zenoh_config=zenoh_config)
         reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
+        timeout = check_timeout(timeout)
+        resolved = resolve_token(token, token_file)
+        opened: Transport
         if transport == "zenoh":
             if tls is not None:
                 raise ValueError("expected tls=None with transport='zenoh' (use zenoh_config)")
-            from .transports.zenoh_query import DEFAULT_PREFIX
-            from .zenoh_client import ShardedEsaClient, ZenohEsaClient
+            from .transports.zenoh import DEFAULT_PREFIX, ZenohTransport
 
-            zenoh_client = (
-                ZenohEsaClient if shards is None else partial(ShardedEsaClient, shards=shards)
-            )
-            zenoh_made: BaseClient = zenoh_client(
+            opened = ZenohTransport.open(
                 address,
                 prefix=DEFAULT_PREFIX if prefix is None else prefix,
                 timeout=timeout,
+                token=resolved,
+                shards=shards,
                 config=zenoh_config,
-                wait_ready=wait_ready is not False,
-                token=token,
-                token_file=token_file,
             )
-            zenoh_made.reconnect_timeout = reconnect_timeout
-            return zenoh_made
-        if not isinstance(address, str):
-            raise ValueError(f"expected one 'host:port' or 'unix:/path' address, got {address!r}")
-        client: BaseClient = cls(
-            address,
-            timeout=timeout,
-            token=token,
-            token_file=token_file,
-            tls=tls,
-            native=transport == "native",
-        )
+            where = address if isinstance(address, str) else ",".join(address)
+            wait_ready = wait_ready is not False
+        else:
+            if not isinstance(address, str):
+                raise ValueError(
+                    f"expected one 'host:port' or 'unix:/path' address, got {address!r}"
+                )
+            opened = _grpc_transport(address, timeout, resolved, tls)
+            where = address
+        client = cls(opened, address=where, timeout=timeout)
         client.reconnect_timeout = reconnect_timeout
         if wait_ready:
             try:
-                client.wait_ready(client.timeout)
+                client.wait_ready(timeout)
             except BaseException:
                 client.close()
                 raise
@@ -267,17 +319,15 @@ class EsaClient(BaseClient):
         timeout: float = 5.0,
         startup_timeout: float = 30.0,
         prefix: str | None = None,
-        native: bool = False,
         reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
-    ) -> BaseClient:
+    ) -> EsaClient:
         """Starts a private esa-server and returns a client connected to it.
 
-        gRPC (``"grpc"``, ``"native"``): the server listens on a Unix socket in a private
+        gRPC: the server listens on a Unix socket in a private
         directory. Zenoh: ``esa-server --zenoh`` on loopback, N processes (``--shard
         i/N``) with ``shards=N``; each also serves gRPC on a private socket
-        (``client.server.address``, ``client.servers[i].address``) and requires a fresh
-        random token (``client.server.token``), since a loopback port is open to every
-        local user.
+        (``client.servers[i].address``) and requires a fresh random token
+        (``client.servers[i].token``), since a loopback port is open to every local user.
 
         The server is found via ``binary``, ``ESA_SERVER_BIN``, ``PATH`` or a cargo
         build of this repository (see :func:`esa_client.sidecar.find_server_binary`),
@@ -286,7 +336,7 @@ class EsaClient(BaseClient):
 
         Args:
             binary: Path of the esa-server executable; None searches for it.
-            transport: ``"grpc"``, ``"native"`` or ``"zenoh"``, as in :meth:`connect`.
+            transport: ``"grpc"`` or ``"zenoh"``, as in :meth:`connect`.
             shards: Zenoh only: N server processes, sessions routed between them.
             session_ttl: Idle-session expiry in seconds (0 = never); None = the server's
                 default (600).
@@ -294,91 +344,90 @@ class EsaClient(BaseClient):
                 (100,000).
             max_session_memory: Session memory budget in bytes (per shard); None = the
                 server's default (half of the memory it may use).
-            extra_args: Further server arguments.
+            extra_args: Further arguments for every server.
             timeout: Per-call deadline of the returned client.
-            startup_timeout: Seconds to wait for the server to report healthy.
+            startup_timeout: Seconds to wait for each server to report healthy.
             prefix: Zenoh only: the ``--zenoh-prefix`` to serve and use.
-            native: Deprecated (kept for one release): ``transport="native"``.
             reconnect_timeout: As for :meth:`connect`.
-
-        Returns:
-            An :class:`EsaClient` for gRPC; for Zenoh a ``ZenohEsaClient`` or, with
-            ``shards``, a ``ShardedEsaClient``.
 
         Raises:
             ValueError: If a limit is not a number at least its minimum, or an argument
                 does not go with the transport.
             EsaError: If the binary cannot be found or built.
-            ServerUnavailable: If the server exits or is not healthy in time (with its output).
+            ServerUnavailable: If a server exits or is not healthy in time (with its output).
         """
-        if native:
-            transport = "native"
         _check_transport(transport, shards=shards, prefix=prefix)
         reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
-        client = cls._spawn(
-            binary,
-            transport,
-            shards,
-            session_ttl,
-            max_sessions,
-            max_session_memory,
-            extra_args,
-            timeout,
-            startup_timeout,
-            prefix,
-        )
+        timeout = check_timeout(timeout)
+        limits: _Limits = {
+            "session_ttl": session_ttl,
+            "max_sessions": max_sessions,
+            "max_session_memory": max_session_memory,
+        }
+        if transport == "zenoh":
+            from .transports.zenoh import DEFAULT_PREFIX, ZenohTransport, check_prefix, check_shards
+
+            check_shards(shards)
+            zenoh_prefix = check_prefix(DEFAULT_PREFIX if prefix is None else prefix)
+            servers, locators = _spawn_zenoh_servers(
+                binary,
+                ["--zenoh-prefix", zenoh_prefix, *extra_args],
+                shards,
+                limits,
+                startup_timeout,
+            )
+
+            def open_transport() -> Transport:
+                return ZenohTransport.open(
+                    locators,
+                    prefix=zenoh_prefix,
+                    timeout=timeout,
+                    token=servers[0].token,
+                    shards=shards,
+                    config=None,
+                )
+
+            address = ",".join(locators)
+        else:
+            servers = [ServerProcess(binary, **limits, extra_args=extra_args)]
+            address = servers[0].address
+
+            def open_transport() -> Transport:
+                return _grpc_transport(address, timeout, None, None)
+
+        client = cls._owning(servers, open_transport, address, timeout, startup_timeout)
         client.reconnect_timeout = reconnect_timeout
         return client
 
     @classmethod
-    def _spawn(
+    def _owning(
         cls,
-        binary: str | os.PathLike[str] | None,
-        transport: TransportName,
-        shards: int | None,
-        session_ttl: float | None,
-        max_sessions: int | None,
-        max_session_memory: int | None,
-        extra_args: Sequence[str],
+        servers: Sequence[ServerProcess],
+        open_transport: Callable[[], Transport],
+        address: str,
         timeout: float,
         startup_timeout: float,
-        prefix: str | None,
-    ) -> BaseClient:
-        """What :meth:`spawn` starts and connects, before its reconnect deadline is set."""
-        if transport == "zenoh":
-            from .transports.zenoh_query import DEFAULT_PREFIX
-            from .zenoh_client import ShardedEsaClient, ZenohEsaClient
+    ) -> EsaClient:
+        """A client over ``open_transport()`` that owns ``servers``, once they are healthy.
 
-            spawn_zenoh = (
-                ZenohEsaClient.spawn
-                if shards is None
-                else partial(ShardedEsaClient.spawn, shards=shards)
-            )
-            return spawn_zenoh(
-                binary,
-                session_ttl=session_ttl,
-                max_sessions=max_sessions,
-                max_session_memory=max_session_memory,
-                extra_args=extra_args,
-                timeout=timeout,
-                startup_timeout=startup_timeout,
-                prefix=DEFAULT_PREFIX if prefix is None else prefix,
-            )
-        server = ServerProcess(
-            binary,
-            session_ttl=session_ttl,
-            max_sessions=max_sessions,
-            max_session_memory=max_session_memory,
-            extra_args=extra_args,
-        )
-        return connect_spawned(
-            server,
-            lambda: cls(server.address, timeout=timeout, native=transport == "native"),
-            startup_timeout,
-        )
+        If connecting or waiting fails, the servers are stopped before the error
+        propagates, so no child process outlives a failed :meth:`spawn`.
+        """
+        client: EsaClient | None = None
+        try:
+            client = cls(open_transport(), address=address, timeout=timeout)
+            client.servers = tuple(servers)
+            client._wait_healthy(startup_timeout)
+        except BaseException:
+            if client is not None:
+                client.close()
+            for server in servers:
+                server.stop()
+            raise
+        return client
 
-    @staticmethod
-    def in_process(*, max_sessions: int | None = None) -> BaseClient:
+    @classmethod
+    def in_process(cls, *, max_sessions: int | None = None) -> EsaClient:
         """A client of the in-process engine: the same API, no server and no socket.
 
         The engine (``esa_client._native``) is esa-core compiled into this package: the
@@ -388,12 +437,199 @@ class EsaClient(BaseClient):
 
         Args:
             max_sessions: Live-session limit; None = the server's default (100,000).
-
-        Returns:
-            A client over :class:`~esa_client.transports.in_process.InProcessTransport`.
         """
         # Imported here: the extension module loads only for those who use it.
         from .transports.in_process import InProcessTransport
 
         transport = InProcessTransport(max_sessions=max_sessions)
-        return BaseClient(transport, address="in-process", timeout=float("inf"))
+        return cls(transport, address="in-process", timeout=float("inf"))
+
+    @property
+    def server(self) -> ServerProcess | None:
+        """The one server :meth:`spawn` started (None if it started N shards, or none)."""
+        return self.servers[0] if len(self.servers) == 1 else None
+
+    def _wait_healthy(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            for server in self.servers:
+                server.check_running()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                tails = "".join(
+                    f"; {server.binary} (pid {server.pid}) output:\n{server.output_tail()}"
+                    for server in self.servers
+                )
+                raise ServerUnavailable(
+                    f"esa server at {self.address} not healthy within {timeout} s{tails}",
+                    StatusCode.UNAVAILABLE,
+                )
+            # Short waits so that a crashed server process is noticed promptly.
+            if self.healthy(timeout=min(0.25, remaining), wait_for_ready=True):
+                return
+
+    def healthy(self, *, timeout: float | None = None, wait_for_ready: bool = False) -> bool:
+        """True if every server behind this client is serving.
+
+        Args:
+            timeout: Deadline in seconds (default: the client's timeout).
+            wait_for_ready: Wait (up to the deadline) for the connection instead of
+                failing at once when the server is not reachable yet.
+
+        Returns:
+            True if the servers answer as serving; False if one is unreachable or not serving.
+        """
+        bound = self.timeout if timeout is None else timeout
+        return self.transport.healthy(bound, wait_for_ready=wait_for_ready)
+
+    def wait_ready(self, timeout: float = 10.0) -> None:
+        """Blocks until the server is healthy.
+
+        Raises:
+            ServerUnavailable: If it is not healthy within ``timeout`` seconds.
+        """
+        self._wait_healthy(timeout)
+
+    def create_session(
+        self, config: SessionConfig | esa_pb2.SessionConfig, session_id: str | None = None
+    ) -> Session:
+        """Creates a session (or returns the existing one with this id and an identical config).
+
+        Args:
+            config: The config; a raw ``esa_pb2.SessionConfig`` is sent unchecked.
+            session_id: 1 to 128 bytes; None lets the server generate a UUID.
+
+        Raises:
+            InvalidArgument: The server rejected the config or id.
+            SessionAlreadyExists: The id exists with a different config.
+            ResourceExhausted: The server's session limit is reached.
+        """
+        message = config.to_proto() if isinstance(config, SessionConfig) else config
+        created = self.transport.create_session(session_id or "", message)
+        if not isinstance(config, SessionConfig):
+            config = SessionConfig.from_proto(message)
+        return Session(self.transport, created, config)
+
+    def session_state(self, session_id: str) -> SessionState:
+        """Returns a snapshot of a session (``GetSession``)."""
+        return self.transport.get_session(session_id)
+
+    def get_session(self, session_id: str) -> Session:
+        """Returns a :class:`Session` bound to an existing server session, at its current step.
+
+        Raises:
+            SessionNotFound: If the id is unknown, closed or expired.
+        """
+        state = self.session_state(session_id)
+        return Session(self.transport, session_id, state.config, step=state.step)
+
+    def create_batch(
+        self,
+        configs: SessionConfig | Sequence[SessionConfig],
+        n: int | None = None,
+        *,
+        ids: Sequence[str] | None = None,
+        use_stream: bool = False,
+    ) -> SessionBatch:
+        """Creates N sessions stepped together, e.g. one per env of a VecEnv.
+
+        Args:
+            configs: One config for all N sessions, or a sequence of N configs
+                (all with the same ``action_dim``).
+            n: Number of sessions (required with a single config).
+            ids: Session ids; None = a random UUID per session (ids share nothing, so
+                one id tells nothing about the others).
+            use_stream: Carry probes and reports over one persistent gRPC ``StepStream``
+                instead of ``ProbeBatch`` / ``ReportBatch`` calls (in-process and Zenoh
+                batches have no stream to keep: one call is one message there).
+
+        The batch rides out a lost server for up to :attr:`reconnect_timeout` seconds:
+        it repeats the failed step with capped exponential backoff and jitter; once the
+        server answers again, it sends what the server has not applied (by the
+        sessions' step numbers, so no report is applied twice) and recreates sessions a
+        restarted server lost, which then start a new episode (losing that episode's
+        shift, the episode count and the response's mean square).
+
+        Returns:
+            The batch. If creating one of the sessions fails, those already created
+            are closed before the error is raised.
+        """
+        per_session = as_batch_configs(configs, n)
+        if ids is None:
+            ids = [str(uuid.uuid4()) for _ in per_session]
+        if len(ids) != len(per_session):
+            raise ValueError(f"expected {len(per_session)} ids, got {len(ids)}")
+        created: list[str] = []
+        try:
+            for session_id, config in zip(ids, per_session, strict=True):
+                created.append(self.transport.create_session(session_id, config.to_proto()))
+        except BaseException:
+            for session_id in created:
+                with contextlib.suppress(EsaError):
+                    self.transport.close_session(session_id)
+            raise
+        return SessionBatch(
+            self.transport,
+            created,
+            per_session,
+            use_stream=use_stream,
+            on_restore=self._count_restored,
+            reconnect=Reconnect(self.address, self.reconnect_timeout, closed=lambda: self._closed),
+        )
+
+    def restore_sessions(
+        self, ids: Sequence[str], configs: SessionConfig | Sequence[SessionConfig]
+    ) -> int:
+        """Recreates, under the same ids and configs, those sessions the server no longer has.
+
+        A session is lost when its server restarts or when it expires after ``--session-ttl``
+        idle seconds; afterwards every call for it raises ``SessionNotFound``. ESA state is
+        per episode, so a session recreated at the start of an episode behaves exactly like
+        the lost one would have: what is lost is the shift of the episode that was running,
+        the episode count (and with it the ``lr_decay`` and ``max_episodes`` progress) and
+        the response normalization's running mean square. Call this when a call raised
+        ``SessionNotFound``, then start a new episode (step 0, ``episode_start=True``).
+
+        Args:
+            ids: The session ids, e.g. ``batch.ids``.
+            configs: One config for all, or one per id (e.g. ``batch.configs``).
+
+        Returns:
+            How many sessions were recreated (also added to :attr:`sessions_restored`).
+        """
+        restored = restore_sessions(self.transport, ids, configs)
+        self._count_restored(restored)
+        return restored
+
+    def _count_restored(self, sessions: int) -> None:
+        self.sessions_restored += sessions
+
+    def close(self) -> None:
+        """Closes the transport, then stops the servers :meth:`spawn` started. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self.transport.close()
+        for server in self.servers:
+            server.stop()
+
+    def __enter__(self: _Client) -> _Client:
+        """Returns self."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Closes the client."""
+        self.close()
+
+    def __copy__(self: _Client) -> _Client:
+        """Returns self: a client is a handle on one connection (and server), shared not copied."""
+        return self
+
+    def __deepcopy__(self: _Client, memo: dict[int, object]) -> _Client:
+        """Returns self (gymnasium deep-copies wrapper arguments to record them)."""
+        return self
+
+    def __repr__(self) -> str:
+        """Shows the address, the transport and the servers this client owns."""
+        owned = "".join(f", server pid {server.pid}" for server in self.servers)
+        return f"EsaClient({self.address!r}, {self.transport!r}{owned})"

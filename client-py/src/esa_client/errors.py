@@ -4,9 +4,9 @@ Every failure surfaces as an :class:`EsaError` subclass carrying the status ``co
 :class:`StatusCode`, the client's own: gRPC's canonical codes, whatever the transport),
 the server's ``message`` and, for an error about one item of a batch, the item's
 ``index``. Every transport builds them through :func:`error_for`; :func:`esa_error` maps a
-``StreamError`` message (Zenoh, ``StepStream``) onto them, and the gRPC transports map
-their own failures (:func:`esa_client.transports.stub.rpc_error`), reading the failing
-item from the error's structured data (never from its message).
+``StreamError`` message (Zenoh, ``StepStream``) onto them, and the extension's
+``EngineError`` and ``StatusError`` carry the code and the failing item as data
+(:class:`TypedErrors`), never read from a message.
 """
 
 from __future__ import annotations

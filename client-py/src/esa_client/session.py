@@ -13,7 +13,7 @@ step can then be deferred (``report(..., defer=True)``) and rides with the next
 probe, pipelined on a StepStream.
 
 Both are written against :class:`~esa_client.transports.base.Transport` only: the same code
-runs over gRPC, Zenoh, N shards or an in-process engine.
+runs in-process, over gRPC or over Zenoh (one server or N shards).
 """
 
 from __future__ import annotations
@@ -45,7 +45,6 @@ from .transports.base import (
     LinearCritic,
     Transport,
 )
-from .transports.in_process import InProcessBatch
 
 __all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
 
@@ -253,8 +252,8 @@ class SessionBatch:
         self._ahead: _InFlight | None = None
         self._shifts: F64Array = np.zeros((self.n, self.action_dim))
         self._step_ahead: StepAhead | None = None
-        self._ahead_batch = self._batch if isinstance(self._batch, AheadBatch) else None
-        self._head_batch = self._batch if isinstance(self._batch, InProcessBatch) else None
+        self._ahead_batch = self._batch.ahead()
+        self._head_batch = self._batch.fused()
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
 
@@ -352,11 +351,11 @@ class SessionBatch:
         Returns:
             ``(probes, applied)``, as :meth:`probe_applied` returns them.
         """
-        step_linear = None
-        if isinstance(critic, LinearCritic):
-            self._check_critic(critic)
-            step_linear = getattr(self._batch, "step_linear", None)
-        if step_linear is None or self._deferred is not None:
+        linear = critic if isinstance(critic, LinearCritic) else None
+        if linear is not None:
+            self._check_critic(linear)
+        fused = self._head_batch
+        if linear is None or fused is None or self._deferred is not None:
             probes, applied = self.probe_applied(
                 actions, episode_starts, action_scales=action_scales
             )
@@ -365,7 +364,7 @@ class SessionBatch:
             return probes, applied
         # In this process: no wire to ride out, so no reconnect around the call.
         request = self._probe_request(actions, episode_starts, None, action_scales)
-        answer: tuple[F64Array, F64Array] = step_linear(request, critic, paired)
+        answer = fused.step_linear(request, linear, paired)
         self._steps = request.steps + 1
         self._last_probe = request
         self._next_starts[:] = False

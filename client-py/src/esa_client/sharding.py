@@ -8,7 +8,7 @@ i.e. the first 8 bytes of the SHA-256 of the UTF-8 session id, read as a big-end
 unsigned 64-bit integer, modulo N. Shard ``i`` serves the keys ``<prefix>/shard/<i>/...``.
 
 The transport that routes over the shards is
-:class:`~esa_client.transports.sharded.ShardedTransport`.
+:class:`~esa_client.transports.zenoh.ZenohTransport`.
 """
 
 from __future__ import annotations

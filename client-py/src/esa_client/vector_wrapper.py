@@ -15,7 +15,6 @@ import gymnasium as gym
 import numpy as np
 import numpy.typing as npt
 
-from .base_client import BaseClient
 from .client import EsaClient
 from .config import EsaConfig
 from .errors import EsaError
@@ -77,7 +76,7 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         q_fn: BatchQFunction,
         *,
         esa: EsaConfig | None = None,
-        client: BaseClient | None = None,
+        client: EsaClient | None = None,
         action_scale: BatchActionScale | None = None,
         dt: float | None = None,
     ) -> None:
@@ -94,7 +93,7 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
             space.high.reshape(-1),
         )
         self._owns_client = client is None
-        self._client: BaseClient = EsaClient.in_process() if client is None else client
+        self._client: EsaClient = EsaClient.in_process() if client is None else client
         try:
             self._batch = self._client.create_batch(config, env.num_envs)
         except BaseException:

@@ -9,7 +9,6 @@ from typing import Any, SupportsFloat
 import gymnasium as gym
 import numpy as np
 
-from .base_client import BaseClient
 from .client import EsaClient
 from .config import EsaConfig
 from .env_dt import env_dt
@@ -44,8 +43,9 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         q_fn: ``q_fn(observation, action) -> float``, evaluated once per step.
         esa: ESA hyperparameters (default ``EsaConfig()``); amplitudes are in the env's
             action units.
-        client: The client to create the session on (``EsaClient``, ``ZenohEsaClient``,
-            ...); None spawns a private server that is stopped by ``close()``.
+        client: The client to create the session on (any of ``EsaClient.connect``,
+            ``.spawn``, ``.in_process``); None spawns a private server that is stopped by
+            ``close()``.
         action_scale: sigma for the trust region and the normalized step (the policy's
             standard deviation if the learner has one): a scalar, one value per action
             dimension, or ``f(observation)``; None = 1 action unit.
@@ -57,7 +57,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         q_fn: QFunction,
         *,
         esa: EsaConfig | None = None,
-        client: BaseClient | None = None,
+        client: EsaClient | None = None,
         action_scale: ActionScale | None = None,
     ) -> None:
         """Creates the ESA session for this env."""
@@ -77,7 +77,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
             space.high.reshape(-1),
         )
         self._owns_client = client is None
-        self._client: BaseClient = EsaClient.spawn() if client is None else client
+        self._client: EsaClient = EsaClient.spawn() if client is None else client
         try:
             self._batch = self._client.create_batch(config, 1)
         except BaseException:

@@ -10,7 +10,6 @@ from typing import Any, Literal, Protocol, TypeVar, get_args
 import numpy as np
 
 from .._native import StepStats
-from ..base_client import BaseClient
 from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
@@ -61,23 +60,17 @@ def open_client(
     address: str | None,
     spawn: dict[str, Any] | None,
     reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
-) -> BaseClient:
+) -> EsaClient:
     """A client of ``engine``: in-process, the server at ``address``, or a spawned one.
 
-    A server is reached through the Rust client (``transport="native"``) unless ``spawn``
-    names another transport: an address here is plaintext (a TLS client is made with
-    :meth:`EsaClient.connect` and given to :meth:`EsaRuntime.on_client`), and the Rust
-    client's StepStream costs about a third of grpcio's per step, with the same answers.
+    An address here is plaintext gRPC: a TLS (or Zenoh) client is made with
+    :meth:`EsaClient.connect` and given to :meth:`EsaRuntime.on_client`.
     """
     if engine == "inprocess":
         return EsaClient.in_process()
     if address is None:
-        spawn = spawn or {}
-        defaults: dict[str, Any] = {"reconnect_timeout": reconnect_timeout}
-        if "transport" not in spawn and "native" not in spawn:
-            defaults["transport"] = "native"
-        return EsaClient.spawn(**{**defaults, **spawn})
-    return EsaClient.connect(address, transport="native", reconnect_timeout=reconnect_timeout)
+        return EsaClient.spawn(**{"reconnect_timeout": reconnect_timeout, **(spawn or {})})
+    return EsaClient.connect(address, reconnect_timeout=reconnect_timeout)
 
 
 def check_on_unavailable(on_unavailable: str) -> OnUnavailable:
@@ -122,7 +115,7 @@ class EsaRuntime:
     the probes (and, with ``paired_response``, the applied actions as the reference);
     the report is deferred and rides with the next step's probe on the StepStream, so a
     step costs one round trip. A :class:`LinearCritic` (ESAPPO's head) is evaluated by
-    the engine itself, in-process in one call. Through a native client's StepStream a
+    the engine itself, in-process in one call. Through a gRPC StepStream a
     step does not wait at all (:meth:`SessionBatch.step_ahead`: the actions, and the probes
     where the critic is evaluated here, come from the previous answer's shifts, and the
     round trip overlaps the env's step and the learner's update), unless the trainer needs
@@ -151,8 +144,7 @@ class EsaRuntime:
             minus at the sampled actions) on one step in this many. It costs a critic
             evaluation that training does not need, so it is sampled, not paid per step.
         spawn: Arguments of :meth:`EsaClient.spawn` for a private server (``session_ttl``,
-            ``max_sessions``, ``max_session_memory``, ``extra_args``, ...); its transport
-            is ``"native"`` unless ``spawn`` names another (``{"transport": "grpc"}``).
+            ``max_sessions``, ``max_session_memory``, ``extra_args``, ``transport``, ...).
         engine: ``"inprocess"`` (this process's engine) or ``"sidecar"`` (an esa-server);
             None chooses as :func:`choose_engine` does.
         reconnect_timeout: Seconds to keep retrying an unreachable server (default 60).
@@ -194,7 +186,7 @@ class EsaRuntime:
     def on_client(
         cls,
         esa: EsaConfig,
-        client: BaseClient,
+        client: EsaClient,
         config: SessionConfig,
         n_envs: int,
         clip_low: np.ndarray,
@@ -229,7 +221,7 @@ class EsaRuntime:
     def _attach(
         self,
         esa: EsaConfig,
-        client: BaseClient,
+        client: EsaClient,
         config: SessionConfig,
         n_envs: int,
         clip_low: np.ndarray,

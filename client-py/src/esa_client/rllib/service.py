@@ -41,7 +41,6 @@ from pathlib import Path
 from typing import TypeVar
 
 from .._proto.esa.v1 import esa_pb2
-from ..base_client import BaseClient
 from ..client import EsaClient
 from ..common.runtime import OnUnavailable, check_on_unavailable
 from ..errors import EsaError, ServerUnavailable, StatusCode
@@ -267,7 +266,7 @@ class SidecarTransport:
     def __init__(
         self,
         join: Callable[[], NodeSidecar],
-        connect: Callable[[str], BaseClient],
+        connect: Callable[[str], EsaClient],
     ) -> None:
         """Joins the sidecar and connects."""
         self._join, self._connect = join, connect
@@ -358,7 +357,7 @@ class SidecarTransport:
         self.sidecar.release()
 
 
-class _SidecarBatch:
+class _SidecarBatch(BatchTransport):
     """A batch over :class:`SidecarTransport`: reopened on the sidecar that replaced one."""
 
     def __init__(
@@ -403,9 +402,7 @@ class EsaService:
     """Where the EnvRunners' sessions live (the ``service`` of :func:`~esa_client.rllib.with_esa`).
 
     With no address and no Zenoh locator, each EnvRunner uses its node's sidecar
-    (:class:`NodeSidecar`): one ``esa-server`` per node, started on first use. gRPC goes
-    through the Rust client of ``esa_client._native`` (plaintext; its StepStream costs a
-    third of grpcio's per step).
+    (:class:`NodeSidecar`): one ``esa-server`` per node, started on first use.
 
     Args:
         address: A running server over gRPC, ``host:port`` or ``unix:/path``, reachable
@@ -469,7 +466,7 @@ class EsaService:
         """True when the runners use their node's sidecar."""
         return self.address is None and self.zenoh is None
 
-    def connect(self) -> BaseClient:
+    def connect(self) -> EsaClient:
         """Connects this process; closing the client also lets go of the node sidecar.
 
         Raises:
@@ -490,7 +487,6 @@ class EsaService:
             return self._connect_sidecar()
         client = EsaClient.connect(
             self.address,
-            transport="native",
             timeout=self.timeout,
             token_file=self.token_file,
             reconnect_timeout=self.reconnect_timeout,
@@ -502,7 +498,7 @@ class EsaService:
             raise
         return client
 
-    def _connect_sidecar(self) -> BaseClient:
+    def _connect_sidecar(self) -> EsaClient:
         """A client of the node's sidecar that follows it when it is replaced."""
 
         def join() -> NodeSidecar:
@@ -512,11 +508,9 @@ class EsaService:
                 startup_timeout=self.startup_timeout,
             )
 
-        def connect(address: str) -> BaseClient:
+        def connect(address: str) -> EsaClient:
             # The sidecar is this user's own, on a private socket: it has no token.
-            client = EsaClient.connect(
-                address, transport="native", timeout=self.timeout, token_file=None
-            )
+            client = EsaClient.connect(address, timeout=self.timeout, token_file=None)
             try:
                 client.wait_ready(self.startup_timeout)
             except BaseException:
@@ -525,7 +519,7 @@ class EsaService:
             return client
 
         transport = SidecarTransport(join, connect)
-        client = BaseClient(transport, address=transport.sidecar.address, timeout=self.timeout)
+        client = EsaClient(transport, address=transport.sidecar.address, timeout=self.timeout)
         transport.on_follow = lambda address: setattr(client, "address", address)
         client.reconnect_timeout = self.reconnect_timeout
         return client

@@ -1,33 +1,34 @@
-"""The transport protocol: what :class:`~esa_client.Session` and ``SessionBatch`` call.
+"""The transport interface: what :class:`~esa_client.Session` and ``SessionBatch`` call.
 
 The client is split the way httpx splits its ``Client`` from its transports: sessions and
-batches are written once against :class:`Transport`, and each way of reaching the update
-law implements it:
+batches are written once against :class:`Transport` and :class:`BatchTransport`, and each
+way of reaching the update law implements them:
 
-- gRPC, unary calls or one ``StepStream`` per batch (:mod:`esa_client.transports.grpcio`);
-- gRPC through the Rust client of ``esa_client._native`` (:mod:`esa_client.transports.native`);
-- Zenoh queries (:mod:`esa_client.transports.zenoh_query`);
-- N shards, each reached through its own transport (:mod:`esa_client.transports.sharded`);
-- the in-process engine of ``esa_client._native``, which takes numpy arrays directly.
+- the in-process engine of ``esa_client._native``, which takes numpy arrays directly
+  (:mod:`esa_client.transports.in_process`);
+- gRPC through the Rust client of ``esa_client._native`` (:mod:`esa_client.transports.grpc`);
+- Zenoh queries to one server or N shards (:mod:`esa_client.transports.zenoh`).
 
-``EsaClient``, ``ZenohEsaClient`` and ``ShardedEsaClient`` choose a transport and own its
-lifetime. The batch half (:class:`BatchTransport`) is array-based, not protobuf-based, so
-that an in-process implementation builds no messages; transports that send messages
-build them. Every failure a transport raises is an :class:`~esa_client.errors.EsaError`
-(built by :func:`~esa_client.errors.error_for`), with ``index`` set when one batch item
-caused it.
+:class:`~esa_client.EsaClient`'s constructors choose a transport and own its lifetime. The
+batch half (:class:`BatchTransport`) is array-based, not protobuf-based, so that an
+in-process implementation builds no messages; transports that send messages build them.
+What a wire offers beyond the batch's round trips (a whole step in one engine call, or a
+step sent ahead of its answer) a batch says through :meth:`BatchTransport.fused` and
+:meth:`BatchTransport.ahead`, so that sessions never ask which transport they are on.
+Every failure a transport raises is an :class:`~esa_client.errors.EsaError` (built by
+:func:`~esa_client.errors.error_for`), with ``index`` set when one batch item caused it.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from typing import Any, NamedTuple, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
-from .._native import AdvantageMlp
+from .._native import AdvantageMlp, StepStats
 from .._proto.esa.v1 import esa_pb2
 from ..state import BoolArray, F64Array, I64Array, SessionState
 
@@ -83,38 +84,6 @@ class LinearCritic(NamedTuple):
         return values
 
 
-class BatchTransport(Protocol):
-    """The round trips of one batch of N sessions (all of one action dimension D).
-
-    Every call is all-or-nothing: on an error no session changed, and the error's
-    ``index`` names the failing item (its position in the batch) when one item caused it.
-    """
-
-    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
-        """``ProbeBatch``: returns the probes and the applied actions, each ``(N, D)``."""
-        ...
-
-    def report(self, request: BatchReport) -> F64Array:
-        """``ReportBatch``: returns the improved actions, ``(N, D)``."""
-        ...
-
-    def report_then_probe(
-        self, report: BatchReport, probe: BatchProbe
-    ) -> tuple[F64Array, F64Array]:
-        """The report of step t, then the probe of the next step, pipelined where possible.
-
-        Returns the probe's answer (the report's improved actions are not needed: its
-        caller applies the probe's actions). If the report fails, its error is raised and
-        the probe changed nothing.
-        """
-        ...
-
-    def close(self) -> None:
-        """Releases what the batch holds (e.g. its stream); the sessions stay."""
-        ...
-
-
-@runtime_checkable
 class AheadBatch(Protocol):
     """A batch that sends a whole step and reads its answer later.
 
@@ -162,12 +131,43 @@ class HeadStep(NamedTuple):
     std: npt.NDArray[np.float32]
 
 
-class InTurnBatch(ABC):
-    """A :class:`BatchTransport` whose pair is the report, then the probe, in turn.
+class FusedBatch(Protocol):
+    """A batch whose engine runs a whole step in one call: the in-process engine's."""
 
-    For batches whose wire has nothing to pipeline (the in-process engine, unary calls):
-    two round trips, and a failed report raises before the probe is sent, so the probe
-    changed nothing. Subclasses implement :meth:`probe` and :meth:`report`.
+    def step_linear(
+        self, request: BatchProbe, critic: LinearCritic, paired: bool
+    ) -> tuple[F64Array, F64Array]:
+        """ProbeBatch, then ReportBatch of ``critic`` at the probes, in one engine call.
+
+        With ``paired``, the critic at the applied actions is reported as the references.
+        Returns the probes and the applied actions.
+        """
+        ...
+
+    def step_head(
+        self,
+        steps: I64Array,
+        next_starts: BoolArray,
+        episode_starts: npt.ArrayLike | None,
+        step: HeadStep,
+        *,
+        use_policy_std: bool,
+        paired: bool,
+        stats: StepStats,
+        improvement: bool,
+    ) -> tuple[F64Array, npt.NDArray[np.float32]]:
+        """ESAPPO's step for its advantage head (:meth:`SessionBatch.step_head`)."""
+        ...
+
+
+class BatchTransport(ABC):
+    """The round trips of one batch of N sessions (all of one action dimension D).
+
+    Every call is all-or-nothing: on an error no session changed, and the error's
+    ``index`` names the failing item (its position in the batch) when one item caused it.
+    Subclasses implement :meth:`probe` and :meth:`report`; the pair of :meth:`report_then_probe`
+    goes in turn here (two round trips, and a failed report raises before the probe is
+    sent, so the probe changed nothing), for wires that have nothing to pipeline.
     """
 
     @abstractmethod
@@ -181,16 +181,37 @@ class InTurnBatch(ABC):
     def report_then_probe(
         self, report: BatchReport, probe: BatchProbe
     ) -> tuple[F64Array, F64Array]:
-        """The report, then the probe (two round trips; a failed report stops the probe)."""
+        """The report of step t, then the probe of the next step.
+
+        Returns the probe's answer (the report's improved actions are not needed: its
+        caller applies the probe's actions). If the report fails, its error is raised and
+        the probe changed nothing.
+        """
         self.report(report)
         return self.probe(probe)
 
+    def fused(self) -> FusedBatch | None:
+        """This batch's whole-step engine calls (``step_linear``, ``step_head``), if it has any.
+
+        The in-process engine runs a step (probe, a linear critic, report) in one call;
+        over a wire there is none, and the step is its round trips.
+        """
+        return None
+
+    def ahead(self) -> AheadBatch | None:
+        """This batch's calls that send a whole step before reading its answer, if any.
+
+        Only a wire that carries steps in order without waiting (gRPC's ``StepStream``)
+        has them.
+        """
+        return None
+
     def close(self) -> None:  # noqa: B027 (a default, not abstract: most hold nothing)
-        """Nothing to release: the sessions stay."""
+        """Releases what the batch holds (e.g. its stream); the sessions stay."""
 
 
-class PipelinedBatch(InTurnBatch):
-    """An :class:`InTurnBatch` whose wire carries the report and the next probe at once.
+class PipelinedBatch(BatchTransport):
+    """A :class:`BatchTransport` whose wire carries the report and the next probe at once.
 
     The pair is sent in one go (one round trip), except when the probe starts a new
     episode for every session: that probe would succeed even after its report failed,

@@ -18,13 +18,13 @@ import numpy.typing as npt
 from .._native import BatchHandle, Engine, EngineError, StepStats
 from ..errors import TypedErrors
 from ..state import BoolArray, F64Array, I64Array
-from .base import BatchProbe, BatchReport, HeadStep, InTurnBatch, LinearCritic
+from .base import BatchProbe, BatchReport, BatchTransport, HeadStep, LinearCritic
 from .native_calls import NativeSessionCalls
 
 _typed_errors = TypedErrors(EngineError)
 
 
-class InProcessBatch(InTurnBatch):
+class InProcessBatch(BatchTransport):
     """A batch's round trips as ``Engine.probe`` / ``Engine.report`` calls.
 
     The ids are resolved on the first call (not when the batch opens, so that a session
@@ -53,6 +53,10 @@ class InProcessBatch(InTurnBatch):
                 request.episode_starts,
                 request.action_scales,
             )
+
+    def fused(self) -> InProcessBatch:
+        """This batch: the engine runs a whole step in one call."""
+        return self
 
     def step_linear(
         self, request: BatchProbe, critic: LinearCritic, paired: bool
@@ -136,3 +140,7 @@ class InProcessTransport(NativeSessionCalls):
 
     def close(self) -> None:
         """Nothing to release: the engine goes with its last reference."""
+
+    def __repr__(self) -> str:
+        """Names the transport (the engine has no address)."""
+        return "InProcessTransport()"

@@ -1,6 +1,6 @@
 """The session calls of the two transports over ``esa_client._native``.
 
-``Engine`` (esa-core in this process) and ``GrpcClient`` (esa-proto's gRPC client) answer
+``Engine`` (esa-core in this process) and ``GrpcClient`` (esa-client's gRPC client) answer
 the same per-session calls with the same arguments: protobuf bytes for a config and a
 snapshot, numpy arrays for one session's step. :class:`NativeSessionCalls` forwards the
 :class:`~esa_client.transports.base.Transport` methods to either and re-raises its errors as the

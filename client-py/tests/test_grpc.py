@@ -1,15 +1,17 @@
-"""The Rust gRPC client (``EsaClient.connect(..., transport="native")``) and grpcio answer alike.
+"""The gRPC transport (the Rust client of ``esa_client._native``) answers as the engine does.
 
-The parity tests of the in-process engine (``test_inprocess.py``) run again with the native
+The parity tests of the in-process engine (``test_inprocess.py``) run again with the gRPC
 client of a second real server in place of the engine: the same random scripts through both
 clients give identical answers and states, and every bad input raises the same exception type,
 status code, failing item and message. Then what only a remote transport has: TCP, the auth
-token, a dead server, a deadline, a closed client.
+token, a dead server, a deadline, a closed client; and that no gRPC path imports grpcio.
 """
 
 import importlib.util
 import os
 import signal
+import subprocess
+import sys
 import time
 import uuid
 from pathlib import Path
@@ -26,8 +28,8 @@ from esa_client import (
     StatusCode,
     Unauthenticated,
 )
-from esa_client.transports.grpcio import GrpcTransport
-from esa_client.transports.native import NativeGrpcTransport
+from esa_client._native import GrpcClient
+from esa_client.transports.grpc import GrpcTransport
 
 
 def sibling(name: str) -> ModuleType:
@@ -42,7 +44,7 @@ def sibling(name: str) -> ModuleType:
 
 
 _parity = sibling("test_inprocess")
-# Collected here too, with this module's ``local``: the native client of another server.
+# Collected here too, with this module's ``local``: the gRPC client of another server.
 test_unary_scripts_are_identical = _parity.test_unary_scripts_are_identical
 test_batch_scripts_are_identical = _parity.test_batch_scripts_are_identical
 test_bad_inputs_raise_alike_and_change_nothing = (
@@ -50,13 +52,13 @@ test_bad_inputs_raise_alike_and_change_nothing = (
 )
 CONFIG = _parity.CONFIG
 freeze = sibling("test_lifecycle").freeze
-TOKEN = "native-s3cret-" + "z" * 16
+TOKEN = "grpc-s3cret-" + "z" * 18
 
 
 @pytest.fixture(scope="module")
 def local(server_bin):
-    """A second private server on a Unix socket, through the native client."""
-    with EsaClient.spawn(server_bin, transport="native") as c:
+    """A second private server on a Unix socket."""
+    with EsaClient.spawn(server_bin) as c:
         yield c
 
 
@@ -71,34 +73,40 @@ def step_pair(client: EsaClient) -> np.ndarray:
 
 
 def test_the_factories_choose_the_transport(local, client):
-    assert isinstance(local.transport, NativeGrpcTransport) and local.healthy()
+    assert isinstance(local.transport, GrpcTransport) and local.healthy()
     assert local.address.startswith("unix:")
-    with pytest.raises(AttributeError, match="native"):
-        local.stub  # noqa: B018 (the property raises)
-    with pytest.raises(ValueError, match="tls"):
-        EsaClient.connect("127.0.0.1:1", transport="native", tls=object())  # type: ignore[arg-type]
-    assert not isinstance(client.transport, NativeGrpcTransport)
-    with EsaClient.connect(local.address, transport="native", wait_ready=True) as native:
-        assert isinstance(native.transport, NativeGrpcTransport)
-        assert (step_pair(native) == step_pair(local)).all()
-    with EsaClient.connect(local.address) as grpcio:
-        assert isinstance(grpcio.transport, GrpcTransport) and grpcio.healthy()
+    with EsaClient.connect(local.address, wait_ready=True) as other:
+        assert isinstance(other.transport, GrpcTransport)
+        assert (step_pair(other) == step_pair(local)).all()
+    assert repr(other) == f"EsaClient({local.address!r}, GrpcTransport())"
 
 
-def test_the_deprecated_constructors_still_work(local):
-    """``EsaClient(address, native=...)`` and ``spawn(native=True)``: aliases for one release."""
-    with EsaClient(local.address, native=True) as native:
-        assert isinstance(native.transport, NativeGrpcTransport) and native.healthy()
-    with EsaClient(local.address) as grpcio:
-        assert isinstance(grpcio.transport, GrpcTransport) and grpcio.healthy()
+def test_no_grpc_path_imports_grpcio(local):
+    # A None entry makes any `import grpc` fail: the run proves that nothing imports it.
+    code = (
+        "import sys; sys.modules['grpc'] = None\n"
+        "from esa_client import EsaClient, SessionConfig\n"
+        f"with EsaClient.connect({local.address!r}, wait_ready=True) as c:\n"
+        "    c.create_session(SessionConfig(1, 0.05, 0.2, 10.0, 0.1)).close()\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+def test_the_constructor_takes_a_transport_not_an_address(local):
+    with pytest.raises(TypeError, match=r"use EsaClient.connect\('127.0.0.1:1'\)"):
+        EsaClient("127.0.0.1:1", address="127.0.0.1:1", timeout=1.0)  # type: ignore[arg-type]
+    wrapped = EsaClient(GrpcTransport(local.address, 5.0), address="mine", timeout=5.0)
+    with wrapped:
+        assert wrapped.healthy() and wrapped.servers == () and wrapped.server is None
 
 
 @pytest.mark.parametrize(
     ("arguments", "match"),
     [
         ({"transport": "pigeon"}, "transport"),
+        ({"transport": "native"}, "transport in"),
         ({"shards": 2}, "shards with transport='zenoh' only"),
-        ({"prefix": "esa/v1", "transport": "native"}, "prefix with transport='zenoh' only"),
+        ({"prefix": "esa/v1"}, "prefix with transport='zenoh' only"),
         ({"transport": "zenoh", "tls": object()}, "tls=None with transport='zenoh'"),
     ],
 )
@@ -111,12 +119,12 @@ def test_tcp_and_the_auth_token(server_bin, serve_tcp, tmp_path):
     token_file = tmp_path / "token"
     token_file.write_text(TOKEN)
     with serve_tcp(server_bin, "--auth-token-file", str(token_file)) as address:
-        with EsaClient.connect(address, transport="native", token=TOKEN) as owner:
+        with EsaClient.connect(address, token=TOKEN) as owner:
             assert owner.healthy(wait_for_ready=True)
-            with EsaClient(address, token=TOKEN) as grpcio:
-                assert (step_pair(owner) == step_pair(grpcio)).all()
+            with EsaClient.in_process() as engine:
+                assert (step_pair(owner) == step_pair(engine)).all()
         for token in (None, "wrong"):
-            with EsaClient(address, native=True, token=token) as stranger:
+            with EsaClient.connect(address, token=token) as stranger:
                 assert stranger.healthy()  # health needs no token
                 with pytest.raises(Unauthenticated) as info:
                     stranger.create_session(CONFIG)
@@ -125,12 +133,12 @@ def test_tcp_and_the_auth_token(server_bin, serve_tcp, tmp_path):
 
 def test_a_dead_server_is_unavailable(server_bin, monkeypatch):
     monkeypatch.delenv("ESA_AUTH_TOKEN", raising=False)
-    with EsaClient("unix:/nonexistent/esa.sock", native=True, timeout=2) as nobody:
+    with EsaClient.connect("unix:/nonexistent/esa.sock", timeout=2) as nobody:
         assert not nobody.healthy(timeout=0.2, wait_for_ready=True)
         with pytest.raises(ServerUnavailable) as info:
             nobody.create_session(CONFIG)
         assert info.value.code == StatusCode.UNAVAILABLE
-    with EsaClient.spawn(server_bin, native=True, reconnect_timeout=0) as client:
+    with EsaClient.spawn(server_bin, reconnect_timeout=0) as client:
         batch = client.create_batch(CONFIG, 2)
         batch.probe(np.zeros((2, 2)), [True, True])
         assert client.server is not None
@@ -140,7 +148,7 @@ def test_a_dead_server_is_unavailable(server_bin, monkeypatch):
 
 
 def test_a_frozen_server_hits_the_deadline(server_bin):
-    with EsaClient.spawn(server_bin, native=True, timeout=0.5) as client:
+    with EsaClient.spawn(server_bin, timeout=0.5) as client:
         session = client.create_session(CONFIG)
         assert client.server is not None
         freeze(client.server.pid)
@@ -156,7 +164,7 @@ def test_a_frozen_server_hits_the_deadline(server_bin):
 def test_an_idle_connection_answers_the_servers_pings(server_bin):
     # The server closes a connection whose ping goes unanswered for 2.5 s; no call runs here.
     keepalive = ["--keepalive-interval", "0.3", "--keepalive-timeout", "2.5"]
-    with EsaClient.spawn(server_bin, native=True, extra_args=keepalive) as client:
+    with EsaClient.spawn(server_bin, extra_args=keepalive) as client:
         batch = client.create_batch(CONFIG, 2)
         batch.probe(np.zeros((2, 2)), [True, True])
         time.sleep(3.5)
@@ -166,7 +174,7 @@ def test_an_idle_connection_answers_the_servers_pings(server_bin):
 
 
 def test_a_closed_client_is_unavailable(server_bin, local):
-    with EsaClient(local.address, native=True) as other:
+    with EsaClient.connect(local.address) as other:
         batch = other.create_batch(CONFIG, 1, ids=[f"closed-{uuid.uuid4()}"])
     with pytest.raises(ServerUnavailable, match="closed"):
         batch.probe(np.zeros((1, 2)))
@@ -177,6 +185,10 @@ def test_a_closed_client_is_unavailable(server_bin, local):
 def test_addresses_are_checked():
     for address in ("localhost", "unix:", "host:port"):
         with pytest.raises(ValueError):
-            EsaClient(address, native=True)
+            EsaClient.connect(address)
     with pytest.raises(ValueError, match="timeout"):
-        NativeGrpcTransport("127.0.0.1:1", float("inf"))
+        GrpcTransport("127.0.0.1:1", float("inf"))
+    with pytest.raises(ValueError, match="tls=True"):
+        GrpcClient("127.0.0.1:1", 1.0, ca=b"-----BEGIN CERTIFICATE-----")
+    with pytest.raises(ValueError, match="both cert and key"):
+        GrpcClient("127.0.0.1:1", 1.0, tls=True, cert=b"-----BEGIN CERTIFICATE-----")

@@ -1,11 +1,12 @@
-"""The transport over gRPC through the Rust client of ``esa_client._native``.
+"""The transport over gRPC, through the Rust client of ``esa_client._native``.
 
-``esa_client._native.GrpcClient`` is esa-proto's tonic client on a private runtime that the
+``esa_client._native.GrpcClient`` is esa-client's tonic client on a private runtime that the
 calling thread drives itself, with the GIL released while a call waits: a round trip costs
 no thread hand-off and no Python-level message building (numpy arrays go straight into the
-request). It speaks the same ``esa.v1`` calls as :class:`~esa_client.transports.grpcio.
-GrpcTransport` and raises the same :class:`~esa_client.errors.EsaError` subclasses with the
-same failing item. It has no TLS. A batch opened with ``use_stream`` sends its calls as
+request). It raises the :class:`~esa_client.errors.EsaError` subclass of the server's status
+code, with the failing item; it speaks TLS and mutual TLS (rustls, :class:`TlsConfig`), sends
+the auth token with every call and asks the server's health service whether it serves. A
+batch opened with ``use_stream`` sends its calls as
 messages of a ``StepStream`` of its own, and the pipelined pair (a deferred report and the
 next probe) as two messages before reading either answer: one round trip, about a third of
 the two unary calls' time on a Unix socket (``bench/NOTES.md``). A batch without a stream
@@ -14,21 +15,68 @@ makes ``ProbeBatch`` / ``ReportBatch`` calls.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 
-from .._native import GrpcBatch, GrpcClient, StatusError
+from .._native import GrpcBatch as NativeBatch
+from .._native import GrpcClient, StatusError
 from ..errors import TypedErrors
 from ..state import F64Array
-from .base import BatchProbe, BatchReport, InTurnBatch, LinearCritic, PipelinedBatch
+from .base import BatchProbe, BatchReport, BatchTransport, LinearCritic, PipelinedBatch
 from .native_calls import NativeSessionCalls
 
 _typed_errors = TypedErrors(StatusError)
 
 
-class NativeGrpcBatch(InTurnBatch):
+@dataclass(frozen=True)
+class TlsConfig:
+    """TLS for the connection to a server started with ``--tls-cert`` and ``--tls-key``.
+
+    Connect to a host name (or IP address) that the server's certificate names; a failed
+    handshake (untrusted server, refused client certificate) raises ``ServerUnavailable``.
+
+    Args:
+        ca: PEM file of the CA(s) that issued the server's certificate; None trusts the
+            Mozilla roots (webpki-roots).
+        cert: PEM file of this client's certificate, for a server started with
+            ``--tls-client-ca`` (mutual TLS); needs ``key``.
+        key: PEM file of the certificate's private key.
+        server_name: The name to check the server's certificate against instead of the
+            address's host (e.g. when connecting through a tunnel).
+    """
+
+    ca: str | os.PathLike[str] | None = None
+    cert: str | os.PathLike[str] | None = None
+    key: str | os.PathLike[str] | None = None
+    server_name: str | None = None
+
+    def __post_init__(self) -> None:
+        """Checks that ``cert`` and ``key`` come together."""
+        if (self.cert is None) != (self.key is None):
+            raise ValueError(
+                f"expected both cert and key (mutual TLS) or neither, "
+                f"got cert={self.cert!r}, key={self.key!r}"
+            )
+
+    def pems(self) -> tuple[bytes | None, bytes | None, bytes | None]:
+        """The contents of ``ca``, ``cert`` and ``key`` (None for those not given), read now.
+
+        Raises:
+            OSError: If a file cannot be read.
+        """
+
+        def read(path: str | os.PathLike[str] | None) -> bytes | None:
+            return None if path is None else Path(path).read_bytes()
+
+        return read(self.ca), read(self.cert), read(self.key)
+
+
+class GrpcBatch(BatchTransport):
     """A batch's round trips through the Rust client (unary calls, or its StepStream)."""
 
-    def __init__(self, batch: GrpcBatch) -> None:
+    def __init__(self, batch: NativeBatch) -> None:
         """Sends through ``batch`` (its ids and action dimension fixed)."""
         self._batch = batch
 
@@ -49,8 +97,8 @@ class NativeGrpcBatch(InTurnBatch):
         self._batch.close()
 
 
-class NativeGrpcStepBatch(NativeGrpcBatch, PipelinedBatch):
-    """A :class:`NativeGrpcBatch` on a ``StepStream``, whose pair takes one round trip.
+class GrpcStepBatch(GrpcBatch, PipelinedBatch):
+    """A :class:`GrpcBatch` on a ``StepStream``, whose pair takes one round trip.
 
     It also sends a whole step (for a linear critic, or with the critic's values) without
     waiting for its answer (:class:`~esa_client.transports.base.AheadBatch`).
@@ -67,6 +115,10 @@ class NativeGrpcStepBatch(NativeGrpcBatch, PipelinedBatch):
                 probe.episode_starts,
                 probe.action_scales,
             )
+
+    def ahead(self) -> GrpcStepBatch:
+        """This batch: its stream thread sends steps ahead of their answers."""
+        return self
 
     def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
         """Sends the step's probe, ``critic`` and report as one message; returns at once."""
@@ -101,29 +153,42 @@ class NativeGrpcStepBatch(NativeGrpcBatch, PipelinedBatch):
             return self._batch.receive_step()
 
 
-class NativeGrpcTransport(NativeSessionCalls):
+class GrpcTransport(NativeSessionCalls):
     """The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.GrpcClient``.
 
     Args:
         address: ``host:port`` or ``unix:/path/to/socket`` (checked by the caller).
         timeout: Deadline in seconds of every call.
         token: Sent as ``authorization: Bearer <token>`` with every call; None sends none.
+        tls: Connect over TLS; None connects in plaintext.
 
     Attributes:
         client: The Rust client (connecting lazily).
+        tls: The TLS settings, or None.
+
+    Raises:
+        ValueError: A malformed timeout, token or TLS setting.
+        OSError: If a TLS file cannot be read.
     """
 
-    def __init__(self, address: str, timeout: float, token: str | None = None) -> None:
+    def __init__(
+        self, address: str, timeout: float, token: str | None = None, tls: TlsConfig | None = None
+    ) -> None:
         """Opens the client (connecting on the first call)."""
-        self.client = GrpcClient(address, timeout, token)
+        self.tls = tls
+        if tls is None:
+            self.client = GrpcClient(address, timeout, token)
+        else:
+            ca, cert, key = tls.pems()
+            self.client = GrpcClient(
+                address, timeout, token, tls=True, ca=ca, cert=cert, key=key, domain=tls.server_name
+            )
         super().__init__(self.client, _typed_errors)
 
-    def open_batch(
-        self, ids: Sequence[str], action_dim: int, *, use_stream: bool
-    ) -> NativeGrpcBatch:
-        """A :class:`NativeGrpcStepBatch` with ``use_stream``, else a :class:`NativeGrpcBatch`."""
+    def open_batch(self, ids: Sequence[str], action_dim: int, *, use_stream: bool) -> GrpcBatch:
+        """A :class:`GrpcStepBatch` with ``use_stream``, else a :class:`GrpcBatch`."""
         batch = self.client.batch(list(ids), action_dim, use_stream)
-        return NativeGrpcStepBatch(batch) if use_stream else NativeGrpcBatch(batch)
+        return GrpcStepBatch(batch) if use_stream else GrpcBatch(batch)
 
     def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
         """Asks the server's ``grpc.health.v1.Health`` service whether it is serving.
@@ -137,3 +202,7 @@ class NativeGrpcTransport(NativeSessionCalls):
     def close(self) -> None:
         """Drops the connection. Idempotent."""
         self.client.close()
+
+    def __repr__(self) -> str:
+        """Names the transport (the client shows the address)."""
+        return "GrpcTransport()" if self.tls is None else "GrpcTransport(tls)"

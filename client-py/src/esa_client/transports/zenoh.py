@@ -1,0 +1,572 @@
+"""The transport over Zenoh queries (CONTRACT.md section 3), to one server or N shards.
+
+Each RPC is a queryable at ``<prefix>/<RpcName>`` (default prefix ``esa/v1``): the query
+payload is the protobuf request, a reply is the protobuf response, and a reply error
+carries a ``StreamError`` (gRPC code number, message and failing batch item). A server
+started with ``--auth-token-file`` wants the token as each query's attachment.
+
+N servers started with ``--shard i/N`` serve ``<prefix>/shard/<i>/<RpcName>``, and a
+session lives on shard :func:`~esa_client.sharding.shard_of` of its id: a single-session
+call goes to its shard, and a batch is split into one part per shard, the parts sent
+concurrently and the answers merged back into batch order. Each part is all-or-nothing on
+its shard; if one shard fails, the others may have applied theirs, and repeating the whole
+call is safe because a server treats a repeated probe or report of the same step as a retry
+(CONTRACT.md). A shard's error names the failing item by its index in the whole batch.
+
+Exactly one server serves a key, so a query that gets two replies means another process
+answers for it too (a misconfigured deployment, or an impostor on an open network): the
+call fails with :class:`TwoServersAnswered` instead of trusting either answer. Queries go
+to every matching queryable, so an impostor cannot hide behind being nearer than the real
+server.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import threading
+import uuid
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+import zenoh
+from google.protobuf.message import DecodeError, Message
+
+from .._proto.esa.v1 import esa_pb2
+from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, StatusCode, esa_error
+from ..sharding import shard_of, shard_prefix
+from ..state import F64Array, I64Array, SessionState
+from .base import BatchProbe, BatchReport, BatchTransport
+
+DEFAULT_PREFIX = "esa/v1"
+
+Response = TypeVar("Response", bound=Message)
+Decoded = TypeVar("Decoded", bound=Message)
+Answer = TypeVar("Answer")
+
+
+class TwoServersAnswered(EsaError):
+    """More than one Zenoh peer answered one query, so neither answer can be trusted."""
+
+
+def check_prefix(prefix: str) -> str:
+    """Returns ``prefix`` if it is a literal Zenoh key expression (as the server requires)."""
+    chunks = prefix.split("/")
+    if not prefix or any(not c or any(ch in c for ch in "*$?#") for c in chunks):
+        raise ValueError(f"expected a key prefix without wildcards like 'esa/v1', got {prefix!r}")
+    return prefix
+
+
+def check_shards(shards: int | None) -> int | None:
+    """Returns ``shards`` if it is None (one server) or a count of servers >= 1."""
+    if shards is not None and (
+        isinstance(shards, bool) or not isinstance(shards, int) or shards < 1
+    ):
+        raise ValueError(f"expected shards >= 1 (or None for one server), got {shards!r}")
+    return shards
+
+
+def check_endpoints(connect: str | Sequence[str]) -> tuple[str, ...]:
+    """``connect`` as a tuple of Zenoh endpoints (``tcp/127.0.0.1:7447``), checked."""
+    endpoints = (connect,) if isinstance(connect, str) else tuple(connect)
+    if not endpoints:
+        raise ValueError("expected at least one Zenoh endpoint like 'tcp/127.0.0.1:7447', got []")
+    for endpoint in endpoints:
+        if not isinstance(endpoint, str) or "/" not in endpoint:
+            raise ValueError(
+                f"expected a Zenoh endpoint like 'tcp/127.0.0.1:7447', got {endpoint!r}"
+            )
+    return endpoints
+
+
+def peer_config(connect: Sequence[str], timeout: float) -> zenoh.Config:
+    """A Zenoh peer that only talks to ``connect``: no listener, no scouting, no gossip.
+
+    Opening a session with it fails (instead of retrying forever) when an endpoint
+    is not reachable within ``timeout`` seconds.
+    """
+    config: zenoh.Config = zenoh.Config()
+    for key, value in (
+        ("mode", '"peer"'),
+        ("connect/endpoints", json.dumps(list(check_endpoints(connect)))),
+        ("connect/timeout_ms", str(max(1, round(timeout * 1000)))),
+        ("connect/exit_on_failure", "true"),
+        ("listen/endpoints", "[]"),
+        ("scouting/multicast/enabled", "false"),
+        ("scouting/gossip/enabled", "false"),
+    ):
+        config.insert_json5(key, value)
+    return config
+
+
+class ZenohRpc(Generic[Response]):
+    """One RPC of the contract as a Zenoh querier: ``rpc(request) -> response``."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        response: type[Response],
+        timeout: float,
+        token: str | None = None,
+    ) -> None:
+        """Declares the querier for ``key``; every query waits at most ``timeout`` seconds.
+
+        Args:
+            session: The Zenoh session.
+            key: The RPC's key, e.g. ``esa/v1/Probe``.
+            response: The response message type.
+            timeout: Deadline of every query in seconds.
+            token: The server's auth token, sent as each query's attachment.
+        """
+        self.key = key
+        self._response = response
+        self._timeout = timeout
+        self._token = token
+        # ALL: every queryable of the key gets the query, so a second answerer shows.
+        # NONE: no consolidation, which would merge (and so hide) a second reply.
+        self._querier = session.declare_querier(
+            key,
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+            timeout=timeout,
+        )
+
+    @property
+    def matched(self) -> bool:
+        """True while a server's queryable for this key is reachable."""
+        # A MatchingStatus, whatever zenoh's stub (which says bool) claims.
+        status: Any = self._querier.matching_status
+        return bool(status.matching)
+
+    def wait_matched(self, timeout: float) -> bool:
+        """Waits up to ``timeout`` seconds for a queryable; returns whether one is reachable."""
+        ready = threading.Event()
+        listener = self._querier.declare_matching_listener(
+            lambda status: ready.set() if status.matching else None
+        )
+        try:
+            return self.matched or ready.wait(timeout)
+        finally:
+            listener.undeclare()
+
+    def __call__(self, request: Message) -> Response:
+        """Sends ``request`` and returns the decoded response.
+
+        Raises:
+            EsaError: The server's error as its typed exception; ``ServerUnavailable``
+                when no server serves the key; ``DeadlineExceeded`` when none answered in
+                time; :class:`TwoServersAnswered` when more than one peer answered.
+        """
+        if not self.matched:
+            raise self._unavailable()
+        replies = self._querier.get(
+            payload=request.SerializeToString(),
+            encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
+            attachment=self._token,
+        )
+        # The query ends once every queryable of the key has answered: with one server,
+        # right after its reply.
+        answers = list(replies)
+        if len(answers) > 1:
+            repliers = ", ".join(str(reply.replier_id) for reply in answers)
+            raise TwoServersAnswered(
+                f"{self.key} was answered {len(answers)} times (by zenoh ids {repliers}): "
+                "another process serves this key, so no answer is trusted; check the "
+                "deployment's prefixes and access control (deploy/README.md)"
+            )
+        if not answers:
+            # The query ended without a reply: the server went away while it was pending.
+            raise self._unavailable()
+        reply = answers[0]
+        if reply.ok is not None:
+            return self._decode(self._response, reply.ok.payload.to_bytes())
+        raise self._error(reply.err)
+
+    def _unavailable(self) -> ServerUnavailable:
+        return ServerUnavailable(
+            f"no esa server serves {self.key} over Zenoh: it is not running, not connected, "
+            "or serves another prefix or shard",
+            StatusCode.UNAVAILABLE,
+        )
+
+    def _decode(self, message_type: type[Decoded], data: bytes) -> Decoded:
+        try:
+            return message_type.FromString(data)
+        except DecodeError as err:
+            raise EsaError(
+                f"{self.key} answered with bytes that are not a {message_type.__name__}: {err}"
+            ) from None
+
+    def _error(self, error: zenoh.ReplyError) -> EsaError:
+        if error.encoding == zenoh.Encoding.APPLICATION_PROTOBUF:
+            return esa_error(self._decode(esa_pb2.StreamError, error.payload.to_bytes()))
+        # Errors the server did not write come from Zenoh itself; the one it sends
+        # to a querier is its deadline ("Timeout").
+        text = error.payload.to_string()
+        if text == "Timeout":
+            return DeadlineExceeded(
+                f"no answer from {self.key} within {self._timeout} s",
+                StatusCode.DEADLINE_EXCEEDED,
+            )
+        return EsaError(f"{self.key}: zenoh error {text!r}")
+
+    def close(self) -> None:
+        """Undeclares the querier."""
+        self._querier.undeclare()
+
+
+class _Server:
+    """The queriers of one server's key prefix (``esa/v1``, ``esa/v1/shard/1``), one per RPC.
+
+    Batches go as ``ProbeBatch`` / ``ReportBatch`` queries: a Zenoh query already carries one
+    message, so there is no stream to keep open (the ``StepStream`` key answers one
+    ``StepStreamRequest`` per query, which would save nothing here).
+    """
+
+    def __init__(
+        self, session: zenoh.Session, prefix: str, timeout: float, token: str | None
+    ) -> None:
+        self.prefix = prefix
+
+        def rpc(name: str, response: type[Response]) -> ZenohRpc[Response]:
+            return ZenohRpc(session, f"{prefix}/{name}", response, timeout, token)
+
+        self.create_session = rpc("CreateSession", esa_pb2.CreateSessionResponse)
+        self.get_session = rpc("GetSession", esa_pb2.GetSessionResponse)
+        self.close_session = rpc("CloseSession", esa_pb2.CloseSessionResponse)
+        self.end_episode = rpc("EndEpisode", esa_pb2.EndEpisodeResponse)
+        self.probe = rpc("Probe", esa_pb2.ProbeResponse)
+        self.report = rpc("Report", esa_pb2.ReportResponse)
+        self.probe_batch = rpc("ProbeBatch", esa_pb2.ProbeBatchResponse)
+        self.report_batch = rpc("ReportBatch", esa_pb2.ReportBatchResponse)
+        self._rpcs: tuple[ZenohRpc[Any], ...] = (
+            self.create_session,
+            self.get_session,
+            self.close_session,
+            self.end_episode,
+            self.probe,
+            self.report,
+            self.probe_batch,
+            self.report_batch,
+        )
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool) -> bool:
+        """True if the server behind this prefix answers a query within ``timeout`` seconds."""
+        probe = self.get_session
+        if not (probe.wait_matched(timeout) if wait_for_ready else probe.matched):
+            return False
+        try:
+            # An empty id is refused by every server: any answer proves it serves.
+            probe(esa_pb2.GetSessionRequest())
+        except (ServerUnavailable, DeadlineExceeded):
+            return False
+        except EsaError:
+            return True
+        return True
+
+    def close(self) -> None:
+        """Undeclares every querier."""
+        for rpc in self._rpcs:
+            rpc.close()
+
+
+class ZenohTransport:
+    """The :class:`~esa_client.transports.base.Transport` over Zenoh: one server or N shards.
+
+    Build it with :meth:`open` (what ``EsaClient.connect(..., transport="zenoh")`` does); it
+    owns its Zenoh session and closes it.
+
+    Args:
+        session: The Zenoh session; closed by :meth:`close`.
+        prefix: The servers' ``--zenoh-prefix``.
+        timeout: Deadline in seconds of every query.
+        token: The servers' auth token, sent as every query's attachment.
+        shards: N servers started with ``--shard i/N``; None for one server (no shard).
+
+    Attributes:
+        prefix: The key prefix.
+        shards: N, or None for one server.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        prefix: str,
+        timeout: float,
+        token: str | None = None,
+        shards: int | None = None,
+    ) -> None:
+        """Declares the queriers of every RPC of every server."""
+        self.prefix = check_prefix(prefix)
+        self.shards = check_shards(shards)
+        prefixes = [prefix] if shards is None else [shard_prefix(prefix, i) for i in range(shards)]
+        self._session = session
+        self._servers = [_Server(session, p, timeout, token) for p in prefixes]
+        # Threads start on a sharded batch's first call only.
+        self._executor = ThreadPoolExecutor(len(prefixes), thread_name_prefix="esa-shard")
+
+    @classmethod
+    def open(
+        cls,
+        connect: str | Sequence[str],
+        *,
+        prefix: str,
+        timeout: float,
+        token: str | None,
+        shards: int | None,
+        config: zenoh.Config | None,
+    ) -> ZenohTransport:
+        """Opens a Zenoh session to ``connect`` (or with ``config``) and the transport on it.
+
+        Args:
+            connect: The endpoint(s) of the servers or of a router, e.g. ``tcp/127.0.0.1:7447``.
+            prefix: The servers' ``--zenoh-prefix``.
+            timeout: Deadline in seconds of every query (and of connecting).
+            token: The servers' auth token.
+            shards: N shards, or None for one server.
+            config: A complete Zenoh config instead of :func:`peer_config` of ``connect``.
+
+        Raises:
+            ValueError: A malformed endpoint, prefix or shard count.
+            ServerUnavailable: If the session cannot be opened.
+        """
+        where = ",".join(check_endpoints(connect))
+        check_prefix(prefix)
+        check_shards(shards)
+        try:
+            session = zenoh.open(config if config is not None else peer_config(connect, timeout))
+        except zenoh.ZError as err:
+            raise ServerUnavailable(
+                f"cannot open a Zenoh session to {where}: {err}", StatusCode.UNAVAILABLE
+            ) from None
+        try:
+            return cls(session, prefix, timeout, token, shards)
+        except BaseException:
+            with contextlib.suppress(zenoh.ZError):
+                session.close()
+            raise
+
+    def shard_of(self, session_id: str) -> int:
+        """The shard that owns ``session_id`` (0 for one server)."""
+        return shard_of(session_id, len(self._servers))
+
+    def _owner(self, session_id: str) -> _Server:
+        return self._servers[self.shard_of(session_id)]
+
+    def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
+        """``CreateSession`` on the session's shard (an empty id: a UUID, made here if sharded)."""
+        if self.shards is not None:
+            # The shard must be known before the session exists.
+            session_id = session_id or str(uuid.uuid4())
+        request = esa_pb2.CreateSessionRequest(session_id=session_id, config=config)
+        return self._owner(session_id).create_session(request).session_id
+
+    def get_session(self, session_id: str) -> SessionState:
+        """``GetSession``."""
+        request = esa_pb2.GetSessionRequest(session_id=session_id)
+        return SessionState.from_proto(self._owner(session_id).get_session(request))
+
+    def close_session(self, session_id: str) -> None:
+        """``CloseSession``."""
+        self._owner(session_id).close_session(esa_pb2.CloseSessionRequest(session_id=session_id))
+
+    def end_episode(self, session_id: str) -> int:
+        """``EndEpisode``; returns the completed-episode count."""
+        request = esa_pb2.EndEpisodeRequest(session_id=session_id)
+        return self._owner(session_id).end_episode(request).episodes_completed
+
+    def probe(
+        self,
+        session_id: str,
+        step: int,
+        action: F64Array,
+        episode_start: bool,
+        action_scale: F64Array | None,
+    ) -> tuple[F64Array, F64Array]:
+        """``Probe``; returns the probe and the applied action."""
+        request = esa_pb2.ProbeRequest(
+            session_id=session_id,
+            step=step,
+            action=action.tolist(),
+            episode_start=episode_start,
+            action_scale=[] if action_scale is None else action_scale.tolist(),
+        )
+        response = self._owner(session_id).probe(request)
+        return (
+            np.array(response.probe, dtype=np.float64),
+            np.array(response.action, dtype=np.float64),
+        )
+
+    def report(
+        self, session_id: str, step: int, q_value: float, q_reference: float | None
+    ) -> F64Array:
+        """``Report``; returns the improved action."""
+        request = esa_pb2.ReportRequest(session_id=session_id, step=step, q_value=q_value)
+        if q_reference is not None:
+            request.q_reference = q_reference
+        response = self._owner(session_id).report(request)
+        return np.array(response.action, dtype=np.float64)
+
+    def open_batch(
+        self, ids: Sequence[str], action_dim: int, *, use_stream: bool
+    ) -> BatchTransport:
+        """The batch's queries: to its one server, or split over the shards that own ``ids``.
+
+        ``use_stream`` changes nothing: every query is one message already.
+        """
+        owner = np.array([self.shard_of(i) for i in ids], dtype=np.int64)
+        parts = {s: np.flatnonzero(owner == s) for s in np.unique(owner).tolist()}
+        if len(parts) <= 1:
+            return _ServerBatch(self._servers[next(iter(parts), 0)], ids, action_dim)
+        return _ShardedBatch(
+            {
+                s: (
+                    items,
+                    _ServerBatch(self._servers[s], [ids[i] for i in items.tolist()], action_dim),
+                )
+                for s, items in parts.items()
+            },
+            (len(ids), action_dim),
+            self._executor,
+        )
+
+    def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
+        """True if every server answers (each within ``timeout`` seconds)."""
+        return all(s.healthy(timeout, wait_for_ready=wait_for_ready) for s in self._servers)
+
+    def close(self) -> None:
+        """Undeclares the queriers and closes the Zenoh session. Idempotent."""
+        self._executor.shutdown()
+        with contextlib.suppress(zenoh.ZError):
+            for server in self._servers:
+                server.close()
+            self._session.close()
+
+    def __repr__(self) -> str:
+        """Shows the prefix and shard count."""
+        shards = "" if self.shards is None else f", shards={self.shards}"
+        return f"ZenohTransport(prefix={self.prefix!r}{shards})"
+
+
+class _ServerBatch(BatchTransport):
+    """A batch's round trips to one server as ``ProbeBatch`` / ``ReportBatch`` queries."""
+
+    def __init__(self, server: _Server, ids: Sequence[str], action_dim: int) -> None:
+        self._server = server
+        self._ids = tuple(ids)
+        self._shape = (len(self._ids), action_dim)
+
+    def _values(self, values: Sequence[float]) -> F64Array:
+        return np.array(values, dtype=np.float64).reshape(self._shape)
+
+    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
+        """Sends one ProbeBatch."""
+        scales = request.action_scales
+        message = esa_pb2.ProbeBatchRequest(
+            session_ids=self._ids,
+            steps=request.steps.tolist(),
+            actions=request.actions.ravel().tolist(),
+            episode_starts=request.episode_starts.tolist(),
+            action_scales=[] if scales is None else scales.ravel().tolist(),
+        )
+        response = self._server.probe_batch(message)
+        return self._values(response.probes), self._values(response.actions)
+
+    def report(self, request: BatchReport) -> F64Array:
+        """Sends one ReportBatch."""
+        references = request.q_references
+        message = esa_pb2.ReportBatchRequest(
+            session_ids=self._ids,
+            steps=request.steps.tolist(),
+            q_values=request.q_values.tolist(),
+            q_references=[] if references is None else references.tolist(),
+        )
+        return self._values(self._server.report_batch(message).actions)
+
+
+class _ShardedBatch(BatchTransport):
+    """Splits each batch call per shard, sends the parts concurrently, merges answers in order.
+
+    Args:
+        parts: Per shard, the batch items it owns and its batch of their sessions.
+        shape: ``(N, D)`` of the whole batch.
+        executor: Runs the per-shard round trips concurrently.
+    """
+
+    def __init__(
+        self,
+        parts: dict[int, tuple[I64Array, _ServerBatch]],
+        shape: tuple[int, int],
+        executor: ThreadPoolExecutor,
+    ) -> None:
+        self._parts = parts
+        self._shape = shape
+        self._executor = executor
+
+    def _scatter(self, send: Callable[[_ServerBatch, I64Array], Answer]) -> dict[int, Answer]:
+        """Runs ``send(shard's batch, its items)`` for every shard concurrently."""
+        futures = {
+            shard: self._executor.submit(send, batch, items)
+            for shard, (items, batch) in self._parts.items()
+        }
+        answers = {}
+        for shard, future in futures.items():
+            try:
+                answers[shard] = future.result()
+            except EsaError as err:
+                raise _renumbered(err, self._parts[shard][0], shard) from None
+        return answers
+
+    def _merged(self, parts: dict[int, F64Array]) -> F64Array:
+        """The per-shard ``(k, D)`` values put back in batch order, ``(N, D)``."""
+        merged = np.empty(self._shape, dtype=np.float64)
+        for shard, values in parts.items():
+            merged[self._parts[shard][0]] = values
+        return merged
+
+    def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
+        """Sends the per-shard probes concurrently; answers come back in batch order."""
+        answers = self._scatter(lambda batch, items: batch.probe(_probe_part(request, items)))
+        probes = self._merged({s: a[0] for s, a in answers.items()})
+        return probes, self._merged({s: a[1] for s, a in answers.items()})
+
+    def report(self, request: BatchReport) -> F64Array:
+        """Sends the per-shard reports concurrently; actions come back in batch order."""
+        answers = self._scatter(lambda batch, items: batch.report(_report_part(request, items)))
+        return self._merged(answers)
+
+
+def _probe_part(request: BatchProbe, items: I64Array) -> BatchProbe:
+    scales = request.action_scales
+    return BatchProbe(
+        request.steps[items],
+        request.actions[items],
+        request.episode_starts[items],
+        None if scales is None else scales[items],
+    )
+
+
+def _report_part(request: BatchReport, items: I64Array) -> BatchReport:
+    references = request.q_references
+    return BatchReport(
+        request.steps[items],
+        request.q_values[items],
+        None if references is None else references[items],
+    )
+
+
+def _renumbered(err: EsaError, items: I64Array, shard: int) -> EsaError:
+    """The shard's error about its item k, as the error about item ``items[k]`` of the batch.
+
+    The index comes from the error's data (``err.index``); the message, which the server
+    starts with ``item k: `` for that same k, gets the batch's number instead, and the
+    shard is named at the end.
+    """
+    message, index = err.message, None
+    if err.index is not None and 0 <= err.index < len(items):
+        index = int(items[err.index])
+        message = f"item {index}: {message.removeprefix(f'item {err.index}: ')}"
+    return type(err)(f"{message} (shard {shard})", err.code, index=index)
