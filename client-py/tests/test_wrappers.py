@@ -6,7 +6,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from reference_law import ReferenceSession
 
-from esa_client import EsaConfig
+from esa_client import EsaClient, EsaConfig
 from esa_client.wrappers import EsaActionWrapper
 
 
@@ -51,11 +51,23 @@ def test_wrapper_applies_the_improved_action(client):
     env.close()
 
 
-def test_wrapper_spawns_and_stops_its_own_server(server_bin, monkeypatch):
-    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+def test_wrapper_runs_in_process_by_default_and_starts_no_server():
     env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn)
+    assert env._client.server is None  # esa-core in this process
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(env.action_space.sample())
+    assert np.all(np.isfinite(info["esa_action"]))
+    env.close()
+
+
+def test_wrapper_stops_the_server_it_was_given_to_own(server_bin, monkeypatch):
+    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+    env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn, client=EsaClient.spawn())
     server = env._client.server
     env.reset(seed=0)
     env.step(env.action_space.sample())
     env.close()
+    # A client passed in stays the caller's: closing the wrapper leaves it running.
+    assert server.running()
+    env._client.close()
     assert not server.running()

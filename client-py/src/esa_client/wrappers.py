@@ -44,8 +44,8 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         esa: ESA hyperparameters (default ``EsaConfig()``); amplitudes are in the env's
             action units.
         client: The client to create the session on (any of ``EsaClient.connect``,
-            ``.spawn``, ``.in_process``); None spawns a private server that is stopped by
-            ``close()``.
+            ``.spawn``, ``.in_process``); None: esa-core in this process (no server is
+            started), closed by ``close()``.
         action_scale: sigma for the trust region and the normalized step (the policy's
             standard deviation if the learner has one): a scalar, one value per action
             dimension, or ``f(observation)``; None = 1 action unit.
@@ -77,7 +77,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
             space.high.reshape(-1),
         )
         self._owns_client = client is None
-        self._client: EsaClient = EsaClient.spawn() if client is None else client
+        self._client: EsaClient = EsaClient.in_process() if client is None else client
         try:
             self._batch = self._client.create_batch(config, 1)
         except BaseException:
@@ -124,7 +124,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         return obs, reward, terminated, truncated, {**info, "esa_action": applied}
 
     def close(self) -> None:
-        """Closes the session (and the private server, if this wrapper spawned it) and the env."""
+        """Closes the session, the client if the wrapper made it, and the env."""
         with contextlib.suppress(EsaError):
             self._batch.close()
         if self._owns_client:

@@ -71,12 +71,13 @@ class EsaMixin(_Algorithm):
                 (an RL Zoo yaml file's ``esa: {amplitude: 0.2}``) applied over the family's
                 default, checked like ``EsaConfig`` (``ValueError``); ``"preset": "paper"``
                 starts from ``EsaConfig.paper()`` instead. None: the family's default.
-            esa_address: An esa-server address (``host:port`` or ``unix:/path``, reached
-                in plaintext through the Rust client); None spawns a private server.
+            esa_address: An esa-server address (``host:port`` or ``unix:/path``), reached
+                over plaintext gRPC (a TLS or Zenoh client goes through
+                :meth:`EsaRuntime.on_client`); None: in-process, or a private server with
+                ``esa_engine="sidecar"``.
             esa_spawn: Arguments of :meth:`EsaClient.spawn` for that private server, e.g.
-                ``{"session_ttl": 3600}`` when rollouts are far apart. It is reached
-                through the Rust client (``transport="native"``) unless these name
-                another transport, e.g. ``{"transport": "grpc"}`` for grpcio.
+                ``{"session_ttl": 3600}`` when rollouts are far apart, or
+                ``{"transport": "zenoh"}``.
             esa_engine: Where the sessions live: ``"inprocess"`` (esa-core in this process:
                 no server, nothing shared) or ``"sidecar"`` (an esa-server: ``esa_address``,
                 else a private one). None: the server that ``esa_address`` or ``esa_spawn``
