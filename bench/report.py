@@ -178,13 +178,13 @@ def training_limit(row: dict) -> float | None:
 
 
 def size_targets(sizes: dict | None) -> list[Target]:
-    """The wheel (<= 10 MB) and the server binaries (reported) from ``sizes.json``."""
+    """The client wheel (<= 10 MB), the server wheel and binaries (reported), ``sizes.json``."""
     sizes = sizes or {}
     out = []
     wheel = sizes.get("wheel")
     out.append(
         Target(
-            "wheel size (`make wheel`: extension + bundled stripped esa-server)",
+            "client wheel size (`make wheel`: esa_client and its extension)",
             "<= 10 MB",
             f"{wheel['bytes'] / 1e6:.1f} MB ({Path(wheel['path']).name})"
             if wheel
@@ -193,7 +193,8 @@ def size_targets(sizes: dict | None) -> list[Target]:
         )
     )
     for key, what in [
-        ("wheel_server", "esa-server binary in the wheel (profile `dist`: fat LTO, stripped)"),
+        ("server_wheel", "server wheel `esa-server` (`esa-client[server]`)"),
+        ("wheel_server", "esa-server executable in the server wheel"),
         ("wheel_extension", "extension `esa_client._native` in the wheel"),
         ("server_release", "esa-server binary, profile `release` (`make build`)"),
     ]:

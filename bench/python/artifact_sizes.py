@@ -1,12 +1,11 @@
-"""Sizes of what a user downloads and runs: the wheel, the bundled server, the extension.
+"""Sizes of what a user downloads and runs: the client wheel, the server wheel, the binaries.
 
-Measures the files as the last builds left them: the newest ``dist/esa_client-*.whl``
-(``make wheel``), the esa-server of the cargo profile ``dist`` that the wheel bundles
-(``target/dist/esa-server``), the release build ``make build`` makes
+Measures the files as the last builds left them: the newest ``dist/esa_client-*.whl`` and
+``dist/esa_server-*.whl`` (``make wheel``: the extension, and the esa-server executable of
+the server's own wheel), the release build ``make build`` makes
 (``target/release/esa-server``) and the in-place extension
-(``client-py/src/esa_client/_native.abi3.so``), and inside the wheel the server and the
-extension it carries (uncompressed). Missing files are left out of the JSON (``make wheel``
-builds the first two).
+(``client-py/src/esa_client/_native.abi3.so``), and inside the wheels the extension and the
+server they carry (uncompressed). Missing files are left out of the JSON.
 
 Usage::
 
@@ -27,7 +26,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 @dataclass
 class Args:
-    """Sizes of the wheel, the bundled server and the extension."""
+    """Sizes of the wheels, the server and the extension."""
 
     out: str = "bench/results/sizes.json"
     """JSON of the sizes."""
@@ -35,28 +34,31 @@ class Args:
 
 def sizes(root: Path) -> dict[str, dict[str, object]]:
     """``{artifact: {"path": ..., "bytes": ...}}`` for each artifact that exists."""
-    wheels = sorted(root.glob("dist/esa_client-*.whl"), key=lambda p: p.stat().st_mtime)
+    newest = {
+        name: sorted(root.glob(f"dist/{stem}-*.whl"), key=lambda p: p.stat().st_mtime)[-1:]
+        for name, stem in (("wheel", "esa_client"), ("server_wheel", "esa_server"))
+    }
     artifacts = {
-        "wheel": wheels[-1] if wheels else None,
-        "server_dist": root / "target/dist/esa-server",
+        **{name: found[0] for name, found in newest.items() if found},
         "server_release": root / "target/release/esa-server",
         "extension": root / "client-py/src/esa_client/_native.abi3.so",
     }
     found: dict[str, dict[str, object]] = {
         name: {"path": str(path.relative_to(root)), "bytes": path.stat().st_size}
         for name, path in artifacts.items()
-        if path is not None and path.is_file()
+        if path.is_file()
     }
-    if wheels:
-        with zipfile.ZipFile(wheels[-1]) as wheel:
-            for info in wheel.infolist():
-                name = Path(info.filename).name
-                key = {"esa-server": "wheel_server", "_native.abi3.so": "wheel_extension"}
-                if name in key:
-                    found[key[name]] = {
-                        "path": f"{wheels[-1].name}:{info.filename}",
-                        "bytes": info.file_size,
-                    }
+    inside = {"esa-server": "wheel_server", "_native.abi3.so": "wheel_extension"}
+    for wheels in newest.values():
+        for path in wheels:
+            with zipfile.ZipFile(path) as wheel:
+                for info in wheel.infolist():
+                    key = inside.get(Path(info.filename).name)
+                    if key is not None:
+                        found[key] = {
+                            "path": f"{path.name}:{info.filename}",
+                            "bytes": info.file_size,
+                        }
     return found
 
 

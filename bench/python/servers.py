@@ -18,7 +18,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 def server_binary() -> str:
     """The esa-server binary, found as the client finds it (``find_server_binary``).
 
-    ``ESA_SERVER_BIN`` (``make bench`` sets it) wins, then an installed wheel's bundled server,
+    ``ESA_SERVER_BIN`` (``make bench`` sets it) wins, then the ``esa-server`` wheel,
     then this checkout's release build (never built here).
     """
     try:

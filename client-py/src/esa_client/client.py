@@ -329,8 +329,9 @@ class EsaClient:
         (``client.servers[i].address``) and requires a fresh random token
         (``client.servers[i].token``), since a loopback port is open to every local user.
 
-        The server is found via ``binary``, ``ESA_SERVER_BIN``, ``PATH`` or a cargo
-        build of this repository (see :func:`esa_client.sidecar.find_server_binary`),
+        The server is found via ``binary``, ``ESA_SERVER_BIN``, the ``esa-server`` wheel
+        (``pip install "esa-client[server]"``), a cargo build of this repository or
+        ``PATH`` (see :func:`esa_client.sidecar.find_server_binary`),
         and stopped by :meth:`close` (or at interpreter exit at the latest); if this
         process dies first, whatever the signal, the server stops by itself.
 

@@ -62,8 +62,8 @@ def pin_server_binary() -> str:
     itself (possibly running ``cargo build``, and possibly getting a different
     build midway through a study); resolving it here (building at most once)
     keeps all runs of a session on one binary. The lookup is the client's
-    (:func:`esa_client.sidecar.find_server_binary`: ``ESA_SERVER_BIN``, an
-    installed wheel's bundled server, then a checkout's build), with this
+    (:func:`esa_client.sidecar.find_server_binary`: ``ESA_SERVER_BIN``, the
+    ``esa-server`` wheel, then a checkout's build), with this
     repository as the checkout when experiments runs from one.
     """
     from esa_client.sidecar import BINARY_ENV, find_server_binary
