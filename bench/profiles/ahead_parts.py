@@ -3,7 +3,7 @@
 Trains an ESA drop-in (SB3 defaults, InvertedPendulum-v5, 1 env by default; ESAPPO, or
 ESASAC / ESATD3 with the bench's 800 learning-starts steps) through a private esa-server
 reached with the native client, with a timer around the runtime's whole ESA step
-(``EsaRuntime.step``: the critic's evaluation included), ``SessionBatch.step_ahead``, and
+(``EsaRuntime.step``: the critic's evaluation included), ``SessionBatch.step`` (sent ahead), and
 its native calls: ``send_step_linear`` (ESAPPO's linear critic) or ``send_step`` (the
 critic's values), which queue the step for the batch's stream thread, and
 ``receive_step`` (taking the answer of the previous step). Prints each one's mean and
@@ -35,7 +35,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 TIMED = [
     (EsaRuntime, "step"),
-    (SessionBatch, "step_ahead"),
+    (SessionBatch, "step"),
     (GrpcStepBatch, "send_step_linear"),
     (GrpcStepBatch, "send_step"),
     (GrpcStepBatch, "receive_step"),

@@ -1,12 +1,12 @@
 """The client's cost of one ESAPPO-shaped step through the native sidecar, in a tight loop.
 
 One spawned esa-server on a Unix socket, the Rust client of ``esa_client._native`` on the
-batch's StepStream; ``--steps`` steps of a linear critic either as ``SessionBatch.step``
-(the probe and the deferred report: one round trip that the call waits for) or as
-``SessionBatch.step_ahead`` (one ``step_linear_batch`` message sent without waiting, its
-answer read at the next call). Prints the wall-clock and the client's CPU time per step;
-with nothing between the steps the answer of a step sent ahead has not arrived yet, so the
-wall-clock here is an upper bound of what a trainer waits.
+batch's StepStream; ``--steps`` steps of a linear critic by ``SessionBatch.step``, either
+waiting for its probes (``step``: the probe and the deferred report, one round trip that the
+call waits for) or sent ahead (``ahead``: one ``step_linear_batch`` message sent without
+waiting, its answer read at the next call). Prints the wall-clock and the client's CPU time
+per step; with nothing between the steps the answer of a step sent ahead has not arrived yet,
+so the wall-clock here is an upper bound of what a trainer waits.
 
 Usage::
 
@@ -49,10 +49,8 @@ def main(args: Args) -> None:
             batch = client.create_batch(config, args.n, use_stream=True)
             wall, cpu = time.perf_counter(), time.process_time()
             for _ in range(args.steps):
-                if mode == "ahead":
-                    batch.step_ahead(actions, critic, starts)
-                else:
-                    batch.step(actions, critic, starts)
+                # "step" waits for each answer, as a trainer that needs the probes does.
+                batch.step(actions, critic, starts, want_probes=mode == "step")
             batch.flush()
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
             print(

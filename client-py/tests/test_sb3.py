@@ -67,20 +67,18 @@ def esa_calls(monkeypatch):
         calls["scales"].append(kwargs.get("action_scales"))
         return probes, applied
 
-    step_ahead = SessionBatch.step_ahead
+    step_ahead = SessionBatch._step_ahead
 
-    def recording_ahead(self, actions, critic, episode_starts=None, **kwargs):
-        applied = step_ahead(self, actions, critic, episode_starts, **kwargs)
-        if not self.steps_ahead:
-            return applied  # recorded by probe_applied
+    def recording_ahead(self, ahead, actions, critic, episode_starts, action_scales, paired):
+        applied = step_ahead(self, ahead, actions, critic, episode_starts, action_scales, paired)
         calls["sampled"].append(np.array(actions, dtype=np.float64))
         calls["applied"].append(applied.copy())
-        calls["scales"].append(kwargs.get("action_scales"))
+        calls["scales"].append(action_scales)
         return applied
 
     monkeypatch.setattr(SessionBatch, "probe_applied", recording)
-    # ESAPPO's linear critic through the gRPC client's stream.
-    monkeypatch.setattr(SessionBatch, "step_ahead", recording_ahead)
+    # A step sent ahead through the gRPC client's stream skips probe_applied.
+    monkeypatch.setattr(SessionBatch, "_step_ahead", recording_ahead)
     return calls
 
 
@@ -478,7 +476,7 @@ def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatc
         )
         model.learn(400)
         assert model._esa is not None
-        assert model._esa.batch.steps_ahead == (engine == "sidecar")
+        assert (model._esa.batch._ahead_batch is not None) == (engine == "sidecar")
         # A step sent ahead leaves no probes; a probe executed is waited for.
         sent_ahead = engine == "sidecar" and execute == "shifted"
         assert (model._esa.last_probes is None) == sent_ahead

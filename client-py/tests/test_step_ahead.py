@@ -1,11 +1,11 @@
-"""``SessionBatch.step_ahead``: the pipelined step, against a real server.
+"""``SessionBatch.step`` sent ahead of its answer: the pipelined step, against a real server.
 
 For a linear critic (evaluated by the server) and for any critic (evaluated here, at probes
 computed ahead), the applied actions it computes ahead (from the previous answer's shifts, with
 esa-core's own functions) are the bits the in-process engine's whole step returns, and so are
 the sessions' states; an error of a step surfaces at the next call with nothing of it applied;
-bad critic values are refused before anything is sent; a batch that cannot pipeline falls back
-to ``step``.
+bad critic values are refused before anything is sent; a batch that cannot pipeline waits for
+its answers with the same bits; ``want_probes`` waits for the server's probes.
 """
 
 import numpy as np
@@ -86,10 +86,10 @@ def test_the_actions_and_states_are_the_in_process_steps_bits(native, paired, ki
     local = EsaClient.in_process()
     ahead = native.create_batch(CONFIG, N, use_stream=True)
     whole = local.create_batch(CONFIG, N)
-    assert ahead.steps_ahead and not whole.steps_ahead
+    assert ahead._ahead_batch is not None and whole._ahead_batch is None
     for actions, scales, linear, starts in script(300):
         critic = CRITICS[kind](linear)
-        applied = ahead.step_ahead(actions, critic, starts, action_scales=scales, paired=paired)
+        _, applied = ahead.step(actions, critic, starts, action_scales=scales, paired=paired)
         _, expected = whole.step(actions, critic, starts, action_scales=scales, paired=paired)
         np.testing.assert_array_equal(applied, expected)
     # states() reads the last answer first.
@@ -106,9 +106,9 @@ def test_without_a_pipelining_stream_it_is_step(native):
         local.create_batch(CONFIG, N),
     ):
         twin = local.create_batch(CONFIG, N)
-        assert not batch.steps_ahead
+        assert batch._ahead_batch is None
         for actions, scales, critic, starts in script(40, seed=1):
-            applied = batch.step_ahead(actions, critic, starts, action_scales=scales)
+            _, applied = batch.step(actions, critic, starts, action_scales=scales)
             _, expected = twin.step(actions, critic, starts, action_scales=scales)
             np.testing.assert_array_equal(applied, expected)
         batch.close()
@@ -119,20 +119,20 @@ def test_a_refused_step_raises_at_the_next_call_and_changes_nothing(native):
     batch = native.create_batch(CONFIG, N, use_stream=True)
     steps = script(10, seed=2)
     for actions, scales, critic, starts in steps:
-        batch.step_ahead(actions, critic, starts, action_scales=scales)
+        batch.step(actions, critic, starts, action_scales=scales)
     before = comparable(batch.states())
     tracked = batch.steps
     actions, scales, critic, _ = next(script(1, seed=3))
     gain = critic.gain.copy()
     gain[1, 0] = np.nan
     # Sent without waiting: this call returns actions, the server refuses the step.
-    batch.step_ahead(actions, LinearCritic(gain, critic.offset), action_scales=scales)
+    batch.step(actions, LinearCritic(gain, critic.offset), action_scales=scales)
     with pytest.raises(InvalidArgument, match="critic_gains: expected finite values"):
-        batch.step_ahead(actions, critic, action_scales=scales)
+        batch.step(actions, critic, action_scales=scales)
     assert comparable(batch.states()) == before
     np.testing.assert_array_equal(batch.steps, tracked)
     # The refused step is due again, and goes through.
-    batch.step_ahead(actions, critic, action_scales=scales)
+    batch.step(actions, critic, action_scales=scales)
     batch.flush()
     np.testing.assert_array_equal(batch.steps, tracked + 1)
     assert [s.step for s in batch.states()] == (tracked + 1).tolist()
@@ -142,14 +142,14 @@ def test_a_refused_step_raises_at_the_next_call_and_changes_nothing(native):
 def test_a_refused_step_with_values_raises_at_the_next_call(native):
     batch = native.create_batch(CONFIG, 1, use_stream=True)
     q = curved(LinearCritic(np.ones((1, 2)), np.zeros(1)))
-    batch.step_ahead(np.zeros((1, 2)), q, np.ones(1, bool))
+    batch.step(np.zeros((1, 2)), q, np.ones(1, bool))
     batch.flush()
     # Another client moves the session on: the values went with a probe out of turn.
     other = native.get_session(batch.ids[0])
     other.probe(np.zeros(2))
     other.report(0.0)
     before = comparable(batch.states())
-    batch.step_ahead(np.zeros((1, 2)), q)
+    batch.step(np.zeros((1, 2)), q)
     with pytest.raises(StepMismatch):
         batch.flush()
     assert comparable(batch.states()) == before
@@ -160,7 +160,7 @@ def test_a_refused_step_with_values_raises_at_the_next_call(native):
 def test_bad_critic_values_are_refused_at_once_and_nothing_is_sent(native, paired):
     batch = native.create_batch(CONFIG, N, use_stream=True)
     actions, scales, critic, starts = next(script(1, seed=8))
-    batch.step_ahead(actions, curved(critic), starts, action_scales=scales, paired=paired)
+    batch.step(actions, curved(critic), starts, action_scales=scales, paired=paired)
     before, tracked = comparable(batch.states()), batch.steps
     rows = 2 * N if paired else N
     for values, match in [
@@ -170,11 +170,11 @@ def test_bad_critic_values_are_refused_at_once_and_nothing_is_sent(native, paire
         (lambda points: np.r_[np.zeros(rows - 1), np.inf], "expected finite critic values"),
     ]:
         with pytest.raises(ValueError, match=match):
-            batch.step_ahead(actions, values, action_scales=scales, paired=paired)
+            batch.step(actions, values, action_scales=scales, paired=paired)
         np.testing.assert_array_equal(batch.steps, tracked)
     assert comparable(batch.states()) == before
     # Nothing was sent: the next good step is the one due.
-    batch.step_ahead(actions, curved(critic), action_scales=scales, paired=paired)
+    batch.step(actions, curved(critic), action_scales=scales, paired=paired)
     batch.flush()
     np.testing.assert_array_equal(batch.steps, tracked + 1)
     batch.close()
@@ -183,16 +183,16 @@ def test_bad_critic_values_are_refused_at_once_and_nothing_is_sent(native, paire
 def test_bad_actions_are_refused_at_once_and_nothing_is_sent(native):
     batch = native.create_batch(CONFIG, N, use_stream=True)
     actions, scales, critic, starts = next(script(1, seed=4))
-    batch.step_ahead(actions, critic, starts, action_scales=scales)
+    batch.step(actions, critic, starts, action_scales=scales)
     before = comparable(batch.states())
     bad = actions.copy()
     bad[2, 1] = np.inf
     with pytest.raises(InvalidArgument, match=r"item 2: .*action\[1\]: expected a finite number"):
-        batch.step_ahead(bad, critic, action_scales=scales)
+        batch.step(bad, critic, action_scales=scales)
     with pytest.raises(InvalidArgument, match="action_scale"):
-        batch.step_ahead(actions, critic, action_scales=-scales)
+        batch.step(actions, critic, action_scales=-scales)
     with pytest.raises(ValueError, match="critic: expected gain of shape"):
-        batch.step_ahead(actions, LinearCritic(critic.gain[:2], critic.offset))
+        batch.step(actions, LinearCritic(critic.gain[:2], critic.offset))
     assert comparable(batch.states()) == before
     batch.close()
 
@@ -200,13 +200,13 @@ def test_bad_actions_are_refused_at_once_and_nothing_is_sent(native):
 def test_a_step_out_of_turn_is_a_step_mismatch_one_call_late(native):
     batch = native.create_batch(CONFIG, 1, use_stream=True)
     critic = LinearCritic(np.ones((1, 2)), np.zeros(1))
-    batch.step_ahead(np.zeros((1, 2)), critic, np.ones(1, bool))
+    batch.step(np.zeros((1, 2)), critic, np.ones(1, bool))
     batch.flush()
     # Another client moves the session on behind this batch's back.
     other = native.get_session(batch.ids[0])
     other.probe(np.zeros(2))
     other.report(0.0)
-    batch.step_ahead(np.zeros((1, 2)), critic)
+    batch.step(np.zeros((1, 2)), critic)
     with pytest.raises(StepMismatch):
         batch.flush()
     batch.close()
@@ -216,7 +216,7 @@ def test_a_step_out_of_turn_is_a_step_mismatch_one_call_late(native):
 def test_a_broken_exchange_restarts_every_session(native, monkeypatch, kind):
     batch = native.create_batch(CONFIG, N, use_stream=True)
     for actions, scales, critic, starts in script(5, seed=5):
-        batch.step_ahead(actions, CRITICS[kind](critic), starts, action_scales=scales)
+        batch.step(actions, CRITICS[kind](critic), starts, action_scales=scales)
     episodes = [s.episodes_completed for s in batch.states()]
     ahead = batch._ahead_batch
     receive = ahead.receive_step
@@ -231,10 +231,10 @@ def test_a_broken_exchange_restarts_every_session(native, monkeypatch, kind):
 
     monkeypatch.setattr(ahead, "receive_step", broken)
     sent, _, sent_critic, _ = next(script(1, seed=6))
-    batch.step_ahead(sent, CRITICS[kind](sent_critic))  # sends step 5
+    batch.step(sent, CRITICS[kind](sent_critic))  # sends step 5
     actions, scales, critic, _ = next(script(1, seed=7))
     # Whether step 5 was applied is unknown: every session starts over with this step.
-    applied = batch.step_ahead(actions, CRITICS[kind](critic), action_scales=scales)
+    _, applied = batch.step(actions, CRITICS[kind](critic), action_scales=scales)
     np.testing.assert_array_equal(applied, np.clip(actions, -1.0, 1.0))
     states = batch.states()
     assert [s.step for s in states] == [1] * N
@@ -286,7 +286,9 @@ def test_probes_ahead_are_the_servers_probes(native):
         shifts = np.where(starts[:, None] | (batch.steps == 0)[:, None], 0.0, shifts)
         steps = np.where(starts, 0, batch.steps).astype(np.uint64)
         probes, applied = engine.probes(shifts, steps, actions, scales)
-        server_probes, server_applied = batch.step(actions, critic, starts, action_scales=scales)
+        server_probes, server_applied = batch.step(
+            actions, critic, starts, action_scales=scales, want_probes=True
+        )
         np.testing.assert_array_equal(probes, server_probes)
         np.testing.assert_array_equal(applied, server_applied)
         batch.flush()

@@ -19,7 +19,7 @@ runs in-process, over gRPC or over Zenoh (one server or N shards).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -50,6 +50,11 @@ __all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
 
 _engine_errors = TypedErrors(EngineError)
 
+_Answer = TypeVar("_Answer")
+
+Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic
+"""What :meth:`SessionBatch.step` scores the probes with."""
+
 
 def restore_sessions(
     transport: Transport,
@@ -75,7 +80,7 @@ def restore_sessions(
 
 
 class _InFlight(NamedTuple):
-    """What a step sent by :meth:`SessionBatch.step_ahead` replaced, restored if it fails."""
+    """What a step sent ahead by :meth:`SessionBatch.step` replaced, restored if it fails."""
 
     steps_before: I64Array
     starts_before: BoolArray
@@ -247,11 +252,11 @@ class SessionBatch:
         self._reconnect = reconnect
         # The last probe sent: replayed into recreated sessions before a lone report.
         self._last_probe: BatchProbe | None = None
-        # step_ahead: the step sent whose answer is not read yet, and what to restore if it
+        # A step sent ahead: the one whose answer is not read yet, and what to restore if it
         # fails; the shifts v(t) of the next step (from the last answer read).
         self._ahead: _InFlight | None = None
         self._shifts: F64Array = np.zeros((self.n, self.action_dim))
-        self._step_ahead: StepAhead | None = None
+        self._ahead_engine: StepAhead | None = None
         self._ahead_batch = self._batch.ahead()
         self._head_batch = self._batch.fused()
         self.sessions_restored = 0
@@ -327,33 +332,67 @@ class SessionBatch:
     def step(
         self,
         actions: npt.ArrayLike,
-        critic: Callable[[F64Array], npt.ArrayLike] | LinearCritic,
+        critic: Critic,
         episode_starts: npt.ArrayLike | None = None,
         *,
         action_scales: npt.ArrayLike | None = None,
         paired: bool = False,
-    ) -> tuple[F64Array, F64Array]:
-        """A whole step of Algorithm 1 (section 1b): probe, critic, deferred report.
+        want_probes: bool = False,
+    ) -> tuple[F64Array | None, F64Array]:
+        """A whole step of Algorithm 1 (section 1b), in as few waits as the transport allows.
 
-        :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the
-        probes (and at the applied actions as ``q_references`` when ``paired``). A
-        :class:`~esa_client.transports.base.LinearCritic` on the in-process engine is
-        evaluated by the engine itself: both run in one call, with nothing deferred.
+        :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the probes
+        (and at the applied actions as ``q_references`` when ``paired``). The transport
+        decides how it runs, with the same bits everywhere:
+
+        - in-process, a :class:`~esa_client.transports.base.LinearCritic` is evaluated by the
+          engine itself: probe and report run in one call, with nothing deferred;
+        - through a gRPC StepStream the step is sent ahead of its answer (unless
+          ``want_probes``): the applied actions are computed here with esa-core's own
+          function from the shifts ``v(t)`` that the previous step's answer carried (0 at an
+          episode start), and the step (probe, critic, report) goes as one message whose
+          answer is read at the next call, so the round trip overlaps the environment's step
+          and the learner's work (CONTRACT.md section 1b, implementation note 8). A
+          :class:`~esa_client.transports.base.LinearCritic` is evaluated by the server
+          (``step_linear_batch``); any other critic is evaluated here, at the probes computed
+          the same way, and its values go with the step (``step_batch``);
+        - elsewhere, the probe waits for its answer and the report rides with the next one.
+
+        An error of a step sent ahead surfaces one call late: the next call (or :meth:`flush`)
+        raises it, and nothing of that step was applied on the server, although its actions
+        were returned. After a broken exchange (the server restarted, or the connection
+        dropped) whether the step was applied is unknown, so every session starts a new
+        episode at the next step (the running shifts are lost, as after a restart); with a
+        reconnect policy that happens within the call.
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
             critic: The critic at the N current states: maps ``(k N, D)`` actions (the
-                states tiled k times) to ``(k N,)`` values.
+                states tiled k times) to ``(k N,)`` values, or
+                ``Q_i(a) = gain_i . a + offset_i`` as a
+                :class:`~esa_client.transports.base.LinearCritic`.
             episode_starts: As for :meth:`probe_applied`.
             action_scales: As for :meth:`probe_applied`.
             paired: Report the critic at the applied actions as the references.
+            want_probes: Wait for this step's probes (for trainers that execute them), even
+                where the step could be sent ahead.
 
         Returns:
-            ``(probes, applied)``, as :meth:`probe_applied` returns them.
+            ``(probes, applied)``, as :meth:`probe_applied` returns them; ``probes`` is None
+            for a step sent ahead (the server answers them one step later).
+
+        Raises:
+            ValueError: The critic's values are not ``(N,)`` (``(2 N,)`` when ``paired``)
+                finite numbers, or a linear critic's shapes are wrong.
         """
         linear = critic if isinstance(critic, LinearCritic) else None
         if linear is not None:
             self._check_critic(linear)
+        ahead = self._ahead_batch
+        if ahead is not None and not want_probes:
+            return None, self._step_ahead(
+                ahead, actions, critic, episode_starts, action_scales, paired
+            )
         fused = self._head_batch
         if linear is None or fused is None or self._deferred is not None:
             probes, applied = self.probe_applied(
@@ -422,66 +461,16 @@ class SessionBatch:
         self._last_probe = None
         return answer
 
-    @property
-    def steps_ahead(self) -> bool:
-        """Whether :meth:`step_ahead` pipelines here (a native gRPC client's StepStream).
-
-        Elsewhere it is :meth:`step`, which waits for the server (or, in-process, needs
-        no wire).
-        """
-        return self._ahead_batch is not None
-
-    def step_ahead(
+    def _step_ahead(
         self,
+        ahead: AheadBatch,
         actions: npt.ArrayLike,
-        critic: Callable[[F64Array], npt.ArrayLike] | LinearCritic,
-        episode_starts: npt.ArrayLike | None = None,
-        *,
-        action_scales: npt.ArrayLike | None = None,
-        paired: bool = False,
+        critic: Critic,
+        episode_starts: npt.ArrayLike | None,
+        action_scales: npt.ArrayLike | None,
+        paired: bool,
     ) -> F64Array:
-        """Algorithm 1's step without waiting for the server.
-
-        Returns ``clip(a_t + v(t))``, as :meth:`step` does, computed here with esa-core's
-        own function from the shifts ``v(t)`` that the previous step's answer carried (0 at
-        an episode start): the same bits as the server's. The step itself (probe, critic,
-        report) goes as one message whose answer is read at the next call, so the round
-        trip overlaps the environment's step and the learner's work (CONTRACT.md section 1b,
-        implementation note 8). A :class:`LinearCritic` is evaluated by the server
-        (``step_linear_batch``); any other critic is evaluated here, at the probes computed
-        the same way (the server's bits), and its values go with the step (``step_batch``).
-        Where the batch cannot pipeline (:attr:`steps_ahead` is False) this is
-        :meth:`step`'s applied actions.
-
-        An error of the step surfaces one call late: the next call (or :meth:`flush`)
-        raises it, and nothing of that step was applied on the server, although its
-        actions were returned. After a broken exchange (the server restarted, or the
-        connection dropped) whether the step was applied is unknown, so every session
-        starts a new episode at the next step (the running shifts are lost, as after a
-        restart); with a reconnect policy that happens within the call.
-
-        Args:
-            actions: Sampled actions, shape ``(N, D)``.
-            critic: ``Q_i(a) = gain_i . a + offset_i`` at the N current states, or the
-                critic as for :meth:`step`.
-            episode_starts: As for :meth:`probe_applied`.
-            action_scales: As for :meth:`probe_applied`.
-            paired: Report the critic at the applied actions as the references.
-
-        Returns:
-            The applied actions ``clip(a_t + v(t))``, shape ``(N, D)``.
-
-        Raises:
-            ValueError: The critic's values are not ``(N,)`` (``(2 N,)`` when ``paired``)
-                finite numbers; nothing was sent.
-        """
-        ahead = self._ahead_batch
-        if ahead is None:
-            return self.step(
-                actions, critic, episode_starts, action_scales=action_scales, paired=paired
-            )[1]
-        if isinstance(critic, LinearCritic):
-            self._check_critic(critic)
+        """:meth:`step` sent ahead of its answer on ``ahead``; returns the applied actions."""
         if self._deferred is not None:
             self.flush()
         if self._ahead is not None:
@@ -494,7 +483,9 @@ class SessionBatch:
             if self._reconnect is None:
                 raise
             request, applied = self._reconnect.run(
-                lambda _: self._restart_ahead(ahead, request, critic, paired)
+                lambda _: self._restart(
+                    request, lambda restart: self._send_ahead(ahead, restart, critic, paired)
+                )
             )
         self._ahead = before
         self._steps = request.steps + 1
@@ -515,7 +506,7 @@ class SessionBatch:
         self,
         batch: AheadBatch,
         request: BatchProbe,
-        critic: Callable[[F64Array], npt.ArrayLike] | LinearCritic,
+        critic: Critic,
         paired: bool,
     ) -> F64Array:
         """Sends ``request``'s step, computed from the shifts in hand; returns its actions.
@@ -523,10 +514,10 @@ class SessionBatch:
         The actions and scales (and a critic's values) are checked before anything is sent:
         an error there is this call's.
         """
-        engine = self._step_ahead
+        engine = self._ahead_engine
         if engine is None:
             engine = StepAhead([c.to_proto().SerializeToString() for c in self.configs])
-            self._step_ahead = engine
+            self._ahead_engine = engine
         shifts = self._shifts
         if request.episode_starts.any():
             shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
@@ -544,27 +535,8 @@ class SessionBatch:
         batch.send_step(request, q[: self.n], q[self.n :] if paired else None)
         return applied
 
-    def _restart_ahead(
-        self,
-        batch: AheadBatch,
-        request: BatchProbe,
-        critic: Callable[[F64Array], npt.ArrayLike] | LinearCritic,
-        paired: bool,
-    ) -> tuple[BatchProbe, F64Array]:
-        """Sends ``request`` as every session's episode start, after :meth:`restore`.
-
-        For a broken wire: whether earlier steps were applied is unknown (see
-        :meth:`step_ahead`). Returns what it sent and its applied actions.
-        """
-        self.restore()
-        restart = request._replace(
-            steps=np.zeros(self.n, dtype=np.int64),
-            episode_starts=np.ones(self.n, dtype=bool),
-        )
-        return restart, self._send_ahead(batch, restart, critic, paired)
-
     def _receive_ahead(self, batch: AheadBatch) -> F64Array:
-        """The shifts ``v(t + 1)`` of the step in flight, or its error (see :meth:`step_ahead`).
+        """The shifts ``v(t + 1)`` of the step in flight, or its error (see :meth:`step`).
 
         A refused step is undone here (its steps and episode starts are due again); after a
         broken exchange every session restarts: :meth:`restore` (riding out the server's
@@ -635,7 +607,7 @@ class SessionBatch:
             try:
                 deferred, request = self._reconcile(deferred, request)
             except SessionNotFound:
-                return self._restart(request)
+                return self._restart(request, self._batch.probe)
         try:
             if deferred is None:
                 return request, self._batch.probe(request)
@@ -643,7 +615,7 @@ class SessionBatch:
         except SessionNotFound:
             if not retrying:
                 raise
-            return self._restart(request)
+            return self._restart(request, self._batch.probe)
 
     def _reconcile(
         self, deferred: BatchReport | None, request: BatchProbe
@@ -684,14 +656,19 @@ class SessionBatch:
         request = request._replace(episode_starts=starts)
         return None, request
 
-    def _restart(self, request: BatchProbe) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
-        """Recreates lost sessions and sends ``request`` as every session's episode start."""
+    def _restart(
+        self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
+    ) -> tuple[BatchProbe, _Answer]:
+        """Recreates lost sessions and sends ``request`` as every session's episode start.
+
+        ``send`` sends it (a probe, or a step sent ahead); returns what it sent and the answer.
+        """
         self.restore()
         restart = request._replace(
             steps=np.zeros(self.n, dtype=np.int64),
             episode_starts=np.ones(self.n, dtype=bool),
         )
-        answer = self._batch.probe(restart)
+        answer = send(restart)
         self._next_starts[:] = False
         self._last_probe = restart
         return restart, answer
@@ -746,12 +723,12 @@ class SessionBatch:
         return improved
 
     def flush(self) -> None:
-        """Reads the answer of a step sent by :meth:`step_ahead`, and sends a deferred report.
+        """Reads the answer of a step :meth:`step` sent ahead, and sends a deferred report.
 
         Nothing if neither is pending.
 
         Raises:
-            EsaError: The step's error (see :meth:`step_ahead`), or the report's (it then
+            EsaError: The step's error (see :meth:`step`), or the report's (it then
                 stays pending).
         """
         self._flush_ahead()
@@ -778,7 +755,7 @@ class SessionBatch:
         except SessionNotFound:
             if not retrying or self._last_probe is None:
                 raise
-        probe, _ = self._restart(self._last_probe)
+        probe, _ = self._restart(self._last_probe, self._batch.probe)
         request = request._replace(steps=probe.steps)
         return request, self._batch.report(request)
 

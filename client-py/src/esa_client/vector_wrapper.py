@@ -45,9 +45,11 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
 
     Each ``step(actions)`` probes the N sessions in one batch, evaluates
     ``q_fn(obs_batch, actions_batch)`` once (at the N probes, and with ``paired_response``
-    at the N applied actions as well: 2N rows in one call), reports, and steps the vector env
-    with Algorithm 1's actions ``a_t + v(t)``, returned as ``info["esa_action"]`` (shape
-    ``(N, *single_action_shape)``) so that a learner stores what the envs executed.
+    at the N applied actions as well: 2N rows in one call), reports (with the next step's
+    probe: :meth:`~esa_client.session.SessionBatch.step`, one round trip a step), and steps
+    the vector env with Algorithm 1's actions ``a_t + v(t)``, returned as
+    ``info["esa_action"]`` (shape ``(N, *single_action_shape)``) so that a learner stores what
+    the envs executed.
 
     Episodes follow the vector env's autoreset mode: an env that ends starts a new ESA
     episode with its next real action (in ``NEXT_STEP`` mode, the step after the reset step,
@@ -141,19 +143,20 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         sampled = np.asarray(actions, dtype=np.float64).reshape(n, -1)
         scale = self.action_scale
         scales = scale(self._obs) if callable(scale) else scale
-        probes, applied = self._batch.probe_applied(
-            sampled, self._starts, action_scales=None if scales is None else np.asarray(scales)
-        )
-        points = np.concatenate([probes, applied]) if self._paired else probes
+        # The paired critic scores the probes and the applied actions: 2N rows, obs twice.
         obs = _stack_obs(self._obs) if self._paired else self._obs
-        q = np.asarray(
-            self._q_fn(obs, points.reshape(-1, *shape).astype(self._space.dtype)),
-            dtype=np.float64,
-        ).reshape(-1)
-        if self._paired:
-            self._batch.report(q[:n], q_references=q[n:])
-        else:
-            self._batch.report(q)
+
+        def critic(points: np.ndarray) -> np.ndarray:
+            q = self._q_fn(obs, points.reshape(-1, *shape).astype(self._space.dtype))
+            return np.asarray(q, dtype=np.float64).reshape(-1)
+
+        _, applied = self._batch.step(
+            sampled,
+            critic,
+            self._starts,
+            action_scales=None if scales is None else np.asarray(scales),
+            paired=self._paired,
+        )
         return applied.reshape(n, *shape).astype(self._space.dtype)
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:

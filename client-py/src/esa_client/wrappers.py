@@ -103,16 +103,22 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         scale = self._action_scale
         if callable(scale):
             scale = scale(self._obs)
-        probes, applied = self._batch.probe_applied(
-            sampled[None], [self._episode_start], action_scales=scale
+
+        def critic(points: np.ndarray) -> list[float]:
+            # One row (the probe), or two with paired_response (the probe, then the applied).
+            return [
+                float(self._q_fn(self._obs, point.reshape(space.shape).astype(space.dtype)))
+                for point in points
+            ]
+
+        _, applied = self._batch.step(
+            sampled[None],
+            critic,
+            [self._episode_start],
+            action_scales=scale,
+            paired=self._paired,
         )
         self._episode_start = False
-
-        def q(point: np.ndarray) -> float:
-            return float(self._q_fn(self._obs, point.reshape(space.shape).astype(space.dtype)))
-
-        reference = [q(applied[0])] if self._paired else None
-        self._batch.report([q(probes[0])], q_references=reference)
         executed: np.ndarray = applied[0].reshape(space.shape).astype(space.dtype)
         return executed
 

@@ -115,8 +115,8 @@ class EsaRuntime:
     the probes (and, with ``paired_response``, the applied actions as the reference);
     the report is deferred and rides with the next step's probe on the StepStream, so a
     step costs one round trip. A :class:`LinearCritic` (ESAPPO's head) is evaluated by
-    the engine itself, in-process in one call. Through a gRPC StepStream a
-    step does not wait at all (:meth:`SessionBatch.step_ahead`: the actions, and the probes
+    the engine itself, in-process in one call. Through a gRPC StepStream a step does not
+    wait at all (:meth:`SessionBatch.step` sends it ahead: the actions, and the probes
     where the critic is evaluated here, come from the previous answer's shifts, and the
     round trip overlaps the env's step and the learner's update), unless the trainer needs
     the step's probes from the server (``want_probes``).
@@ -289,8 +289,17 @@ class EsaRuntime:
             if strength <= 0.0:
                 return self._without_esa(a, "faded_steps")
             scale = strength * (np.ones_like(a) if scale is None else scale)
+        # probes is None for a step sent ahead (the server answers them one step later).
         ran = self._attempt(
-            episode_starts, lambda starts: self._run(a, q_fn, starts, scale, want_probes)
+            episode_starts,
+            lambda starts: self.batch.step(
+                a,
+                q_fn,
+                starts,
+                action_scales=scale,
+                paired=self.esa.paired_response,
+                want_probes=want_probes,
+            ),
         )
         if ran is None:
             return self._without_esa(a, "unavailable_steps")
@@ -386,22 +395,6 @@ class EsaRuntime:
         finally:
             if batch.sessions_restored > restored:
                 self._stats.add_count("sessions_restored", batch.sessions_restored - restored)
-
-    def _run(
-        self,
-        a: np.ndarray,
-        q_fn: QFunction | LinearCritic,
-        starts: np.ndarray | None,
-        scale: np.ndarray | None,
-        want_probes: bool,
-    ) -> tuple[np.ndarray | None, np.ndarray]:
-        """The batch's step: ``(probes, applied)``; probes None for a step sent ahead."""
-        paired = self.esa.paired_response
-        if self.batch.steps_ahead and not want_probes:
-            # Through a server: the round trip overlaps the env's step (probes come later).
-            applied = self.batch.step_ahead(a, q_fn, starts, action_scales=scale, paired=paired)
-            return None, applied
-        return self.batch.step(a, q_fn, starts, action_scales=scale, paired=paired)
 
     def _without_esa(self, sampled: np.ndarray, why: str) -> np.ndarray:
         """The sampled actions, clipped to the sessions' bounds: a step without ESA.
