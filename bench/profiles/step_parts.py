@@ -8,7 +8,7 @@ the head is fitted and gated every rollout, no ESA step) and the shipped ESAPPO,
 ``PPO again`` (a second PPO in the alternation: the ratio an A/A pair gives) and ``ESAPPO
 unfitted`` (the head is never fitted or gated, so the gate stays closed: ESAPPO's hook and
 nothing else). Timers wrap SB3's ``collect_rollouts`` and ``train``, the policy's
-forward pass (the ESA hook in ESAPPO), ``ESAPPO._step_features`` (the head's input),
+forward pass (``ESAPPO._esa_policy_step`` in ESAPPO), ``ESAPPO._step_features`` (the head's input),
 ``EsaRuntime.step_head`` (the whole ESA step: one native call in-process; elsewhere the
 head's step inputs, ``EsaRuntime.step``'s probe and report, also timed, and the executed
 action) and ``fit`` where the trainer runs it (the head-fit worker's fits are not timed: with
@@ -76,6 +76,8 @@ def timers() -> Iterator[None]:
         (PPO, "train", "PPO train"),
         (ESAPPO, "train", "ESAPPO train (PPO's + the head's fit and gate)"),
         (ESAPPO, "_step_features", "head features (_step_features)"),
+        # ESAPPO's collect_rollouts calls this in the place of the policy's forward pass.
+        (ESAPPO, "_esa_policy_step", "policy forward (with ESA's hook)"),
         (EsaRuntime, "step_head", STEP_HEAD),
         (EsaRuntime, "step", "  of which probe + report, where not fused (EsaRuntime.step)"),
         (SessionBatch, "probe_applied", "  of which the sidecar's round trip (probe_applied)"),
@@ -85,23 +87,12 @@ def timers() -> Iterator[None]:
     for cls, name, label in patched:
         setattr(cls, name, timed(label, getattr(cls, name)))
     esappo_module.fit = timed("head fit", fit)
-    forward = ESAPPO._esa_forward
-
-    @contextlib.contextmanager
-    def timed_hook(self: ESAPPO) -> Iterator[None]:
-        with forward(self):
-            hook = self.policy.forward
-            self.policy.forward = timed("policy forward (with ESA's hook)", hook)  # type: ignore[method-assign]
-            yield
-
-    ESAPPO._esa_forward = timed_hook  # type: ignore[method-assign,assignment]
     try:
         yield
     finally:
         for cls, name, original in originals:
             setattr(cls, name, original)
         esappo_module.fit = fit
-        ESAPPO._esa_forward = forward  # type: ignore[method-assign]
 
 
 def run(agent: str, engine: str, steps: int) -> tuple[float, dict[str, float], int]:
