@@ -358,7 +358,13 @@ def test_runtime_skips_esa_until_the_next_episode_then_resumes(server):
             starts[:] = False
         server.kill()
         sampled = rng.uniform(-0.5, 0.5, (N_ENVS, 2))
-        np.testing.assert_array_equal(runtime.step(sampled, starts, q_fn), sampled)
+        first = runtime.step(sampled, starts, q_fn)
+        if not np.array_equal(first, sampled):
+            # The StepStream sends a step ahead of its answer (CONTRACT.md 1b, note 8): when
+            # the last answer was in before the kill, this step still went out with ESA's
+            # action, within the trust region, and the error surfaces at the next call.
+            assert np.all(np.abs(first - sampled) <= EsaConfig().trust_region + 1e-12)
+            np.testing.assert_array_equal(runtime.step(sampled, starts, q_fn), sampled)
         server.start()
         client.wait_ready(5)
         # Mid-episode: still without ESA, at no cost of waiting.
@@ -369,6 +375,7 @@ def test_runtime_skips_esa_until_the_next_episode_then_resumes(server):
         runtime.step(sampled, starts, q_fn)
         assert [s.step for s in runtime.batch.states()] == [1] * N_ENVS
         runtime.record(Logger())
+        # One step without ESA after the kill (whichever call noticed it), one mid-episode.
         assert logged["esa/unavailable_steps"] == 2 * N_ENVS
         assert logged["esa/sessions_restored"] == N_ENVS
     finally:
