@@ -121,3 +121,28 @@ def test_finished_campaign_runs_stay_valid_when_esa_config_gains_a_field():
     assert {spec.label: store.status(spec) for spec in specs} == {
         spec.label: "done" for spec in specs
     }
+
+
+def test_seeking_offline_compares_esa_with_the_placebo_not_the_gradient():
+    """E1's rule: ESA's gain CI and ESA minus placebo CI above 0 on 2 envs picks a learner."""
+    import numpy as np
+
+    from esa_experiments.studies import seeking_offline
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for env in ("A", "B", "C"):
+        for state in range(50):
+            row = {"env": env, "method": "ppo_fit_quadratic", "state": state}
+            for kappa in seeking_offline.KAPPAS:
+                # ESA gains, the placebo loses, the gradient gains more than ESA.
+                row[f"delta esc {kappa:g}"] = 1.0 + 0.1 * rng.standard_normal()
+                row[f"delta placebo {kappa:g}"] = -1.0 + 0.1 * rng.standard_normal()
+                row[f"delta gradient {kappa:g}"] = 2.0 + 0.1 * rng.standard_normal()
+            rows.append(row)
+    table = seeking_offline.verdicts(pd.DataFrame(rows))
+    assert table.passes.all()
+    assert (table.esc_minus_placebo > 1.5).all() and (table.esc_minus_gradient < -0.5).all()
+    picks = seeking_offline.picks(table)
+    assert picks["ppo"] is not None and picks["ppo"][0] == "ppo_fit_quadratic"
+    assert picks["off_policy"] is None

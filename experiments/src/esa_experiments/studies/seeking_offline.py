@@ -51,7 +51,6 @@ from esa_experiments.evaluation import ProgressFn
 from esa_experiments.runs import RunResult, RunSpec, RunStore, atomic_write_text
 from esa_experiments.seeking_probes import (
     KAPPAS,
-    SHIFTS,
     LearnerView,
     PPOView,
     SACView,
@@ -77,6 +76,8 @@ FAMILY = {**{learner: "ppo" for learner in PPO_LEARNERS}, "sac": "off_policy"}
 DEFAULT_SEEDS = "100"
 CHECKPOINTS = (0.1, 0.3, 0.5)
 MIN_ENVS = 2
+COMPARED = ("esc", "placebo", "gradient")
+"""The shifts a row compares, in the order the analysis unpacks them."""
 BOOTSTRAP = 2000
 
 
@@ -228,7 +229,8 @@ def verdicts(frame: pd.DataFrame) -> pd.DataFrame:
     for (method, env), runs in frame.groupby(["method", "env"], sort=False):
         for kappa in KAPPAS:
             esc, placebo, gradient = (
-                runs[f"delta {shift} {kappa:g}"].to_numpy(float) for shift in SHIFTS
+                runs[f"delta {shift} {kappa:g}"].to_numpy(float)
+                for shift in ("esc", "placebo", "gradient")
             )
             rows.append(
                 {
@@ -271,7 +273,8 @@ def report(store: RunStore, args: Args) -> str:
     for (method, env), runs in frame.groupby(["method", "env"], sort=False):
         for kappa in KAPPAS:
             esc, placebo, gradient = (
-                runs[f"delta {shift} {kappa:g}"].to_numpy(float) for shift in SHIFTS
+                runs[f"delta {shift} {kappa:g}"].to_numpy(float)
+                for shift in ("esc", "placebo", "gradient")
             )
             cosine = runs.get(f"noise_cosine {kappa:g}")
             rows.append(
