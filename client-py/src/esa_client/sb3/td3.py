@@ -65,7 +65,9 @@ class ESATD3(OffPolicyEsaMixin, TD3):
         if self.esa_action_scale is not None:
             return np.full(dim, self.esa_action_scale)
         if isinstance(self.action_noise, NormalActionNoise):
-            return np.broadcast_to(np.asarray(self.action_noise._sigma, dtype=np.float64), (dim,))
+            # A copy: broadcast_to's read-only view would reach torch, which warns on it.
+            sigma = np.asarray(self.action_noise._sigma, dtype=np.float64)
+            return np.array(np.broadcast_to(sigma, (dim,)))
         return np.full(dim, 0.1)
 
     def _policy_mean_and_std(self, obs: Any) -> tuple[th.Tensor, th.Tensor]:
