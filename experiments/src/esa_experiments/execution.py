@@ -10,6 +10,7 @@ few messages per second per job.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import multiprocessing as mp
 import os
@@ -18,6 +19,7 @@ import signal
 import sys
 import time
 import traceback
+from collections.abc import Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -165,7 +167,7 @@ def execute(
         os.environ.setdefault(var, "1")
     console = console or Console()
     if any(spec.config.get("uses_server") for spec in specs):
-        console.print(f"esa-server: {pin_server_binary()}")
+        _pin_or_warn(console)
     ctx = mp.get_context("spawn")
     outcomes: list[Outcome] = []
     columns = (
@@ -176,6 +178,7 @@ def execute(
         TimeRemainingColumn(),
     )
     with (
+        _interrupt_on_term(),
         ctx.Manager() as manager,
         Progress(*columns, console=console) as progress,
         ProcessPoolExecutor(
@@ -208,10 +211,49 @@ def execute(
                         f"{status}[/] {outcome.spec.label} ({outcome.seconds:.0f}s)"
                     )
         except KeyboardInterrupt:
-            for future in futures:
-                future.cancel()
+            _stop_workers(pool)
             raise
     return outcomes
+
+
+def _pin_or_warn(console: Console) -> None:
+    """Pins the esa-server binary (:func:`pin_server_binary`), or says why not and goes on.
+
+    The SB3 drop-ins run ESA in-process, so most "ESA" runs need no binary; a run that
+    does start a server fails alone, with the client's error naming how to get one.
+    """
+    from esa_client.errors import EsaError
+
+    try:
+        console.print(f"esa-server: {pin_server_binary()}")
+    except EsaError as err:
+        console.print(f"[yellow]esa-server not found; runs that start a server will fail:[/] {err}")
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Kills the workers at once: an interrupted session drops its runs in flight.
+
+    Leaving the pool's block would otherwise wait for them (minutes each); their results
+    are written atomically, so a killed run leaves nothing and runs again on resume.
+    ProcessPoolExecutor has no public way to end its workers before Python 3.14.
+    """
+    for process in list((pool._processes or {}).values()):  # noqa: SLF001
+        process.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def _interrupt_on_term() -> Iterator[None]:
+    """Within the block SIGTERM (``timeout``, ``kill``, a scheduler) acts as Ctrl-C does."""
+
+    def interrupt(_signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _drain(

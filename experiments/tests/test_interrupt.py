@@ -1,0 +1,63 @@
+"""A runner stopped mid-run ends at once, leaves no worker behind and writes no partial run."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie waiting for init to reap it does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _children(pid: int) -> list[int]:
+    """Direct children of ``pid`` (Linux /proc)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as stat:
+                    fields = stat.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                found.append(int(entry))
+    return found
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_stopped_runner_ends_at_once(tmp_path, signum):
+    # One full-budget TD3 run: minutes of work, so it is surely in flight when stopped.
+    argv = [sys.executable, "-m", "esa_experiments", "--root", str(tmp_path), "run", "seeking"]
+    argv += ["--budget", "full", "--seeds", "0", "--envs", "Hopper-v5", "--methods", "td3"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200"}
+    runner = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        # The Manager's process and the worker; then time to import and start training.
+        deadline = time.monotonic() + 120
+        while len(_children(runner.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.5)
+        time.sleep(10)
+        assert runner.poll() is None, runner.stdout.read().decode() if runner.stdout else ""
+        workers = _children(runner.pid)
+        runner.send_signal(signum)
+        start = time.monotonic()
+        runner.wait(timeout=30)
+        assert time.monotonic() - start < 30
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+            runner.wait()
+    assert runner.returncode != 0
+    time.sleep(1)
+    assert not [pid for pid in workers if _alive(pid)]
+    assert not list(tmp_path.rglob("*.json")), "a killed run must leave no result"
