@@ -5,7 +5,7 @@ repeat's PPO run; the median over repeats.
 
 Usage::
 
-    python bench/profiles/ab_table.py bench/profiles/cpu_ratio_ab.log
+    python bench/profiles/ab_table.py bench/out/cpu_ratio_ab.log
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ sampled as larger (or smaller) in the ESA run, i.e. noise and cache effects.
 
 Usage::
 
-    python bench/profiles/gap_table.py bench/profiles/cpu_ratio_before.log bench/profiles/before
+    python bench/profiles/gap_table.py bench/out/cpu_ratio_before.log bench/out/before
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ tensor conversions) as ESA's glue.
 
 Usage::
 
-    python bench/profiles/summarize.py bench/profiles/before/*.txt[.gz]
+    python bench/profiles/summarize.py bench/out/before/*.txt[.gz]
 """
 
 from __future__ import annotations
