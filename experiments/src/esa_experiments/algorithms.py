@@ -20,6 +20,12 @@ critic's action gradient), the placebos (``esa_shift='placebo'``: ESA's shift si
 random directions), the mean anchor (``esa_anchor='mean'``) and the target mode. The
 matched-noise arms are plain TD3 whose noise has the variance of ``td3_sine``'s
 executed probe (``noise_match``).
+
+The RL Zoo3 arms (``ppo_zoo``, ``sac_zoo``, ``td3_zoo``; study ``zoo_baselines``) are plain
+PPO, SAC and TD3 with RL Zoo3 2.9.2's tuned settings (``config``: their own tables of
+``algorithms.toml``, one entry per env the zoo has a setting for, :data:`ZOO_ENTRIES`);
+``ppo_zoo`` trains on VecNormalize'd observations and rewards (``normalize``, see
+:mod:`esa_experiments.training`).
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import torch
 from stable_baselines3 import DDPG, PPO, SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
@@ -51,6 +58,8 @@ class Method:
         options: further keyword arguments of the ESA drop-in.
         noise_match: an ESA preset whose executed probe TD3's action noise matches in
             variance (:func:`matched_noise_sigma`); empty: the configured ``noise_sigma``.
+        config: the table of ``algorithms.toml`` holding its hyperparameters; empty: its
+            family's. A table of :data:`ZOO_ENTRIES` has settings for its envs only.
     """
 
     label: str
@@ -59,6 +68,7 @@ class Method:
     esa: str = ""
     options: tuple[tuple[str, Any], ...] = ()
     noise_match: str = ""
+    config: str = ""
 
     @property
     def off_policy(self) -> bool:
@@ -155,6 +165,10 @@ METHODS: dict[str, Method] = {
     "td3_pink_matched": Method(
         "TD3+pink noise (sine's variance)", "td3", "pink", noise_match="sine"
     ),
+    # Study `zoo_baselines` (E3): the baselines with RL Zoo3's tuned settings.
+    "ppo_zoo": Method("PPO (RL Zoo3)", "ppo", "none", config="ppo_zoo"),
+    "sac_zoo": Method("SAC (RL Zoo3)", "sac", "none", config="sac_zoo"),
+    "td3_zoo": Method("TD3 (RL Zoo3)", "td3", "none", config="td3_zoo"),
 }
 
 LABELS = {name: method.label for name, method in METHODS.items()}
@@ -235,6 +249,20 @@ the faded ``*_fade`` methods. ``td3_sine`` (unfaded: its sinusoid is the lead th
 noise arms test) is the arm they match. SAC has no arm executing the sinusoid, so nothing
 to match: its exploration is its own entropy-tuned policy, no action noise to widen.
 """
+
+ZOO_ENTRIES = {
+    "ppo_zoo": {
+        "InvertedPendulum-v5": "InvertedPendulum-v2",
+        "InvertedDoublePendulum-v5": "InvertedDoublePendulum-v2",
+        "Hopper-v5": "Hopper-v4",
+    },
+    # The zoo tunes no MuJoCo InvertedDoublePendulum for SAC or TD3: its MuJoCo defaults
+    # (the Hopper-v4 entry) are the closest setting it has.
+    "sac_zoo": {"InvertedDoublePendulum-v5": "Hopper-v4", "Hopper-v5": "Hopper-v4"},
+    "td3_zoo": {"InvertedDoublePendulum-v5": "Hopper-v4", "Hopper-v5": "Hopper-v4"},
+}
+"""RL Zoo3 arm -> env -> the entry of ``rl_zoo3/hyperparams/<family>.yml`` (RL Zoo3 2.9.2)
+whose settings its table in ``algorithms.toml`` holds on that env."""
 
 TARGET_TRUST_REGION = 1.0
 TARGET_WEIGHT = 0.03
@@ -333,9 +361,19 @@ def resolve_hyperparams(
         method: method name.
         env: task key (selects the per-env tables of the config files).
         esa_overrides: ESA fields replacing those of the method's preset (ablations).
+
+    Raises:
+        ValueError: for an RL Zoo3 arm on an env the zoo has no setting for, and for ESA
+            overrides of a method without ESA.
     """
     spec = get_method(method)
-    hp = algorithm_hyperparams(spec.family, env)
+    entries = ZOO_ENTRIES.get(spec.config)
+    if entries is not None and env not in entries:
+        raise ValueError(
+            f"expected one of {sorted(entries)}, got {env!r} "
+            f"(RL Zoo3 has no setting of {method!r} for it)"
+        )
+    hp = algorithm_hyperparams(spec.config or spec.family, env)
     if spec.noise_match:
         hp["noise_sigma"] = matched_noise_sigma(hp["noise_sigma"], spec.noise_match)
     if spec.addon != "param_noise":
@@ -367,8 +405,9 @@ def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]
     cls: type[BaseAlgorithm]
     hp = dict(hyperparams)
     hp.pop("n_envs", None)  # used to build the env (see training.py)
+    hp.pop("normalize", None)  # VecNormalize wraps the env (see training.py)
     kwargs: dict[str, Any] = {
-        "policy_kwargs": {"net_arch": hp.pop("net_arch")},
+        "policy_kwargs": {"net_arch": hp.pop("net_arch"), **_policy_options(hp)},
         "seed": seed,
         "device": "cpu",
         "verbose": 0,
@@ -400,6 +439,14 @@ def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]
     else:
         cls = _of_family({"ppo": PPO, "sac": SAC, "td3": TD3}, spec.family)
     return cls("MlpPolicy", env, **kwargs, **hp)
+
+
+def _policy_options(hp: dict[str, Any]) -> dict[str, Any]:
+    """The further ``policy_kwargs`` of ``hp`` (popped), the activation named as in torch.nn."""
+    options = dict(hp.pop("policy_kwargs", {}))
+    if "activation_fn" in options:
+        options["activation_fn"] = getattr(torch.nn, options["activation_fn"])
+    return options
 
 
 def _td3_noise(env: GymEnv, addon: str, sigma: float, seed: int) -> Any:

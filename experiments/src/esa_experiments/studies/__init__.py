@@ -38,6 +38,7 @@ STUDY_NAMES = (
     "confirmation",
     "seeking_offline",
     "seeking",
+    "zoo_baselines",
 )
 
 
