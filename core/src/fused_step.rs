@@ -1,8 +1,9 @@
 //! Algorithm 1's whole step in one all-or-nothing call: the probe batch, the critic at the probes
 //! (and at the applied actions, as references), and the report batch. The critic is either linear
 //! in the action, `Q_i(a) = gain_i . a + offset_i` at each item's state (ESAPPO's advantage head has
-//! this form), evaluated here, or any critic the client evaluated itself at probes it computed
-//! ahead ([`probes_ahead`]). The in-process engine and the server's StepStream messages
+//! this form), or concave quadratic in the action clipped to a box ([`QuadraticCritic`], ESAPPO's
+//! quadratic head), both evaluated here, or any critic the client evaluated itself at probes it
+//! computed ahead ([`probes_ahead`]). The in-process engine and the server's StepStream messages
 //! (`step_linear_batch`, `step_batch`) all run [`step`], so they give the same bits.
 
 use std::borrow::Cow;
@@ -78,6 +79,120 @@ impl StepCritic for LinearCritic<'_> {
                     "{field}: expected finite values, got {bad}"
                 )));
             }
+        }
+        Ok(())
+    }
+
+    fn values(
+        &self,
+        sessions: &[&mut Session],
+        probes: &[f64],
+        applied: &[f64],
+    ) -> (Cow<'_, [f64]>, Cow<'_, [f64]>) {
+        let references = if self.paired {
+            self.at(sessions, applied)
+        } else {
+            Vec::new()
+        };
+        (self.at(sessions, probes).into(), references.into())
+    }
+}
+
+/// `Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)` with `x = clip(a, low, high)`
+/// at each item's state: a critic concave in each dimension of the action (`curvature <= 0`),
+/// evaluated at the action the environment executes (flat in a dimension past the box).
+#[derive(Clone, Copy, Debug)]
+pub struct QuadraticCritic<'a> {
+    /// `gain_i`, concatenated in item order (each item's action dimension).
+    pub gains: &'a [f64],
+    /// `curvature_i`, concatenated like the gains; every value `<= 0`.
+    pub curvatures: &'a [f64],
+    /// `offset_i`, one per item.
+    pub offsets: &'a [f64],
+    /// The box's lower bounds, concatenated like the gains (`-inf` where open), or empty for an
+    /// unbounded box.
+    pub lows: &'a [f64],
+    /// Its upper bounds, as `lows` (`+inf` where open; empty when `lows` is).
+    pub highs: &'a [f64],
+    /// Also report the critic at the applied actions as each item's `q_reference`.
+    pub paired: bool,
+}
+
+impl QuadraticCritic<'_> {
+    /// `Q_i` at `actions` (concatenated like the gains), one value per item.
+    fn at(&self, sessions: &[&mut Session], actions: &[f64]) -> Vec<f64> {
+        let (mut gains, mut curvatures) = (self.gains.iter(), self.curvatures.iter());
+        let mut points = actions.iter();
+        // Empty for an unbounded box: the action itself.
+        let mut bounds = self.lows.iter().zip(self.highs);
+        sessions
+            .iter()
+            .zip(self.offsets)
+            .map(|(session, &offset)| {
+                let dim = session.action_dim();
+                let sum: f64 = gains
+                    .by_ref()
+                    .take(dim)
+                    .zip(curvatures.by_ref().take(dim))
+                    .zip(points.by_ref().take(dim))
+                    .map(|((&gain, &curvature), &action)| {
+                        // max then min (numpy's clip; unlike clamp, it never panics).
+                        let x = match bounds.next() {
+                            Some((&low, &high)) => action.max(low).min(high),
+                            None => action,
+                        };
+                        gain * x + curvature * x * x
+                    })
+                    .sum();
+                sum + offset
+            })
+            .collect()
+    }
+}
+
+impl StepCritic for QuadraticCritic<'_> {
+    /// The lengths against the sessions' dimensions, finite coefficients, curvatures `<= 0`, and
+    /// bounds (none or one pair per value) with `low <= high`.
+    fn check(&self, sessions: &[&mut Session]) -> Result<(), BatchError> {
+        let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
+        for (field, values, expected) in [
+            ("critic_gains", self.gains, total),
+            ("critic_curvatures", self.curvatures, total),
+            ("critic_offsets", self.offsets, sessions.len()),
+        ] {
+            if values.len() != expected {
+                return Err(BatchError::Request(format!(
+                    "{field}: expected {expected} values, got {}",
+                    values.len()
+                )));
+            }
+            if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
+                return Err(BatchError::Request(format!(
+                    "{field}: expected finite values, got {bad}"
+                )));
+            }
+        }
+        if let Some(bad) = self.curvatures.iter().find(|&&c| c > 0.0) {
+            return Err(BatchError::Request(format!(
+                "critic_curvatures: expected values <= 0, got {bad}"
+            )));
+        }
+        let bounds = self.lows.len();
+        if self.highs.len() != bounds || !(bounds == 0 || bounds == total) {
+            return Err(BatchError::Request(format!(
+                "critic_bounds: expected 0 or {total} lows and as many highs, got {bounds} and {}",
+                self.highs.len()
+            )));
+        }
+        if let Some((low, high)) = self
+            .lows
+            .iter()
+            .zip(self.highs)
+            .find(|(low, high)| low.is_nan() || high.is_nan() || low > high)
+        {
+            return Err(BatchError::Request(format!(
+                "critic_bounds: expected low <= high (neither NaN), got {low} and {high}"
+            )));
         }
         Ok(())
     }

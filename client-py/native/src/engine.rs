@@ -6,7 +6,7 @@
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 use esa_core::batch;
-use esa_core::fused_step::{self, LinearCritic};
+use esa_core::fused_step::{self, StepCritic};
 use esa_core::{Session, SessionConfig};
 use esa_proto::convert::session_snapshot;
 use esa_proto::v1 as pb;
@@ -228,15 +228,15 @@ impl Engine {
 
     /// One step of Algorithm 1 for a critic the engine evaluates itself (see
     /// `esa_core::fused_step::step`): ProbeBatch, then ReportBatch of `critic` at the probes,
-    /// in one call; all-or-nothing.
-    pub fn step_linear(
+    /// in one call; all-or-nothing. The critic is linear or quadratic (`esa_core::fused_step`).
+    pub fn step_critic(
         &mut self,
         handle: &Handle,
         steps: &[u64],
         actions: &[f64],
         episode_starts: &[bool],
         action_scales: &[f64],
-        critic: &LinearCritic<'_>,
+        critic: &impl StepCritic,
     ) -> Result<ProbeOutput, Error> {
         batch::check_probe_lengths(handle.len(), steps.len(), episode_starts.len())?;
         self.with_sessions(handle, |sessions| {

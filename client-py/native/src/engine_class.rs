@@ -11,7 +11,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 
-use esa_core::fused_step::LinearCritic;
+use esa_core::fused_step::{LinearCritic, QuadraticCritic, StepCritic};
 use esa_core::SessionConfig;
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
@@ -77,13 +77,48 @@ impl Engine {
                 offsets: offset,
                 paired,
             };
-            engine.step_linear(handle, steps, actions, starts, scales, &critic)
+            engine.step_critic(handle, steps, actions, starts, scales, &critic)
         };
         if handle.values() > self.detach_values {
             py.detach(|| run(&mut self.inner.lock()))
         } else {
             run(&mut self.lock(py))
         }
+    }
+}
+
+impl Engine {
+    /// `engine::Engine::step_critic` for a critic over values the caller owns, with the GIL
+    /// released for batches of more than `detach_values` action values.
+    #[allow(clippy::too_many_arguments)] // the step's inputs and the critic
+    fn step_critic_detached(
+        &self,
+        py: Python<'_>,
+        handle: &engine::Handle,
+        steps: &[u64],
+        actions: &[f64],
+        starts: &[bool],
+        scales: &[f64],
+        critic: &(impl StepCritic + Sync),
+    ) -> Result<engine::ProbeOutput, Error> {
+        let run = |engine: &mut engine::Engine| {
+            engine.step_critic(handle, steps, actions, starts, scales, critic)
+        };
+        if handle.values() > self.detach_values {
+            py.detach(|| run(&mut self.inner.lock()))
+        } else {
+            run(&mut self.lock(py))
+        }
+    }
+}
+
+/// `bounds` (the box's D bounds, or none) repeated for the `n` items of a batch of `values`
+/// action values: as many as the actions, or empty (esa-core then names a bad length).
+fn tiled(bounds: &[f64], n: usize, values: usize) -> Vec<f64> {
+    if !bounds.is_empty() && bounds.len() != values && bounds.len() * n == values {
+        bounds.repeat(n)
+    } else {
+        bounds.to_vec()
     }
 }
 
@@ -295,7 +330,7 @@ impl Engine {
                 offsets: offset.as_slice(),
                 paired,
             };
-            self.lock(py).step_linear(
+            self.lock(py).step_critic(
                 handle,
                 steps.as_slice(),
                 actions.as_slice(),
@@ -308,6 +343,55 @@ impl Engine {
         probe_tuple(py, output, handle.len())
     }
 
+    /// ProbeBatch, then ReportBatch of a quadratic critic's values at the clipped probes:
+    /// `Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`, `x = clip(a, low, high)`
+    /// (`esa_core::fused_step::QuadraticCritic`); `low` and `high` are the box's D bounds, or
+    /// None for an unbounded box. Returns (probes, applied).
+    #[pyo3(signature = (
+        handle, steps, actions, episode_starts, action_scales, gain, curvature, offset, low, high,
+        paired
+    ))]
+    #[allow(clippy::too_many_arguments)] // the Python signature: ProbeBatch's and the critic's
+    fn step_quadratic<'py>(
+        &self,
+        py: Python<'py>,
+        handle: &Bound<'py, BatchHandle>,
+        steps: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        episode_starts: &Bound<'py, PyAny>,
+        action_scales: Option<&Bound<'py, PyAny>>,
+        gain: &Bound<'py, PyAny>,
+        curvature: &Bound<'py, PyAny>,
+        offset: &Bound<'py, PyAny>,
+        low: Option<&Bound<'py, PyAny>>,
+        high: Option<&Bound<'py, PyAny>>,
+        paired: bool,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let handle = &handle.get().inner;
+        let (n, values) = (handle.len(), handle.values());
+        let steps = Values::<u64>::steps(steps)?.owned();
+        let actions = Values::<f64>::floats(actions)?.owned();
+        let starts = Values::<bool>::bools(episode_starts)?.owned();
+        let scales = Values::<f64>::floats_or_empty(action_scales)?.owned();
+        let gains = Values::<f64>::floats(gain)?.owned();
+        let curvatures = Values::<f64>::floats(curvature)?.owned();
+        let offsets = Values::<f64>::floats(offset)?.owned();
+        let lows = tiled(Values::<f64>::floats_or_empty(low)?.as_slice(), n, values);
+        let highs = tiled(Values::<f64>::floats_or_empty(high)?.as_slice(), n, values);
+        let critic = QuadraticCritic {
+            gains: &gains,
+            curvatures: &curvatures,
+            offsets: &offsets,
+            lows: &lows,
+            highs: &highs,
+            paired,
+        };
+        let output = self
+            .step_critic_detached(py, handle, &steps, &actions, &starts, &scales, &critic)
+            .map_err(|err| engine_error(py, err))?;
+        probe_tuple(py, output, n)
+    }
+
     /// ESAPPO's whole step in one call, for its advantage head on this engine: the head's
     /// inputs (`AdvantageMlp.step_inputs`), the probe and report of its linear critic
     /// (`step_linear`), the batch's step bookkeeping, the step's statistics and the executed
@@ -316,9 +400,9 @@ impl Engine {
     ///
     /// `steps` (int64) and `next_starts` (bool) are the batch's (N,) bookkeeping, updated in
     /// place as `SessionBatch.step` updates them: a session starting an episode (flagged in
-    /// either) probes step 0, and every session's next step is the one after this. All or
-    /// nothing: after an error nothing changed, neither the sessions nor the bookkeeping nor
-    /// `stats`.
+    /// either) probes step 0, and every session's next step is the one after this. `stats` may
+    /// be None (no statistics). All or nothing: after an error nothing changed, neither the
+    /// sessions nor the bookkeeping nor `stats`.
     #[pyo3(signature = (
         handle, steps, next_starts, episode_starts, head, features, actions, mean, std,
         use_policy_std, paired, stats, improvement
@@ -338,7 +422,7 @@ impl Engine {
         std: PyReadonlyArray2<'py, f32>,
         use_policy_std: bool,
         paired: bool,
-        stats: &Bound<'py, StepStats>,
+        stats: Option<&Bound<'py, StepStats>>,
         improvement: bool,
     ) -> PyResult<HeadStep<'py>> {
         let (handle, head) = (&handle.get().inner, head.get());
@@ -394,14 +478,16 @@ impl Engine {
             *start = false;
         }
         let (scaled, applied) = (&inputs.scaled, &output.applied);
-        let stats = stats.get();
-        stats.add(scaled, applied, &inputs.units);
-        if improvement {
-            // The critic at the applied minus at the sampled actions (the offsets cancel).
-            let gained: f64 = (0..n * dim)
-                .map(|k| inputs.gain[k] * (applied[k] - scaled[k]))
-                .sum();
-            stats.add_improvement_value(gained / n as f64);
+        if let Some(stats) = stats {
+            let stats = stats.get();
+            stats.add(scaled, applied, &inputs.units);
+            if improvement {
+                // The critic at the applied minus at the sampled actions (the offsets cancel).
+                let gained: f64 = (0..n * dim)
+                    .map(|k| inputs.gain[k] * (applied[k] - scaled[k]))
+                    .sum();
+                stats.add_improvement_value(gained / n as f64);
+            }
         }
         let shift: Vec<f64> = (0..n * dim)
             .map(|k| head.shift_value(scaled[k], applied[k], k % dim))

@@ -35,7 +35,7 @@ from .errors import (
     Unauthenticated,
 )
 from .session import Session, SessionBatch, SessionState
-from .transports.base import LinearCritic
+from .transports.base import LinearCritic, QuadraticCritic
 from .transports.grpc import TlsConfig
 
 __all__ = [
@@ -45,6 +45,7 @@ __all__ = [
     "EsaError",
     "InvalidArgument",
     "LinearCritic",
+    "QuadraticCritic",
     "ResourceExhausted",
     "ServerUnavailable",
     "Session",

@@ -248,6 +248,47 @@ class Engine:
                 length or with a non-finite value.
         """
 
+    def step_quadratic(
+        self,
+        handle: BatchHandle,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None,
+        gain: npt.ArrayLike,
+        curvature: npt.ArrayLike,
+        offset: npt.ArrayLike,
+        low: npt.ArrayLike | None,
+        high: npt.ArrayLike | None,
+        paired: bool,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """:meth:`step_linear` for a critic concave quadratic in the clipped action.
+
+        The critic is ``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`` with
+        ``x = clip(a, low, high)`` (``esa_client.QuadraticCritic``).
+
+        Args:
+            handle: The N sessions.
+            steps: As for :meth:`probe`.
+            actions: As for :meth:`probe`.
+            episode_starts: As for :meth:`probe`.
+            action_scales: As for :meth:`probe`.
+            gain: float64, the sessions' dimensions concatenated (``(N, D)``), finite.
+            curvature: float64 as ``gain``, finite and ``<= 0``.
+            offset: float64[N], finite.
+            low: The box's float64[D] lower bounds (``-inf`` where open; or one per action
+                value), or None with ``high`` for no box.
+            high: Its upper bounds, as ``low``; ``low <= high``.
+            paired: Report the critic at the applied actions as the references.
+
+        Returns:
+            ``(probes, applied)``, as :meth:`probe` returns them.
+
+        Raises:
+            EngineError: As :meth:`step_linear`; INVALID_ARGUMENT also for a positive
+                curvature, or bounds of the wrong length, NaN or with a low above its high.
+        """
+
     def step_head(
         self,
         handle: BatchHandle,
@@ -261,7 +302,7 @@ class Engine:
         std: npt.NDArray[np.float32],
         use_policy_std: bool,
         paired: bool,
-        stats: StepStats,
+        stats: StepStats | None,
         improvement: bool,
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float32]]:
         """ESAPPO's whole step for its advantage head in one call.
@@ -270,7 +311,7 @@ class Engine:
         :meth:`step_linear` of that critic at the sample (the std in ESA units as the action
         scales when ``use_policy_std``), the batch's step bookkeeping, the step's statistics
         and the executed actions: the bits of those parts called one by one
-        (``SessionBatch.step_head``).
+        (``SessionBatch.step`` of an ``esa_client.transports.base.HeadStep``).
 
         Args:
             handle: The N sessions.
@@ -285,8 +326,10 @@ class Engine:
             std: The policy's standard deviation, float32 ``(N, D)``.
             use_policy_std: Send the std in ESA units as the action scales.
             paired: Report the critic at the applied actions as the references.
-            stats: Where the step's statistics are added (the std in ESA units as the scale).
-            improvement: Also add the critic's improvement, ``Q(applied) - Q(sample)``.
+            stats: Where the step's statistics are added (the std in ESA units as the scale),
+                or None for none.
+            improvement: With ``stats``, also add the critic's improvement,
+                ``Q(applied) - Q(sample)``.
 
         Returns:
             ``(shift, executed)``: the shift in the Box's units, float64 ``(N, D)``, and the

@@ -19,7 +19,7 @@ runs in-process, over gRPC or over Zenoh (one server or N shards).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import NamedTuple, TypeVar
+from typing import NamedTuple, TypeVar, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -38,11 +38,13 @@ from .state import (
     check_indices,
 )
 from .transports.base import (
+    SMALLEST_SCALE,
     AheadBatch,
     BatchProbe,
     BatchReport,
     HeadStep,
     LinearCritic,
+    QuadraticCritic,
     Transport,
 )
 
@@ -52,8 +54,11 @@ _engine_errors = TypedErrors(EngineError)
 
 _Answer = TypeVar("_Answer")
 
-Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic
-"""What :meth:`SessionBatch.step` scores the probes with."""
+Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic | QuadraticCritic
+"""What :meth:`SessionBatch.step` scores the probes with (a :class:`HeadStep` too, see there)."""
+
+_ClosedForm = (LinearCritic, QuadraticCritic)
+"""The critics an in-process engine evaluates itself."""
 
 
 def restore_sessions(
@@ -77,6 +82,39 @@ def restore_sessions(
             transport.create_session(session_id, config.to_proto())
             restored += 1
     return restored
+
+
+def _check_quadratic(critic: QuadraticCritic, n: int, dim: int) -> None:
+    """Checks a :class:`QuadraticCritic` for ``n`` sessions of dimension ``dim``.
+
+    Raises:
+        ValueError: A shape is wrong, a coefficient not finite, a curvature positive, or a
+            bound NaN or a low above its high.
+    """
+    shape = (n, dim)
+    shapes = [np.shape(part) for part in critic[:3]]
+    if shapes != [shape, shape, (n,)]:
+        raise ValueError(
+            f"critic: expected gain and curvature of shape {shape} and offset of shape {(n,)}, "
+            f"got {shapes[0]}, {shapes[1]} and {shapes[2]}"
+        )
+    for name, values in zip(("gain", "curvature", "offset"), critic[:3], strict=True):
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"critic: expected a finite {name}, got {values!r}")
+    if np.any(np.asarray(critic.curvature) > 0):
+        raise ValueError(f"critic: expected curvature <= 0, got {critic.curvature!r}")
+    low, high = critic.low, critic.high
+    if low is None or high is None:
+        if low is not None or high is not None:
+            raise ValueError(f"critic: expected both bounds or neither, got {low!r} and {high!r}")
+        return
+    bounds = (np.shape(low), np.shape(high))
+    if bounds != ((dim,), (dim,)):
+        raise ValueError(
+            f"critic: expected low and high of shape {(dim,)}, got {bounds[0]} and {bounds[1]}"
+        )
+    if not np.all(np.asarray(low) <= np.asarray(high)):
+        raise ValueError(f"critic: expected low <= high (no NaN), got {low!r} and {high!r}")
 
 
 class _InFlight(NamedTuple):
@@ -258,7 +296,7 @@ class SessionBatch:
         self._shifts: F64Array = np.zeros((self.n, self.action_dim))
         self._ahead_engine: StepAhead | None = None
         self._ahead_batch = self._batch.ahead()
-        self._head_batch = self._batch.fused()
+        self._fused = self._batch.fused()
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
 
@@ -329,6 +367,21 @@ class SessionBatch:
         self._next_starts[:] = False
         return answer
 
+    @overload
+    def step(
+        self,
+        actions: npt.ArrayLike,
+        critic: HeadStep,
+        episode_starts: npt.ArrayLike | None = None,
+        *,
+        action_scales: None = None,
+        paired: bool = False,
+        want_probes: bool = False,
+        stats: StepStats | None = None,
+        improvement: bool = False,
+    ) -> tuple[F64Array, npt.NDArray[np.float32]]: ...
+
+    @overload
     def step(
         self,
         actions: npt.ArrayLike,
@@ -338,15 +391,31 @@ class SessionBatch:
         action_scales: npt.ArrayLike | None = None,
         paired: bool = False,
         want_probes: bool = False,
-    ) -> tuple[F64Array | None, F64Array]:
+        stats: StepStats | None = None,
+        improvement: bool = False,
+    ) -> tuple[F64Array | None, F64Array]: ...
+
+    def step(
+        self,
+        actions: npt.ArrayLike,
+        critic: Critic | HeadStep,
+        episode_starts: npt.ArrayLike | None = None,
+        *,
+        action_scales: npt.ArrayLike | None = None,
+        paired: bool = False,
+        want_probes: bool = False,
+        stats: StepStats | None = None,
+        improvement: bool = False,
+    ) -> tuple[F64Array | None, npt.NDArray[np.floating]]:
         """A whole step of Algorithm 1 (section 1b), in as few waits as the transport allows.
 
         :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the probes
         (and at the applied actions as ``q_references`` when ``paired``). The transport
         decides how it runs, with the same bits everywhere:
 
-        - in-process, a :class:`~esa_client.transports.base.LinearCritic` is evaluated by the
-          engine itself: probe and report run in one call, with nothing deferred;
+        - in-process, a :class:`~esa_client.transports.base.LinearCritic` or
+          :class:`~esa_client.transports.base.QuadraticCritic` is evaluated by the engine
+          itself: probe and report run in one call, with nothing deferred;
         - through a gRPC StepStream the step is sent ahead of its answer (unless
           ``want_probes``): the applied actions are computed here with esa-core's own
           function from the shifts ``v(t)`` that the previous step's answer carried (0 at an
@@ -357,6 +426,15 @@ class SessionBatch:
           (``step_linear_batch``); any other critic is evaluated here, at the probes computed
           the same way, and its values go with the step (``step_batch``);
         - elsewhere, the probe waits for its answer and the report rides with the next one.
+
+        A :class:`~esa_client.transports.base.HeadStep` (ESAPPO's advantage head) is a critic
+        too: ``actions`` are then the policy's float32 samples in the Box's units, and the
+        step returns ``(shift, executed)``: the shift in the Box's units, float64, and the
+        env's actions, float32, each ``(N, D)`` (:meth:`AdvantageMlp.shift`,
+        :meth:`AdvantageMlp.executed`). In-process at full strength the head's inputs, the
+        step, the statistics and the shift are one native call (``Engine.step_head``);
+        elsewhere the head's inputs (:meth:`AdvantageMlp.step_inputs`) give the sample in ESA
+        units and its linear critic, and the step runs as above, with the same bits.
 
         An error of a step sent ahead surfaces one call late: the next call (or :meth:`flush`)
         raises it, and nothing of that step was applied on the server, although its actions
@@ -370,31 +448,70 @@ class SessionBatch:
             critic: The critic at the N current states: maps ``(k N, D)`` actions (the
                 states tiled k times) to ``(k N,)`` values, or
                 ``Q_i(a) = gain_i . a + offset_i`` as a
-                :class:`~esa_client.transports.base.LinearCritic`.
+                :class:`~esa_client.transports.base.LinearCritic`, or a
+                :class:`~esa_client.transports.base.QuadraticCritic`, or a
+                :class:`~esa_client.transports.base.HeadStep`.
             episode_starts: As for :meth:`probe_applied`.
-            action_scales: As for :meth:`probe_applied`.
+            action_scales: As for :meth:`probe_applied` (None for a ``HeadStep``, which
+                says its own).
             paired: Report the critic at the applied actions as the references.
             want_probes: Wait for this step's probes (for trainers that execute them), even
                 where the step could be sent ahead.
+            stats: Where given, the step's statistics are added to it
+                (:meth:`StepStats.add_step` of the actions, the applied actions and the action
+                scales; for a ``HeadStep``, of the sample, the applied actions and the std in
+                ESA units), whichever way the step ran.
+            improvement: With ``stats``, also add the critic's ``Q(applied) - Q(actions)``,
+                averaged over the sessions (:meth:`StepStats.add_improvement`).
 
         Returns:
             ``(probes, applied)``, as :meth:`probe_applied` returns them; ``probes`` is None
-            for a step sent ahead (the server answers them one step later).
+            for a step sent ahead (the server answers them one step later). For a
+            ``HeadStep``, ``(shift, executed)`` (see above).
 
         Raises:
             ValueError: The critic's values are not ``(N,)`` (``(2 N,)`` when ``paired``)
-                finite numbers, or a linear critic's shapes are wrong.
+                finite numbers, or a linear or quadratic critic's shapes or values are wrong
+                (nothing changed).
         """
-        linear = critic if isinstance(critic, LinearCritic) else None
-        if linear is not None:
-            self._check_critic(linear)
+        if isinstance(critic, HeadStep):
+            if action_scales is not None:
+                raise ValueError("expected no action_scales with a HeadStep, got some")
+            return self._step_head(actions, critic, episode_starts, paired, stats, improvement)
+        self._check_critic(critic)
         ahead = self._ahead_batch
+        probes: F64Array | None
         if ahead is not None and not want_probes:
-            return None, self._step_ahead(
-                ahead, actions, critic, episode_starts, action_scales, paired
+            probes, applied = (
+                None,
+                self._step_ahead(ahead, actions, critic, episode_starts, action_scales, paired),
             )
-        fused = self._head_batch
-        if linear is None or fused is None or self._deferred is not None:
+        else:
+            probes, applied = self._step_here(
+                actions, critic, episode_starts, action_scales, paired
+            )
+        if stats is not None:
+            sampled = np.asarray(actions, dtype=np.float64)
+            scales = None
+            if action_scales is not None:
+                scales = np.broadcast_to(np.asarray(action_scales, np.float64), sampled.shape)
+            stats.add_step(sampled, applied, scales)
+            if improvement:
+                both = np.asarray(critic(np.concatenate([sampled, applied])), dtype=np.float64)
+                stats.add_improvement(float((both[self.n :] - both[: self.n]).mean()))
+        return probes, applied
+
+    def _step_here(
+        self,
+        actions: npt.ArrayLike,
+        critic: Critic,
+        episode_starts: npt.ArrayLike | None,
+        action_scales: npt.ArrayLike | None,
+        paired: bool,
+    ) -> tuple[F64Array, F64Array]:
+        """:meth:`step` waiting for its answer: one engine call in-process, else two."""
+        fused = self._fused
+        if fused is None or not isinstance(critic, _ClosedForm) or self._deferred is not None:
             probes, applied = self.probe_applied(
                 actions, episode_starts, action_scales=action_scales
             )
@@ -403,63 +520,58 @@ class SessionBatch:
             return probes, applied
         # In this process: no wire to ride out, so no reconnect around the call.
         request = self._probe_request(actions, episode_starts, None, action_scales)
-        answer = fused.step_linear(request, linear, paired)
+        if isinstance(critic, LinearCritic):
+            answer = fused.step_linear(request, critic, paired)
+        else:
+            answer = fused.step_quadratic(request, critic, paired)
         self._steps = request.steps + 1
         self._last_probe = request
         self._next_starts[:] = False
         return answer
 
-    @property
-    def steps_heads(self) -> bool:
-        """Whether :meth:`step_head` runs here (the in-process engine)."""
-        return self._head_batch is not None
-
-    def step_head(
+    def _step_head(
         self,
+        actions: npt.ArrayLike,
         step: HeadStep,
-        episode_starts: npt.ArrayLike | None = None,
-        *,
-        use_policy_std: bool,
+        episode_starts: npt.ArrayLike | None,
         paired: bool,
-        stats: StepStats,
+        stats: StepStats | None,
         improvement: bool,
     ) -> tuple[F64Array, npt.NDArray[np.float32]]:
-        """:meth:`step` of ESAPPO's advantage head as one native call, in-process only.
-
-        The head's inputs (:meth:`AdvantageMlp.step_inputs` of ``step``), :meth:`step` of its
-        linear critic at the sample in ESA units (with the std in ESA units as the action
-        scales when ``use_policy_std``), the step's statistics added to ``stats`` (and the
-        critic's improvement when ``improvement``), and the shift and executed actions
-        (:meth:`AdvantageMlp.shift`, :meth:`AdvantageMlp.executed`): the same bits as those
-        calls one by one. All or nothing, as :meth:`step`.
-
-        Returns:
-            ``(shift, executed)``: float64 and float32 ``(N, D)``.
-
-        Raises:
-            ValueError: The batch is not on the in-process engine (:attr:`steps_heads`), or
-                a shape is wrong.
-        """
-        if self._head_batch is None:
-            raise ValueError(
-                "expected a batch on the in-process engine for step_head, got one on "
-                f"{type(self._transport).__name__}"
+        """:meth:`step` of ESAPPO's advantage head: ``(shift, executed)``."""
+        fused = self._fused
+        if fused is not None and step.strength >= 1.0:
+            if self._deferred is not None:
+                self.flush()
+            answer = fused.step_head(
+                self._steps,
+                self._next_starts,
+                episode_starts,
+                np.asarray(actions),
+                step,
+                paired=paired,
+                stats=stats,
+                improvement=improvement,
             )
-        if self._deferred is not None:
-            self.flush()
-        answer = self._head_batch.step_head(
-            self._steps,
-            self._next_starts,
-            episode_starts,
-            step,
-            use_policy_std=use_policy_std,
-            paired=paired,
-            stats=stats,
-            improvement=improvement,
-        )
-        # No wire to replay a probe into (see _report_attempt).
-        self._last_probe = None
-        return answer
+            # No wire to replay a probe into (see _report_attempt).
+            self._last_probe = None
+            return answer
+        head, sample = step.head, np.asarray(actions)
+        scaled, gain, offset, units = head.step_inputs(step.features, sample, step.mean, step.std)
+        # A std that underflowed in ESA units would be sigma = 0, which the contract rejects.
+        std = np.maximum(units, SMALLEST_SCALE)
+        scales = std if step.use_policy_std else None
+        if step.strength < 1.0:
+            scales = step.strength * (np.ones_like(scaled) if scales is None else scales)
+        critic = LinearCritic(gain, offset)
+        _, applied = self.step(scaled, critic, episode_starts, action_scales=scales, paired=paired)
+        if stats is not None:
+            stats.add_step(scaled, applied, std)
+            if improvement:
+                both = critic(np.concatenate([scaled, applied]))
+                stats.add_improvement(float((both[self.n :] - both[: self.n]).mean()))
+        shift = head.shift(scaled, applied)
+        return shift, head.executed(sample, shift)
 
     def _step_ahead(
         self,
@@ -493,14 +605,20 @@ class SessionBatch:
         self._next_starts[:] = False
         return applied
 
-    def _check_critic(self, critic: LinearCritic) -> None:
+    def _check_critic(self, critic: Critic) -> None:
+        """A linear or quadratic critic's shapes (and a quadratic one's values), else nothing."""
+        if not isinstance(critic, _ClosedForm):
+            return
         shape = (self.n, self.action_dim)
         gain_shape, offset_shape = np.shape(critic.gain), np.shape(critic.offset)
-        if gain_shape != shape or offset_shape != (self.n,):
-            raise ValueError(
-                f"critic: expected gain of shape {shape} and offset of shape {(self.n,)}, "
-                f"got {gain_shape} and {offset_shape}"
-            )
+        if isinstance(critic, LinearCritic):
+            if gain_shape != shape or offset_shape != (self.n,):
+                raise ValueError(
+                    f"critic: expected gain of shape {shape} and offset of shape {(self.n,)}, "
+                    f"got {gain_shape} and {offset_shape}"
+                )
+            return
+        _check_quadratic(critic, self.n, self.action_dim)
 
     def _send_ahead(
         self,
@@ -522,6 +640,7 @@ class SessionBatch:
         if request.episode_starts.any():
             shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
         if isinstance(critic, LinearCritic):
+            # The server evaluates it (step_linear_batch).
             with _engine_errors:
                 applied: F64Array = engine(shifts, request.actions, request.action_scales)
             batch.send_step_linear(request, critic, paired)

@@ -17,7 +17,9 @@ sample nor the shift, so ESA integrates ``w(s)`` open-loop up to its bound
 Both are regressed, like the linear head, onto the normalized GAE advantages of the last
 few rollouts (:class:`~esa_client.common.advantage_head.Rollout`), with autograd and Adam.
 Both are evaluated at the action the env executes: the action clipped to the Box (see
-:class:`CriticAtStep`).
+:class:`CriticAtStep`); the quadratic head's closed form there is a
+:class:`~esa_client.transports.base.QuadraticCritic` (:meth:`CriticAtStep.closed_form`),
+which the in-process engine evaluates itself.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import torch as th
 from torch import nn
 from torch.nn import functional as F
 
+from ..transports.base import QuadraticCritic
 from .advantage_head import Rollout
 
 CriticKind = Literal["linear", "quadratic", "qnet"]
@@ -176,6 +179,29 @@ class CriticAtStep:
             values = self.critic(features, th.as_tensor(z, dtype=features.dtype))
         result: np.ndarray = values.cpu().numpy().astype(np.float64)
         return result
+
+    def closed_form(self) -> QuadraticCritic:
+        """The quadratic head at the N states as a critic over actions in ESA units.
+
+        With ``(w, u)`` the head's coefficients (one forward pass) and ``x = clip(a)``,
+        ``A = sum_j w_j z_j + u_j (z_j^2 - 1)``, ``z = (x - mu) / sigma``, is
+        ``sum_j c_j x_j^2 + g_j x_j`` plus an offset, with ``c = u / sigma^2 <= 0`` and
+        ``g = w / sigma - 2 c mu``: :meth:`__call__`'s values to float32 rounding (the head
+        runs in float32, this in float64).
+
+        Raises:
+            TypeError: If the critic is not a :class:`QuadraticHead`.
+        """
+        if not isinstance(self.critic, QuadraticHead):
+            raise TypeError(f"expected a QuadraticHead, got {type(self.critic).__name__}")
+        with th.no_grad():
+            w_t, u_t = self.critic.coefficients(self.features)
+        w = w_t.cpu().numpy().astype(np.float64)
+        u = u_t.cpu().numpy().astype(np.float64)
+        curvature = u / (self.std * self.std)
+        gain = w / self.std - 2.0 * curvature * self.mean
+        offset = (curvature * self.mean * self.mean - w * self.mean / self.std - u).sum(axis=1)
+        return QuadraticCritic(gain, curvature, offset, self.low, self.high)
 
     def gradient(self, actions: np.ndarray) -> np.ndarray:
         """``dA/dz`` at ``(N, D)`` actions in ESA units, ``(N, D)``.

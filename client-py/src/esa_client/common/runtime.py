@@ -15,7 +15,7 @@ from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
 from ..errors import EsaError, ServerUnavailable, SessionNotFound
 from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
-from ..transports.base import HeadStep, LinearCritic
+from ..transports.base import SMALLEST_SCALE, HeadStep, LinearCritic, QuadraticCritic
 
 _log = logging.getLogger("esa_client")
 
@@ -80,9 +80,6 @@ def check_on_unavailable(on_unavailable: str) -> OnUnavailable:
     return on_unavailable
 
 
-SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
-"""The floor of the action scale sent for a policy's std (the contract needs sigma > 0)."""
-
 _Ran = TypeVar("_Ran")
 """What one attempt of a step returns (:meth:`EsaRuntime._attempt`)."""
 
@@ -114,8 +111,9 @@ class EsaRuntime:
     gives the probes and the actions to apply, ``a_t + v(t)``; one critic batch scores
     the probes (and, with ``paired_response``, the applied actions as the reference);
     the report is deferred and rides with the next step's probe on the StepStream, so a
-    step costs one round trip. A :class:`LinearCritic` (ESAPPO's head) is evaluated by
-    the engine itself, in-process in one call. Through a gRPC StepStream a step does not
+    step costs one round trip. A :class:`LinearCritic` (ESAPPO's head) or a
+    :class:`QuadraticCritic` is evaluated by the engine itself, in-process in one call.
+    Through a gRPC StepStream a step does not
     wait at all (:meth:`SessionBatch.step` sends it ahead: the actions, and the probes
     where the critic is evaluated here, come from the previous answer's shifts, and the
     round trip overlaps the env's step and the learner's update), unless the trainer needs
@@ -251,7 +249,7 @@ class EsaRuntime:
         self,
         sampled: np.ndarray,
         episode_starts: np.ndarray,
-        q_fn: QFunction | LinearCritic,
+        q_fn: QFunction | LinearCritic | QuadraticCritic,
         policy_std: np.ndarray | None = None,
         *,
         want_probes: bool = False,
@@ -263,7 +261,8 @@ class EsaRuntime:
             sampled: The policy's samples a_t, shape ``(N, D)`` (any float dtype).
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
             q_fn: The critic at the current observations (:meth:`SessionBatch.step`: a
-                :class:`LinearCritic` is evaluated by the in-process engine itself).
+                :class:`LinearCritic` or :class:`QuadraticCritic` is evaluated by the
+                in-process engine itself).
             policy_std: The policy's standard deviation, shape ``(N, D)``; sent as the
                 action scale when ``use_policy_std`` (else 1).
             want_probes: Wait for the server's probes of this step (``last_probes``), for
@@ -315,50 +314,53 @@ class EsaRuntime:
         return applied
 
     def step_head(
-        self, step: HeadStep, episode_starts: np.ndarray, strength: float = 1.0
+        self, sampled: np.ndarray, step: HeadStep, episode_starts: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Algorithm 1's step with ESAPPO's advantage head as the critic.
 
-        The head's step inputs (:meth:`AdvantageMlp.step_inputs`: the sample and std in ESA
-        units, the head's critic linear in the action), then :meth:`step` of that critic,
-        then the shift and the executed action. On the in-process engine all of it is one
-        native call (:meth:`SessionBatch.step_head`), with the same bits; ``last_probes`` is
-        then None.
+        :meth:`SessionBatch.step` of ``step`` (with this runtime's statistics): in-process at
+        full strength one native call, elsewhere the head's step inputs and the step of its
+        linear critic, with the same bits; ``last_probes`` is then None.
 
         Args:
-            step: The head and its inputs at the N current observations.
+            sampled: The policy's float32 samples ``a_t`` in the Box's units, ``(N, D)``.
+            step: The head at the N current observations (with the policy's mean and std,
+                ``use_policy_std`` and the fade's strength: at 0 the samples are applied
+                without a session step, counted as ``esa/faded_steps``).
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
-            strength: As for :meth:`step`; below 1 the step runs in parts (the fused call
-                takes the policy's own scale).
 
         Returns:
             ``(shift, executed)``: the shift in the Box's units, float64 ``(N, D)``, and the
             env's actions ``a_t + shift``, float32 ``(N, D)``.
         """
-        batch = self.batch
-        if batch.steps_heads and not self._skipping and strength >= 1.0:
-            improve = self._calls % self._improvement_every == 0
-            ran = self._attempt(
-                episode_starts,
-                lambda starts: batch.step_head(
-                    step,
-                    starts,
-                    use_policy_std=self.esa.use_policy_std,
-                    paired=self.esa.paired_response,
-                    stats=self._stats,
-                    improvement=improve,
-                ),
-            )
-            if ran is not None:
-                self.last_probes = None
-                self._calls += 1
-                return ran
-        scaled, gain, offset, units = step.head.step_inputs(*step[1:])
-        applied = self.step(
-            scaled, episode_starts, LinearCritic(gain, offset), units, strength=strength
+        if step.strength <= 0.0:
+            return self._head_without_esa(sampled, step, "faded_steps")
+        improve = self._calls % self._improvement_every == 0
+        ran = self._attempt(
+            episode_starts,
+            lambda starts: self.batch.step(
+                sampled,
+                step,
+                starts,
+                paired=self.esa.paired_response,
+                stats=self._stats,
+                improvement=improve,
+            ),
         )
-        shift = step.head.shift(scaled, applied)
-        return shift, step.head.executed(step.actions, shift)
+        if ran is None:
+            return self._head_without_esa(sampled, step, "unavailable_steps")
+        self.last_probes = None
+        self._calls += 1
+        return ran
+
+    def _head_without_esa(
+        self, sampled: np.ndarray, step: HeadStep, why: str
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`step_head` without ESA: the sample, clipped to the sessions' bounds."""
+        head = step.head
+        scaled = head.step_inputs(step.features, sampled, step.mean, step.std)[0]
+        shift = head.shift(scaled, self._without_esa(scaled, why))
+        return shift, head.executed(sampled, shift)
 
     def _attempt(
         self, episode_starts: np.ndarray, run: Callable[[np.ndarray | None], _Ran]

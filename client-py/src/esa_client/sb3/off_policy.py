@@ -10,8 +10,8 @@ from stable_baselines3.common.noise import ActionNoise
 
 from ..common.advantage_head import rank_correlation
 from ..common.controls import RandomDirections, shift_report
-from ..common.runtime import SMALLEST_SCALE
 from ..config import EsaConfig
+from ..transports.base import SMALLEST_SCALE
 from .mixin import EsaMixin, tile_obs
 
 if TYPE_CHECKING:

@@ -29,9 +29,8 @@ from ..common.action_critics import (
 from ..common.advantage_head import AdvantageHead, Rollout, critic_quality, fit, normalized
 from ..common.controls import RandomDirections, shift_report
 from ..common.head_fit_worker import FitJob, HeadFitWorker, PendingFit, shared_worker
-from ..common.runtime import SMALLEST_SCALE
 from ..config import EsaConfig
-from ..transports.base import HeadStep
+from ..transports.base import SMALLEST_SCALE, HeadStep
 from .esa_buffer import EsaRolloutBuffer, EsaRolloutBufferSamples
 from .mixin import EsaMixin
 
@@ -435,8 +434,8 @@ class ESAPPO(EsaMixin, PPO):
                 weights: np.ndarray = mlp.weights(head_in)
                 gradient_shift: np.ndarray = self._gradient_shift(weights, strength) * std
                 return gradient_shift
-            head_step = HeadStep(mlp, head_in, sample, mean, std)
-            linear_shift: np.ndarray = runtime.step_head(head_step, starts, strength)[0]
+            head_step = HeadStep(mlp, head_in, mean, std, runtime.esa.use_policy_std, strength)
+            linear_shift: np.ndarray = runtime.step_head(sample, head_step, starts)[0]
             return linear_shift
         critic = self._critic_at(obs, mean, std)
         center, half_width = self._esa_scaling()
@@ -444,7 +443,9 @@ class ESAPPO(EsaMixin, PPO):
         if self.esa_shift == "gradient":
             curved: np.ndarray = self._gradient_shift(critic.gradient(scaled), strength) * std
             return curved
-        applied = runtime.step(scaled, starts, critic, critic.std, strength=strength)
+        # The quadratic head in closed form: the engine evaluates it at the probes.
+        q_fn = critic.closed_form() if self.esa_critic == "quadratic" else critic
+        applied = runtime.step(scaled, starts, q_fn, critic.std, strength=strength)
         shift: np.ndarray = (applied - scaled) * half_width
         return shift
 

@@ -32,6 +32,9 @@ from .._native import AdvantageMlp, StepStats
 from .._proto.esa.v1 import esa_pb2
 from ..state import BoolArray, F64Array, I64Array, SessionState
 
+SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
+"""The floor of the action scale sent for a policy's std (the contract needs sigma > 0)."""
+
 
 class BatchProbe(NamedTuple):
     """The probes of one step for the N sessions of a batch (``ProbeBatch``).
@@ -113,22 +116,65 @@ class AheadBatch(Protocol):
         ...
 
 
+class QuadraticCritic(NamedTuple):
+    """A critic concave quadratic in the action at each session's state, flat past a box.
+
+    ``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`` with
+    ``x = clip(a, low, high)``, the action the environment executes, and every
+    ``curvature_ij <= 0``. ESAPPO's quadratic head has this form; an in-process engine
+    evaluates it itself (:meth:`~esa_client.session.SessionBatch.step`), any other transport
+    here at the probes.
+
+    Attributes:
+        gain: ``gain_i`` per session and dimension, shape ``(N, D)``.
+        curvature: ``curvature_i`` per session and dimension, ``<= 0``, shape ``(N, D)``.
+        offset: ``offset_i`` per session, shape ``(N,)``.
+        low: The box's lower bounds in the actions' units, shape ``(D,)`` (``-inf`` where
+            open); None with ``high`` None for no box.
+        high: Its upper bounds, shape ``(D,)`` (``+inf`` where open), or None.
+    """
+
+    gain: F64Array
+    curvature: F64Array
+    offset: F64Array
+    low: F64Array | None = None
+    high: F64Array | None = None
+
+    def __call__(self, actions: F64Array) -> F64Array:
+        """Q of ``(k N, D)`` actions for the N states tiled k times, shape ``(k N,)``."""
+        points = actions.reshape(-1, *self.gain.shape)
+        if self.low is not None and self.high is not None:
+            points = np.clip(points, self.low, self.high)
+        terms = self.gain * points + self.curvature * points * points
+        values: F64Array = (terms.sum(axis=2) + self.offset).reshape(-1)
+        return values
+
+
 class HeadStep(NamedTuple):
-    """One step's inputs for ESAPPO's advantage head (:meth:`SessionBatch.step_head`).
+    """ESAPPO's advantage head at one step's N states, as a critic of :meth:`SessionBatch.step`.
+
+    The step's actions are the policy's float32 samples ``a_t`` in the Box's units; the
+    head's inputs (:meth:`AdvantageMlp.step_inputs`) give the sample and std in ESA units and
+    the head's critic, linear in the action there. :meth:`SessionBatch.step` then returns the
+    shift in the Box's units and the env's actions (:meth:`AdvantageMlp.shift`,
+    :meth:`AdvantageMlp.executed`) in the place of the probes and applied actions.
 
     Attributes:
         head: The head's Rust copy (``AdvantageHead.snapshot``).
         features: Its input at the N observations, ``(N, F)``, float32 or float64.
-        actions: The policy's float32 samples ``a_t``, ``(N, D)``.
         mean: The policy's float32 mean, ``(N, D)``.
         std: The policy's float32 standard deviation, ``(N, D)``.
+        use_policy_std: Send the std in ESA units as the action scales (else 1).
+        strength: ESA's strength ``f`` in ``(0, 1]`` under a fade: the action scales sent are
+            ``f`` times the usual ones.
     """
 
     head: AdvantageMlp
     features: npt.NDArray[Any]
-    actions: npt.NDArray[np.float32]
     mean: npt.NDArray[np.float32]
     std: npt.NDArray[np.float32]
+    use_policy_std: bool = True
+    strength: float = 1.0
 
 
 class FusedBatch(Protocol):
@@ -144,19 +190,29 @@ class FusedBatch(Protocol):
         """
         ...
 
+    def step_quadratic(
+        self, request: BatchProbe, critic: QuadraticCritic, paired: bool
+    ) -> tuple[F64Array, F64Array]:
+        """:meth:`step_linear` for a quadratic critic (evaluated at the clipped probes)."""
+        ...
+
     def step_head(
         self,
         steps: I64Array,
         next_starts: BoolArray,
         episode_starts: npt.ArrayLike | None,
+        actions: npt.NDArray[np.float32],
         step: HeadStep,
         *,
-        use_policy_std: bool,
         paired: bool,
-        stats: StepStats,
+        stats: StepStats | None,
         improvement: bool,
     ) -> tuple[F64Array, npt.NDArray[np.float32]]:
-        """ESAPPO's step for its advantage head (:meth:`SessionBatch.step_head`)."""
+        """ESAPPO's step for its advantage head (:meth:`SessionBatch.step` of a HeadStep).
+
+        At full strength; ``steps`` and ``next_starts`` are the batch's bookkeeping, updated
+        in place. Returns the shift and the executed actions.
+        """
         ...
 
 
@@ -191,9 +247,9 @@ class BatchTransport(ABC):
         return self.probe(probe)
 
     def fused(self) -> FusedBatch | None:
-        """This batch's whole-step engine calls (``step_linear``, ``step_head``), if it has any.
+        """This batch's whole-step engine calls (:class:`FusedBatch`), if it has any.
 
-        The in-process engine runs a step (probe, a linear critic, report) in one call;
+        The in-process engine runs a step (probe, a linear or quadratic critic, report) in one call;
         over a wire there is none, and the step is its round trips.
         """
         return None

@@ -18,7 +18,14 @@ import numpy.typing as npt
 from .._native import BatchHandle, Engine, EngineError, StepStats
 from ..errors import TypedErrors
 from ..state import BoolArray, F64Array, I64Array
-from .base import BatchProbe, BatchReport, BatchTransport, HeadStep, LinearCritic
+from .base import (
+    BatchProbe,
+    BatchReport,
+    BatchTransport,
+    HeadStep,
+    LinearCritic,
+    QuadraticCritic,
+)
 from .native_calls import NativeSessionCalls
 
 _typed_errors = TypedErrors(EngineError)
@@ -74,16 +81,35 @@ class InProcessBatch(BatchTransport):
                 paired,
             )
 
+    def step_quadratic(
+        self, request: BatchProbe, critic: QuadraticCritic, paired: bool
+    ) -> tuple[F64Array, F64Array]:
+        """ProbeBatch, then ReportBatch of a quadratic critic at the probes, in one engine call."""
+        with _typed_errors:
+            return self._engine.step_quadratic(
+                self._resolved(),
+                request.steps,
+                request.actions,
+                request.episode_starts,
+                request.action_scales,
+                critic.gain,
+                critic.curvature,
+                critic.offset,
+                critic.low,
+                critic.high,
+                paired,
+            )
+
     def step_head(
         self,
         steps: I64Array,
         next_starts: BoolArray,
         episode_starts: npt.ArrayLike | None,
+        actions: npt.NDArray[np.float32],
         step: HeadStep,
         *,
-        use_policy_std: bool,
         paired: bool,
-        stats: StepStats,
+        stats: StepStats | None,
         improvement: bool,
     ) -> tuple[F64Array, npt.NDArray[np.float32]]:
         """ESAPPO's step for its advantage head in one engine call (``Engine.step_head``)."""
@@ -93,8 +119,12 @@ class InProcessBatch(BatchTransport):
                 steps,
                 next_starts,
                 episode_starts,
-                *step,
-                use_policy_std,
+                step.head,
+                step.features,
+                actions,
+                step.mean,
+                step.std,
+                step.use_policy_std,
                 paired,
                 stats,
                 improvement,

@@ -1,0 +1,195 @@
+"""The quadratic critic in closed form (``QuadraticCritic``), evaluated by the engine.
+
+``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)``, ``x = clip(a, low, high)``:
+the in-process engine evaluates it in the step's one call (``Engine.step_quadratic``), every
+other transport here at the probes; both give the same bits (at this D). Bad critics are
+refused before anything changes. ESAPPO's quadratic head hands the engine its closed form, equal to
+the torch head at the clipped action to float32 rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from stable_baselines3.common.env_util import make_vec_env
+
+from esa_client import EsaClient, EsaConfig, QuadraticCritic
+from esa_client.common.action_critics import CriticAtStep, QuadraticHead
+from esa_client.sb3 import ESAPPO
+
+N, D = 3, 2
+LOW, HIGH = np.array([-1.0, -0.5]), np.array([1.0, np.inf])
+
+
+def critic_at(t: int, bounded: bool = True) -> QuadraticCritic:
+    x = float(t)
+    gain = np.array([[1.0, -0.5], [0.2 * x, 2.0], [-1.0, 0.3]])
+    curvature = -np.array([[0.5, 0.0], [2.0, 0.1 * x], [0.25, 1.0]])
+    offset = np.array([x, -3.0, 0.5])
+    return QuadraticCritic(gain, curvature, offset, *((LOW, HIGH) if bounded else (None, None)))
+
+
+def written_out(critic: QuadraticCritic, points: np.ndarray) -> np.ndarray:
+    """The critic at ``(k N, D)`` points, one sum at a time."""
+    values = []
+    for row, point in enumerate(points):
+        i = row % N
+        total = critic.offset[i]
+        for j in range(D):
+            x = point[j] if critic.low is None else min(max(point[j], LOW[j]), HIGH[j])
+            total += critic.gain[i, j] * x + critic.curvature[i, j] * x * x
+        values.append(total)
+    return np.array(values)
+
+
+def test_the_numpy_critic_is_its_closed_form_at_the_clipped_action():
+    rng = np.random.default_rng(0)
+    for bounded in (True, False):
+        critic = critic_at(3, bounded)
+        points = rng.normal(scale=2.0, size=(2 * N, D))
+        np.testing.assert_allclose(critic(points), written_out(critic, points), rtol=1e-14)
+    # Flat past the box: every point beyond a bound scores as the bound.
+    critic = critic_at(1)
+    far = np.tile([[5.0, -7.0]], (N, 1))
+    np.testing.assert_array_equal(critic(far), critic(np.tile([[1.0, -0.5]], (N, 1))))
+
+
+def run(batch, steps: int, paired: bool) -> list[np.ndarray]:
+    rng = np.random.default_rng(4)
+    applied_seen = []
+    for t in range(steps):
+        actions = rng.normal(scale=0.8, size=(N, D))
+        starts = rng.random(N) < 0.05
+        _, applied = batch.step(
+            actions, critic_at(t), starts, action_scales=0.3, paired=paired, want_probes=False
+        )
+        applied_seen.append(applied)
+    batch.flush()
+    return applied_seen
+
+
+@pytest.mark.parametrize("paired", [False, True])
+def test_the_engine_and_the_wire_step_the_same_quadratic_critic(client, paired):
+    esa = EsaConfig(learning_rate=0.5, gate=None)
+    config = esa.session_config(D, 0.05)
+    local = EsaClient.in_process()
+    got = {}
+    with (
+        local.create_batch(config, N) as fused,
+        client.create_batch(config, N) as unary,
+        client.create_batch(config, N, use_stream=True) as ahead,
+    ):
+        for name, batch in (("fused", fused), ("unary", unary), ("ahead", ahead)):
+            got[name] = (run(batch, 60, paired), [s.shift for s in batch.states()])
+    local.close()
+    moved = np.abs(np.array(got["fused"][1])).sum()
+    assert moved > 0, "ESA moved the shifts"
+    for name in ("unary", "ahead"):
+        for a, b in zip(got[name][0], got["fused"][0], strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(got[name][1], got["fused"][1])
+
+
+def bad_critics() -> list[tuple[QuadraticCritic, str]]:
+    good = critic_at(2)
+    nan_gain = good.gain.copy()
+    nan_gain[1, 0] = np.nan
+    inf_offset = good.offset.copy()
+    inf_offset[2] = np.inf
+    positive = good.curvature.copy()
+    positive[0, 1] = 0.5
+    return [
+        (good._replace(gain=good.gain[:2]), r"expected gain and curvature of shape \(3, 2\)"),
+        (good._replace(curvature=good.curvature[:, :1]), r"got \(3, 2\), \(3, 1\) and \(3,\)"),
+        (good._replace(offset=good.offset[:2]), r"offset of shape \(3,\), got .* and \(2,\)"),
+        (good._replace(gain=nan_gain), "expected a finite gain, got"),
+        (good._replace(offset=inf_offset), "expected a finite offset, got"),
+        (good._replace(curvature=positive), "expected curvature <= 0, got"),
+        (good._replace(high=None), "expected both bounds or neither, got"),
+        (good._replace(low=LOW[:1]), r"expected low and high of shape \(2,\), got \(1,\)"),
+        (good._replace(low=np.array([2.0, -0.5])), "expected low <= high"),
+        (good._replace(low=np.array([np.nan, 0.0])), "expected low <= high"),
+    ]
+
+
+@pytest.mark.parametrize("where", ["in_process", "unary", "ahead"])
+def test_a_bad_quadratic_critic_is_refused_and_changes_nothing(client, where):
+    config = EsaConfig(learning_rate=0.5, gate=None).session_config(D, 0.05)
+    local = EsaClient.in_process()
+    owner = local if where == "in_process" else client
+    with owner.create_batch(config, N, use_stream=where == "ahead") as batch:
+        run(batch, 5, paired=True)
+        before = (batch.steps, batch.states())
+        actions = np.zeros((N, D))
+        for critic, message in bad_critics():
+            with pytest.raises(ValueError, match=message):
+                batch.step(actions, critic, None, action_scales=0.3, paired=True)
+        batch.flush()
+        after = (batch.steps, batch.states())
+        np.testing.assert_array_equal(after[0], before[0])
+        for got, want in zip(after[1], before[1], strict=True):
+            assert (got.step, got.probe_pending) == (want.step, want.probe_pending)
+            np.testing.assert_array_equal(got.shift, want.shift)
+    local.close()
+
+
+def test_the_engine_refuses_what_the_session_would_have(client):
+    """The engine's own checks (for callers of ``Engine.step_quadratic``), all or nothing."""
+    from esa_client._native import Engine, EngineError
+
+    engine = Engine()
+    config = EsaConfig(gate=None).session_config(D, 0.05).to_proto().SerializeToString()
+    ids = [engine.create_session(None, config) for _ in range(N)]
+    handle = engine.resolve(ids)
+    good = critic_at(0)
+    steps, actions, starts = np.zeros(N, np.int64), np.zeros((N, D)), np.zeros(N, bool)
+    positive = -good.curvature
+    with pytest.raises(EngineError, match="critic_curvatures: expected values <= 0, got"):
+        engine.step_quadratic(
+            handle, steps, actions, starts, None, good.gain, positive, good.offset, LOW, HIGH, False
+        )
+    with pytest.raises(EngineError, match="critic_bounds: expected low <= high"):
+        engine.step_quadratic(handle, steps, actions, starts, None, *good[:3], HIGH, LOW, False)
+    probes, applied = engine.step_quadratic(
+        handle, steps, actions, starts, None, *good[:3], LOW, HIGH, True
+    )
+    assert probes.shape == applied.shape == (N, D)
+
+
+def test_esappo_hands_the_engine_the_quadratic_heads_closed_form(monkeypatch):
+    """On a short ESAPPO run, the closed form equals the torch head at the clipped action
+    (probes near the policy and past the box) to float32 rounding, at every step."""
+    closed_form = CriticAtStep.closed_form
+    worst, calls = [0.0], [0]
+    rng = np.random.default_rng(0)
+
+    def checked(self: CriticAtStep) -> QuadraticCritic:
+        critic = closed_form(self)
+        assert isinstance(self.critic, QuadraticHead)
+        n = len(self.mean)
+        spread = rng.normal(scale=2.0, size=(4, n, self.mean.shape[1]))
+        points = (self.mean + spread * self.std).reshape(-1, self.mean.shape[1])
+        points = np.concatenate([points, np.clip(points, -1.5, 1.5) * 2.0])
+        got, want = critic(points), self(points)
+        scale = np.abs(want).max() + 1.0
+        worst[0] = max(worst[0], float(np.abs(got - want).max() / scale))
+        calls[0] += 1
+        return critic
+
+    monkeypatch.setattr(CriticAtStep, "closed_form", checked)
+    env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=3)
+    model = ESAPPO(
+        "MlpPolicy",
+        env,
+        seed=3,
+        n_steps=128,
+        batch_size=64,
+        n_epochs=2,
+        policy_kwargs=dict(net_arch=[32]),
+        esa=EsaConfig(gate=None, trust_region=1.0),
+        esa_critic="quadratic",
+    )
+    model.learn(3 * 128 * 2)
+    model.esa_close()
+    assert calls[0] > 100, calls
+    assert worst[0] < 1e-6, worst
