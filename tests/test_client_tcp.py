@@ -2,6 +2,7 @@
 
 import signal
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -57,4 +58,44 @@ def test_client_over_tcp_matches_reference(tcp_server):
             )
             q = -np.tanh(np.sum(probes**2, axis=1))
             np.testing.assert_allclose(batch.report(q), reference.report(q), rtol=1e-9)
+        batch.close()
+
+
+@pytest.fixture
+def grpcio_server():
+    """The contract as a plain Python grpcio server (bench's baseline), on loopback TCP.
+
+    Its StepStream is a generator, so grpcio sends the response headers only with the first
+    answer: a client that waits for them before sending its first request never gets one.
+    """
+    process = subprocess.Popen(
+        [sys.executable, str(REPO_ROOT / "bench/python/baseline_server.py")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("listening on "), line
+        yield line.split()[-1]
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.wait(timeout=10)
+
+
+def test_step_stream_opens_on_a_server_that_answers_headers_late(grpcio_server):
+    config = SessionConfig(
+        action_dim=2, dt=0.04, amplitude=0.2, frequency=[31.4, 15.7], learning_rate=0.3
+    )
+    with (
+        EsaClient.connect(grpcio_server, timeout=5.0) as client,
+        EsaClient.in_process() as engine,
+    ):
+        batch = client.create_batch(config, 4, use_stream=True)
+        reference = engine.create_batch(config, 4)
+        actions, starts = np.ones((4, 2)), np.ones(4, bool)
+        # Before the fix this waited for headers until the 5 s deadline, then failed.
+        np.testing.assert_allclose(
+            batch.probe(actions, starts), reference.probe(actions, starts)
+        )
         batch.close()

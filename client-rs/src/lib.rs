@@ -34,6 +34,7 @@
 use std::time::{Duration, Instant};
 
 use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::transport::{Channel, Endpoint};
@@ -349,6 +350,11 @@ impl Client {
     }
 
     /// Opens a StepStream: batches over one bidirectional stream, pipelined.
+    ///
+    /// The call goes out at once but is not waited for: a server may send its response
+    /// headers only with its first answer (a grpcio server's generator does), so waiting for
+    /// them before the first request would deadlock. A refusal of the call itself (a wrong
+    /// token, an unreachable server) is the error of the first answer read.
     pub async fn step_stream(&self) -> Result<StepStream> {
         let (sender, receiver) = mpsc::channel(STREAM_QUEUE);
         let mut request = Request::new(ReceiverStream::new(receiver));
@@ -358,14 +364,10 @@ impl Client {
                 .insert("authorization", authorization.clone());
         }
         let mut service = self.service.clone();
-        let responses = match tokio::time::timeout(self.timeout, service.step_stream(request)).await
-        {
-            Ok(answer) => answer?.into_inner(),
-            Err(_) => return Err(Error::deadline(self.timeout)),
-        };
+        let call = tokio::spawn(async move { service.step_stream(request).await });
         Ok(StepStream {
             sender,
-            responses,
+            responses: Responses::Opening(call),
             pending: 0,
             timeout: self.timeout,
         })
@@ -456,9 +458,44 @@ pub enum Answer {
 #[derive(Debug)]
 pub struct StepStream {
     sender: mpsc::Sender<pb::StepStreamRequest>,
-    responses: Streaming<pb::StepStreamResponse>,
+    responses: Responses,
     pending: usize,
     timeout: Duration,
+}
+
+/// The answers of a StepStream: the call until its response headers came, then their stream.
+#[derive(Debug)]
+enum Responses {
+    Opening(JoinHandle<std::result::Result<Response<Streaming<pb::StepStreamResponse>>, Status>>),
+    Open(Box<Streaming<pb::StepStreamResponse>>),
+}
+
+impl Drop for Responses {
+    /// A stream dropped before its call opened ends the call too.
+    fn drop(&mut self) {
+        if let Responses::Opening(call) = self {
+            call.abort();
+        }
+    }
+}
+
+impl Responses {
+    /// The next answer: `None` when the server ended the stream.
+    async fn message(&mut self) -> Result<Option<pb::StepStreamResponse>> {
+        if let Responses::Opening(call) = self {
+            let opened = call
+                .await
+                .map_err(|_| Error::new(Code::Unavailable, "the step stream's call was lost"))??;
+            *self = Responses::Open(Box::new(opened.into_inner()));
+        }
+        match self {
+            Responses::Open(responses) => Ok(responses.message().await?),
+            Responses::Opening(_) => Err(Error::new(
+                Code::Unavailable,
+                "the step stream did not open",
+            )),
+        }
+    }
 }
 
 impl StepStream {
@@ -493,6 +530,7 @@ impl StepStream {
                 "no request waits for an answer",
             ));
         }
+        // The first answer waits for the call's response headers too, within the same deadline.
         let message = match tokio::time::timeout(self.timeout, self.responses.message()).await {
             Ok(message) => message?,
             Err(_) => return Err(Error::deadline(self.timeout)),
