@@ -193,9 +193,9 @@ def execute(
         bars: dict[int, TaskID] = {}
         finished: set[int] = set()
         futures: dict[Future[Outcome], int] = {}
-        for job, spec in enumerate(specs):
-            futures[pool.submit(_worker, spec, base, messages, job)] = job
         try:
+            for job, spec in enumerate(specs):
+                futures[pool.submit(_worker, spec, base, messages, job)] = job
             while futures:
                 _drain(messages, progress, bars, finished, specs)
                 for future in [f for f in futures if f.done()]:
