@@ -3,6 +3,7 @@
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,24 @@ from esa_client.sidecar import find_server_binary
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
+def serving(argv: list[str]) -> Iterator[str]:
+    """Runs a server that prints ``listening on ADDR`` once bound; yields ADDR, then stops it.
+
+    Yields:
+        The address; connecting right after works.
+    """
+    process = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("listening on "), line
+        yield line.split()[-1]
+    finally:
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+
+
 @pytest.fixture
 def tcp_server():
     # The client's own lookup: ESA_SERVER_BIN (`make test`), an installed esa-server
@@ -21,20 +40,7 @@ def tcp_server():
         binary = str(find_server_binary(checkout=REPO_ROOT, build=False))
     except EsaError as err:
         pytest.fail(str(err))
-    process = subprocess.Popen(
-        [binary, "--listen", "127.0.0.1:0"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-    )
-    try:
-        # The server prints this line once it is bound, so connecting right after works.
-        line = process.stdout.readline()
-        assert line.startswith("listening on "), line
-        yield line.split()[-1]
-    finally:
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=10) == 0
+    yield from serving([binary, "--listen", "127.0.0.1:0"])
 
 
 def test_client_over_tcp_matches_reference(tcp_server):
@@ -68,19 +74,9 @@ def grpcio_server():
     Its StepStream is a generator, so grpcio sends the response headers only with the first
     answer: a client that waits for them before sending its first request never gets one.
     """
-    process = subprocess.Popen(
-        [sys.executable, str(REPO_ROOT / "bench/python/baseline_server.py")],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
+    yield from serving(
+        [sys.executable, str(REPO_ROOT / "bench/python/baseline_server.py")]
     )
-    try:
-        line = process.stdout.readline()
-        assert line.startswith("listening on "), line
-        yield line.split()[-1]
-    finally:
-        process.send_signal(signal.SIGTERM)
-        process.wait(timeout=10)
 
 
 def test_step_stream_opens_on_a_server_that_answers_headers_late(grpcio_server):

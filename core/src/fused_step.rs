@@ -64,23 +64,10 @@ impl StepCritic for LinearCritic<'_> {
     /// The lengths against the sessions' dimensions, and that every value is finite.
     fn check(&self, sessions: &[&mut Session]) -> Result<(), BatchError> {
         let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
-        for (field, values, expected) in [
+        check_coefficients(&[
             ("critic_gains", self.gains, total),
             ("critic_offsets", self.offsets, sessions.len()),
-        ] {
-            if values.len() != expected {
-                return Err(BatchError::Request(format!(
-                    "{field}: expected {expected} values, got {}",
-                    values.len()
-                )));
-            }
-            if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
-                return Err(BatchError::Request(format!(
-                    "{field}: expected finite values, got {bad}"
-                )));
-            }
-        }
-        Ok(())
+        ])
     }
 
     fn values(
@@ -89,13 +76,42 @@ impl StepCritic for LinearCritic<'_> {
         probes: &[f64],
         applied: &[f64],
     ) -> (Cow<'_, [f64]>, Cow<'_, [f64]>) {
-        let references = if self.paired {
-            self.at(sessions, applied)
-        } else {
-            Vec::new()
-        };
-        (self.at(sessions, probes).into(), references.into())
+        closed_form_values(
+            |actions| self.at(sessions, actions),
+            self.paired,
+            probes,
+            applied,
+        )
     }
+}
+
+/// Each field's length against what the sessions need, and that every value is finite.
+fn check_coefficients(fields: &[(&str, &[f64], usize)]) -> Result<(), BatchError> {
+    for &(field, values, expected) in fields {
+        if values.len() != expected {
+            return Err(BatchError::Request(format!(
+                "{field}: expected {expected} values, got {}",
+                values.len()
+            )));
+        }
+        if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
+            return Err(BatchError::Request(format!(
+                "{field}: expected finite values, got {bad}"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// A closed-form critic's values at the probes, and at the applied actions when `paired`.
+fn closed_form_values<'a>(
+    at: impl Fn(&[f64]) -> Vec<f64>,
+    paired: bool,
+    probes: &[f64],
+    applied: &[f64],
+) -> (Cow<'a, [f64]>, Cow<'a, [f64]>) {
+    let references = if paired { at(applied) } else { Vec::new() };
+    (at(probes).into(), references.into())
 }
 
 /// `Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)` with `x = clip(a, low, high)`
@@ -155,23 +171,11 @@ impl StepCritic for QuadraticCritic<'_> {
     /// bounds (none or one pair per value) with `low <= high`.
     fn check(&self, sessions: &[&mut Session]) -> Result<(), BatchError> {
         let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
-        for (field, values, expected) in [
+        check_coefficients(&[
             ("critic_gains", self.gains, total),
             ("critic_curvatures", self.curvatures, total),
             ("critic_offsets", self.offsets, sessions.len()),
-        ] {
-            if values.len() != expected {
-                return Err(BatchError::Request(format!(
-                    "{field}: expected {expected} values, got {}",
-                    values.len()
-                )));
-            }
-            if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
-                return Err(BatchError::Request(format!(
-                    "{field}: expected finite values, got {bad}"
-                )));
-            }
-        }
+        ])?;
         if let Some(bad) = self.curvatures.iter().find(|&&c| c > 0.0) {
             return Err(BatchError::Request(format!(
                 "critic_curvatures: expected values <= 0, got {bad}"
@@ -203,12 +207,12 @@ impl StepCritic for QuadraticCritic<'_> {
         probes: &[f64],
         applied: &[f64],
     ) -> (Cow<'_, [f64]>, Cow<'_, [f64]>) {
-        let references = if self.paired {
-            self.at(sessions, applied)
-        } else {
-            Vec::new()
-        };
-        (self.at(sessions, probes).into(), references.into())
+        closed_form_values(
+            |actions| self.at(sessions, actions),
+            self.paired,
+            probes,
+            applied,
+        )
     }
 }
 
