@@ -146,7 +146,7 @@ WARMUP_GRADIENT_STEPS = 200
 TIMED = [
     (SessionBatch, "probe_applied", "round_trips"),
     (SessionBatch, "flush", "round_trips"),
-    (InProcessBatch, "step_linear", "round_trips"),
+    (InProcessBatch, "step_closed_form", "round_trips"),
     # ESAPPO's in-process step: the head's inputs, probe, critic, report, the statistics and
     # the executed action in one engine call.
     (InProcessBatch, "step_head", "round_trips"),

@@ -32,7 +32,7 @@ def linear_q(gain: np.ndarray, offset: np.ndarray, points: np.ndarray, dims) -> 
 
 
 class Engines:
-    """The same sessions in two engines: one stepped by step_linear, one by probe + report."""
+    """The same sessions in two engines: one stepped by step_closed_form, one by probe + report."""
 
     def __init__(self, configs):
         self.fused, self.split = Engine(), Engine()
@@ -47,7 +47,7 @@ class Engines:
         return [engine.get_session(session_id) for session_id in self.ids]
 
     def step_linear(self, steps, actions, starts, scales, gain, offset, paired):
-        return self.fused.step_linear(
+        return self.fused.step_closed_form(
             self.handles[0], steps, actions, starts, scales, gain, offset, paired
         )
 

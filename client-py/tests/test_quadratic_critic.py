@@ -134,7 +134,7 @@ def test_a_bad_quadratic_critic_is_refused_and_changes_nothing(client, where):
 
 
 def test_the_engine_refuses_what_the_session_would_have(client):
-    """The engine's own checks (for callers of ``Engine.step_quadratic``), all or nothing."""
+    """The engine's own checks (for callers of ``Engine.step_closed_form``), all or nothing."""
     from esa_client._native import Engine, EngineError
 
     engine = Engine()
@@ -143,16 +143,18 @@ def test_the_engine_refuses_what_the_session_would_have(client):
     handle = engine.resolve(ids)
     good = critic_at(0)
     steps, actions, starts = np.zeros(N, np.int64), np.zeros((N, D)), np.zeros(N, bool)
-    positive = -good.curvature
+
+    def step(curvature, low, high, paired=False):
+        critic = (good.gain, good.offset, paired, curvature, low, high)
+        return engine.step_closed_form(handle, steps, actions, starts, None, *critic)
+
     with pytest.raises(EngineError, match="critic_curvatures: expected values <= 0, got"):
-        engine.step_quadratic(
-            handle, steps, actions, starts, None, good.gain, positive, good.offset, LOW, HIGH, False
-        )
+        step(-good.curvature, LOW, HIGH)
     with pytest.raises(EngineError, match="critic_bounds: expected low <= high"):
-        engine.step_quadratic(handle, steps, actions, starts, None, *good[:3], HIGH, LOW, False)
-    probes, applied = engine.step_quadratic(
-        handle, steps, actions, starts, None, *good[:3], LOW, HIGH, True
-    )
+        step(good.curvature, HIGH, LOW)
+    with pytest.raises(ValueError, match="expected None for a linear critic"):
+        step(None, LOW, HIGH)
+    probes, applied = step(good.curvature, LOW, HIGH, paired=True)
     assert probes.shape == applied.shape == (N, D)
 
 

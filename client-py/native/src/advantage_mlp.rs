@@ -6,7 +6,7 @@
 //! class holds a copy of the head's layers (taken again after each fit) and returns, in one call,
 //! the step's critic linear in the action in ESA units, `Q(a) = gain . a + offset` with
 //! `gain = w h / sigma` and `offset = w . (c - mu) / sigma` (`c`, `h`: the Box's center and
-//! half-width), which `Engine.step_linear` evaluates.
+//! half-width), which `Engine.step_closed_form` evaluates.
 
 use std::borrow::Cow;
 

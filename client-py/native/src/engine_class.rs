@@ -56,38 +56,6 @@ impl Engine {
         }
     }
 
-    /// `engine::Engine::step_linear` on values the caller owns, with the GIL released for
-    /// batches of more than `detach_values` action values.
-    #[allow(clippy::too_many_arguments)] // step_linear's, and the critic's parts
-    fn step_linear_detached(
-        &self,
-        py: Python<'_>,
-        handle: &engine::Handle,
-        steps: &[u64],
-        actions: &[f64],
-        starts: &[bool],
-        scales: &[f64],
-        gain: &[f64],
-        offset: &[f64],
-        paired: bool,
-    ) -> Result<engine::ProbeOutput, Error> {
-        let run = |engine: &mut engine::Engine| {
-            let critic = LinearCritic {
-                gains: gain,
-                offsets: offset,
-                paired,
-            };
-            engine.step_critic(handle, steps, actions, starts, scales, &critic)
-        };
-        if handle.values() > self.detach_values {
-            py.detach(|| run(&mut self.inner.lock()))
-        } else {
-            run(&mut self.lock(py))
-        }
-    }
-}
-
-impl Engine {
     /// `engine::Engine::step_critic` for a critic over values the caller owns, with the GIL
     /// released for batches of more than `detach_values` action values.
     #[allow(clippy::too_many_arguments)] // the step's inputs and the critic
@@ -295,64 +263,18 @@ impl Engine {
         probe_tuple(py, output, handle.len())
     }
 
-    /// ProbeBatch, then ReportBatch of a linear critic's values: returns (probes, applied).
-    #[pyo3(signature = (handle, steps, actions, episode_starts, action_scales, gain, offset, paired))]
-    #[allow(clippy::too_many_arguments)] // the Python signature: ProbeBatch's and the critic's
-    fn step_linear<'py>(
-        &self,
-        py: Python<'py>,
-        handle: &Bound<'py, BatchHandle>,
-        steps: &Bound<'py, PyAny>,
-        actions: &Bound<'py, PyAny>,
-        episode_starts: &Bound<'py, PyAny>,
-        action_scales: Option<&Bound<'py, PyAny>>,
-        gain: &Bound<'py, PyAny>,
-        offset: &Bound<'py, PyAny>,
-        paired: bool,
-    ) -> PyResult<Bound<'py, PyTuple>> {
-        let handle = &handle.get().inner;
-        let steps = Values::<u64>::steps(steps)?;
-        let actions = Values::<f64>::floats(actions)?;
-        let starts = Values::<bool>::bools(episode_starts)?;
-        let scales = Values::<f64>::floats_or_empty(action_scales)?;
-        let (gain, offset) = (Values::<f64>::floats(gain)?, Values::<f64>::floats(offset)?);
-        let output = if handle.values() > self.detach_values {
-            // Owned: Python threads could write to the arrays while the GIL is released.
-            let owned = [&actions, &scales, &gain, &offset].map(|values| values.owned());
-            let [actions, scales, gain, offset] = &owned;
-            let (steps, starts) = (steps.owned(), starts.owned());
-            self.step_linear_detached(
-                py, handle, &steps, actions, &starts, scales, gain, offset, paired,
-            )
-        } else {
-            let critic = LinearCritic {
-                gains: gain.as_slice(),
-                offsets: offset.as_slice(),
-                paired,
-            };
-            self.lock(py).step_critic(
-                handle,
-                steps.as_slice(),
-                actions.as_slice(),
-                starts.as_slice(),
-                scales.as_slice(),
-                &critic,
-            )
-        }
-        .map_err(|err| engine_error(py, err))?;
-        probe_tuple(py, output, handle.len())
-    }
-
-    /// ProbeBatch, then ReportBatch of a quadratic critic's values at the clipped probes:
-    /// `Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`, `x = clip(a, low, high)`
-    /// (`esa_core::fused_step::QuadraticCritic`); `low` and `high` are the box's D bounds, or
-    /// None for an unbounded box. Returns (probes, applied).
+    /// ProbeBatch, then ReportBatch of a closed-form critic's values, in one call: returns
+    /// (probes, applied). Without `curvature` the critic is linear, `Q_i(a) = gain_i . a +
+    /// offset_i` (`esa_core::fused_step::LinearCritic`); with it, concave quadratic in the
+    /// clipped action, `Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`,
+    /// `x = clip(a, low, high)` (`esa_core::fused_step::QuadraticCritic`), where `low` and
+    /// `high` are the box's D bounds, or None for an unbounded box.
     #[pyo3(signature = (
-        handle, steps, actions, episode_starts, action_scales, gain, curvature, offset, low, high,
-        paired
+        handle, steps, actions, episode_starts, action_scales, gain, offset, paired,
+        curvature = None, low = None, high = None
     ))]
     #[allow(clippy::too_many_arguments)] // the Python signature: ProbeBatch's and the critic's
-    fn step_quadratic<'py>(
+    fn step_closed_form<'py>(
         &self,
         py: Python<'py>,
         handle: &Bound<'py, BatchHandle>,
@@ -361,40 +283,57 @@ impl Engine {
         episode_starts: &Bound<'py, PyAny>,
         action_scales: Option<&Bound<'py, PyAny>>,
         gain: &Bound<'py, PyAny>,
-        curvature: &Bound<'py, PyAny>,
         offset: &Bound<'py, PyAny>,
+        paired: bool,
+        curvature: Option<&Bound<'py, PyAny>>,
         low: Option<&Bound<'py, PyAny>>,
         high: Option<&Bound<'py, PyAny>>,
-        paired: bool,
     ) -> PyResult<Bound<'py, PyTuple>> {
         let handle = &handle.get().inner;
         let (n, values) = (handle.len(), handle.values());
+        // Owned: Python threads could write to the arrays while the GIL is released.
         let steps = Values::<u64>::steps(steps)?.owned();
         let actions = Values::<f64>::floats(actions)?.owned();
         let starts = Values::<bool>::bools(episode_starts)?.owned();
         let scales = Values::<f64>::floats_or_empty(action_scales)?.owned();
         let gains = Values::<f64>::floats(gain)?.owned();
-        let curvatures = Values::<f64>::floats(curvature)?.owned();
         let offsets = Values::<f64>::floats(offset)?.owned();
-        let lows = tiled(Values::<f64>::floats_or_empty(low)?.as_slice(), n, values);
-        let highs = tiled(Values::<f64>::floats_or_empty(high)?.as_slice(), n, values);
-        let critic = QuadraticCritic {
-            gains: &gains,
-            curvatures: &curvatures,
-            offsets: &offsets,
-            lows: &lows,
-            highs: &highs,
-            paired,
-        };
-        let output = self
-            .step_critic_detached(py, handle, &steps, &actions, &starts, &scales, &critic)
-            .map_err(|err| engine_error(py, err))?;
+        let output = match curvature {
+            None => {
+                if low.is_some() || high.is_some() {
+                    return Err(PyValueError::new_err(
+                        "low, high: expected None for a linear critic (no curvature), got bounds",
+                    ));
+                }
+                let critic = LinearCritic {
+                    gains: &gains,
+                    offsets: &offsets,
+                    paired,
+                };
+                self.step_critic_detached(py, handle, &steps, &actions, &starts, &scales, &critic)
+            }
+            Some(curvature) => {
+                let curvatures = Values::<f64>::floats(curvature)?.owned();
+                let lows = tiled(Values::<f64>::floats_or_empty(low)?.as_slice(), n, values);
+                let highs = tiled(Values::<f64>::floats_or_empty(high)?.as_slice(), n, values);
+                let critic = QuadraticCritic {
+                    gains: &gains,
+                    curvatures: &curvatures,
+                    offsets: &offsets,
+                    lows: &lows,
+                    highs: &highs,
+                    paired,
+                };
+                self.step_critic_detached(py, handle, &steps, &actions, &starts, &scales, &critic)
+            }
+        }
+        .map_err(|err| engine_error(py, err))?;
         probe_tuple(py, output, n)
     }
 
     /// ESAPPO's whole step in one call, for its advantage head on this engine: the head's
     /// inputs (`AdvantageMlp.step_inputs`), the probe and report of its linear critic
-    /// (`step_linear`), the batch's step bookkeeping, the step's statistics and the executed
+    /// (`step_closed_form`), the batch's step bookkeeping, the step's statistics and the executed
     /// actions. Returns `(shift, executed)`: the shift in the Box's units, float64 `(N, D)`, and
     /// the env's actions, float32 `(N, D)`, as `AdvantageMlp.shift` and `.executed` give them.
     ///
@@ -458,17 +397,20 @@ impl Engine {
             .collect::<Result<Vec<u64>, _>>()
             .map_err(|_| PyValueError::new_err("steps: expected integers >= 0"))?;
         let scales: &[f64] = if use_policy_std { &inputs.units } else { &[] };
+        let critic = LinearCritic {
+            gains: &inputs.gain,
+            offsets: &inputs.offset,
+            paired,
+        };
         let output = self
-            .step_linear_detached(
+            .step_critic_detached(
                 py,
                 handle,
                 &probed,
                 &inputs.scaled,
                 &starts,
                 scales,
-                &inputs.gain,
-                &inputs.offset,
-                paired,
+                &critic,
             )
             .map_err(|err| engine_error(py, err))?;
         // Applied: the bookkeeping, the statistics and the executed actions.

@@ -213,7 +213,7 @@ class Engine:
                 ``index`` names the failing item.
         """
 
-    def step_linear(
+    def step_closed_form(
         self,
         handle: BatchHandle,
         steps: npt.ArrayLike,
@@ -223,12 +223,19 @@ class Engine:
         gain: npt.ArrayLike,
         offset: npt.ArrayLike,
         paired: bool,
+        curvature: npt.ArrayLike | None = None,
+        low: npt.ArrayLike | None = None,
+        high: npt.ArrayLike | None = None,
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """ProbeBatch, then ReportBatch of a critic linear in the action, in one call.
+        """ProbeBatch, then ReportBatch of a closed-form critic, in one call.
 
-        The critic is ``Q_i(a) = gain_i . a + offset_i``; the report sends it at each probe
-        (and, when ``paired``, at each applied action as ``q_reference``) with the probe's
-        step. All-or-nothing: the critic is checked before the probe.
+        Without ``curvature`` the critic is linear, ``Q_i(a) = gain_i . a + offset_i``
+        (``esa_client.LinearCritic``); with it, concave quadratic in the clipped action,
+        ``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`` with
+        ``x = clip(a, low, high)`` (``esa_client.QuadraticCritic``). The report sends the
+        critic at each probe (and, when ``paired``, at each applied action as
+        ``q_reference``) with the probe's step. All-or-nothing: the critic is checked before
+        the probe.
 
         Args:
             handle: The N sessions.
@@ -239,54 +246,19 @@ class Engine:
             gain: float64, the sessions' dimensions concatenated (``(N, D)``), finite.
             offset: float64[N], finite.
             paired: Report the critic at the applied actions as the references.
-
-        Returns:
-            ``(probes, applied)``, as :meth:`probe` returns them.
-
-        Raises:
-            EngineError: As ProbeBatch; INVALID_ARGUMENT for a gain or offset of the wrong
-                length or with a non-finite value.
-        """
-
-    def step_quadratic(
-        self,
-        handle: BatchHandle,
-        steps: npt.ArrayLike,
-        actions: npt.ArrayLike,
-        episode_starts: npt.ArrayLike,
-        action_scales: npt.ArrayLike | None,
-        gain: npt.ArrayLike,
-        curvature: npt.ArrayLike,
-        offset: npt.ArrayLike,
-        low: npt.ArrayLike | None,
-        high: npt.ArrayLike | None,
-        paired: bool,
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """:meth:`step_linear` for a critic concave quadratic in the clipped action.
-
-        The critic is ``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`` with
-        ``x = clip(a, low, high)`` (``esa_client.QuadraticCritic``).
-
-        Args:
-            handle: The N sessions.
-            steps: As for :meth:`probe`.
-            actions: As for :meth:`probe`.
-            episode_starts: As for :meth:`probe`.
-            action_scales: As for :meth:`probe`.
-            gain: float64, the sessions' dimensions concatenated (``(N, D)``), finite.
-            curvature: float64 as ``gain``, finite and ``<= 0``.
-            offset: float64[N], finite.
-            low: The box's float64[D] lower bounds (``-inf`` where open; or one per action
-                value), or None with ``high`` for no box.
+            curvature: float64 as ``gain``, finite and ``<= 0``; None for a linear critic.
+            low: With ``curvature``, the box's float64[D] lower bounds (``-inf`` where open;
+                or one per action value), or None with ``high`` for no box.
             high: Its upper bounds, as ``low``; ``low <= high``.
-            paired: Report the critic at the applied actions as the references.
 
         Returns:
             ``(probes, applied)``, as :meth:`probe` returns them.
 
         Raises:
-            EngineError: As :meth:`step_linear`; INVALID_ARGUMENT also for a positive
-                curvature, or bounds of the wrong length, NaN or with a low above its high.
+            EngineError: As ProbeBatch; INVALID_ARGUMENT for a gain, offset or curvature of
+                the wrong length or with a non-finite value, a positive curvature, or bounds
+                of the wrong length, NaN or with a low above its high.
+            ValueError: ``low`` or ``high`` without a ``curvature``.
         """
 
     def step_head(
@@ -308,7 +280,7 @@ class Engine:
         """ESAPPO's whole step for its advantage head in one call.
 
         ``head.step_inputs`` (the sample and std in ESA units, the head's linear critic),
-        :meth:`step_linear` of that critic at the sample (the std in ESA units as the action
+        :meth:`step_closed_form` of that critic at the sample (the std in ESA units as the action
         scales when ``use_policy_std``), the batch's step bookkeeping, the step's statistics
         and the executed actions: the bits of those parts called one by one
         (``SessionBatch.step`` of an ``esa_client.transports.base.HeadStep``).
@@ -337,7 +309,7 @@ class Engine:
 
         Raises:
             ValueError: A shape does not match (nothing changed).
-            EngineError: As :meth:`step_linear` (nothing changed).
+            EngineError: As :meth:`step_closed_form` (nothing changed).
         """
 
 class AdvantageMlp:

@@ -520,10 +520,7 @@ class SessionBatch:
             return probes, applied
         # In this process: no wire to ride out, so no reconnect around the call.
         request = self._probe_request(actions, episode_starts, None, action_scales)
-        if isinstance(critic, LinearCritic):
-            answer = fused.step_linear(request, critic, paired)
-        else:
-            answer = fused.step_quadratic(request, critic, paired)
+        answer = fused.step_closed_form(request, critic, paired)
         self._steps = request.steps + 1
         self._last_probe = request
         self._next_starts[:] = False

@@ -180,20 +180,15 @@ class HeadStep(NamedTuple):
 class FusedBatch(Protocol):
     """A batch whose engine runs a whole step in one call: the in-process engine's."""
 
-    def step_linear(
-        self, request: BatchProbe, critic: LinearCritic, paired: bool
+    def step_closed_form(
+        self, request: BatchProbe, critic: LinearCritic | QuadraticCritic, paired: bool
     ) -> tuple[F64Array, F64Array]:
         """ProbeBatch, then ReportBatch of ``critic`` at the probes, in one engine call.
 
-        With ``paired``, the critic at the applied actions is reported as the references.
-        Returns the probes and the applied actions.
+        A quadratic critic is evaluated at the clipped probes. With ``paired``, the critic at
+        the applied actions is reported as the references. Returns the probes and the applied
+        actions.
         """
-        ...
-
-    def step_quadratic(
-        self, request: BatchProbe, critic: QuadraticCritic, paired: bool
-    ) -> tuple[F64Array, F64Array]:
-        """:meth:`step_linear` for a quadratic critic (evaluated at the clipped probes)."""
         ...
 
     def step_head(

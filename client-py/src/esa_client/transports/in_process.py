@@ -65,12 +65,16 @@ class InProcessBatch(BatchTransport):
         """This batch: the engine runs a whole step in one call."""
         return self
 
-    def step_linear(
-        self, request: BatchProbe, critic: LinearCritic, paired: bool
+    def step_closed_form(
+        self, request: BatchProbe, critic: LinearCritic | QuadraticCritic, paired: bool
     ) -> tuple[F64Array, F64Array]:
         """ProbeBatch, then ReportBatch of ``critic`` at the probes, in one engine call."""
+        # Curvature and box; none for a linear critic.
+        curved: tuple[F64Array | None, F64Array | None, F64Array | None] = (None, None, None)
+        if isinstance(critic, QuadraticCritic):
+            curved = (critic.curvature, critic.low, critic.high)
         with _typed_errors:
-            return self._engine.step_linear(
+            return self._engine.step_closed_form(
                 self._resolved(),
                 request.steps,
                 request.actions,
@@ -79,25 +83,7 @@ class InProcessBatch(BatchTransport):
                 critic.gain,
                 critic.offset,
                 paired,
-            )
-
-    def step_quadratic(
-        self, request: BatchProbe, critic: QuadraticCritic, paired: bool
-    ) -> tuple[F64Array, F64Array]:
-        """ProbeBatch, then ReportBatch of a quadratic critic at the probes, in one engine call."""
-        with _typed_errors:
-            return self._engine.step_quadratic(
-                self._resolved(),
-                request.steps,
-                request.actions,
-                request.episode_starts,
-                request.action_scales,
-                critic.gain,
-                critic.curvature,
-                critic.offset,
-                critic.low,
-                critic.high,
-                paired,
+                *curved,
             )
 
     def step_head(
