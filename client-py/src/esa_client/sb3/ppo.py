@@ -402,17 +402,16 @@ class ESAPPO(EsaMixin, PPO):
         mean, std = gaussian.mean.cpu().numpy(), gaussian.stddev.cpu().numpy()
         starts = self._last_episode_starts
         assert starts is not None  # set by SB3 before its rollouts
-        shift = self._esa_shift(obs, sample, mean, std, starts, strength)
+        shift, executed = self._esa_shift(obs, sample, mean, std, starts, strength)
         if self.esa_shift == "placebo":
             if self._esa_placebo is None:
                 self._esa_placebo = RandomDirections(len(sample), dim, self.seed)
             shift = self._esa_placebo(shift, starts)
+            executed = _executed(sample, shift)
         if self._esa_steps % REPORT_EVERY == 0:
             self._record_shift(sample, shift, mean, std, strength)
         self._esa_steps += 1
         if self.esa_mode == "behaviour":
-            # a + shift in float64, cast back to the policy's float32.
-            executed = (sample.astype(np.float64) + shift).astype(sample.dtype)
             actions = th.from_numpy(executed).to(actions.device)
         return actions.reshape((-1, *self._esa_box().shape)), values, log_prob, shift / std
 
@@ -424,30 +423,33 @@ class ESAPPO(EsaMixin, PPO):
         std: np.ndarray,
         starts: np.ndarray,
         strength: float,
-    ) -> np.ndarray:
-        """ESA's shift (or the gradient control's) in the Box's units, float64 ``(N, D)``."""
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """ESA's shift (or the gradient control's) and the shifted sample: ``(shift, executed)``.
+
+        The shift is in the Box's units, float64 ``(N, D)``; ``executed`` is the sample plus
+        the shift, float32 ``(N, D)``: what the env executes in the behaviour mode.
+        """
         runtime = self._esa_runtime()
         if self.esa_critic == "linear":
             mlp = self._esa_mlp()
             head_in = self._step_features(obs)
             if self.esa_shift == "gradient":
-                weights: np.ndarray = mlp.weights(head_in)
-                gradient_shift: np.ndarray = self._gradient_shift(weights, strength) * std
-                return gradient_shift
+                shift = self._gradient_shift(mlp.weights(head_in), strength) * std
+                return shift, _executed(sample, shift)
             head_step = HeadStep(mlp, head_in, mean, std, runtime.esa.use_policy_std, strength)
-            linear_shift: np.ndarray = runtime.step_head(sample, head_step, starts)[0]
-            return linear_shift
+            # The engine's one call computes both (in-process at full strength).
+            return runtime.step_head(sample, head_step, starts)
         critic = self._critic_at(obs, mean, std)
         center, half_width = self._esa_scaling()
         scaled = (sample - center) / half_width
         if self.esa_shift == "gradient":
-            curved: np.ndarray = self._gradient_shift(critic.gradient(scaled), strength) * std
-            return curved
-        # The quadratic head in closed form: the engine evaluates it at the probes.
-        q_fn = critic.closed_form() if self.esa_critic == "quadratic" else critic
-        applied = runtime.step(scaled, starts, q_fn, critic.std, strength=strength)
-        shift: np.ndarray = (applied - scaled) * half_width
-        return shift
+            shift = self._gradient_shift(critic.gradient(scaled), strength) * std
+        else:
+            # The quadratic head in closed form: the engine evaluates it at the probes.
+            q_fn = critic.closed_form() if self.esa_critic == "quadratic" else critic
+            applied = runtime.step(scaled, starts, q_fn, critic.std, strength=strength)
+            shift = (applied - scaled) * half_width
+        return shift, _executed(sample, shift)
 
     def _gradient_shift(self, gradient: np.ndarray, strength: float) -> np.ndarray:
         """``f kappa g / |g|``: the critic's action gradient ``g`` in units of sigma as a shift.
@@ -780,6 +782,15 @@ class ESAPPO(EsaMixin, PPO):
         return dict(
             rng=self._esa_rng, epochs=self.esa_head_epochs, batch_size=self.esa_head_batch_size
         )
+
+
+def _executed(sample: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """The sample plus the shift in float64, cast back to the policy's float32.
+
+    ``AdvantageMlp.executed``'s bits, for the paths that have no head step.
+    """
+    executed: np.ndarray = (sample.astype(np.float64) + shift).astype(sample.dtype)
+    return executed
 
 
 def _gaussian(distribution: Distribution) -> th.distributions.Normal:
