@@ -210,14 +210,18 @@ def early(frame: pd.DataFrame, budgets: dict[str, StepBudget]) -> pd.DataFrame:
 def report(store: RunStore, args: Args) -> str:
     """Learning curves, the verdicts on both metrics, and each family's outcome."""
     frame = store.load()
-    labels = {arm: LABELS.get(arm, arm) for arm in METHODS}
+    picks = load_picks(args.picks)
+    labels = arm_labels(picks)
     panels = [
         Panel(f"{env}: {family.upper()}", env, ARMS[family])
         for family, envs in ENVS_OF.items()
         for env in envs
         if not frame[(frame.env == env) & frame.method.isin(ARMS[family])].empty
     ]
-    section = rl_section(store, panels, ENVS, METHODS, ncols=4, per_seed=False)
+    baselines = {arm: family for family, arms in ARMS.items() for arm in arms[1:]}
+    section = rl_section(
+        store, panels, ENVS, METHODS, labels=labels, baselines=baselines, ncols=4, per_seed=False
+    )
     tables = {
         "first third (primary)": verdict_table(
             early(frame, args.budgets), ENVS, COMPARISONS, labels
@@ -232,10 +236,20 @@ def report(store: RunStore, args: Args) -> str:
     text.append(
         outcomes(tables["first third (primary)"], tables["whole curve (secondary)"], labels)
     )
-    picks = load_picks(args.picks)
     text.append(f"E1's picks: `{json.dumps(picks)}`.\n")
     text.append(f"Budgets (per run):\n\n{budget_table(args.budgets)}\n")
     return "\n".join(text)
+
+
+def arm_labels(picks: dict[str, dict[str, Any] | None]) -> dict[str, str]:
+    """Each arm's name in plots and tables; a candidate arm's names its method's critic."""
+    labels = {arm: LABELS.get(arm, arm) for arm in METHODS}
+    for family in ARMS:
+        pick = picks.get(E1_FAMILY[family])
+        if pick is not None:
+            for arm, method in seeking_methods(family, pick["learner"]).items():
+                labels[arm] = LABELS[method]
+    return labels
 
 
 def outcomes(primary: pd.DataFrame, whole: pd.DataFrame, labels: dict[str, str]) -> str:
