@@ -22,6 +22,8 @@ import traceback
 from collections.abc import Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing.context import SpawnContext
+from multiprocessing.managers import SyncManager
 from pathlib import Path
 
 from rich.console import Console
@@ -110,6 +112,17 @@ def _die_with_runner() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
 
 
+def _manager(ctx: SpawnContext) -> SyncManager:
+    """A started Manager (for the progress queue) whose process dies with the runner.
+
+    A killed runner's Manager would otherwise live on, and with it the resource tracker and
+    the runner's stdout, which it inherited: a caller reading that to its end waits forever.
+    """
+    manager = SyncManager(ctx=ctx)
+    manager.start(_die_with_runner)
+    return manager
+
+
 Messages = queue.Queue[tuple[int, int]]
 """Progress messages from the workers: (job, steps done)."""
 
@@ -179,7 +192,7 @@ def execute(
     )
     with (
         _interrupt_on_term(),
-        ctx.Manager() as manager,
+        _manager(ctx) as manager,
         Progress(*columns, console=console) as progress,
         ProcessPoolExecutor(
             jobs,
