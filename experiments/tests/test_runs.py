@@ -77,6 +77,18 @@ def test_store_lifecycle(tmp_path):
     assert store.load("trajectory").x.tolist() == [0.0, 1.0]
 
 
+def test_run_finished_meanwhile_by_another_runner_is_not_run_again(tmp_path):
+    from esa_experiments.execution import run_one
+
+    store = RunStore("s", "smoke", tmp_path)
+    store.write(spec(), result())
+    outcome = run_one(spec(), tmp_path)
+    assert outcome.skipped and outcome.error is None
+    # A run not done yet is run (and fails here: there is no study "s").
+    other = run_one(spec(seed=1), tmp_path)
+    assert not other.skipped and "s" in (other.error or "")
+
+
 def test_changed_config_is_stale(tmp_path):
     store = RunStore("s", "smoke", tmp_path)
     store.write(spec(100), result())

@@ -157,8 +157,10 @@ def _run(options: Run, root: Path, console: Console) -> int:
     failed = [o for o in outcomes if o.error]
     for outcome in failed:
         console.print(f"[red]FAILED[/] {outcome.spec.label}\n{outcome.error}")
+    skipped = sum(o.skipped for o in outcomes)
     console.print(
-        f"{len(outcomes) - len(failed)} run(s) finished, {len(failed)} failed. "
+        f"{len(outcomes) - len(failed) - skipped} run(s) finished, {len(failed)} failed, "
+        f"{skipped} done meanwhile by another runner. "
         f"Next: python -m esa_experiments plot {study.NAME} --budget {options.budget}"
     )
     return 1 if failed else 0

@@ -52,11 +52,14 @@ class Outcome:
         spec: the run.
         seconds: wall-clock of the whole run (training, evaluation, writing).
         error: formatted traceback if the run failed, else None.
+        skipped: another runner had finished the run (same fingerprint) by the time a
+            worker took it up, so this one did not run it again.
     """
 
     spec: RunSpec
     seconds: float
     error: str | None = None
+    skipped: bool = False
 
 
 def pin_server_binary() -> str:
@@ -145,12 +148,17 @@ def run_one(spec: RunSpec, base: Path | None, progress: ProgressFn | None = None
     from esa_experiments.studies import load_study
 
     start = time.perf_counter()
+    store = RunStore(spec.study, spec.budget, base)
+    # Runners may share a results folder (a second machine, a second job list): the list of
+    # pending runs was made at start, so look again before minutes of work.
+    if store.status(spec) == "done":
+        return Outcome(spec, 0.0, skipped=True)
     try:
         result = load_study(spec.study).run(spec, progress or (lambda _: None))
         result.meta["seconds"] = time.perf_counter() - start
         if spec.config.get("uses_server"):
             result.meta["esa_server_bin"] = os.environ.get("ESA_SERVER_BIN")
-        RunStore(spec.study, spec.budget, base).write(spec, result)
+        store.write(spec, result)
     except Exception:  # one failed run must not stop the others
         return Outcome(spec, time.perf_counter() - start, traceback.format_exc())
     return Outcome(spec, time.perf_counter() - start)
@@ -219,7 +227,13 @@ def execute(
                     if job in bars:
                         progress.remove_task(bars.pop(job))
                     progress.advance(overall)
-                    status = "[red]FAILED" if outcome.error else "[green]done"
+                    status = (
+                        "[red]FAILED"
+                        if outcome.error
+                        else "[yellow]skipped (done meanwhile)"
+                        if outcome.skipped
+                        else "[green]done"
+                    )
                     progress.console.print(
                         f"{status}[/] {outcome.spec.label} ({outcome.seconds:.0f}s)"
                     )
