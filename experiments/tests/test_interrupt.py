@@ -76,6 +76,9 @@ def test_stopped_runner_ends_at_once(tmp_path, signum):
             output = runner.communicate(timeout=30)[0].decode(errors="replace")
             pytest.fail(f"the runner still ran 30 s after the signal; its output:\n{output}")
         assert runner.returncode != 0
+        if signum != signal.SIGKILL:
+            output = runner.communicate(timeout=30)[0].decode(errors="replace")
+            assert "interrupted. Finished runs are kept" in output and "Traceback" not in output
         # The workers, the Manager and the resource tracker: all gone with the runner, even
         # one killed outright (SIGKILL), which cleans up nothing itself.
         deadline = time.monotonic() + 10

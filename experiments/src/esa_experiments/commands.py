@@ -194,6 +194,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CliError as err:
         console.print(f"[red]error:[/] {err}", highlight=False)
         return 2
+    except KeyboardInterrupt:
+        # Ctrl-C or SIGTERM, after the runner stopped its workers: a way back, no traceback.
+        resume = " Finished runs are kept: the same command resumes."
+        console.print(f"[yellow]interrupted.[/]{resume if isinstance(cli.command, Run) else ''}")
+        return 130
 
 
 if __name__ == "__main__":
