@@ -62,10 +62,13 @@ def make_env(_config=None):
 def start_ray(attempts=2):
     """``ray.init`` for the tests, tried again once if Ray's own node fails to start.
 
-    Ray waits a fixed 30 s for its raylet to register; on a loaded 2-core CI machine it
-    once never did (no raylet log at all) and the module's tests errored at setup. That
-    is Ray's start-up, not what these tests check, so one fresh attempt is made.
+    Ray waits a fixed 30 s for its raylet to register and, by default, 30 s for its GCS
+    server to publish its port. On a loaded 2-core CI machine each has once run out (no
+    raylet log; no GCS port file) and the module's tests errored at setup. That is Ray's
+    start-up, not what these tests check, so the GCS gets Ray's own longer wait (the one
+    it uses for its RocksDB backend) and one fresh attempt is made after either timeout.
     """
+    os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
     for attempt in range(attempts):
         try:
             ray.init(
@@ -73,7 +76,8 @@ def start_ray(attempts=2):
             )
             return
         except Exception as err:
-            if "timed out during startup" not in str(err) or attempt == attempts - 1:
+            startup = ("timed out during startup", "Timed out waiting for file")
+            if not any(text in str(err) for text in startup) or attempt == attempts - 1:
                 raise
             ray.shutdown()
 
@@ -82,7 +86,10 @@ def start_ray(attempts=2):
 def ray_session(server_bin, tmp_path_factory):
     """One local Ray instance; its workers find the server and a private sidecar dir."""
     sidecar = tmp_path_factory.mktemp("rllib") / "sidecar"
-    saved = {k: os.environ.get(k) for k in ("ESA_SERVER_BIN", "ESA_RLLIB_SIDECAR_DIR")}
+    saved = {
+        k: os.environ.get(k)
+        for k in ("ESA_SERVER_BIN", "ESA_RLLIB_SIDECAR_DIR", "RAY_gcs_server_port_wait_time_s")
+    }
     os.environ.update(ESA_SERVER_BIN=server_bin, ESA_RLLIB_SIDECAR_DIR=str(sidecar))
     start_ray()
     register_env(ENV, make_env)
