@@ -234,7 +234,7 @@ def report(store: RunStore, args: Args) -> str:
         atomic_write_text(store.artifact(f"verdicts {name.split()[0]}.md"), markdown + "\n")
         text.append(f"Verdicts, AUC over the {name}:\n\n{markdown}\n")
     text.append(
-        outcomes(tables["first third (primary)"], tables["whole curve (secondary)"], labels)
+        outcomes(tables["first third (primary)"], tables["whole curve (secondary)"], labels, picks)
     )
     text.append(f"E1's picks: `{json.dumps(picks)}`.\n")
     text.append(f"Budgets (per run):\n\n{budget_table(args.budgets)}\n")
@@ -252,13 +252,25 @@ def arm_labels(picks: dict[str, dict[str, Any] | None]) -> dict[str, str]:
     return labels
 
 
-def outcomes(primary: pd.DataFrame, whole: pd.DataFrame, labels: dict[str, str]) -> str:
+def outcomes(
+    primary: pd.DataFrame,
+    whole: pd.DataFrame,
+    labels: dict[str, str],
+    picks: dict[str, dict[str, Any] | None],
+) -> str:
     """Each family's outcome under the study's success rule."""
     lines = ["Outcome per family (success rule in `studies/seeking.py`):", ""]
     for family in ARMS:
         arm = labels[f"{family}_esa"]
+        if picks.get(E1_FAMILY[family]) is None:
+            lines.append(
+                f"- **{family}**: closed by E1 (no critic and kappa passed its go/no-go), so "
+                "its ESA and control arms are not run: ESA is not shown to help "
+                f"{family.upper()}."
+            )
+            continue
         if primary.empty or arm not in set(primary.method):
-            lines.append(f"- **{family}**: no verdict (its ESA arm has not run).")
+            lines.append(f"- **{family}**: no verdict yet (its ESA arm has no two seeds).")
             continue
         mine = primary[primary.method == arm]
         better = {
