@@ -151,7 +151,7 @@ $(PROTO_VENV)/.installed: client-py/scripts/gen_proto.py
 	$(PROTO_VENV)/bin/python -m pip install --quiet "grpcio-tools==$$(sed -n 's/^GENERATOR = "\(.*\)"/\1/p' $<)"
 	touch $@
 
-proto: $(PROTO_VENV)/.installed ## regenerate client-py's committed gRPC stubs with the pinned generator
+proto: $(PROTO_VENV)/.installed ## regenerate the committed Python stubs (client-py's messages, bench's grpcio service) with the pinned generator
 	$(PROTO_VENV)/bin/python client-py/scripts/gen_proto.py
 
 proto-check: $(PROTO_VENV)/.installed ## fail if the committed gRPC stubs differ from the generator's output

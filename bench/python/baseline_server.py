@@ -26,7 +26,9 @@ from dataclasses import dataclass
 import grpc
 import numpy as np
 import tyro
-from esa_client._proto.esa.v1 import esa_pb2, esa_pb2_grpc
+from esa_client._proto.esa.v1 import esa_pb2
+
+import esa_pb2_grpc
 
 
 class BaselineSession:

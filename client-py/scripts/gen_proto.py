@@ -2,18 +2,22 @@
 
 Usage::
 
-    python scripts/gen_proto.py          # rewrite src/esa_client/_proto/esa/v1/
+    python scripts/gen_proto.py          # rewrite the stubs
     python scripts/gen_proto.py --check  # exit 1 if the committed stubs are stale
 
 The generator is pinned (``GENERATOR``): the oldest grpcio-tools whose output sets the
-package's dependency floors (grpcio, protobuf). It conflicts with newer protobuf runtimes,
-so ``make proto`` / ``make proto-check`` run this script in a venv of its own (.venv-proto).
+package's dependency floor (protobuf). It conflicts with newer protobuf runtimes, so
+``make proto`` / ``make proto-check`` run this script in a venv of its own (.venv-proto).
+
+The messages (``esa_pb2``) live privately inside ``esa_client._proto``. The grpcio service
+module (``esa_pb2_grpc``) imports grpcio, which the client does not depend on (its gRPC is the
+extension's Rust client), so it is written beside its one user, the grpcio baseline server in
+``bench/python/``, not into the package.
 
 The proto is compiled with ``-I proto`` so the descriptor keeps its canonical
 name ``esa/v1/esa.proto`` (the name reflection and other languages use). protoc
 then writes ``from esa.v1 import esa_pb2`` into the gRPC module, which would
-need a top-level ``esa`` package; that single import is rewritten to a
-relative one so the stubs live privately inside ``esa_client._proto``.
+need a top-level ``esa`` package; that import is rewritten to the package's messages.
 """
 
 from __future__ import annotations
@@ -30,10 +34,16 @@ CLIENT_ROOT = Path(__file__).resolve().parent.parent
 PROTO_ROOT = CLIENT_ROOT.parent / "proto"
 PROTO_FILE = PROTO_ROOT / "esa" / "v1" / "esa.proto"
 STUB_DIR = CLIENT_ROOT / "src" / "esa_client" / "_proto" / "esa" / "v1"
-GENERATED = ("esa_pb2.py", "esa_pb2.pyi", "esa_pb2_grpc.py")
-ABSOLUTE_IMPORT = "from esa.v1 import esa_pb2 as"
-RELATIVE_IMPORT = "from . import esa_pb2 as"
-# Keep in step with the floors in pyproject.toml (grpcio>=, protobuf>= its protoc's runtime).
+BENCH_DIR = CLIENT_ROOT.parent / "bench" / "python"
+# Where each generated file is committed.
+DESTINATIONS = {
+    "esa_pb2.py": STUB_DIR,
+    "esa_pb2.pyi": STUB_DIR,
+    "esa_pb2_grpc.py": BENCH_DIR,
+}
+GENERATED_IMPORT = "from esa.v1 import esa_pb2 as"
+PACKAGE_IMPORT = "from esa_client._proto.esa.v1 import esa_pb2 as"
+# Keep in step with the floor in pyproject.toml (protobuf>= its protoc's runtime).
 GENERATOR = "1.49.1"
 
 
@@ -53,11 +63,11 @@ def generate() -> dict[str, str]:
         ]
         if protoc.main(args) != 0:
             raise SystemExit(f"protoc failed on {PROTO_FILE}")
-        files = {name: (Path(out) / "esa" / "v1" / name).read_text() for name in GENERATED}
+        files = {name: (Path(out) / "esa" / "v1" / name).read_text() for name in DESTINATIONS}
     grpc_module = files["esa_pb2_grpc.py"]
-    if ABSOLUTE_IMPORT not in grpc_module:
-        raise SystemExit(f"expected {ABSOLUTE_IMPORT!r} in the generated gRPC module, got none")
-    files["esa_pb2_grpc.py"] = grpc_module.replace(ABSOLUTE_IMPORT, RELATIVE_IMPORT)
+    if GENERATED_IMPORT not in grpc_module:
+        raise SystemExit(f"expected {GENERATED_IMPORT!r} in the generated gRPC module, got none")
+    files["esa_pb2_grpc.py"] = grpc_module.replace(GENERATED_IMPORT, PACKAGE_IMPORT)
     return files
 
 
@@ -68,7 +78,7 @@ def main() -> int:
     check = parser.parse_args().check
     stale = []
     for name, text in generate().items():
-        path = STUB_DIR / name
+        path = DESTINATIONS[name] / name
         if check:
             if not path.exists() or path.read_text() != text:
                 stale.append(name)
@@ -76,7 +86,7 @@ def main() -> int:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text)
     if stale:
-        print(f"stale stubs in {STUB_DIR}: {', '.join(stale)}; run scripts/gen_proto.py")
+        print(f"stale stubs: {', '.join(stale)}; run scripts/gen_proto.py")
         return 1
     return 0
 

@@ -7,8 +7,10 @@ from typing import Any
 import grpc
 
 from esa_client import EsaClient
-from esa_client._proto.esa.v1 import esa_pb2_grpc
+from esa_client._proto.esa.v1 import esa_pb2
 from esa_client.errors import error_for
+
+SERVICE = esa_pb2.DESCRIPTOR.services_by_name["EsaService"]
 
 
 @functools.cache
@@ -19,10 +21,29 @@ def channel(address: str) -> grpc.Channel:
     return grpc.insecure_channel(address, options=options)
 
 
-def stub(client: EsaClient) -> esa_pb2_grpc.EsaServiceStub:
-    """The generated stub on a channel to the server ``client`` spawned."""
+class Stub:
+    """EsaService's unary methods as grpcio callables, named as in the proto.
+
+    Built from the descriptor: the client package ships no grpcio service module.
+    """
+
+    def __init__(self, grpc_channel: grpc.Channel) -> None:
+        for method in SERVICE.methods:
+            if method.client_streaming or method.server_streaming:
+                continue
+            response = getattr(esa_pb2, method.output_type.name)
+            rpc = grpc_channel.unary_unary(
+                f"/{SERVICE.full_name}/{method.name}",
+                request_serializer=lambda request: request.SerializeToString(),
+                response_deserializer=response.FromString,
+            )
+            setattr(self, method.name, rpc)
+
+
+def stub(client: EsaClient) -> Any:
+    """A :class:`Stub` on a channel to the server ``client`` spawned."""
     assert client.server is not None
-    return esa_pb2_grpc.EsaServiceStub(channel(client.server.address))
+    return Stub(channel(client.server.address))
 
 
 def call(rpc: Any, request: Any, timeout: float) -> Any:
