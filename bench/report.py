@@ -731,6 +731,16 @@ def machine_lines(run: dict) -> list[str]:
             f"while this one wanted to run); user {share['user']:.0f} %, "
             f"system {share['system']:.0f} %, idle {share['idle']:.0f} %"
         )
+    idle = run.get("cpuidle")
+    if idle and idle.get("driver"):
+        polling = idle.get("guest_halt_poll_ns")
+        lines.append(
+            f"- CPU idle (`/sys/devices/system/cpu/cpuidle`): driver {idle['driver']}, governor "
+            f"{idle['governor']}"
+            + (f", guest halt polling {polling} ns" if polling is not None else "")
+            + ". How long an idle core polls before it halts sets the wake-up latency that the"
+            " round-trip rows measure ([bench/NOTES.md](bench/NOTES.md))"
+        )
     return lines
 
 

@@ -126,6 +126,17 @@ lscpu = dict(
 mem_kib = next(int(l.split()[1]) for l in open("/proc/meminfo") if l.startswith("MemTotal:"))
 samples = [float(x) for x in open(f"{results}/loadavg.tmp.txt").read().split()]
 commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+def sysfs(path):
+    try:
+        return open(path).read().strip()
+    except OSError:
+        return None
+# How long an idle core polls before it halts sets a round trip's wake-up latency on a VM.
+cpuidle = {
+    "driver": sysfs("/sys/devices/system/cpu/cpuidle/current_driver"),
+    "governor": sysfs("/sys/devices/system/cpu/cpuidle/current_governor_ro"),
+    "guest_halt_poll_ns": sysfs("/sys/module/haltpoll/parameters/guest_halt_poll_ns"),
+}
 run = {
     "cpu_model": lscpu.get("Model name", "?").strip(),
     "cores": os.cpu_count(),
@@ -144,6 +155,7 @@ run = {
         "max": max(samples, default=float("nan")),
     },
     "cpu_time_percent": cpu_share,
+    "cpuidle": cpuidle,
     "commands": commands,
 }
 open(run_json, "w").write(json.dumps(run, indent=2))
