@@ -590,6 +590,17 @@ def warmup_words(args: dict) -> str:
     return f", after {runs} short untimed run(s) of every agent"
 
 
+def repeat_words(args: dict) -> str:
+    """How a training run repeated its pairs (runs before ``ppo_repeats``: one count for all)."""
+    if "ppo_repeats" not in args:
+        return f"{args['repeats']} alternating repeats"
+    return (
+        f"{args['ppo_repeats']} repeats of PPO's pairs and {args['repeats']} of SAC's and "
+        "TD3's, family by family (each family's plain agent, then its ESA agents), every "
+        "other repeat in reverse order"
+    )
+
+
 def training_section(training: dict) -> list[str]:
     """Markdown for the training-overhead results."""
     args = training["args"]
@@ -610,7 +621,7 @@ def training_section(training: dict) -> list[str]:
         "server through the Rust client of `esa_client._native` (a spawned server's default "
         "client: its own StepStream, one pipelined round trip per step). "
         f"PPO rollouts of `n_steps={args['ppo_n_steps']}` per env. Wall-clock "
-        f"of `learn()`, {args['repeats']} alternating repeats{warmup_words(args)}; "
+        f"of `learn()`, {repeat_words(args)}{warmup_words(args)}; "
         "ratio = median of the "
         "per-repeat ratios, with a 95 % percentile-bootstrap interval of that median in "
         "brackets (10,000 resamples of the pairs; 3 pairs or more). The verdict is the "

@@ -34,7 +34,7 @@ if $QUICK; then
   CRITERION_ARGS=(--warm-up-time 0.5 --measurement-time 1)
   BENCH_ARGS=(--warmup 0.1 --window 0.3 --rss-sessions 20000)
   PY_ARGS=(--warmup 0.1 --window 0.3)
-  TRAIN_ARGS=(--ppo-steps 4096 --sac-steps 1600 --sac-learning-starts 400 --repeats 1)
+  TRAIN_ARGS=(--ppo-steps 4096 --sac-steps 1600 --sac-learning-starts 400 --repeats 1 --ppo-repeats 1)
 else
   CRITERION_ARGS=(--warm-up-time 2 --measurement-time 4)
   BENCH_ARGS=()

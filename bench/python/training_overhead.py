@@ -11,8 +11,12 @@ through the Rust client of ``esa_client._native``, the drop-ins' default for a s
 server). Only ``learn()`` is timed;
 for the ESA agents that includes opening the engine or spawning the server, the round
 trips, the critic evaluations and ESAPPO's advantage head.
-The pairs run alternately ``repeats`` times so background load hits both alike, after
-``warmup_runs`` short untimed runs of every agent.
+The agents run family by family (PPO's block, then SAC's, then TD3's), each block its
+plain agent and its ESA agents, after ``warmup_runs`` short untimed runs of every agent.
+Every other repeat runs each block in reverse, so the plain run sits at the block's start
+and then at its end and a slow drift of the host's speed biases the two ratios in opposite
+directions (this VM's PPO alone varies 15-30 % between runs minutes apart). SAC's and TD3's
+blocks run ``repeats`` times; PPO's, whose runs take seconds, ``ppo_repeats`` times.
 
 The ESA agents run each family's shipped default (``EsaConfig()`` for ESAPPO,
 ``EsaConfig.off_policy()`` for ESASAC and ESATD3) and, to price ESA when it is on at every
@@ -122,7 +126,10 @@ class Args:
     sac_learning_starts: int = 800
     """Random-action steps of the off-policy agents before they learn."""
     repeats: int = 2
-    """Timed pairs per agent, engine and number of envs."""
+    """Timed pairs per off-policy agent (SAC, TD3), engine and number of envs."""
+    ppo_repeats: int = 4
+    """Timed pairs per on-policy agent (PPO), engine and number of envs: an even number, so
+    every position of the block is timed forward and reversed alike."""
     warmup_runs: int = 1
     """Short untimed runs of every agent first: a process's first training pays one-time
     costs (torch's first kernels, MuJoCo's model, the server binary read from disk) that
@@ -263,14 +270,15 @@ def main() -> None:
     rows = []
     agents = args.agents.split(",")
     engines = args.engines.split(",")
-    runs: list[tuple[str, str, str | None]] = [
-        (plain, plain, None) for plain in sorted({AGENTS[a].plain for a in agents})
-    ]
-    runs += [
-        (agent_name(a, e), a, e)
-        for a in agents
-        for e in ([ENGINE_FREE] if AGENTS[a].engine_free else engines)
-    ]
+    # One block per family: its plain agent first, then its ESA agents on every engine.
+    blocks: dict[str, list[tuple[str, str, str | None]]] = {
+        plain: [(plain, plain, None)] for plain in sorted({AGENTS[a].plain for a in agents})
+    }
+    for a in agents:
+        blocks[AGENTS[a].plain] += [
+            (agent_name(a, e), a, e) for e in ([ENGINE_FREE] if AGENTS[a].engine_free else engines)
+        ]
+    runs = [run for block in blocks.values() for run in block]
     for n_envs in (int(n) for n in args.n_envs.split(",")):
         seconds: dict[str, list[float]] = {name: [] for name, _, _ in runs}
         buckets: dict[str, list[dict[str, float]]] = {name: [] for name, _, _ in runs}
@@ -284,13 +292,16 @@ def main() -> None:
             for name, agent, engine in runs:
                 wall, _ = train_seconds(agent, n_envs, short, engine)
                 print(f"{n_envs} env(s) {name:<26} {wall:7.2f} s  (warm-up, untimed)", flush=True)
-        for _ in range(args.repeats):
-            for name, agent, engine in runs:
-                wall, split = train_seconds(agent, n_envs, args, engine)
-                seconds[name].append(wall)
-                buckets[name].append(split)
-                parts = ", ".join(f"{k} {v:.2f} s" for k, v in split.items())
-                print(f"{n_envs} env(s) {name:<26} {wall:7.2f} s  {parts}", flush=True)
+        for repeat in range(max(args.repeats, args.ppo_repeats)):
+            for plain, block in blocks.items():
+                if repeat >= (args.ppo_repeats if plain == "PPO" else args.repeats):
+                    continue
+                for name, agent, engine in block[:: -1 if repeat % 2 else 1]:
+                    wall, split = train_seconds(agent, n_envs, args, engine)
+                    seconds[name].append(wall)
+                    buckets[name].append(split)
+                    parts = ", ".join(f"{k} {v:.2f} s" for k, v in split.items())
+                    print(f"{n_envs} env(s) {name:<26} {wall:7.2f} s  {parts}", flush=True)
         for esa, agent, engine in runs:
             if engine is None:
                 continue
