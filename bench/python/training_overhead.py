@@ -279,6 +279,7 @@ def main() -> None:
             (agent_name(a, e), a, e) for e in ([ENGINE_FREE] if AGENTS[a].engine_free else engines)
         ]
     runs = [run for block in blocks.values() for run in block]
+    repeats_of = {plain: args.ppo_repeats if plain == "PPO" else args.repeats for plain in blocks}
     for n_envs in (int(n) for n in args.n_envs.split(",")):
         seconds: dict[str, list[float]] = {name: [] for name, _, _ in runs}
         buckets: dict[str, list[dict[str, float]]] = {name: [] for name, _, _ in runs}
@@ -292,9 +293,9 @@ def main() -> None:
             for name, agent, engine in runs:
                 wall, _ = train_seconds(agent, n_envs, short, engine)
                 print(f"{n_envs} env(s) {name:<26} {wall:7.2f} s  (warm-up, untimed)", flush=True)
-        for repeat in range(max(args.repeats, args.ppo_repeats)):
+        for repeat in range(max(repeats_of.values())):
             for plain, block in blocks.items():
-                if repeat >= (args.ppo_repeats if plain == "PPO" else args.repeats):
+                if repeat >= repeats_of[plain]:
                     continue
                 for name, agent, engine in block[:: -1 if repeat % 2 else 1]:
                     wall, split = train_seconds(agent, n_envs, args, engine)
