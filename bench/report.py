@@ -591,13 +591,22 @@ def warmup_words(args: dict) -> str:
 
 
 def repeat_words(args: dict) -> str:
-    """How a training run repeated its pairs (runs before ``ppo_repeats``: one count for all)."""
+    """How a training run repeated its pairs (older runs: in sequence, or one count for all)."""
     if "ppo_repeats" not in args:
         return f"{args['repeats']} alternating repeats"
+    counts = (
+        f"{args['ppo_repeats']} repeats of PPO's pairs and {args['repeats']} of SAC's and TD3's"
+    )
+    if "slice_s" not in args:
+        return (
+            f"{counts}, family by family (each family's plain agent, then its ESA agents), "
+            "every other repeat in reverse order"
+        )
     return (
-        f"{args['ppo_repeats']} repeats of PPO's pairs and {args['repeats']} of SAC's and "
-        "TD3's, family by family (each family's plain agent, then its ESA agents), every "
-        "other repeat in reverse order"
+        f"{counts}, family by family; a family's plain agent and its ESA agents train side by "
+        f"side, one at a time, each handing the turn to the next after {args['slice_s']} s "
+        "(round-robin, reversed every other repeat), and an agent's time is the sum of its "
+        "turns, so a drift of the host's speed falls on all of them alike"
     )
 
 
@@ -958,7 +967,7 @@ def main(args: Args) -> None:
             ],
         ),
         "",
-        "A training ratio is the median over alternating pairs, with a 95 % bootstrap interval "
+        "A training ratio is the median over repeated pairs, with a 95 % bootstrap interval "
         "of that median in brackets; the verdict is the median's (Training overhead, below).",
         "",
         f"![pair latency vs batch size](bench/results/{PLOT_NAME})",

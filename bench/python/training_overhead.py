@@ -11,12 +11,15 @@ through the Rust client of ``esa_client._native``, the drop-ins' default for a s
 server). Only ``learn()`` is timed;
 for the ESA agents that includes opening the engine or spawning the server, the round
 trips, the critic evaluations and ESAPPO's advantage head.
-The agents run family by family (PPO's block, then SAC's, then TD3's), each block its
-plain agent and its ESA agents, after ``warmup_runs`` short untimed runs of every agent.
-Every other repeat runs each block in reverse, so the plain run sits at the block's start
-and then at its end and a slow drift of the host's speed biases the two ratios in opposite
-directions (this VM's PPO alone varies 15-30 % between runs minutes apart). SAC's and TD3's
-blocks run ``repeats`` times; PPO's, whose runs take seconds, ``ppo_repeats`` times.
+The agents run family by family, and a family's plain agent and its ESA agents train side
+by side: one thread each, of which one at a time runs while the others wait, handing the
+turn to the next every ``slice_s`` seconds of its wall-clock (at a step's end, from a
+callback), round-robin. An agent's time is the sum of its turns, so a drift of the host's
+speed (this VM's PPO alone varies 15-30 % between runs minutes apart) falls on every agent
+of the family alike instead of on whichever ran during it; every other repeat takes the
+turns in reverse order. A warm-up of ``warmup_runs`` short untimed runs of every agent
+goes first. SAC's and TD3's families run ``repeats`` times; PPO's, whose runs take
+seconds, ``ppo_repeats`` times.
 
 The ESA agents run each family's shipped default (``EsaConfig()`` for ESAPPO,
 ``EsaConfig.off_policy()`` for ESASAC and ESATD3) and, to price ESA when it is on at every
@@ -47,6 +50,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
@@ -63,6 +67,8 @@ from esa_client.sb3 import ESAPPO, ESASAC, ESATD3, EsaConfig
 from esa_client.transports.grpc import GrpcStepBatch
 from esa_client.transports.in_process import InProcessBatch
 from stable_baselines3 import PPO, SAC, TD3
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from servers import server_binary
@@ -129,7 +135,10 @@ class Args:
     """Timed pairs per off-policy agent (SAC, TD3), engine and number of envs."""
     ppo_repeats: int = 4
     """Timed pairs per on-policy agent (PPO), engine and number of envs: an even number, so
-    every position of the block is timed forward and reversed alike."""
+    the turns are taken forward and reversed alike."""
+    slice_s: float = 0.25
+    """Wall-clock seconds an agent trains before it hands the turn to the next agent of its
+    family (the turn passes at the end of an env step, so a PPO update finishes first)."""
     warmup_runs: int = 1
     """Short untimed runs of every agent first: a process's first training pays one-time
     costs (torch's first kernels, MuJoCo's model, the server binary read from disk) that
@@ -180,22 +189,27 @@ ENGINES = {
 
 
 @contextmanager
-def timed_methods() -> Iterator[dict[str, float]]:
-    """Wraps the ``TIMED`` methods with timers; yields the seconds per bucket."""
-    seconds: dict[str, float] = defaultdict(float)
-    # Timed calls running per bucket: a call inside another of its bucket is counted once.
-    running: dict[str, int] = defaultdict(int)
+def timed_methods() -> Iterator[dict[int, dict[str, float]]]:
+    """Wraps the ``TIMED`` methods with timers; yields the seconds per thread and bucket.
+
+    The agents of a family train on threads of their own, so each thread's seconds are
+    one agent's.
+    """
+    seconds: dict[int, dict[str, float]] = defaultdict(lambda: defaultdict(float))
+    # Timed calls running per thread and bucket: a call inside another of its bucket counts once.
+    running: dict[tuple[int, str], int] = defaultdict(int)
 
     def wrap(method: Callable, bucket: str) -> Callable:
         def timed(*args, **kwargs):
+            key = (threading.get_ident(), bucket)
             start = time.perf_counter()
-            running[bucket] += 1
+            running[key] += 1
             try:
                 return method(*args, **kwargs)
             finally:
-                running[bucket] -= 1
-                if not running[bucket]:
-                    seconds[bucket] += time.perf_counter() - start
+                running[key] -= 1
+                if not running[key]:
+                    seconds[key[0]][bucket] += time.perf_counter() - start
 
         return timed
 
@@ -209,15 +223,63 @@ def timed_methods() -> Iterator[dict[str, float]]:
             setattr(cls, name, method)
 
 
+class Turns:
+    """Lets one of several threads run at a time, round-robin, and sums each one's turns."""
+
+    def __init__(self, order: list[int]) -> None:
+        """Starts with ``order[0]``'s turn; the turns go in ``order``."""
+        self._order = order
+        self._waiting = list(order)
+        self._turn = order[0]
+        self._changed = threading.Condition()
+        self.seconds = dict.fromkeys(order, 0.0)
+        self._since = 0.0
+
+    def take(self, index: int) -> None:
+        """Blocks until it is ``index``'s turn, then starts its clock."""
+        with self._changed:
+            self._changed.wait_for(lambda: self._turn == index)
+        self._since = time.perf_counter()
+
+    def give(self, index: int, done: bool = False) -> None:
+        """Stops ``index``'s clock and hands the turn to the next thread still training."""
+        self.seconds[index] += time.perf_counter() - self._since
+        with self._changed:
+            if done:
+                self._waiting.remove(index)
+            if self._waiting:
+                after = [i for i in self._order if i in self._waiting]
+                later = [i for i in after if self._order.index(i) > self._order.index(index)]
+                self._turn = (later or after)[0]
+            self._changed.notify_all()
+
+    def elapsed(self) -> float:
+        """Seconds since the running thread's turn began."""
+        return time.perf_counter() - self._since
+
+
+class TakeTurns(BaseCallback):
+    """Hands the turn to the next agent once this one has trained ``slice_s`` seconds."""
+
+    def __init__(self, turns: Turns, index: int, slice_s: float) -> None:
+        """Takes turns in ``turns`` as thread ``index``, each turn ``slice_s`` seconds long."""
+        super().__init__()
+        self.turns, self.index, self.slice_s = turns, index, slice_s
+
+    def _on_step(self) -> bool:
+        if self.turns.elapsed() >= self.slice_s:
+            self.turns.give(self.index)
+            self.turns.take(self.index)
+        return True
+
+
 def agent_name(agent: str, engine: str) -> str:
     """The name of an ESA agent on one engine, as the results and BENCHMARKS.md show it."""
     return f"{agent} [{engine}]"
 
 
-def train_seconds(
-    name: str, n_envs: int, args: Args, engine: str | None = None
-) -> tuple[float, dict[str, float]]:
-    """Builds agent ``name`` (``PPO``, ``SAC``, ``TD3`` or a key of ``AGENTS``), times ``learn()``.
+def build(name: str, n_envs: int, args: Args, engine: str | None) -> tuple[BaseAlgorithm, int]:
+    """Builds agent ``name`` (``PPO``, ``SAC``, ``TD3`` or a key of ``AGENTS``) and its steps.
 
     Args:
         name: The agent.
@@ -227,7 +289,7 @@ def train_seconds(
             the plain ones).
 
     Returns:
-        The wall-clock seconds and the seconds spent in each ``TIMED`` bucket.
+        The model, on its own envs, and the steps it trains.
     """
     env = make_vec_env(args.env_id, n_envs=n_envs, seed=args.seed)
     common: dict = dict(seed=args.seed, device="cpu", verbose=0)
@@ -241,18 +303,59 @@ def train_seconds(
             common["esa"] = agent.esa
     if family == "PPO":
         model = cls("MlpPolicy", env, n_steps=args.ppo_n_steps, batch_size=64, **common)
-        steps = args.ppo_steps
-    else:
-        model = cls("MlpPolicy", env, learning_starts=args.sac_learning_starts, **common)
-        steps = args.sac_steps
+        return model, args.ppo_steps
+    model = cls("MlpPolicy", env, learning_starts=args.sac_learning_starts, **common)
+    return model, args.sac_steps
+
+
+def train_family(
+    block: list[tuple[str, str, str | None]], n_envs: int, args: Args, reverse: bool
+) -> dict[str, tuple[float, dict[str, float]]]:
+    """Trains a family's agents side by side, taking turns, and times each one's ``learn()``.
+
+    Args:
+        block: The family's agents as (name, agent, engine), its plain agent first.
+        n_envs: How many envs each agent trains on.
+        args: The benchmark settings.
+        reverse: Take the turns in reverse order.
+
+    Returns:
+        Per agent name, the wall-clock seconds of its turns and the seconds spent in each
+        ``TIMED`` bucket.
+    """
+    models = [build(agent, n_envs, args, engine) for _, agent, engine in block]
+    order = list(range(len(block)))
+    turns = Turns(order[::-1] if reverse else order)
+    idents: dict[int, int] = {}
+    failures: list[BaseException] = []
+
+    def train(index: int) -> None:
+        model, steps = models[index]
+        idents[index] = threading.get_ident()
+        turns.take(index)
+        try:
+            model.learn(steps, callback=TakeTurns(turns, index, args.slice_s))
+        except BaseException as err:  # re-raised in the main thread, after the others end
+            failures.append(err)
+        finally:
+            turns.give(index, done=True)
+
     with timed_methods() as buckets:
-        start = time.perf_counter()
-        model.learn(steps)
-        seconds = time.perf_counter() - start
-    if isinstance(model, (ESAPPO, ESASAC, ESATD3)):
-        model.esa_close()
-    env.close()
-    return seconds, dict(buckets)
+        threads = [threading.Thread(target=train, args=(i,)) for i in order]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    for model, _ in models:
+        if isinstance(model, (ESAPPO, ESASAC, ESATD3)):
+            model.esa_close()
+        model.get_env().close()
+    if failures:
+        raise failures[0]
+    return {
+        name: (turns.seconds[i], dict(buckets.get(idents[i], {})))
+        for i, (name, _, _) in enumerate(block)
+    }
 
 
 def main() -> None:
@@ -290,15 +393,15 @@ def main() -> None:
             sac_steps=args.sac_learning_starts + WARMUP_GRADIENT_STEPS,
         )
         for _ in range(args.warmup_runs):
-            for name, agent, engine in runs:
-                wall, _ = train_seconds(agent, n_envs, short, engine)
-                print(f"{n_envs} env(s) {name:<26} {wall:7.2f} s  (warm-up, untimed)", flush=True)
+            for block in blocks.values():
+                for name, (wall, _) in train_family(block, n_envs, short, False).items():
+                    print(f"{n_envs} env(s) {name:<26} {wall:7.2f} s  (warm-up)", flush=True)
         for repeat in range(max(repeats_of.values())):
             for plain, block in blocks.items():
                 if repeat >= repeats_of[plain]:
                     continue
-                for name, agent, engine in block[:: -1 if repeat % 2 else 1]:
-                    wall, split = train_seconds(agent, n_envs, args, engine)
+                timed = train_family(block, n_envs, args, reverse=repeat % 2 == 1)
+                for name, (wall, split) in timed.items():
                     seconds[name].append(wall)
                     buckets[name].append(split)
                     parts = ", ".join(f"{k} {v:.2f} s" for k, v in split.items())
