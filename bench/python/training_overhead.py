@@ -361,6 +361,8 @@ def train_family(
 def main() -> None:
     """Times every agent ``repeats`` times per env count, alternating, and writes the ratios."""
     args = tyro.cli(Args)
+    if args.slice_s <= 0:
+        raise SystemExit(f"expected --slice-s > 0 (seconds per turn), got {args.slice_s}")
     out = Path(args.out)
     if args.remeasure_why and not out.exists():
         # Checked before the measurement, which takes minutes, not after it.
