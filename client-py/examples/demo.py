@@ -4,9 +4,10 @@ This is what ``make demo`` runs. One seed can mislead (seed 0 alone once showed 
 slower, others faster), so the demo trains both agents on ``seeds`` seeds with identical
 PPO hyperparameters (the reproduction suite's: 4 envs x 256 steps, 64-64 MLPs), plots
 every seed and the mean, prints each seed's AUC (mean evaluation return over training)
-and the spread, and ends with one line of what the 20-seed confirmation campaign found
-(``experiments/results/confirmation/verdicts.md``, when the checkout has it). ESAPPO
-uses the PPO family's shipped default ``EsaConfig()`` on the in-process engine.
+and the spread, and ends with a line of what the 20-seed confirmation campaign found and
+one of where the study of ESA with curved critics (``seeking``) stands
+(``experiments/results/*/verdicts*.md``, when the checkout has them). ESAPPO uses the PPO
+family's shipped default ``EsaConfig()`` on the in-process engine.
 
 Usage::
 
@@ -62,9 +63,9 @@ class Args:
     """Folder of the figure and the JSON of every run."""
 
 
-# The confirmation campaign's seeds per arm (0-19): a comparison counts once it has them all.
-CAMPAIGN_SEEDS = 20
-VERDICTS = Path(__file__).resolve().parents[2] / "experiments/results/confirmation/verdicts.md"
+# The studies' seeds per arm (0-19): a comparison counts once it has them all.
+STUDY_SEEDS = 20
+RESULTS = Path(__file__).resolve().parents[2] / "experiments/results"
 
 
 class Evaluate(BaseCallback):
@@ -175,30 +176,41 @@ def print_table(results: list[dict], args: Args) -> None:
     )
 
 
-def campaign_line() -> str:
-    """One line of the confirmation campaign's verdicts, counted from its committed table.
+def verdict_line(study: str, table: str, what: str) -> str:
+    """One line of a study's verdicts, counted from its committed table.
 
-    Only comparisons with all their seeds count; the others are named as in progress.
+    Counts the envs where each family's ESA arm (``PPO+ESA``, or ``PPO+ESA (quadratic)``
+    with its critic named) is better, equal or worse than that family's baseline. Only
+    comparisons with all their seeds count; the others are named as in progress.
+
+    Args:
+        study: The study's folder under ``experiments/results``.
+        table: Its verdict table's file name.
+        what: What the line reports, after the study's name.
     """
-    if not VERDICTS.is_file():
-        return "campaign: no committed results in this checkout (experiments/RESULTS.md)."
+    path = RESULTS / study / table
+    if not path.is_file():
+        return f"{study}: no committed results in this checkout (experiments/RESULTS.md)."
     counts: dict[str, dict[str, int]] = {}
-    for line in VERDICTS.read_text().splitlines():
+    for line in path.read_text().splitlines():
         cells = [c.strip() for c in line.strip("|").split("|")]
-        # Each family's shipped default against its baseline: "PPO+ESA" vs "PPO (baseline)".
-        if len(cells) < 9 or cells[3] != f"{cells[2].removesuffix('+ESA')} (baseline)":
+        if len(cells) < 9:
             continue
-        word = re.sub(r"\*", "", cells[-1]) if cells[4] == str(CAMPAIGN_SEEDS) else "in progress"
-        family = counts.setdefault(cells[0].upper(), {"better": 0, "equal": 0, "worse": 0})
-        family[word] = family.get(word, 0) + 1
+        family = cells[0].upper()
+        if cells[3] != f"{family} (baseline)" or not re.fullmatch(
+            rf"{family}\+ESA( \(.+\))?", cells[2]
+        ):
+            continue
+        word = re.sub(r"\*", "", cells[-1]) if cells[4] == str(STUDY_SEEDS) else "in progress"
+        tally = counts.setdefault(cells[2], {"better": 0, "equal": 0, "worse": 0})
+        tally[word] = tally.get(word, 0) + 1
     parts = [
-        f"{family}+ESA better on {c['better']}, equal on {c['equal']}, worse on {c['worse']}"
+        f"{arm} better on {c['better']}, equal on {c['equal']}, worse on {c['worse']}"
         + (f" ({c['in progress']} more in progress)" if c.get("in progress") else "")
-        for family, c in counts.items()
+        for arm, c in counts.items()
     ]
     return (
-        f"campaign (experiments/RESULTS.md; envs where each family's default, with all "
-        f"{CAMPAIGN_SEEDS} seeds, is better, equal or worse than its baseline, Holm-corrected): "
+        f"{study} (experiments/RESULTS.md; {what}, with all {STUDY_SEEDS} seeds, Holm-corrected): "
         + ("; ".join(parts) if parts else "no finished comparison yet")
         + "."
     )
@@ -218,7 +230,21 @@ def main() -> None:
     )
     print()
     print_table(results, args)
-    print(campaign_line())
+    print(
+        verdict_line(
+            "confirmation",
+            "verdicts.md",
+            "envs where each family's shipped default is better, equal or worse than its baseline",
+        )
+    )
+    print(
+        verdict_line(
+            "seeking",
+            "verdicts first.md",
+            "envs where ESA with a curved critic is better, equal or worse than its baseline "
+            "over the first third of training",
+        )
+    )
     print(f"\nlearning curve: {out / 'learning_curve.png'}; raw numbers: {out / 'results.json'}")
 
 
