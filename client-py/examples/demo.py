@@ -171,8 +171,8 @@ def print_table(results: list[dict], args: Args) -> None:
         auc = np.array([r["auc"] for r in results if r["name"] == name])
         print(f"{name:<8} AUC {auc.mean():.1f} (min {auc.min():.1f}, max {auc.max():.1f})")
     print(
-        f"With {args.seeds} seeds a difference inside that spread is noise; the campaign "
-        "below uses 20 seeds per arm."
+        f"With {args.seeds} seeds a difference inside that spread is noise; the studies "
+        "below use 20 seeds per arm."
     )
 
 
