@@ -359,7 +359,7 @@ def train_family(
 
 
 def main() -> None:
-    """Times every agent ``repeats`` times per env count, alternating, and writes the ratios."""
+    """Times every family's agents side by side, repeatedly per env count, and writes the ratios."""
     args = tyro.cli(Args)
     if args.slice_s <= 0:
         raise SystemExit(f"expected --slice-s > 0 (seconds per turn), got {args.slice_s}")
