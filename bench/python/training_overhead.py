@@ -247,10 +247,12 @@ class Turns:
         with self._changed:
             if done:
                 self._waiting.remove(index)
+            # _waiting keeps the order of the turns: the next is the first after ``index``,
+            # else the first of the round.
             if self._waiting:
-                after = [i for i in self._order if i in self._waiting]
-                later = [i for i in after if self._order.index(i) > self._order.index(index)]
-                self._turn = (later or after)[0]
+                position = self._order.index(index)
+                later = [i for i in self._waiting if self._order.index(i) > position]
+                self._turn = (later or self._waiting)[0]
             self._changed.notify_all()
 
     def elapsed(self) -> float:
