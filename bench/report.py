@@ -144,7 +144,7 @@ MIB = 2**20
 # round trips of a process boundary; "none" = the engine-free gradient controls); rows of
 # runs that predate the engine choice ran the sidecar. The off-policy algorithms' own
 # gradient steps per env step dwarf ESA's step, so their budget is tighter.
-TRAINING_LIMITS = {"inprocess": 1.15, "sidecar": 1.25, "sidecar-native": 1.25, "none": 1.15}
+TRAINING_LIMITS = {"inprocess": 1.15, "sidecar": 1.25, "none": 1.15}
 OFF_POLICY_LIMIT = 1.10
 
 
@@ -625,10 +625,8 @@ def training_section(training: dict) -> list[str]:
         'critic exists), ESAPPO\'s improvement target (`esa_mode="target"`) and the gradient '
         'controls (`esa_shift="gradient"`, `[none]`: no engine), each ESC agent on every '
         "engine (`esa_engine`): `[inprocess]` = esa-core in the trainer's process, `[sidecar]` = a "
-        'private esa-server through grpcio (Unix socket, `esa_spawn={"transport": "grpc"}`, '
-        "StepStream, one pipelined round trip per step), `[sidecar-native]` = the same "
-        "server through the Rust client of `esa_client._native` (a spawned server's default "
-        "client: its own StepStream, one pipelined round trip per step). "
+        "private esa-server on a Unix socket (`EsaClient.spawn()`) through the Rust client of "
+        "`esa_client._native` (its StepStream, one pipelined round trip per step). "
         f"PPO rollouts of `n_steps={args['ppo_n_steps']}` per env. Wall-clock "
         f"of `learn()`, {repeat_words(args)}{warmup_words(args)}; "
         "ratio = median of the "

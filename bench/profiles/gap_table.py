@@ -21,7 +21,7 @@ import numpy as np
 from summarize import BUCKETS, summarize
 
 LINE = re.compile(r"^(\d+) env\(s\) (.+?)\s+cpu\s+([\d.]+) s \+ server\s+([\d.]+) s")
-COLUMNS = [(1, "inprocess"), (1, "sidecar-native"), (8, "inprocess"), (8, "sidecar-native")]
+COLUMNS = [(1, "inprocess"), (1, "sidecar"), (8, "inprocess"), (8, "sidecar")]
 PPO_BUCKETS = ("PPO: ", "other")
 
 

@@ -14,7 +14,7 @@ updates, as between TD3's seeds (``--seed``).
 Usage::
 
     OMP_NUM_THREADS=1 python bench/profiles/off_policy_parts.py --agent ESATD3
-        [--engine inprocess|sidecar-native] [--steps 4000] [--seed 0] [--esa-learning-rate 0]
+        [--engine inprocess|sidecar] [--steps 4000] [--seed 0] [--esa-learning-rate 0]
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ class Args:
 
     agent: Literal["TD3", "ESATD3"] = "ESATD3"
     """The agent to train."""
-    engine: Literal["inprocess", "sidecar-native"] = "inprocess"
+    engine: Literal["inprocess", "sidecar"] = "inprocess"
     """ESATD3's engine."""
     steps: int = 4000
     """Training steps."""

@@ -4,9 +4,8 @@ SB3's default PPO hyperparameters (2048-step rollouts: ``n_steps=2048 // n_envs`
 64, 10 epochs), torch on one
 thread, ``--steps`` env steps over ``--n-envs`` envs in a ``DummyVecEnv``; the ESA agent
 with the shipped ``EsaConfig()`` (``--ungated``: ``EsaConfig(gate=None)``) on
-``--engine`` ``inprocess`` (the default engine), ``sidecar`` (a spawned esa-server,
-grpcio: ``esa_spawn={"transport": "grpc"}``) or ``sidecar-native`` (the Rust client,
-the default for a spawned server). Prints the trainer
+``--engine`` ``inprocess`` (the default engine) or ``sidecar`` (a spawned esa-server,
+called through the Rust client of ``esa_client._native``). Prints the trainer
 process's CPU seconds of ``learn()``.
 
 Usage::
@@ -28,12 +27,11 @@ from esa_client.sb3 import ESAPPO
 from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 
-EngineName = Literal["inprocess", "sidecar", "sidecar-native"]
+EngineName = Literal["inprocess", "sidecar"]
 """The keys of ``ENGINES``, as a command-line choice."""
 ENGINES = {
     "inprocess": {"esa_engine": "inprocess"},
-    "sidecar": {"esa_engine": "sidecar", "esa_spawn": {"transport": "grpc"}},
-    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {}},
+    "sidecar": {"esa_engine": "sidecar"},
 }
 
 

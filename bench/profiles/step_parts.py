@@ -15,7 +15,7 @@ action) and ``fit`` where the trainer runs it (the head-fit worker's fits are no
 a worker serving, the row is 0 but for the fits made before it started).
 
 Settings as ``run_one.py``: InvertedPendulum-v5, 1 env, SB3's default PPO, 12,288 steps,
-torch on one thread, the in-process engine (``--engine sidecar-native`` for the sidecar).
+torch on one thread, the in-process engine (``--engine sidecar`` for the sidecar).
 
 Usage::
 

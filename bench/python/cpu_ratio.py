@@ -12,7 +12,7 @@ they are what a user sees, and work moved onto other threads shows only there.
 Usage::
 
     python bench/python/cpu_ratio.py [--n-envs 1,8] [--repeats 3] \
-        [--engines inprocess,sidecar-native] [--before DIR]
+        [--engines inprocess,sidecar] [--before DIR]
 
 With ``--before DIR`` (``DIR/esa_client_before``: e.g. ``cp -r client-py/src/esa_client``
 of an earlier commit), the earlier ESAPPO runs in the same alternation: a before/after
@@ -76,7 +76,7 @@ class Args:
 
     n_envs: str = "1,8"
     """Numbers of training envs, comma-separated."""
-    engines: str = "inprocess,sidecar-native"
+    engines: str = "inprocess,sidecar"
     """ESAPPO engines, comma-separated."""
     steps: int = 12_288
     """Training steps per run."""

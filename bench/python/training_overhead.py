@@ -4,11 +4,9 @@ Each pair trains for the same number of steps on InvertedPendulum-v5, the same s
 and hyperparameters, torch on one thread, with one env by default (SB3's default, how
 most users run it; ``--n-envs 1,8`` adds 8 envs in a ``DummyVecEnv``), PPO with SB3's
 default 2048-step rollouts. Every ESA agent runs once per
-engine (``esa_engine``): ``inprocess`` (esa-core in the trainer's process),
-``sidecar`` (a private esa-server, Unix socket, grpcio StepStream:
-``esa_spawn={"transport": "grpc"}``) and ``sidecar-native`` (the same server called
-through the Rust client of ``esa_client._native``, the drop-ins' default for a spawned
-server). Only ``learn()`` is timed;
+engine (``esa_engine``): ``inprocess`` (esa-core in the trainer's process) and
+``sidecar`` (a private esa-server on a Unix socket, ``EsaClient.spawn()``, called through
+the Rust client of ``esa_client._native``). Only ``learn()`` is timed;
 for the ESA agents that includes opening the engine or spawning the server, the round
 trips, the critic evaluations and ESAPPO's advantage head.
 The agents run family by family, and a family's plain agent and its ESA agents train side
@@ -145,7 +143,7 @@ class Args:
     would otherwise fall on the first timed run, PPO's, and favour the ESA agent."""
     agents: str = ",".join(AGENTS)
     """ESA agents to time, comma-separated."""
-    engines: str = "inprocess,sidecar,sidecar-native"
+    engines: str = "inprocess,sidecar"
     """ESA engines to time, comma-separated."""
     seed: int = 0
     """Seed of the agents and the envs."""
@@ -182,8 +180,7 @@ TIMED = [
 
 ENGINES = {
     "inprocess": {"esa_engine": "inprocess"},
-    "sidecar": {"esa_engine": "sidecar", "esa_spawn": {"transport": "grpc"}},
-    "sidecar-native": {"esa_engine": "sidecar", "esa_spawn": {}},
+    "sidecar": {"esa_engine": "sidecar"},
 }
 """Engine name -> the ESA agent's arguments that choose it."""
 

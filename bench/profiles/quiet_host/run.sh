@@ -16,7 +16,7 @@ export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 PYTHONUNBUFFERED=1
 sampler=$!
 trap 'kill $sampler' EXIT
 train=bench/python/training_overhead.py
-agents=(--agents ESAPPO --engines inprocess,sidecar-native)
+agents=(--agents ESAPPO --engines inprocess,sidecar)
 "$PY" $train "${agents[@]}" --n-envs 1 --repeats 7 --out "$out/esappo_1env.json" | tee "$out/esappo_1env.log"
 "$PY" $train "${agents[@]}" --n-envs 8 --ppo-n-steps 256 --repeats 5 --out "$out/esappo_8env.json" \
   | tee "$out/esappo_8env.log"

@@ -44,9 +44,9 @@ parts=(bench/profiles/step_parts.py --repeats 5
 train=(bench/python/training_overhead.py --agents ESAPPO --repeats "$repeats")
 pinned 0,1 "$PY" "${parts[@]}" >"$out/parts.md" 2>"$out/parts.err" &
 pinned 2,3 "${avx2[@]}" "$PY" "${parts[@]}" >"$out/parts_avx2.md" 2>"$out/parts_avx2.err" &
-pinned 4,5 "$PY" "${train[@]}" --engines inprocess,sidecar-native --n-envs 1 \
+pinned 4,5 "$PY" "${train[@]}" --engines inprocess,sidecar --n-envs 1 \
   --out "$out/esappo_1env.json" >"$out/esappo_1env.log" 2>&1 &
-pinned 6,7 "$PY" "${train[@]}" --engines inprocess,sidecar-native --n-envs 8 --ppo-n-steps 256 \
+pinned 6,7 "$PY" "${train[@]}" --engines inprocess,sidecar --n-envs 8 --ppo-n-steps 256 \
   --out "$out/esappo_8env.json" >"$out/esappo_8env.log" 2>&1 &
 pinned 8,9 "${avx2[@]}" "$PY" "${train[@]}" --engines inprocess --n-envs 1 \
   --out "$out/esappo_1env_avx2.json" >"$out/esappo_1env_avx2.log" 2>&1 &
