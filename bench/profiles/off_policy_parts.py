@@ -31,7 +31,6 @@ import tyro
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESATD3, EsaConfig
 from esa_client.sb3.off_policy import OffPolicyEsaMixin
-from run_one import ENGINES
 from stable_baselines3 import TD3
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -90,7 +89,7 @@ def main(args: Args) -> None:
     else:
         if args.esa_learning_rate is not None:
             common["esa"] = EsaConfig.off_policy(learning_rate=args.esa_learning_rate)
-        model = ESATD3("MlpPolicy", env, **common, **ENGINES[args.engine])
+        model = ESATD3("MlpPolicy", env, esa_engine=args.engine, **common)
     start = time.perf_counter()
     model.learn(args.steps)
     label = args.agent if args.agent == "TD3" else f"{args.agent} [{args.engine}]"

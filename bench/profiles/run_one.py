@@ -28,11 +28,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 
 EngineName = Literal["inprocess", "sidecar"]
-"""The keys of ``ENGINES``, as a command-line choice."""
-ENGINES = {
-    "inprocess": {"esa_engine": "inprocess"},
-    "sidecar": {"esa_engine": "sidecar"},
-}
+"""The ESA agent's engines (its ``esa_engine``), as a command-line choice."""
 
 
 def build(
@@ -52,7 +48,7 @@ def build(
     if agent == "PPO":
         return PPO("MlpPolicy", env, **common)
     esa = sb3.EsaConfig(gate=None) if ungated else sb3.EsaConfig()
-    model: PPO = sb3.ESAPPO("MlpPolicy", env, esa=esa, **common, **ENGINES[engine])
+    model: PPO = sb3.ESAPPO("MlpPolicy", env, esa=esa, esa_engine=engine, **common)
     return model
 
 

@@ -41,7 +41,7 @@ from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, EsaConfig
 from esa_client.sb3 import ppo as esappo_module
 from esa_client.session import SessionBatch
-from run_one import ENGINES, EngineName
+from run_one import EngineName
 from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
@@ -106,7 +106,7 @@ def run(agent: str, engine: str, steps: int) -> tuple[float, dict[str, float], i
     else:
         closed = agent in ("ESAPPO gate closed", "ESAPPO unfitted")
         esa = EsaConfig(gate=1.0) if closed else EsaConfig()
-        model = ESAPPO("MlpPolicy", env, esa=esa, **common, **ENGINES[engine])
+        model = ESAPPO("MlpPolicy", env, esa=esa, esa_engine=engine, **common)
         if agent == "ESAPPO unfitted":
             model._update_esa_head = lambda: None  # type: ignore[method-assign]
             model._finish_esa_head_fit = lambda pending: None  # type: ignore[method-assign]

@@ -178,12 +178,6 @@ TIMED = [
     (ESAPPO, "_finish_esa_head_fit", "critic_fit"),
 ]
 
-ENGINES = {
-    "inprocess": {"esa_engine": "inprocess"},
-    "sidecar": {"esa_engine": "sidecar"},
-}
-"""Engine name -> the ESA agent's arguments that choose it."""
-
 
 @contextmanager
 def timed_methods() -> Iterator[dict[int, dict[str, float]]]:
@@ -284,7 +278,7 @@ def build(name: str, n_envs: int, args: Args, engine: str | None) -> tuple[BaseA
         name: The agent.
         n_envs: How many envs.
         args: The benchmark settings.
-        engine: The ESA agent's engine, a key of ``ENGINES`` or ``ENGINE_FREE`` (None for
+        engine: The ESA agent's engine (its ``esa_engine``) or ``ENGINE_FREE`` (None for
             the plain ones).
 
     Returns:
@@ -297,7 +291,9 @@ def build(name: str, n_envs: int, args: Args, engine: str | None) -> tuple[BaseA
     else:
         agent = AGENTS[name]
         family, cls = agent.plain, DROP_IN[agent.plain]
-        common.update(agent.options, **ENGINES.get(engine or ENGINE_FREE, {}))
+        common.update(agent.options)
+        if engine not in (None, ENGINE_FREE):
+            common["esa_engine"] = engine
         if agent.esa is not None:
             common["esa"] = agent.esa
     if family == "PPO":
