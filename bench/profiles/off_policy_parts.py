@@ -31,6 +31,7 @@ import tyro
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESATD3, EsaConfig
 from esa_client.sb3.off_policy import OffPolicyEsaMixin
+from run_one import EngineName
 from stable_baselines3 import TD3
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -64,7 +65,7 @@ class Args:
 
     agent: Literal["TD3", "ESATD3"] = "ESATD3"
     """The agent to train."""
-    engine: Literal["inprocess", "sidecar"] = "inprocess"
+    engine: EngineName = "inprocess"
     """ESATD3's engine."""
     steps: int = 4000
     """Training steps."""
