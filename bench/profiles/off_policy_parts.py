@@ -1,19 +1,19 @@
-"""Where ESATD3's time goes inside training, against plain TD3: the ESA step, and TD3's own.
+"""Where an off-policy drop-in's time goes inside training: the ESA step, and its base's own.
 
-Trains TD3 or ESATD3 (SB3 defaults, InvertedPendulum-v5, 1 env, 800 learning-starts steps,
-torch on one thread) with timers around TD3's gradient updates (``train``), SB3's action
-sampling, ESA's override of it (``_sample_action``: the sampling, the gate and the ESA
-step), the runtime's ESA step (``EsaRuntime.step``) and the probed critic's forward passes
-(``_probe_q``). Prints the seconds and calls of each.
+Trains TD3, ESATD3, SAC or ESASAC (SB3 defaults, InvertedPendulum-v5, 1 env, 800
+learning-starts steps, torch on one thread) with timers around the gradient updates
+(``train``), SB3's action sampling, ESA's override of it (``_sample_action``: the sampling,
+the gate and the ESA step), the runtime's ESA step (``EsaRuntime.step``) and the probed
+critic's forward passes (``_probe_q``). Prints the seconds and calls of each.
 
-It separates ESA's own cost from what ESA changes in TD3: with ``--esa-learning-rate 0``
-ESATD3 runs every ESA step but executes TD3's actions, so its ``train`` must take what
-TD3's does; with ESA's shifts the trajectory differs, and so can the time of TD3's own
-updates, as between TD3's seeds (``--seed``).
+It separates ESA's own cost from what ESA changes in its base: with
+``--esa-learning-rate 0`` a drop-in runs every ESA step but executes its base's actions, so
+its ``train`` must take what the base's does; with ESA's shifts the trajectory differs, and
+so can the time of the base's own updates, as between seeds (``--seed``).
 
 Usage::
 
-    OMP_NUM_THREADS=1 python bench/profiles/off_policy_parts.py --agent ESATD3
+    OMP_NUM_THREADS=1 python bench/profiles/off_policy_parts.py --agent ESATD3|ESASAC|TD3|SAC
         [--engine inprocess|sidecar] [--steps 4000] [--seed 0] [--esa-learning-rate 0]
 """
 
@@ -29,15 +29,16 @@ from typing import Literal
 import torch as th
 import tyro
 from esa_client.common.runtime import EsaRuntime
-from esa_client.sb3 import ESATD3, EsaConfig
+from esa_client.sb3 import ESASAC, ESATD3, EsaConfig
 from esa_client.sb3.off_policy import OffPolicyEsaMixin
 from run_one import EngineName
-from stable_baselines3 import TD3
+from stable_baselines3 import SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 TIMED = [
     (TD3, "train", "train"),
+    (SAC, "train", "train"),
     (OffPolicyAlgorithm, "_sample_action", "sb3_sample_action"),
     (OffPolicyEsaMixin, "_sample_action", "esa_sample_action"),
     (EsaRuntime, "step", "esa_step"),
@@ -61,12 +62,12 @@ def timed(method: Callable, key: str, seconds: dict, calls: dict) -> Callable:
 
 @dataclass
 class Args:
-    """Where ESATD3's time goes inside training, against plain TD3."""
+    """Where an off-policy drop-in's time goes inside training, against its base."""
 
-    agent: Literal["TD3", "ESATD3"] = "ESATD3"
+    agent: Literal["TD3", "ESATD3", "SAC", "ESASAC"] = "ESATD3"
     """The agent to train."""
     engine: EngineName = "inprocess"
-    """ESATD3's engine."""
+    """The drop-in's engine."""
     steps: int = 4000
     """Training steps."""
     seed: int = 0
@@ -85,19 +86,21 @@ def main(args: Args) -> None:
         setattr(cls, name, timed(getattr(cls, name), key, seconds, calls))
     env = make_vec_env("InvertedPendulum-v5", n_envs=1, seed=args.seed)
     common = dict(seed=args.seed, device="cpu", verbose=0, learning_starts=800)
-    if args.agent == "TD3":
-        model = TD3("MlpPolicy", env, **common)
+    agents = {"TD3": TD3, "SAC": SAC, "ESATD3": ESATD3, "ESASAC": ESASAC}
+    if args.agent in ("TD3", "SAC"):
+        model = agents[args.agent]("MlpPolicy", env, **common)
     else:
         if args.esa_learning_rate is not None:
             common["esa"] = EsaConfig.off_policy(learning_rate=args.esa_learning_rate)
-        model = ESATD3("MlpPolicy", env, esa_engine=args.engine, **common)
+        model = agents[args.agent]("MlpPolicy", env, esa_engine=args.engine, **common)
     start = time.perf_counter()
     model.learn(args.steps)
-    label = args.agent if args.agent == "TD3" else f"{args.agent} [{args.engine}]"
+    drop_in = isinstance(model, OffPolicyEsaMixin)
+    label = f"{args.agent} [{args.engine}]" if drop_in else args.agent
     print(f"{label} seed {args.seed}: learn() {time.perf_counter() - start:.2f} s")
     for key, total in seconds.items():
         print(f"  {key:>18}: {total:6.2f} s, {calls[key]} calls")
-    if isinstance(model, ESATD3):
+    if drop_in:
         model.esa_close()
 
 

@@ -247,8 +247,12 @@ def test_esappo_with_learning_rate_zero_is_plain_ppo(client, gate):
     null.esa_close()
 
 
-def test_esasac_with_learning_rate_zero_is_plain_sac(client):
-    kwargs = dict(learning_starts=100, batch_size=32, policy_kwargs=dict(net_arch=[32]))
+@pytest.mark.parametrize("use_sde", [False, True])
+def test_esasac_with_learning_rate_zero_is_plain_sac(client, use_sde):
+    # ESASAC samples from its own actor call; with gSDE that call carries the latent noise.
+    kwargs = dict(
+        learning_starts=100, batch_size=32, policy_kwargs=dict(net_arch=[32]), use_sde=use_sde
+    )
 
     def trained(cls, **extra):
         env = make_vec_env("Pendulum-v1", n_envs=2, seed=5)

@@ -29,8 +29,8 @@ shift in a random direction (the placebo)."""
 SHIFTS: tuple[str, ...] = ("esc", "gradient", "placebo")
 
 SHIFT_REPORT_EVERY = 8
-"""Shifted steps per :func:`shift_report`: TD3 needs an actor call for ``mu`` and the report
-costs about as much again, a few % of an off-policy step when run on every one."""
+"""Shifted steps per :func:`shift_report`: its numpy costs about an actor call, a few % of an
+off-policy step when run on every one."""
 
 Anchor = Literal["sample", "mean"]
 """Where the shift is found: at the policy's sample ``a_t``, or at its mean ``mu``."""
@@ -144,9 +144,13 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         """The policy's action and its spread sigma in [-1, 1] units, each ``(batch, D)``."""
         raise NotImplementedError
 
-    def _policy_std(self, obs: Any, n: int) -> th.Tensor:
-        """The policy's spread sigma in [-1, 1] units for ``n`` observations, ``(n, D)``."""
-        return self._policy_mean_and_std(obs)[1]
+    def _policy_sample(self, obs: Any) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """What SB3's ``predict(deterministic=False)`` samples, with the mean and sigma.
+
+        All three come from one actor call, each ``(batch, D)``: the sample as the policy's
+        ``_predict`` returns it (the same random draws), and :meth:`_policy_mean_and_std`.
+        """
+        raise NotImplementedError
 
     def esa_close(self) -> None:
         """Closes the ESA sessions (:meth:`EsaMixin.esa_close`); the placebo restarts with them."""
@@ -186,27 +190,22 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         action_noise: ActionNoise | None = None,
         n_envs: int = 1,
     ) -> tuple[np.ndarray, np.ndarray]:
-        action, buffer_action = super()._sample_action(learning_starts, action_noise, n_envs)
         self._update_gate(learning_starts)
         if not self._esa_active:
-            return action, buffer_action
+            return super()._sample_action(learning_starts, action_noise, n_envs)
         assert self._last_obs is not None  # in rollouts
         obs, _ = self.policy.obs_to_tensor(self._last_obs)
+        buffer_action, mean, std = self._sampled(obs, action_noise)
         strength = self._esa_strength()
         report = strength > 0 and self._esa_shifted_steps % SHIFT_REPORT_EVERY == 0
-        mu: np.ndarray | None = None
-        if self.esa_anchor == "mean" or report:
-            mean, std = self._policy_mean_and_std(obs)
-            mu = mean.reshape(n_envs, -1).cpu().numpy().astype(np.float64)
-        else:
-            std = self._policy_std(obs, n_envs)
+        mu = mean.reshape(n_envs, -1).cpu().numpy().astype(np.float64)
         sigma = np.maximum(std.reshape(n_envs, -1).cpu().numpy(), SMALLEST_SCALE)
         sampled = buffer_action.reshape(n_envs, -1)
-        anchor = mu if self.esa_anchor == "mean" and mu is not None else sampled
+        anchor = mu if self.esa_anchor == "mean" else sampled
         executed, shift = self._shifted(obs, sampled, anchor, sigma, strength)
         if strength > 0:
             self._esa_shifted_steps += 1
-        if report and mu is not None:
+        if report:
             gradient = self.esa_shift == "gradient"
             bound = self._gradient_kappa() if gradient else self.esa.trust_region
             low, high = self._esa_env_bounds()
@@ -215,6 +214,25 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
                 self.logger.record_mean(f"esa/{key}", value)
         buffer_action = executed.reshape(buffer_action.shape).astype(buffer_action.dtype)
         return self.policy.unscale_action(buffer_action), buffer_action
+
+    def _sampled(
+        self, obs: Any, action_noise: ActionNoise | None
+    ) -> tuple[np.ndarray, th.Tensor, th.Tensor]:
+        """SB3's exploratory action in [-1, 1] (its buffer action), the mean and sigma.
+
+        The steps of ``OffPolicyAlgorithm._sample_action`` after the warm-up, with the
+        policy called once (:meth:`_policy_sample`) instead of once for SB3's sample and
+        again for ESA's mean and sigma: a per-step cost of the off-policy drop-ins. The
+        sample goes through ``predict``'s unscaling and ``_sample_action``'s rescaling, so
+        that its bits are SB3's.
+        """
+        with th.no_grad():
+            actions, mean, std = self._policy_sample(obs)
+        sample = actions.cpu().numpy().reshape((-1, *(self.action_space.shape or ())))
+        scaled: np.ndarray = self.policy.scale_action(self.policy.unscale_action(sample))
+        if action_noise is not None:
+            scaled = np.clip(scaled + action_noise(), -1, 1)
+        return scaled, mean, std
 
     def _shifted(
         self,

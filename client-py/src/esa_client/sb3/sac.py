@@ -71,12 +71,28 @@ class ESASAC(OffPolicyEsaMixin, SAC):
     """
 
     def _policy_mean_and_std(self, obs: Any) -> tuple[th.Tensor, th.Tensor]:
+        with th.no_grad():
+            mean, log_std, extra = self.actor.get_action_dist_params(obs)
+            self.actor.action_dist.proba_distribution(mean, log_std, **extra)
+            return self._squashed(mean)
+
+    def _policy_sample(self, obs: Any) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        # As SAC's Actor.forward: the sample from the same distribution parameters.
+        mean, log_std, extra = self.actor.get_action_dist_params(obs)
+        actions = self.actor.action_dist.actions_from_params(
+            mean, log_std, deterministic=False, **extra
+        )
+        return (actions, *self._squashed(mean))
+
+    def _squashed(self, mean: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """The squashed policy's mean action and its standard deviation in [-1, 1] units.
 
         The std is tanh's linearization at the mean, ``(1 - tanh(mu)^2) std``, capped at 1:
-        no distribution on [-1, 1] spreads wider than that.
+        no distribution on [-1, 1] spreads wider than that. ``std`` is the Gaussian's that
+        the actor's distribution was last given: read there, not from ``log_std``, because
+        under gSDE ``log_std`` holds the noise weights' scales and the std depends on the
+        state.
         """
-        with th.no_grad():
-            mean, log_std, _ = self.actor.get_action_dist_params(obs)
-            squashed = th.tanh(mean)
-            return squashed, ((1.0 - squashed**2) * log_std.exp()).clamp(max=1.0)
+        std = self.actor.action_dist.distribution.stddev
+        squashed = th.tanh(mean)
+        return squashed, ((1.0 - squashed**2) * std).clamp(max=1.0)

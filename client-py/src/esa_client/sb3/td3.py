@@ -74,9 +74,14 @@ class ESATD3(OffPolicyEsaMixin, TD3):
         """The actor's action and the exploration noise's sigma, both in [-1, 1] units."""
         with th.no_grad():
             mean = self.actor(obs)
-        return mean, self._policy_std(obs, len(mean))
+        return mean, self._noise_std(len(mean))
 
-    def _policy_std(self, obs: Any, n: int) -> th.Tensor:
+    def _policy_sample(self, obs: Any) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        # TD3's policy samples its mean: the noise is added after predict.
+        mean, std = self._policy_mean_and_std(obs)
+        return mean, mean, std
+
+    def _noise_std(self, n: int) -> th.Tensor:
         """The exploration noise's sigma for ``n`` observations: no actor call is needed."""
         sigma = th.as_tensor(self._sigma(), dtype=th.float32, device=self.device)
         return sigma.expand(n, -1).clamp(min=1e-6, max=1.0)
