@@ -86,16 +86,15 @@ def main(args: Args) -> None:
         setattr(cls, name, timed(getattr(cls, name), key, seconds, calls))
     env = make_vec_env("InvertedPendulum-v5", n_envs=1, seed=args.seed)
     common = dict(seed=args.seed, device="cpu", verbose=0, learning_starts=800)
-    agents = {"TD3": TD3, "SAC": SAC, "ESATD3": ESATD3, "ESASAC": ESASAC}
-    if args.agent in ("TD3", "SAC"):
-        model = agents[args.agent]("MlpPolicy", env, **common)
-    else:
+    cls = {"TD3": TD3, "SAC": SAC, "ESATD3": ESATD3, "ESASAC": ESASAC}[args.agent]
+    drop_in = issubclass(cls, OffPolicyEsaMixin)
+    if drop_in:
+        common["esa_engine"] = args.engine
         if args.esa_learning_rate is not None:
             common["esa"] = EsaConfig.off_policy(learning_rate=args.esa_learning_rate)
-        model = agents[args.agent]("MlpPolicy", env, esa_engine=args.engine, **common)
+    model = cls("MlpPolicy", env, **common)
     start = time.perf_counter()
     model.learn(args.steps)
-    drop_in = isinstance(model, OffPolicyEsaMixin)
     label = f"{args.agent} [{args.engine}]" if drop_in else args.agent
     print(f"{label} seed {args.seed}: learn() {time.perf_counter() - start:.2f} s")
     for key, total in seconds.items():
