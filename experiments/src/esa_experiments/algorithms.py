@@ -169,6 +169,21 @@ METHODS: dict[str, Method] = {
     "ppo_zoo": Method("PPO (RL Zoo3)", "ppo", "none", config="ppo_zoo"),
     "sac_zoo": Method("SAC (RL Zoo3)", "sac", "none", config="sac_zoo"),
     "td3_zoo": Method("TD3 (RL Zoo3)", "td3", "none", config="td3_zoo"),
+    # Study `paper_regime`: E2's quadratic ESA and placebo arms on the zoo's tuned PPO.
+    **{
+        f"ppo_zoo_seek_{arm}_quadratic": Method(
+            f"PPO (RL Zoo3)+{label}",
+            "ppo",
+            "esa",
+            "seeking_ppo",
+            (("esa_critic", "quadratic"), ("esa_objective", "decoupled"), *shift),
+            config="ppo_zoo",
+        )
+        for arm, label, shift in (
+            ("esa", "ESA", ()),
+            ("placebo", "placebo", (("esa_shift", "placebo"),)),
+        )
+    },
 }
 
 LABELS = {name: method.label for name, method in METHODS.items()}
@@ -199,6 +214,8 @@ BASELINE_OF = {
     "td3_mean_qgrad": "td3",
     "td3_gauss_matched": "td3",
     "td3_pink_matched": "td3",
+    "ppo_zoo_seek_esa_quadratic": "ppo_zoo",
+    "ppo_zoo_seek_placebo_quadratic": "ppo_zoo",
 }
 """Which method an ESA method is compared with (returns and wall-clock overhead)."""
 

@@ -39,6 +39,7 @@ STUDY_NAMES = (
     "seeking_offline",
     "seeking",
     "zoo_baselines",
+    "paper_regime",
 )
 
 
