@@ -14,7 +14,7 @@ export ESA_SERVER_BIN := $(SERVER_BIN)
 export MUJOCO_GL ?= egl
 
 PY_PACKAGES := client-py experiments tests
-PY_LINT := $(PY_PACKAGES) server-py bench deploy/container
+PY_LINT := $(PY_PACKAGES) server-py bench deploy/container tools/docs
 # rllib: Ray RLlib, so that make test also runs the RLlib tests (client-py/tests/test_rllib*.py).
 PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,zoo,dev,docs]" -e "experiments[dev]"
 
@@ -162,8 +162,11 @@ deps-check: ## the client's tests at the declared dependency minimums; resolves 
 	$(PYTHON) client-py/scripts/deps_check.py
 
 .PHONY: docs
-docs: venv ## build the docs site into site/ (mkdocs build --strict; mkdocs.yml)
+# --strict fails on a link or image mkdocs cannot resolve (mkdocs.yml: validation);
+# check_site.py then reads the built HTML, where links of raw HTML and of hooks are too.
+docs: venv ## build the docs site into site/ (mkdocs build --strict) and check every internal link and image
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
+	$(PY) tools/docs/check_site.py site
 
 .PHONY: container container-check k8s-check
 CONTAINER_IMAGE ?= localhost/esa-server:$(shell sed -n '/^\[workspace.package\]/,/^\[/s/^version = "\(.*\)"/\1/p' Cargo.toml)
