@@ -7,6 +7,13 @@ critic ESA probes, all envs in one call per step (``EsaVectorWrapper``). The rol
 the executed action ``a_t + v(t)`` (``info["esa_action"]``) with ``log pi_old(a_t)``, its
 behaviour log-probability, so the PPO ratio stays an importance ratio.
 
+Needs the ``sb3`` extra (for torch and gymnasium) and tyro, which reads the command line;
+MuJoCo envs such as InvertedPendulum-v5 also need ``gymnasium[mujoco]``. ESA runs in this
+process: no esa-server. From a clone (esa is not on PyPI yet; once it is,
+``pip install "esa-client[sb3]" tyro``)::
+
+    pip install -e "./client-py[sb3]" tyro "gymnasium[mujoco]"
+
     python client-py/examples/cleanrl_ppo_esa.py --env-id InvertedPendulum-v5
     python client-py/examples/cleanrl_ppo_esa.py --ci        # a few hundred steps (CI)
     python client-py/examples/cleanrl_ppo_esa.py --no-esa    # plain PPO, for comparison

@@ -5,6 +5,13 @@ cleanrl's ``sac_continuous_action.py`` with three ESA lines: the vector env is w
 the probes and at the applied actions), the policy's standard deviation is the action scale,
 and the replay buffer stores ``info["esa_action"]``, the action the envs executed.
 
+Needs the ``sb3`` extra (for torch and gymnasium) and tyro, which reads the command line;
+MuJoCo envs such as InvertedPendulum-v5 also need ``gymnasium[mujoco]``. ESA runs in this
+process: no esa-server. From a clone (esa is not on PyPI yet; once it is,
+``pip install "esa-client[sb3]" tyro``)::
+
+    pip install -e "./client-py[sb3]" tyro
+
     python client-py/examples/cleanrl_sac_esa.py --env-id Pendulum-v1 --total-timesteps 20000
     python client-py/examples/cleanrl_sac_esa.py --ci        # a few hundred steps (CI)
     python client-py/examples/cleanrl_sac_esa.py --no-esa    # plain SAC, for comparison

@@ -1,7 +1,12 @@
 """RLlib SAC with ESA on Pendulum-v1: two env runners, a node sidecar, progress per iteration.
 
-Runs on a laptop (CPU only) from a clone after ``make setup``, or
-with ``pip install "esa-client[rllib]"``. ``with_esa`` adds ESA to a plain ``SACConfig``:
+Needs the ``rllib`` extra, an esa-server for the node sidecar and tyro, which reads the
+command line; ``make setup`` has all three. In a venv of your own, from a clone (esa is not on
+PyPI yet; once it is, ``pip install "esa-client[rllib,server]" tyro``)::
+
+    pip install -e "./client-py[rllib]" tyro    # the first sidecar builds esa-server (cargo)
+
+Runs on a laptop (CPU only). ``with_esa`` adds ESA to a plain ``SACConfig``:
 each env copy of each EnvRunner gets an ESA session on this machine's esa-server sidecar,
 which the first runner starts and the last one stops. Each iteration samples 1,000 env
 steps and prints the mean episode return, the fraction of steps on which ESA acted (its

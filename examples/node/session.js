@@ -1,6 +1,8 @@
 // An esa-server session from Node.js with @grpc/grpc-js and @grpc/proto-loader: create a
 // session, then per step Probe -> evaluate the critic at the probe -> Report, end the
 // episode, close the session. The proto is loaded at run time from proto/esa/v1/esa.proto.
+// Needs Node.js 18 or newer and an esa-server: a running one, or a build of this checkout
+// (`cargo build --release -p esa-server`); no Python.
 //
 //   npm ci && node session.js                  # spawns ESA_SERVER_BIN or target/release/esa-server
 //   node session.js 127.0.0.1:50051            # or talks to a running server
