@@ -13,6 +13,11 @@ to its own folder; here each one is rebased to what it names in the repository:
 Links of docs/ pages that leave docs/ are rebased the same way. A link to a file that does
 not exist is a warning, which ``mkdocs build --strict`` turns into a failure. This replaces
 pymdownx.snippets, which includes the text but leaves its links pointing nowhere.
+
+The API reference renders docstrings written for Sphinx: their roles (``:meth:`step```) and
+literal-block markers (``Example::``) would show as typed. The hook turns a role into its
+name in code, a link where the name is a documented ``esa_client`` object, and ``::`` into
+``:``.
 """
 
 from __future__ import annotations
@@ -42,6 +47,11 @@ HEADING = re.compile(r"^(#{1,6})(?=[ \t])")
 SPAN_OR_LINK = re.compile(r"(?P<code>(`+).*?\2)|(?P<open>\]\()(?P<url><[^>]*>|[^)\s]+)")
 REFERENCE = re.compile(r"^(?P<lead>[ \t]{0,3}\[[^\]]+\]:[ \t]*)(?P<url>\S+)")
 EXTERNAL = re.compile(r"^([a-zA-Z][a-zA-Z0-9+.-]*:|//|#|/)")
+# A Sphinx role as mkdocstrings renders it: :meth:<code>~pkg.Class.method</code>.
+ROLE = re.compile(
+    r":(?P<role>meth|func|class|mod|attr|exc|data|obj):<code>(?P<short>~?)(?P<target>[^<]+)</code>"
+)
+LITERAL_MARKER = re.compile(r"(?<=[^:\s])::</p>")
 
 
 def _root(config: MkDocsConfig) -> Path:
@@ -180,6 +190,25 @@ def on_files(files: Files, config: MkDocsConfig) -> Files:
 def on_page_markdown(markdown: str, page: Page, config: MkDocsConfig, **_: Any) -> str:
     """Expands the page's includes and rebases its links before mkdocs resolves them."""
     return expand(markdown, page.file.src_uri, config)[0]
+
+
+def on_page_content(html: str, page: Page, **_: Any) -> str:
+    """Renders the Sphinx roles and ``::`` markers of the API reference's docstrings."""
+    if 'class="doc doc-' not in html:
+        return html
+    return LITERAL_MARKER.sub(":</p>", ROLE.sub(_role, html))
+
+
+def _role(match: re.Match[str]) -> str:
+    target = match.group("target")
+    title = target.rsplit(".", 1)[-1] if match.group("short") else target
+    if match.group("role") in ("meth", "func"):
+        title += "()"
+    code = f"<code>{title}</code>"
+    if target.startswith("esa_client."):
+        # mkdocs-autorefs links it if the object is on the site, else leaves the code.
+        return f'<autoref identifier="{target}" optional>{code}</autoref>'
+    return code
 
 
 def on_serve(server: Any, config: MkDocsConfig, **_: Any) -> Any:
