@@ -164,9 +164,10 @@ def ratio_interval(row: dict) -> str:
     return f"{text} [{low:.2f}, {high:.2f}]"
 
 
-# Rows priced for comparison, not held to a budget: ESAPPO with the opt-in head-fit worker
-# (what the worker saves) and with the curved critics of issue 42 (what they cost).
-REFERENCE_ROWS = ("ESAPPO head-fit worker [", "ESAPPO quadratic [", "ESAPPO Q-network [")
+# Rows priced for comparison, not held to a budget: ESAPPO with ESA on at every step of the
+# run (no gate, no fade: what ESA costs while it acts) and its placebo (what it costs a user
+# judging ESA on their task).
+REFERENCE_ROWS = ("ESAPPO ungated [", "ESAPPO placebo [")
 
 
 def training_limit(row: dict) -> float | None:
@@ -621,10 +622,11 @@ def training_section(training: dict) -> list[str]:
         f"{args['seed']}, torch on one thread, SB3 defaults except PPO "
         f"`n_steps={args['ppo_n_steps']}`, `batch_size=64` and SAC "
         f"`learning_starts={args['sac_learning_starts']}` (TD3 too); ESA agents with their "
-        "family's shipped default (`EsaConfig()`, `EsaConfig.off_policy()`; the gate keeps ESA "
-        "off while the critic is poor), with the same at `gate=None` (ESA at every step once a "
-        'critic exists), ESAPPO\'s improvement target (`esa_mode="target"`) and the gradient '
-        'controls (`esa_shift="gradient"`, `[none]`: no engine), each ESC agent on every '
+        "family's shipped default (`EsaConfig.ppo()`, `EsaConfig.off_policy()`; the gate keeps "
+        "ESA off while the critic is poor, and ESAPPO's fades it out by half the budget), with "
+        "the same at `gate=None` (and ESAPPO's at `fade=None`: ESA at every step once a critic "
+        'exists), the placebo (`esa_control="placebo"`) and the gradient control '
+        '(`esa_control="gradient"`, `[none]`: no engine), each ESC agent on every '
         "engine (`esa_engine`): `[inprocess]` = esa-core in the trainer's process, `[sidecar]` = a "
         "private esa-server on a Unix socket (`EsaClient.spawn()`) through the Rust client of "
         "`esa_client._native` (its StepStream, one pipelined round trip per step). "
@@ -758,7 +760,7 @@ def machine_lines(run: dict) -> list[str]:
             f"{idle['governor']}"
             + (f", guest halt polling {polling} ns" if polling is not None else "")
             + ". How long an idle core polls before it halts sets the wake-up latency that the"
-            " round-trip rows measure ([bench/NOTES.md](bench/NOTES.md))"
+            " round-trip rows measure"
         )
     return lines
 
@@ -951,10 +953,6 @@ def main(args: Args) -> None:
         "measurement.",
         "",
         *host_lines(run),
-        "",
-        "Profiles, experiments and what was tried on the way (an engineering log across runs "
-        "and hosts, whose figures are not this run's): [bench/NOTES.md](bench/NOTES.md) and "
-        "[bench/profiles/README.md](bench/profiles/README.md).",
         "",
         "## Targets",
         "",

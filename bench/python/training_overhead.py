@@ -19,22 +19,21 @@ turns in reverse order. A warm-up of ``warmup_runs`` short untimed runs of every
 goes first. SAC's and TD3's families run ``repeats`` times; PPO's, whose runs take
 seconds, ``ppo_repeats`` times.
 
-The ESA agents run each family's shipped default (``EsaConfig()`` for ESAPPO,
+The ESA agents run each family's shipped default (``EsaConfig.ppo()`` for ESAPPO,
 ``EsaConfig.off_policy()`` for ESASAC and ESATD3) and, to price ESA when it is on at every
-step, the same with ``gate=None``: the gate keeps ESA off while the critic is poor, so the
-default's cost depends on the run. The modes of the campaign are priced too: ESAPPO's
-improvement target (``esa_mode="target"``) and the gradient controls
-(``esa_shift="gradient"``: autograd in the trainer, no engine, so they run once, on no
+step, the same with ``gate=None`` (and, for ESAPPO, ``fade=None``): the gate keeps ESA off
+while the critic is poor and the fade turns it off halfway, so the default's cost depends
+on the run. The controls are priced too: the placebo (ESA's sessions, a random direction)
+and the gradient control (autograd in the trainer, no engine, so it runs once, on no
 engine).
 
 To tell the service's share from the algorithm's, the ESA agents' time is also split
 by wrapping methods with timers: the round trips (``SessionBatch.probe_applied``, which
-carries the deferred report too, and ``.flush``; ESAPPO's in-process step is one
-``InProcessBatch.step_head`` call: the head's inputs, probe, critic, report, statistics and
-executed action; a step sent ahead through the native client is its send and the reading of
-its answer a step later), the whole ESA step (``EsaRuntime.step``, ESAPPO's
-``EsaRuntime.step_head``: round trips plus critic evaluations) and ESAPPO's advantage-head
-fit and gate.
+carries the deferred report too, and ``.flush``; the in-process step is one
+``InProcessBatch.step_closed_form`` call: probe, the quadratic head's closed form, report; a
+step sent ahead through the native client is its send and the reading of its answer a step
+later), the whole ESA step (``EsaRuntime.step``: round trips plus critic evaluations) and
+ESAPPO's critic: its gate and its fit.
 
 Usage::
 
@@ -79,7 +78,7 @@ class Agent:
     Attributes:
         plain: Its algorithm without ESA (``PPO``, ``SAC`` or ``TD3``).
         esa: Its ``esa=`` (None: the family's shipped default).
-        options: Its other ESA keyword arguments (mode, shift).
+        options: Its other ESA keyword arguments (the control).
         engine_free: True for the gradient controls: no session, so no engine to compare.
     """
 
@@ -89,17 +88,13 @@ class Agent:
     engine_free: bool = False
 
 
-GRADIENT = (("esa_shift", "gradient"),)
-TARGET = (("esa_mode", "target"),)
+GRADIENT = (("esa_control", "gradient"),)
+PLACEBO = (("esa_control", "placebo"),)
 AGENTS = {
     "ESAPPO": Agent("PPO"),
-    "ESAPPO head-fit worker": Agent("PPO", options=(("esa_head_worker", True),)),
-    "ESAPPO quadratic": Agent("PPO", options=(("esa_critic", "quadratic"),)),
-    "ESAPPO Q-network": Agent("PPO", options=(("esa_critic", "qnet"),)),
-    "ESAPPO ungated": Agent("PPO", EsaConfig(gate=None)),
-    "ESAPPO target": Agent("PPO", options=TARGET),
+    "ESAPPO ungated": Agent("PPO", EsaConfig.ppo(gate=None, fade=None)),
+    "ESAPPO placebo": Agent("PPO", options=PLACEBO),
     "ESAPPO qgrad": Agent("PPO", options=GRADIENT, engine_free=True),
-    "ESAPPO qgrad target": Agent("PPO", options=TARGET + GRADIENT, engine_free=True),
     "ESASAC": Agent("SAC"),
     "ESASAC ungated": Agent("SAC", EsaConfig.off_policy(gate=None)),
     "ESASAC qgrad": Agent("SAC", options=GRADIENT, engine_free=True),
@@ -161,9 +156,6 @@ TIMED = [
     (SessionBatch, "probe_applied", "round_trips"),
     (SessionBatch, "flush", "round_trips"),
     (InProcessBatch, "step_closed_form", "round_trips"),
-    # ESAPPO's in-process step: the head's inputs, probe, critic, report, the statistics and
-    # the executed action in one engine call.
-    (InProcessBatch, "step_head", "round_trips"),
     # A step sent ahead through the native client's stream (a linear critic, or the critic's
     # values at probes computed here): the send, and reading the answer one step later
     # (mostly arrived by then).
@@ -171,11 +163,8 @@ TIMED = [
     (GrpcStepBatch, "send_step", "round_trips"),
     (GrpcStepBatch, "receive_step", "round_trips"),
     (EsaRuntime, "step", "esa_step"),
-    # ESAPPO's ESA step (EsaRuntime.step inside it, on other engines, counts once).
-    (EsaRuntime, "step_head", "esa_step"),
-    (ESAPPO, "_update_esa_head", "critic_fit"),
-    # The fit itself where it runs in-process, else taking the worker's fit in.
-    (ESAPPO, "_finish_esa_head_fit", "critic_fit"),
+    (ESAPPO, "_check_gate", "critic_fit"),
+    (ESAPPO, "_fit_critic", "critic_fit"),
 ]
 
 

@@ -14,7 +14,7 @@ import pytest
 from stable_baselines3.common.env_util import make_vec_env
 
 from esa_client import EsaClient, EsaConfig, QuadraticCritic
-from esa_client.common.action_critics import CriticAtStep, QuadraticHead
+from esa_client.common.quadratic_head import CriticAtStep, QuadraticHead
 from esa_client.sb3 import ESAPPO
 
 N, D = 3, 2
@@ -188,8 +188,7 @@ def test_esappo_hands_the_engine_the_quadratic_heads_closed_form(monkeypatch):
         batch_size=64,
         n_epochs=2,
         policy_kwargs=dict(net_arch=[32]),
-        esa=EsaConfig(gate=None, trust_region=1.0),
-        esa_critic="quadratic",
+        esa=EsaConfig.ppo(gate=None, fade=None),
     )
     model.learn(3 * 128 * 2)
     model.esa_close()

@@ -243,7 +243,9 @@ def test_esappo_with_learning_rate_zero_is_plain_ppo(client, gate):
     plain = trained(PPO)
     null = trained(ESAPPO, esa=EsaConfig(learning_rate=0.0, gate=gate), esa_address=client.address)
     assert null._esa is not None or gate is not None, "ESA ran (with v = 0)"
-    assert th.equal(parameters(plain), parameters(null))
+    # The same samples and random draws; the decoupled objective's ratio is taken against a
+    # second forward pass over the rollout, which rounds differently from the rollout's own.
+    assert th.allclose(parameters(plain), parameters(null), atol=1e-4)
     null.esa_close()
 
 
@@ -265,7 +267,6 @@ def test_esasac_with_learning_rate_zero_is_plain_sac(client, use_sde):
         ESASAC,
         esa=EsaConfig(learning_rate=0.0, gate=None),
         esa_address=client.address,
-        esa_probe_critic="online_min",
     )
     assert null._esa is not None
     assert th.equal(parameters(plain), parameters(null))
@@ -296,8 +297,6 @@ def test_env_dependent_settings_fail_at_construction(cls, esa, match, monkeypatc
         (lambda: EsaConfig(amplitude=-1), "amplitude"),
         (lambda: EsaConfig(learning_rate=math.nan), "learning_rate"),
         (lambda: ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa="fast"), "EsaConfig"),
-        (lambda: ESASAC("MlpPolicy", "Pendulum-v1", esa_probe_critic="best"), "esa_probe_critic"),
-        (lambda: ESASAC("MlpPolicy", "Pendulum-v1", esa_gate_every=0), "esa_gate_every"),
         (
             lambda: ESAPPO(
                 "MlpPolicy",
@@ -452,15 +451,10 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
         assert th.equal(local_parameters, server_parameters)
 
 
-@pytest.mark.parametrize(
-    "cls, execute",
-    [(ESATD3, "shifted"), (ESATD3, "probe"), (ESASAC, "shifted")],
-    ids=["esatd3", "esatd3-probe", "esasac"],
-)
-def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatch, cls, execute):
+@pytest.mark.parametrize("cls", [ESATD3, ESASAC], ids=["esatd3", "esasac"])
+def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatch, cls):
     """In-process and through a sidecar over gRPC (whose steps go ahead, the critic evaluated
-    at probes computed here, unless the env executes the server's probe) give the same
-    replay buffer and parameters with the same seed."""
+    at probes computed here) give the same replay buffer and parameters with the same seed."""
     monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
     runs = []
     for engine in ("inprocess", "sidecar"):
@@ -471,7 +465,6 @@ def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatc
             env,
             esa=EsaConfig.off_policy(gate=None),
             esa_engine=engine,
-            esa_execute=execute,
             learning_starts=100,
             batch_size=32,
             policy_kwargs=dict(net_arch=[32]),
@@ -481,9 +474,8 @@ def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatc
         model.learn(400)
         assert model._esa is not None
         assert (model._esa.batch._ahead_batch is not None) == (engine == "sidecar")
-        # A step sent ahead leaves no probes; a probe executed is waited for.
-        sent_ahead = engine == "sidecar" and execute == "shifted"
-        assert (model._esa.last_probes is None) == sent_ahead
+        # A step sent ahead leaves no probes.
+        assert (model._esa.last_probes is None) == (engine == "sidecar")
         runs.append((model.replay_buffer.actions.copy(), parameters(model)))
         model.esa_close()
     (local_actions, local_parameters), (sidecar_actions, sidecar_parameters) = runs

@@ -1,5 +1,5 @@
-"""ESATD3, ESAPPO's target mode, and the controls that credit ESA: the critic's gradient
-and the probe as exploration. Real SB3 models on real MuJoCo / classic-control envs,
+"""ESATD3, the drop-ins' defaults, and the controls that credit ESA (``esa_control``): the
+critic's gradient and the placebo. Real SB3 models on real MuJoCo / classic-control envs,
 sessions on the in-process engine (the server path is ESASAC's and ESAPPO's, tested in
 test_sb3.py)."""
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch as th
-from stable_baselines3 import PPO, TD3
+from stable_baselines3 import TD3
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.noise import NormalActionNoise
 
@@ -42,34 +42,18 @@ def td3(cls, steps: int = 500, **extra):
     return model
 
 
-def test_esappo_target_mode_with_learning_rate_zero_is_plain_ppo():
-    null = ppo(ESAPPO, esa=EsaConfig(learning_rate=0.0, gate=None), esa_mode="target")
-    assert th.equal(parameters(ppo(PPO)), parameters(null))
-
-
-@pytest.mark.parametrize("shift", ["esc", "gradient"])
-def test_esappo_target_mode_executes_the_sample_and_moves_the_policy(shift):
-    model = ppo(ESAPPO, esa=EsaConfig(gate=None), esa_mode="target", esa_shift=shift)
-    logged = model.logger.name_to_value
-    assert logged["esa/target_loss"] > 0
-    assert 0 < logged["esa/target_shift_over_std"] <= EsaConfig().trust_region + 1e-6
-    # The executed actions are the policy's own samples: PPO's ratio starts at 1.
-    buffer = model.rollout_buffer
-    obs = th.as_tensor(buffer.observations.reshape(-1, 4))
-    actions = th.as_tensor(buffer.actions.reshape(-1, 1))
-    model.policy.set_training_mode(False)
-    assert th.isfinite(model.policy.evaluate_actions(obs, actions)[1]).all()
-
-
 def test_esappo_gradient_shift_is_the_trust_region_along_the_head():
-    model = ppo(ESAPPO, esa=EsaConfig(gate=None), esa_shift="gradient")
-    features = th.zeros(3, 4)
-    weights = model._esa_mlp().weights(model._step_features(features))
-    shift = model._gradient_shift(weights, 1.0)
-    np.testing.assert_allclose(np.linalg.norm(shift, axis=1), EsaConfig().trust_region)
+    model = ppo(ESAPPO, esa=EsaConfig.ppo(gate=None, fade=None), esa_control="gradient")
+    assert model._esa is None, "the gradient control opens no session"
+    obs = th.as_tensor(np.zeros((3, 4), dtype=np.float32))
+    sample = np.zeros((3, 1), dtype=np.float32)
+    mean, std = np.zeros((3, 1), dtype=np.float32), np.full((3, 1), 0.5, dtype=np.float32)
+    starts = np.zeros(3, dtype=bool)
+    shift = model._esa_shift(obs, sample, mean, std, starts, 1.0)
+    np.testing.assert_allclose(np.abs(shift), EsaConfig.ppo().trust_region * 0.5, rtol=1e-6)
     # Under a fade the control shrinks with ESA's strength.
-    faded = model._gradient_shift(weights, 0.25)
-    np.testing.assert_allclose(np.linalg.norm(faded, axis=1), 0.25 * EsaConfig().trust_region)
+    faded = model._esa_shift(obs, sample, mean, std, starts, 0.25)
+    np.testing.assert_allclose(np.abs(faded), 0.25 * EsaConfig.ppo().trust_region * 0.5, rtol=1e-6)
 
 
 def test_esatd3_with_learning_rate_zero_is_plain_td3():
@@ -84,7 +68,7 @@ def test_off_policy_drop_ins_default_to_the_off_policy_config():
     for model in (ESATD3("MlpPolicy", "Pendulum-v1"), ESASAC("MlpPolicy", "Pendulum-v1")):
         assert model.esa == EsaConfig.off_policy()
         assert model.esa.trust_region == OFF_POLICY_TRUST_REGION
-    assert ESAPPO("MlpPolicy", "InvertedPendulum-v5").esa == EsaConfig()
+    assert ESAPPO("MlpPolicy", "InvertedPendulum-v5").esa == EsaConfig.ppo()
 
 
 def test_esatd3_shifts_within_the_trust_region_of_its_noise():
@@ -95,40 +79,29 @@ def test_esatd3_shifts_within_the_trust_region_of_its_noise():
 
 
 def test_gradient_control_moves_every_action_by_the_bound():
-    model = td3(ESATD3, esa=EsaConfig.off_policy(gate=None), esa_shift="gradient")
+    model = td3(ESATD3, esa=EsaConfig.off_policy(gate=None), esa_control="gradient")
     assert model._esa is None, "the gradient control opens no session"
     obs, _ = model.policy.obs_to_tensor(np.zeros((2, 3), dtype=np.float32))
     shift = model._gradient_shift(obs, np.zeros((2, 1)), np.full((2, 1), 0.1))
     np.testing.assert_allclose(np.abs(shift), OFF_POLICY_TRUST_REGION * 0.1)
 
 
-def test_probe_as_exploration_executes_the_sinusoid():
-    esa = EsaConfig.off_policy(learning_rate=0.0, gate=None)
-    sine = td3(ESATD3, steps=300, esa=esa, esa_execute="probe")
-    plain = td3(ESATD3, steps=300, esa=esa)
-    executed = sine.replay_buffer.actions[100:300] - plain.replay_buffer.actions[100:300]
-    assert np.abs(executed).max() > 0.5 * esa.amplitude, "the probe's sinusoid was executed"
-
-
 @pytest.mark.parametrize(
     "make, match",
     [
         (lambda: ESATD3("MlpPolicy", "Pendulum-v1", esa_action_scale=0.0), "esa_action_scale"),
-        (lambda: ESATD3("MlpPolicy", "Pendulum-v1", esa_shift="newton"), "esa_shift"),
-        (lambda: ESASAC("MlpPolicy", "Pendulum-v1", esa_execute="mean"), "esa_execute"),
-        (
-            lambda: ESASAC("MlpPolicy", "Pendulum-v1", esa_shift="gradient", esa_execute="probe"),
-            "esa_execute",
-        ),
-        (lambda: ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa_mode="dpi"), "esa_mode"),
-        (lambda: ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa_shift="adam"), "esa_shift"),
-        (
-            lambda: ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa_target_weight=0),
-            "esa_target_weight",
-        ),
+        (lambda: ESATD3("MlpPolicy", "Pendulum-v1", esa_control="newton"), "esa_control"),
+        (lambda: ESASAC("MlpPolicy", "Pendulum-v1", esa_control="esc"), "esa_control"),
+        (lambda: ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa_control="adam"), "esa_control"),
         (lambda: EsaConfig.off_policy(trust_region=-1.0), "trust_region"),
     ],
 )
 def test_bad_control_settings_raise_before_training(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_a_research_option_is_not_a_product_argument():
+    # The lab's arms are subclasses in experiments/, not options (sb3-contrib's way).
+    with pytest.raises(TypeError, match="esa_mode"):
+        ESAPPO("MlpPolicy", "InvertedPendulum-v5", esa_mode="target")

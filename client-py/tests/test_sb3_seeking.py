@@ -1,4 +1,4 @@
-"""ESA that seeks, PPO side: critics with curvature, the fade, the placebo, the decoupled
+"""ESAPPO's ESA that seeks: the quadratic head, the fade, the controls, the decoupled
 objective. Real SB3 models on real gymnasium / MuJoCo envs, sessions in-process."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from esa_client import EsaConfig
-from esa_client.common.action_critics import CriticAtStep, QNetwork, QuadraticHead
 from esa_client.common.controls import RandomDirections, shift_report
+from esa_client.common.quadratic_head import CriticAtStep, QuadraticHead
 from esa_client.sb3 import ESAPPO
 
 PPO_KWARGS = dict(n_steps=128, batch_size=64, n_epochs=2, policy_kwargs=dict(net_arch=[32]))
@@ -41,13 +41,12 @@ def logged(path) -> dict[str, list[float]]:
     return {key: [float(r[key]) for r in rows if r.get(key)] for key in rows[0]}
 
 
-@pytest.mark.parametrize("critic", ["quadratic", "qnet"])
-@pytest.mark.parametrize("shift", ["esc", "gradient", "placebo"])
-def test_curved_critics_shift_within_the_trust_region_and_log_what_the_shift_did(
-    critic, shift, tmp_path
+@pytest.mark.parametrize("control", [None, "gradient", "placebo"])
+def test_esa_and_its_controls_shift_within_the_trust_region_and_log_what_the_shift_did(
+    control, tmp_path
 ):
-    esa = EsaConfig(gate=None, trust_region=0.5)
-    ppo(ESAPPO, "Hopper-v5", log=tmp_path, esa=esa, esa_critic=critic, esa_shift=shift)
+    esa = EsaConfig.ppo(gate=None, trust_region=0.5, fade=None)
+    ppo(ESAPPO, "Hopper-v5", log=tmp_path, esa=esa, esa_control=control)
     columns = logged(tmp_path)
     # The critic is fitted after the first rollout; ESA shifts from the second on.
     assert columns["esa/head_loss"] and all(loss > 0 for loss in columns["esa/head_loss"])
@@ -70,7 +69,7 @@ def test_quadratic_head_has_its_maximum_where_esc_converges():
 
 
 def test_a_critic_at_a_step_is_flat_past_the_box():
-    critic = QNetwork(3, 2, hidden=8)
+    critic = QuadraticHead(3, 2, hidden=8)
     at = CriticAtStep(
         critic,
         th.randn(1, 3),
@@ -143,7 +142,7 @@ def test_a_bad_fade_is_refused(fields, match):
 
 
 def test_a_faded_esappo_executes_the_samples_once_the_fade_is_over(tmp_path):
-    model = ppo(ESAPPO, esa=EsaConfig(gate=None, fade=0.5), rollouts=4, log=tmp_path)
+    model = ppo(ESAPPO, esa=EsaConfig.ppo(gate=None), rollouts=4, log=tmp_path)
     # Fitted after rollout 1, ESA fades from 1/2 to 0 over rollout 2 and is off after it.
     assert len(logged(tmp_path)["esa/strength"]) == 1
     assert 0.0 < logged(tmp_path)["esa/strength"][0] <= 0.5
@@ -156,15 +155,14 @@ def test_a_faded_esappo_executes_the_samples_once_the_fade_is_over(tmp_path):
 
 
 def test_the_decoupled_objective_without_a_shift_is_ppos():
-    null = EsaConfig(learning_rate=0.0, gate=None)
-    decoupled = ppo(ESAPPO, esa=null, esa_objective="decoupled")
+    decoupled = ppo(ESAPPO, esa=EsaConfig.ppo(learning_rate=0.0, gate=None))
     # pi_old at the executed action is the behaviour density: weight 1, the same ratio, up
     # to the rounding of one forward pass over the rollout against the rollout's own.
     assert th.allclose(parameters(ppo(PPO)), parameters(decoupled), atol=1e-4)
 
 
 def test_the_decoupled_objective_trains_with_large_shifts():
-    model = ppo(ESAPPO, esa=EsaConfig(gate=None, trust_region=1.0), esa_objective="decoupled")
+    model = ppo(ESAPPO, esa=EsaConfig.ppo(gate=None, trust_region=2.0, fade=None))
     logged = model.logger.name_to_value
     assert np.isfinite(logged["train/loss"]) and logged["train/approx_kl"] >= 0
 
@@ -172,22 +170,19 @@ def test_the_decoupled_objective_trains_with_large_shifts():
 @pytest.mark.parametrize(
     ("extra", "match"),
     [
-        ({"esa_critic": "cubic"}, "expected esa_critic in"),
-        ({"esa_shift": "random"}, "expected esa_shift in"),
-        ({"esa_objective": "ppo2"}, "expected esa_objective in"),
-        ({"esa_weight_cap": 0.5}, "expected esa_weight_cap"),
-        ({"esa_weight_cap": float("nan")}, "expected esa_weight_cap"),
-        ({"esa_target_weight": 0.0}, "expected esa_target_weight"),
-        ({"esa_head_worker": None}, "expected esa_head_worker True or False"),
+        ({"esa_control": "random"}, "expected esa_control None or one of"),
+        ({"esa_control": "esc"}, "expected esa_control None or one of"),
+        ({"esa": {"fade": 2.0}}, "fade"),
+        ({"esa": {"critic": "qnet"}}, "unknown EsaConfig field"),
     ],
 )
-def test_bad_seeking_options_are_refused(extra, match):
+def test_bad_esa_arguments_are_refused(extra, match):
     env = make_vec_env("InvertedPendulum-v5", n_envs=1, seed=0)
     with pytest.raises(ValueError, match=match):
         ESAPPO("MlpPolicy", env, **extra)
 
 
-def test_the_decoupled_objective_needs_box_observations():
+def test_dict_observations_are_refused_with_the_alternative():
     import gymnasium as gym
 
     class DictObs(gym.ObservationWrapper):
@@ -199,24 +194,26 @@ def test_the_decoupled_objective_needs_box_observations():
             return {"x": observation}
 
     env = DictObs(gym.make("InvertedPendulum-v5"))
-    with pytest.raises(ValueError, match="expected a Box observation space"):
-        ESAPPO("MultiInputPolicy", env, esa_objective="decoupled")
+    with pytest.raises(ValueError, match="expected array observations.*FlattenObservation"):
+        ESAPPO("MultiInputPolicy", env)
+    flat = gym.wrappers.FlattenObservation(env)
+    ESAPPO("MlpPolicy", flat, n_steps=64, batch_size=64).learn(128)
 
 
-@pytest.mark.parametrize("critic", ["quadratic", "qnet"])
-def test_curved_critics_save_and_load(critic, tmp_path):
-    model = ppo(ESAPPO, esa=EsaConfig(gate=None), esa_critic=critic, rollouts=2)
+def test_the_quadratic_head_saves_and_loads(tmp_path):
+    model = ppo(ESAPPO, esa=EsaConfig.ppo(gate=None), rollouts=2)
     model.save(tmp_path / "model")
     loaded = ESAPPO.load(tmp_path / "model")
-    assert loaded.esa_critic == critic
+    assert isinstance(loaded.esa_head, QuadraticHead)
     for mine, theirs in zip(
         model.esa_head.state_dict().values(), loaded.esa_head.state_dict().values(), strict=True
     ):
         assert th.equal(mine, theirs)
+    assert loaded._esa_head_fitted and loaded.esa == model.esa
 
 
 def test_the_placebo_follows_a_new_env_with_another_number_of_envs(tmp_path):
-    model = ppo(ESAPPO, esa=EsaConfig(gate=None), esa_shift="placebo", rollouts=3)
+    model = ppo(ESAPPO, esa=EsaConfig.ppo(gate=None), esa_control="placebo", rollouts=3)
     model.save(tmp_path / "model")
     model.set_env(make_vec_env("InvertedPendulum-v5", n_envs=2, seed=4))
     assert model._esa_placebo is None  # its signs went with the sessions

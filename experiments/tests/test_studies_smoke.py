@@ -17,7 +17,6 @@ from esa_client import EsaError
 from esa_client.sidecar import BINARY_ENV, find_server_binary
 
 from esa_experiments.commands import main
-from esa_experiments.off_policy_capture import branch_names
 from esa_experiments.runs import RunStore
 from esa_experiments.studies import STUDY_NAMES, load_study
 
@@ -65,31 +64,6 @@ def check_rl_run(frame: pd.DataFrame, total_steps: int) -> None:
     assert (frame.length_mean >= 1).all()
 
 
-def check_ground_truth_run(frame: pd.DataFrame, states: int, method: str) -> None:
-    if method == "sac":
-        names = branch_names()
-        assert list(frame.columns) == ["state", "return_sampled"] + [
-            f"{kind} {name}" for name in names for kind in ("delta", "predicted", "size")
-        ]
-        assert len(frame) == states and np.isfinite(frame.to_numpy(float)).all()
-        return
-    assert list(frame.columns) == [
-        "state",
-        "return_sampled",
-        "return_shifted",
-        "return_wide",
-        "delta",
-        "delta_wide",
-        "predicted",
-        "predicted_wide",
-        "shift_over_std",
-        "wide_shift_over_std",
-    ]
-    assert len(frame) == states and np.isfinite(frame.to_numpy(float)).all()
-    np.testing.assert_allclose(frame.delta, frame.return_shifted - frame.return_sampled)
-    np.testing.assert_allclose(frame.delta_wide, frame.return_wide - frame.return_sampled)
-
-
 def check_seeking_offline_run(frame: pd.DataFrame, config: dict, method: str) -> None:
     from esa_experiments.seeking_probes import branch_names as seeking_branches
 
@@ -125,9 +99,6 @@ def test_smoke_budget(name, root, capsys):
     )
     study = load_study(name)
     store = RunStore(name, "smoke", root)
-    if hasattr(study, "drive"):
-        check_driven_study(study, store, root)
-        return
     specs = study.specs(study.BUDGETS["smoke"], "smoke", [0], study.ENVS, study.METHODS)
     for spec in specs:
         assert store.status(spec) == "done", spec.label
@@ -136,11 +107,6 @@ def test_smoke_budget(name, root, capsys):
             check_example1_run(frame, spec.config["total_steps"], spec.env, spec.method)
         elif name == "seeking_offline":
             check_seeking_offline_run(frame, spec.config, spec.method)
-        elif name == "ground_truth":
-            check_ground_truth_run(frame, spec.config["states"], spec.method)
-            check_rl_run(
-                pd.read_csv(store.table_path(spec, "training")), spec.config["total_steps"]
-            )
         else:
             check_rl_run(frame, spec.config["total_steps"])
 
@@ -150,11 +116,7 @@ def test_smoke_budget(name, root, capsys):
     table = (store.dir / "table.md").read_text()
     summary_table = table.split("\n\n")[0]
     rows = [line for line in summary_table.splitlines() if line.startswith("| ")][1:]
-    # ground_truth compares two shifts per PPO run (the shipped bound, one std) and, per SAC
-    # run, ESA and the gradient at each trust region.
-    if name == "ground_truth":
-        assert len(rows) == sum(len(study._branches(spec.method)) for spec in specs)
-    elif name == "seeking_offline":
+    if name == "seeking_offline":
         # One row per learner, env and kappa; E1 writes the picks E2 reads.
         assert len(rows) == len(specs) * len(study.KAPPAS)
         assert set(json.loads((store.dir / "picks.json").read_text())) == {"ppo", "off_policy"}
@@ -179,22 +141,3 @@ def test_quadrotor_smoke_flights(root):
     assert np.isfinite(
         flights[["x", "y", "z", "target_x", "target_y", "target_z"]].to_numpy()
     ).all()
-
-
-def check_driven_study(study, store: RunStore, root: Path) -> None:
-    """The search: every trial recorded with its runs, a winner, a table row per trial."""
-    args = study.BUDGETS["smoke"]
-    trials = study.load_trials(store)
-    assert [t["number"] for t in trials] == list(range(args.trials))
-    winner = json.loads((store.dir / "winner.json").read_text())
-    assert winner["winner"]["number"] in {t["number"] for t in trials}
-    specs = study.specs(args, "smoke", [0], study.ENVS, study.METHODS, base=root)
-    assert all(store.status(spec) == "done" for spec in specs)
-    assert main(["--root", str(root), "plot", study.NAME, "--budget", "smoke"]) == 0
-    table = (store.dir / "table.md").read_text()
-    rows = [line for line in table.splitlines() if line.startswith("| ")][1:]
-    assert len(rows) == args.trials
-    # Resumable: a second run replays the record and runs nothing.
-    mtimes = {p: p.stat().st_mtime_ns for p in store.runs_dir.iterdir()}
-    assert main(["--root", str(root), "run", study.NAME, "--budget", "smoke", "--seeds", "0"]) == 0
-    assert {p: p.stat().st_mtime_ns for p in store.runs_dir.iterdir()} == mtimes

@@ -253,16 +253,23 @@ class SessionConfig:
 OFF_POLICY_TRUST_REGION = 0.5
 """``EsaConfig.off_policy()``'s trust region kappa, in policy standard deviations."""
 
+PPO_TRUST_REGION = 1.0
+"""``EsaConfig.ppo()``'s trust region kappa, in policy standard deviations."""
+
+PPO_FADE = 0.5
+"""``EsaConfig.ppo()``'s fade: ESA gone by half of the training budget."""
+
 
 @dataclass
 class EsaConfig:
     """ESA hyperparameters for a trainer (:mod:`esa_client.sb3`, :mod:`esa_client.wrappers`).
 
-    ``EsaConfig()`` is the shipped default: the bounded, scale-free law of CONTRACT.md
-    section 1b (normalized response, paired reference, trust region in units of the
-    policy's standard deviation, leak), one setting for every environment, chosen by a
-    study on InvertedPendulum-v5 only (``experiments/RESULTS.md``). :meth:`paper` is the
-    paper's law (section 1) with its settings.
+    ``EsaConfig()`` is the bounded, scale-free law of CONTRACT.md section 1b (normalized
+    response, paired reference, trust region in units of the policy's standard deviation,
+    leak), one setting for every environment (the gymnasium wrappers' default). Each
+    drop-in starts from its family's preset of it: :meth:`ppo` (``ESAPPO``) and
+    :meth:`off_policy` (``ESASAC``, ``ESATD3``). :meth:`paper` is the paper's law
+    (section 1) with its settings. ``experiments/RESULTS.md`` says how each fares.
 
     Every field is checked when the config is built (``ValueError`` naming the field);
     the rules that need the environment (Nyquist for its ``dt``, one frequency per
@@ -412,6 +419,22 @@ class EsaConfig:
             gate=None,
         )
         values.update(overrides)
+        return cls(**values)
+
+    @classmethod
+    def ppo(cls, **overrides: Any) -> EsaConfig:
+        """The shipped default of ``ESAPPO``: ``EsaConfig()`` bounded at 1 sigma, faded by half.
+
+        The setting the ``seeking`` study (E2) tested as ``ppo_esa`` against PPO, a placebo
+        and the gradient control on four envs: the trust region E1 picked for the quadratic
+        head (1 policy standard deviation) and ESA's strength falling linearly to 0 over
+        the first half of the budget of ``learn()``, so that the second half is PPO
+        (``experiments/RESULTS.md`` gives E2's verdicts).
+
+        Args:
+            **overrides: Fields to change, e.g. ``fade=None`` for ESA through the whole budget.
+        """
+        values: dict[str, Any] = {"trust_region": PPO_TRUST_REGION, "fade": PPO_FADE, **overrides}
         return cls(**values)
 
     @classmethod

@@ -19,12 +19,12 @@ runs in-process, over gRPC or over Zenoh (one server or N shards).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import NamedTuple, TypeVar, overload
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
-from ._native import EngineError, StepAhead, StepStats
+from ._native import EngineError, StepAhead
 from .config import SessionConfig
 from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch, TypedErrors
 from .reconnect import Reconnect, RetriableErrors
@@ -38,11 +38,9 @@ from .state import (
     check_indices,
 )
 from .transports.base import (
-    SMALLEST_SCALE,
     AheadBatch,
     BatchProbe,
     BatchReport,
-    HeadStep,
     LinearCritic,
     QuadraticCritic,
     Transport,
@@ -55,7 +53,7 @@ _engine_errors = TypedErrors(EngineError)
 _Answer = TypeVar("_Answer")
 
 Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic | QuadraticCritic
-"""What :meth:`SessionBatch.step` scores the probes with (a :class:`HeadStep` too, see there)."""
+"""What :meth:`SessionBatch.step` scores the probes with."""
 
 _ClosedForm = (LinearCritic, QuadraticCritic)
 """The critics an in-process engine evaluates itself."""
@@ -367,21 +365,6 @@ class SessionBatch:
         self._next_starts[:] = False
         return answer
 
-    @overload
-    def step(
-        self,
-        actions: npt.ArrayLike,
-        critic: HeadStep,
-        episode_starts: npt.ArrayLike | None = None,
-        *,
-        action_scales: None = None,
-        paired: bool = False,
-        want_probes: bool = False,
-        stats: StepStats | None = None,
-        improvement: bool = False,
-    ) -> tuple[F64Array, npt.NDArray[np.float32]]: ...
-
-    @overload
     def step(
         self,
         actions: npt.ArrayLike,
@@ -391,22 +374,7 @@ class SessionBatch:
         action_scales: npt.ArrayLike | None = None,
         paired: bool = False,
         want_probes: bool = False,
-        stats: StepStats | None = None,
-        improvement: bool = False,
-    ) -> tuple[F64Array | None, F64Array]: ...
-
-    def step(
-        self,
-        actions: npt.ArrayLike,
-        critic: Critic | HeadStep,
-        episode_starts: npt.ArrayLike | None = None,
-        *,
-        action_scales: npt.ArrayLike | None = None,
-        paired: bool = False,
-        want_probes: bool = False,
-        stats: StepStats | None = None,
-        improvement: bool = False,
-    ) -> tuple[F64Array | None, npt.NDArray[np.floating]]:
+    ) -> tuple[F64Array | None, F64Array]:
         """A whole step of Algorithm 1 (section 1b), in as few waits as the transport allows.
 
         :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the probes
@@ -427,15 +395,6 @@ class SessionBatch:
           the same way, and its values go with the step (``step_batch``);
         - elsewhere, the probe waits for its answer and the report rides with the next one.
 
-        A :class:`~esa_client.transports.base.HeadStep` (ESAPPO's advantage head) is a critic
-        too: ``actions`` are then the policy's float32 samples in the Box's units, and the
-        step returns ``(shift, executed)``: the shift in the Box's units, float64, and the
-        env's actions, float32, each ``(N, D)`` (:meth:`AdvantageMlp.shift`,
-        :meth:`AdvantageMlp.executed`). In-process at full strength the head's inputs, the
-        step, the statistics and the shift are one native call (``Engine.step_head``);
-        elsewhere the head's inputs (:meth:`AdvantageMlp.step_inputs`) give the sample in ESA
-        units and its linear critic, and the step runs as above, with the same bits.
-
         An error of a step sent ahead surfaces one call late: the next call (or :meth:`flush`)
         raises it, and nothing of that step was applied on the server, although its actions
         were returned. After a broken exchange (the server restarted, or the connection
@@ -449,35 +408,22 @@ class SessionBatch:
                 states tiled k times) to ``(k N,)`` values, or
                 ``Q_i(a) = gain_i . a + offset_i`` as a
                 :class:`~esa_client.transports.base.LinearCritic`, or a
-                :class:`~esa_client.transports.base.QuadraticCritic`, or a
-                :class:`~esa_client.transports.base.HeadStep`.
+                :class:`~esa_client.transports.base.QuadraticCritic`.
             episode_starts: As for :meth:`probe_applied`.
-            action_scales: As for :meth:`probe_applied` (None for a ``HeadStep``, which
-                says its own).
+            action_scales: As for :meth:`probe_applied`.
             paired: Report the critic at the applied actions as the references.
             want_probes: Wait for this step's probes (for trainers that execute them), even
                 where the step could be sent ahead.
-            stats: Where given, the step's statistics are added to it
-                (:meth:`StepStats.add_step` of the actions, the applied actions and the action
-                scales; for a ``HeadStep``, of the sample, the applied actions and the std in
-                ESA units), whichever way the step ran.
-            improvement: With ``stats``, also add the critic's ``Q(applied) - Q(actions)``,
-                averaged over the sessions (:meth:`StepStats.add_improvement`).
 
         Returns:
             ``(probes, applied)``, as :meth:`probe_applied` returns them; ``probes`` is None
-            for a step sent ahead (the server answers them one step later). For a
-            ``HeadStep``, ``(shift, executed)`` (see above).
+            for a step sent ahead (the server answers them one step later).
 
         Raises:
             ValueError: The critic's values are not ``(N,)`` (``(2 N,)`` when ``paired``)
                 finite numbers, or a linear or quadratic critic's shapes or values are wrong
                 (nothing changed).
         """
-        if isinstance(critic, HeadStep):
-            if action_scales is not None:
-                raise ValueError("expected no action_scales with a HeadStep, got some")
-            return self._step_head(actions, critic, episode_starts, paired, stats, improvement)
         self._check_critic(critic)
         ahead = self._ahead_batch
         probes: F64Array | None
@@ -490,15 +436,6 @@ class SessionBatch:
             probes, applied = self._step_here(
                 actions, critic, episode_starts, action_scales, paired
             )
-        if stats is not None:
-            sampled = np.asarray(actions, dtype=np.float64)
-            scales = None
-            if action_scales is not None:
-                scales = np.broadcast_to(np.asarray(action_scales, np.float64), sampled.shape)
-            stats.add_step(sampled, applied, scales)
-            if improvement:
-                both = np.asarray(critic(np.concatenate([sampled, applied])), dtype=np.float64)
-                stats.add_improvement(float((both[self.n :] - both[: self.n]).mean()))
         return probes, applied
 
     def _step_here(
@@ -525,50 +462,6 @@ class SessionBatch:
         self._last_probe = request
         self._next_starts[:] = False
         return answer
-
-    def _step_head(
-        self,
-        actions: npt.ArrayLike,
-        step: HeadStep,
-        episode_starts: npt.ArrayLike | None,
-        paired: bool,
-        stats: StepStats | None,
-        improvement: bool,
-    ) -> tuple[F64Array, npt.NDArray[np.float32]]:
-        """:meth:`step` of ESAPPO's advantage head: ``(shift, executed)``."""
-        fused = self._fused
-        if fused is not None and step.strength >= 1.0:
-            if self._deferred is not None:
-                self.flush()
-            answer = fused.step_head(
-                self._steps,
-                self._next_starts,
-                episode_starts,
-                np.asarray(actions),
-                step,
-                paired=paired,
-                stats=stats,
-                improvement=improvement,
-            )
-            # No wire to replay a probe into (see _report_attempt).
-            self._last_probe = None
-            return answer
-        head, sample = step.head, np.asarray(actions)
-        scaled, gain, offset, units = head.step_inputs(step.features, sample, step.mean, step.std)
-        # A std that underflowed in ESA units would be sigma = 0, which the contract rejects.
-        std = np.maximum(units, SMALLEST_SCALE)
-        scales = std if step.use_policy_std else None
-        if step.strength < 1.0:
-            scales = step.strength * (np.ones_like(scaled) if scales is None else scales)
-        critic = LinearCritic(gain, offset)
-        _, applied = self.step(scaled, critic, episode_starts, action_scales=scales, paired=paired)
-        if stats is not None:
-            stats.add_step(scaled, applied, std)
-            if improvement:
-                both = critic(np.concatenate([scaled, applied]))
-                stats.add_improvement(float((both[self.n :] - both[: self.n]).mean()))
-        shift = head.shift(scaled, applied)
-        return shift, head.executed(sample, shift)
 
     def _step_ahead(
         self,

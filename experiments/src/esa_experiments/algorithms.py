@@ -18,7 +18,9 @@ method's ``options`` are further drop-in arguments: the gradient controls
 (``esa_shift='gradient'``: the same bound, normalisation and gate, the shift along the
 critic's action gradient), the placebos (``esa_shift='placebo'``: ESA's shift sizes in
 random directions), the mean anchor (``esa_anchor='mean'``) and the target mode. The
-matched-noise arms are plain TD3 whose noise has the variance of ``td3_sine``'s
+options are stored in each run's sidecar as the drop-ins once took them; today each names
+a subclass of :mod:`esa_experiments.lab` (:func:`esa_class`). The matched-noise arms are
+plain TD3 whose noise has the variance of ``td3_sine``'s
 executed probe (``noise_match``).
 
 The RL Zoo3 arms (``ppo_zoo``, ``sac_zoo``, ``td3_zoo``; study ``zoo_baselines``) are plain
@@ -433,15 +435,10 @@ def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]
         kwargs["action_noise"] = _td3_noise(env, spec.addon, hp.pop("noise_sigma"), seed)
     if spec.addon == "esa":
         from esa_client import EsaConfig
-        from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
 
-        cls = _of_family({"ppo": ESAPPO, "sac": ESASAC, "td3": ESATD3}, spec.family)
+        cls, control = esa_class(spec.family, hp.pop("esa_options", {}))
         kwargs["esa"] = EsaConfig(**hp.pop("esa"))
-        if spec.family == "ppo":
-            # The runner gives each job a core (--jobs N fills N): a head-fit worker would
-            # only compete with the other jobs and hold ~400 MB. Same bits either way.
-            kwargs["esa_head_worker"] = False
-        kwargs.update(hp.pop("esa_options", {}))
+        kwargs["esa_control"] = control
     elif spec.addon == "param_noise":
         cls = _of_family({"ppo": PPOParamNoise, "sac": SACParamNoise}, spec.family)
         kwargs["param_noise"] = hp.pop("param_noise")
@@ -456,6 +453,49 @@ def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]
     else:
         cls = _of_family({"ppo": PPO, "sac": SAC, "td3": TD3}, spec.family)
     return cls("MlpPolicy", env, **kwargs, **hp)
+
+
+LEGACY_OPTIONS = {
+    "esa_critic": "linear",
+    "esa_objective": "clip",
+    "esa_mode": "behaviour",
+    "esa_shift": "esc",
+    "esa_anchor": "sample",
+    "esa_execute": "shifted",
+    "esa_probe_critic": "target_mean",
+}
+"""The drop-ins' options as the studies stored them (a run's ``esa_options``), with the
+defaults they had then: an option a run does not name had its default. The product has
+none of them now; :mod:`esa_experiments.lab` holds each arm as a subclass."""
+
+
+def esa_class(family: str, options: dict[str, Any]) -> tuple[type[BaseAlgorithm], str | None]:
+    """The drop-in (or lab subclass) of a run's stored ``esa_options``, and its control.
+
+    Raises:
+        ValueError: For an option the studies never had, or an unknown value.
+    """
+    from esa_experiments.lab.off_policy_arms import off_policy_class
+    from esa_experiments.lab.ppo_arms import esappo_class
+
+    unknown = sorted(set(options) - {*LEGACY_OPTIONS, "esa_target_weight"})
+    if unknown:
+        raise ValueError(f"expected options among {sorted(LEGACY_OPTIONS)}, got {unknown}")
+    o = {**LEGACY_OPTIONS, **options}
+    shift = o["esa_shift"]
+    if shift not in ("esc", "gradient", "placebo"):
+        raise ValueError(f"expected esa_shift in ('esc', 'gradient', 'placebo'), got {shift!r}")
+    control = None if shift == "esc" else shift
+    if family == "ppo":
+        ppo = esappo_class(
+            o["esa_critic"],
+            o["esa_objective"],
+            o["esa_mode"],
+            float(options.get("esa_target_weight", 1.0)),
+        )
+        return ppo, control
+    arm = off_policy_class(family, o["esa_anchor"], o["esa_execute"], o["esa_probe_critic"])
+    return arm, control
 
 
 def _policy_options(hp: dict[str, Any]) -> dict[str, Any]:

@@ -130,14 +130,6 @@ def _run(options: Run, root: Path, console: Console) -> int:
         raise CliError(f"--seeds: {err}") from None
     if options.jobs < 1:
         raise CliError(f"--jobs: expected an integer >= 1, got {options.jobs}")
-    drive = getattr(study, "drive", None)
-    if drive is not None:
-        # A study that decides its runs as it goes (a search); it is resumable itself.
-        drive(options.budget, seeds, options.jobs, root, console)
-        console.print(
-            f"Next: python -m esa_experiments plot {study.NAME} --budget {options.budget}"
-        )
-        return 0
     envs = _selection("envs", options.envs, study.ENVS)
     methods = _selection("methods", options.methods, study.METHODS)
     specs = study.specs(study.BUDGETS[options.budget], options.budget, seeds, envs, methods)

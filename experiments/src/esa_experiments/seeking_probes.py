@@ -121,12 +121,14 @@ class PPOView(LearnerView):
         )
 
     def _at(self, obs: np.ndarray, draw: Draw) -> Any:
-        from esa_client.common.action_critics import CriticAtStep
+        from esa_client.common.quadratic_head import CriticAtStep
+
+        from esa_experiments.lab.ppo_arms import LinearHead
 
         m = self.model
         features = m._head_features(th.as_tensor(obs, dtype=th.float32)[None])
         low, high = m._esa_env_bounds()
-        if m.esa_critic == "linear":
+        if isinstance(m, LinearHead):
             # The linear head as ESAPPO probes it: at the unclipped sample.
             low, high = np.full_like(low, -np.inf), np.full_like(high, np.inf)
         return CriticAtStep(m.esa_head, features, draw.mean[None], draw.sigma[None], low, high)

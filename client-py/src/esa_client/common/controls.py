@@ -1,16 +1,56 @@
-"""Controls that share everything with ESA but what they test, and what a shift did.
+"""The controls a user judges ESA with, the same for every drop-in, and what a shift did.
 
 A gain of ESA over its baseline may come from the critic's direction, from the mere size
-and temporal correlation of the perturbation, or from more exploration. The placebo here
-keeps ESA's shift magnitudes per dimension, its schedule and its correlation over time, and
-draws the direction at random (``RandomDirections``); ``shift_report`` measures, per step,
-how much of a shift removes the policy's own exploration noise, how often it sits at the
-trust region, and how often the env's clip undoes it.
+and temporal correlation of the perturbation, or from more exploration. Two controls share
+everything with ESA but what they test (``esa_control`` of the drop-ins):
+
+- ``"placebo"``: ESA's shift magnitudes per dimension, its schedule and its correlation over
+  time, with the direction drawn at random (:class:`RandomDirections`): tells direction
+  from mere perturbation;
+- ``"gradient"``: a step of the trust region's size along the critic's action gradient
+  (:func:`unit_gradient`, :func:`gradient_size`), no session: tells extremum seeking from
+  the analytic gradient the paper says it beats.
+
+``shift_report`` measures, per step, how much of a shift removes the policy's own
+exploration noise, how often it sits at the trust region, and how often the env's clip
+undoes it.
 """
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import numpy as np
+
+Control = Literal["placebo", "gradient"]
+"""A control of ESA (``esa_control``); None is ESA itself."""
+CONTROLS: tuple[Control, ...] = get_args(Control)
+
+
+def check_control(control: str | None) -> Control | None:
+    """Returns ``control`` if it is None, ``"placebo"`` or ``"gradient"``.
+
+    Raises:
+        ValueError: For anything else.
+    """
+    if control is not None and control not in CONTROLS:
+        raise ValueError(f"expected esa_control None or one of {CONTROLS}, got {control!r}")
+    return control
+
+
+def gradient_size(strength: float, trust_region: float | None) -> float:
+    """The gradient control's step in units of sigma: ``f kappa``, kappa 1 when unset.
+
+    As large as ESA's faded bound allows at every point of training.
+    """
+    return strength * (trust_region if trust_region is not None else 1.0)
+
+
+def unit_gradient(gradient: np.ndarray) -> np.ndarray:
+    """Each row of ``gradient`` (``(N, D)``, in units of sigma) scaled to length 1 (0 stays 0)."""
+    norm = np.linalg.norm(gradient, axis=1, keepdims=True)
+    unit: np.ndarray = np.divide(gradient, norm, out=np.zeros_like(gradient), where=norm > 0)
+    return unit
 
 
 class RandomDirections:

@@ -15,7 +15,7 @@ from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
 from ..errors import EsaError, ServerUnavailable, SessionNotFound
 from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
-from ..transports.base import SMALLEST_SCALE, HeadStep, LinearCritic, QuadraticCritic
+from ..transports.base import SMALLEST_SCALE, LinearCritic, QuadraticCritic
 
 _log = logging.getLogger("esa_client")
 
@@ -312,55 +312,6 @@ class EsaRuntime:
             self._stats.add_improvement(float((both[n:] - both[:n]).mean()))
         self._calls += 1
         return applied
-
-    def step_head(
-        self, sampled: np.ndarray, step: HeadStep, episode_starts: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Algorithm 1's step with ESAPPO's advantage head as the critic.
-
-        :meth:`SessionBatch.step` of ``step`` (with this runtime's statistics): in-process at
-        full strength one native call, elsewhere the head's step inputs and the step of its
-        linear critic, with the same bits; ``last_probes`` is then None.
-
-        Args:
-            sampled: The policy's float32 samples ``a_t`` in the Box's units, ``(N, D)``.
-            step: The head at the N current observations (with the policy's mean and std,
-                ``use_policy_std`` and the fade's strength: at 0 the samples are applied
-                without a session step, counted as ``esa/faded_steps``).
-            episode_starts: True where an env starts a new episode, shape ``(N,)``.
-
-        Returns:
-            ``(shift, executed)``: the shift in the Box's units, float64 ``(N, D)``, and the
-            env's actions ``a_t + shift``, float32 ``(N, D)``.
-        """
-        if step.strength <= 0.0:
-            return self._head_without_esa(sampled, step, "faded_steps")
-        improve = self._calls % self._improvement_every == 0
-        ran = self._attempt(
-            episode_starts,
-            lambda starts: self.batch.step(
-                sampled,
-                step,
-                starts,
-                paired=self.esa.paired_response,
-                stats=self._stats,
-                improvement=improve,
-            ),
-        )
-        if ran is None:
-            return self._head_without_esa(sampled, step, "unavailable_steps")
-        self.last_probes = None
-        self._calls += 1
-        return ran
-
-    def _head_without_esa(
-        self, sampled: np.ndarray, step: HeadStep, why: str
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`step_head` without ESA: the sample, clipped to the sessions' bounds."""
-        head = step.head
-        scaled = head.step_inputs(step.features, sampled, step.mean, step.std)[0]
-        shift = head.shift(scaled, self._without_esa(scaled, why))
-        return shift, head.executed(sampled, shift)
 
     def _attempt(
         self, episode_starts: np.ndarray, run: Callable[[np.ndarray | None], _Ran]

@@ -8,7 +8,7 @@ advantage ``r + gamma^n V(s') - V(s)`` with ``V(s) = Q(s, mu)``, and sets the mo
 RLlib's replay buffer lives elsewhere, so here it is the replay sample of that update.
 
 :class:`EsaPPOTorchLearner` is RLlib's PPO learner plus ``ESAPPO``'s head training, with
-ESAPPO's own code (:mod:`esa_client.common.advantage_head`): a learner connector piece after
+ESAPPO's own code (:mod:`esa_client.common.quadratic_head`): a learner connector piece after
 RLlib's GAE records, for every train batch, the observations, the policy-normalized
 actions ``z = (x - mu_old) / sigma_old`` (``mu_old``, ``sigma_old`` from the behaviour
 distribution inputs stored with the episodes) and the GAE advantages (loss-masked rows
@@ -32,7 +32,13 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.evaluation.postprocessing import Postprocessing
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from ..common.advantage_head import Rollout, critic_quality, fit, normalized, rank_correlation
+from ..common.quadratic_head import (
+    Rollout,
+    critic_quality,
+    fit_critic,
+    normalized,
+    rank_correlation,
+)
 from .modules import EsaPPOTorchRLModule, EsaSACTorchRLModule
 
 
@@ -173,7 +179,7 @@ class EsaPPOTorchLearner(PPOTorchLearner):
 
     Per update, after PPO's own: the gate (``esa/gate_correlation``: the head's rank
     correlation with the GAE advantages of the new rollout, before it is trained on it),
-    then :func:`esa_client.common.advantage_head.fit` on the last ``head_rollouts`` rollouts
+    then :func:`esa_client.common.quadratic_head.fit_critic` on the last ``head_rollouts`` rollouts
     (``head_epochs`` passes, minibatches of ``head_batch_size``, Adam at
     ``head_learning_rate``; logged ``esa/head_loss``), then ``esa_active``. With
     ``EsaConfig(gate=None)`` ESA turns on after the first fit, as in ESAPPO.
@@ -231,7 +237,7 @@ class EsaPPOTorchLearner(PPOTorchLearner):
                 self.metrics.log_value((module_id, "esa/gate_correlation"), quality, window=1)
                 head.active = gate is None or quality >= gate
             head.rollouts = [*head.rollouts, rollout][-settings["head_rollouts"] :]
-            loss = fit(
+            loss = fit_critic(
                 module.esa_head,
                 head.optimizer,
                 head.rollouts,

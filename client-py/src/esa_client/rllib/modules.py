@@ -8,8 +8,8 @@ action time, on the env runners, so:
   target twins, ``probe_critic="target_mean"``, as ``ESASAC``) in its inference-only
   copy. They are part of the weights the learner ships to the env runners after every
   update (``get_non_inference_attributes`` no longer lists them), so they stay synced.
-- :class:`EsaPPOTorchRLModule` adds ``ESAPPO``'s advantage head
-  (:class:`esa_client.common.advantage_head.AdvantageHead`, shared code) to PPO's default
+- :class:`EsaPPOTorchRLModule` adds ``ESAPPO``'s quadratic head
+  (:class:`esa_client.common.quadratic_head.QuadraticHead`, shared code) to PPO's default
   module. The learner fits it (:class:`~esa_client.rllib.learners.EsaPPOTorchLearner`)
   and it travels to the env runners with the policy's weights.
 
@@ -40,7 +40,7 @@ from ray.rllib.core.learner.utils import make_target_network
 from ray.rllib.core.models.base import ENCODER_OUT
 from ray.rllib.utils.numpy import MAX_LOG_NN_OUTPUT, MIN_LOG_NN_OUTPUT
 
-from ..common.advantage_head import AdvantageHead
+from ..common.quadratic_head import QuadraticHead
 
 ESA_OBS = "esa_obs"
 """Exploration output column: the observations the module acted on (removed by the connector)."""
@@ -223,10 +223,10 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
 
 
 class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
-    """RLlib's default PPO module plus ``ESAPPO``'s advantage head ``A(s, a) = w(s) . z``.
+    """RLlib's default PPO module plus ``ESAPPO``'s quadratic head of ``z``.
 
-    ``z = (a - mu(s)) / sigma(s)`` in the module's action units; ``w`` is
-    :class:`~esa_client.common.advantage_head.AdvantageHead` on the flattened observation
+    ``z = (a - mu(s)) / sigma(s)`` in the module's action units; the head is
+    :class:`~esa_client.common.quadratic_head.QuadraticHead` on the flattened observation
     (``model_config["esa"]["head_hidden"]`` units per layer). The head is not in PPO's
     optimizer; :class:`~esa_client.rllib.learners.EsaPPOTorchLearner` fits it. It is not
     among RLlib's non-inference attributes, so the env runners' copy keeps it and the
@@ -249,7 +249,7 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
         features = int(gym.spaces.flatdim(self.observation_space))
         # A forked generator: the head must not move PPO's random stream.
         with torch.random.fork_rng(devices=[]):
-            self.esa_head = AdvantageHead(
+            self.esa_head = QuadraticHead(
                 features, self.esa_action_dim, int(self.esa_settings.get("head_hidden", 64))
             )
 

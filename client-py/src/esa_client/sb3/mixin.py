@@ -1,4 +1,4 @@
-"""What ESASAC and ESAPPO share: constructor arguments, the lazy ESA runtime, logging, saving."""
+"""What the drop-ins share: arguments, the lazy ESA runtime, the placebo, logging, saving."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
+from ..common.controls import Control, RandomDirections, check_control
 from ..common.runtime import (
     Engine,
     EsaRuntime,
@@ -46,7 +47,9 @@ class EsaMixin(_Algorithm):
     esa: EsaConfig
     esa_address: str | None
     esa_engine: Engine | None
+    esa_control: Control | None
     _esa: EsaRuntime | None
+    _esa_placebo: RandomDirections | None
 
     def __init__(
         self,
@@ -59,6 +62,7 @@ class EsaMixin(_Algorithm):
         esa_engine: Engine | None = None,
         esa_reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
         esa_on_unavailable: OnUnavailable = "raise",
+        esa_control: Control | None = None,
         **kwargs: Any,
     ) -> None:
         """Creates the SB3 model; the ESA sessions are created when training starts.
@@ -88,12 +92,19 @@ class EsaMixin(_Algorithm):
             esa_on_unavailable: ``"raise"`` (end training with ``ServerUnavailable``) or
                 ``"skip"`` (no ESA until the next episode start; counted in the logger
                 as ``esa/unavailable_steps``).
+            esa_control: None (ESA), or a control that shares everything with ESA but what
+                it tests, to judge ESA on your task (:mod:`esa_client.common.controls`):
+                ``"placebo"`` (ESA's shift sizes, schedule and correlation in a random
+                direction per env and episode, seeded from ``seed``) or ``"gradient"`` (a
+                step of the trust region's size along the critic's action gradient; no
+                session).
             **kwargs: Any other argument of the SB3 algorithm.
 
         Raises:
-            ValueError: If the action space is not a Box, or an ESA setting does not fit
-                the env (checked here, before any training: a frequency past the Nyquist
-                limit of the env's ``dt``, per-dimension vectors of the wrong length).
+            ValueError: If the action space is not a Box, ``esa_control`` is unknown, or an
+                ESA setting does not fit the env (checked here, before any training: a
+                frequency past the Nyquist limit of the env's ``dt``, per-dimension vectors of
+                the wrong length).
         """
         # Set before the SB3 constructor: it may set up the model, which can read them.
         self.esa = self._esa_config(esa)
@@ -103,7 +114,9 @@ class EsaMixin(_Algorithm):
         self.esa_engine = esa_engine
         self.esa_reconnect_timeout = check_reconnect_timeout(esa_reconnect_timeout)
         self.esa_on_unavailable = check_on_unavailable(esa_on_unavailable)
+        self.esa_control = check_control(esa_control)
         self._esa = None
+        self._esa_placebo = None
         super().__init__(policy, env, *args, **kwargs)
         # Model.load(path) without an env constructs the model with none: no action space yet.
         space = getattr(self, "action_space", None)
@@ -188,11 +201,23 @@ class EsaMixin(_Algorithm):
         total = max(getattr(self, "_total_timesteps", 0), 1)
         return self.esa.strength(self.num_timesteps / total)
 
+    def _placebo(self, shift: np.ndarray, episode_starts: np.ndarray) -> np.ndarray:
+        """ESA's ``shift`` ``(N, D)`` in the placebo's random directions.
+
+        The directions live with the sessions: drawn anew for a new env, seeded from the
+        model's ``seed``.
+        """
+        if self._esa_placebo is None:
+            n_envs, action_dim = shift.shape
+            self._esa_placebo = RandomDirections(n_envs, action_dim, self.seed)
+        return self._esa_placebo(shift, episode_starts)
+
     def esa_close(self) -> None:
         """Closes the ESA sessions and stops a spawned server (also done on garbage collection)."""
         if self._esa is not None:
             self._esa.close()
             self._esa = None
+        self._esa_placebo = None
 
     def set_env(self, env: Any, force_reset: bool = True) -> None:
         """Sets a new env; the ESA sessions are re-created for it on the next rollout."""
@@ -203,7 +228,9 @@ class EsaMixin(_Algorithm):
         # Where the sessions live belongs to the machine that trains, not to the model (a
         # spawn's arguments may hold a token): a loaded model takes them as load kwargs,
         # ``Model.load(path, env, esa_address=...)``, else runs in-process.
-        return [*super()._excluded_save_params(), "_esa", "esa_address", "esa_spawn"]
+        # The placebo's signs belong to one run on one VecEnv, like the sessions.
+        excluded = ["_esa", "_esa_placebo", "esa_address", "esa_spawn"]
+        return [*super()._excluded_save_params(), *excluded]
 
     def dump_logs(self, *args: Any, **kwargs: Any) -> None:
         """Records the ESA statistics, then dumps the logs as SB3 does."""

@@ -7,9 +7,9 @@ from typing import Any
 import torch as th
 from stable_baselines3 import SAC
 
-from .off_policy import PROBE_CRITICS, OffPolicyEsaMixin, ProbeCritic
+from .off_policy import OffPolicyEsaMixin
 
-__all__ = ["ESASAC", "PROBE_CRITICS", "ProbeCritic"]
+__all__ = ["ESASAC"]
 
 
 class ESASAC(OffPolicyEsaMixin, SAC):
@@ -23,18 +23,17 @@ class ESASAC(OffPolicyEsaMixin, SAC):
     there, ``min((1 - tanh(mu)^2) std, 1)``.
 
     ESA waits until the critic has learned something about actions (``EsaConfig.gate``):
-    every ``esa_gate_every`` steps after ``learning_starts`` it computes, on the
-    transitions collected since the last check, the rank correlation between the
-    critic's ``Q(s, a) - Q(s, mu)`` and the one-step advantage ``r + gamma V(s') - V(s)``
-    with ``V(s) = Q(s, mu)``. With ``gate=None`` ESA starts at ``learning_starts``.
-    With ``EsaConfig(fade=...)`` ESA's shift fades to 0 over that fraction of the budget
-    of ``learn()``; the placebo (``esa_shift="placebo"``), the gradient control and the
-    mean anchor (``esa_anchor="mean"``) are :class:`OffPolicyEsaMixin`'s.
+    every ``gate_every`` steps after ``learning_starts`` it computes, on the transitions
+    collected since the last check, the rank correlation between the critic's
+    ``Q(s, a) - Q(s, mu)`` and the one-step advantage ``r + gamma V(s') - V(s)`` with
+    ``V(s) = Q(s, mu)``. With ``gate=None`` ESA starts at ``learning_starts``. With
+    ``EsaConfig(fade=...)`` ESA's shift fades to 0 over that fraction of the budget of
+    ``learn()``. The controls (``esa_control``) are :class:`OffPolicyEsaMixin`'s.
 
     With ``EsaConfig(learning_rate=0)`` the shift stays 0 and training equals plain SAC
-    step for step (the gate and the probes draw no random numbers).
-    ``predict`` is unchanged: evaluation uses the plain policy. The off-policy default
-    is ``EsaConfig.off_policy()``, used when ``esa`` is not given.
+    step for step (the gate and the probes draw no random numbers). ``predict`` is
+    unchanged: evaluation uses the plain policy. The off-policy default is
+    ``EsaConfig.off_policy()``, used when ``esa`` is not given.
 
     Example::
 
@@ -44,29 +43,13 @@ class ESASAC(OffPolicyEsaMixin, SAC):
     Args:
         policy: As for SAC.
         env: As for SAC.
-        esa: The ESA hyperparameters (default ``EsaConfig.off_policy()``).
-        esa_address: An esa-server address (``host:port`` or ``unix:/path``); None
-            spawns a private server that stops with the model (or ``esa_close()``)
-            when ``esa_engine`` is ``"sidecar"``.
-        esa_engine: ``"inprocess"`` (esa-core in this process) or ``"sidecar"`` (an
-            esa-server); None: ``esa_address``'s server when given, else in-process.
-        esa_probe_critic: Which critic ESA probes: the online or the Polyak target
-            networks, the minimum or the mean of the twins.
-        esa_gate_every: Env steps between two checks of the gate.
-        esa_shift: ``"esc"`` (ESA), ``"gradient"`` (the control: a step of the trust
-            region's size along the probed critic's action gradient, no session) or
-            ``"placebo"`` (ESA's shift per dimension with a random sign vector per env and
-            episode, seeded from ``seed``: the control for direction).
-        esa_execute: ``"shifted"`` (``a_t + v(t)``) or ``"probe"`` (the probe itself;
-            only with ``esa_shift="esc"`` and ``esa_anchor="sample"``).
-        esa_anchor: Where the shift is found: ``"sample"`` (at SAC's sample ``a_t``) or
-            ``"mean"`` (at ``tanh(mean)``, then executed as ``clip(a_t + v)``: the
-            policy's noise kept on top of a shifted mean; :class:`OffPolicyEsaMixin`
-            says why).
-        **kwargs: Any other SAC argument.
+        *args: Further positional arguments of SAC.
+        **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin` (``esa``,
+            default ``EsaConfig.off_policy()``; ``esa_engine``, ``esa_address``,
+            ``esa_control``, ...), and any other SAC argument.
 
     Raises:
-        ValueError: If the action space is not a Box, an ``esa_*`` choice is unknown, or an
+        ValueError: If the action space is not a Box, ``esa_control`` is unknown, or an
             ESA setting is invalid for this env.
     """
 

@@ -21,12 +21,9 @@ class ESATD3(OffPolicyEsaMixin, TD3):
     [-1, 1]. TD3 has no policy distribution, so the action scale sigma is the exploration
     noise's standard deviation (a ``NormalActionNoise``'s sigma), or ``esa_action_scale``.
 
-    The gate, the fade (``EsaConfig.fade``), the gradient control (``esa_shift="gradient"``),
-    the placebo (``esa_shift="placebo"``), the probe-as-exploration control
-    (``esa_execute="probe"``) and the mean anchor (``esa_anchor="mean"``: the shift is
-    found at the actor's action and added to the noisy one) are ESASAC's
-    (:class:`OffPolicyEsaMixin`). With ``EsaConfig(learning_rate=0)`` training equals
-    plain TD3 step for step.
+    The gate, the fade (``EsaConfig.fade``) and the controls (``esa_control``) are
+    ESASAC's (:class:`OffPolicyEsaMixin`). With ``EsaConfig(learning_rate=0)`` training
+    equals plain TD3 step for step.
 
     Example::
 
@@ -39,7 +36,8 @@ class ESATD3(OffPolicyEsaMixin, TD3):
         esa: The ESA hyperparameters (default ``EsaConfig.off_policy()``).
         esa_action_scale: sigma in [-1, 1] units (> 0, at most 1); None reads it from a
             ``NormalActionNoise`` and is 0.1 (RL Zoo's TD3 noise) without one.
-        **kwargs: Any other TD3 or :class:`OffPolicyEsaMixin` argument.
+        **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin`, and
+            any other TD3 argument.
 
     Raises:
         ValueError: As for ESASAC, or for an ``esa_action_scale`` outside (0, 1].

@@ -23,12 +23,10 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from typing import Any, NamedTuple, Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
-import numpy.typing as npt
 
-from .._native import AdvantageMlp, StepStats
 from .._proto.esa.v1 import esa_pb2
 from ..state import BoolArray, F64Array, I64Array, SessionState
 
@@ -150,33 +148,6 @@ class QuadraticCritic(NamedTuple):
         return values
 
 
-class HeadStep(NamedTuple):
-    """ESAPPO's advantage head at one step's N states, as a critic of :meth:`SessionBatch.step`.
-
-    The step's actions are the policy's float32 samples ``a_t`` in the Box's units; the
-    head's inputs (:meth:`AdvantageMlp.step_inputs`) give the sample and std in ESA units and
-    the head's critic, linear in the action there. :meth:`SessionBatch.step` then returns the
-    shift in the Box's units and the env's actions (:meth:`AdvantageMlp.shift`,
-    :meth:`AdvantageMlp.executed`) in the place of the probes and applied actions.
-
-    Attributes:
-        head: The head's Rust copy (``AdvantageHead.snapshot``).
-        features: Its input at the N observations, ``(N, F)``, float32 or float64.
-        mean: The policy's float32 mean, ``(N, D)``.
-        std: The policy's float32 standard deviation, ``(N, D)``.
-        use_policy_std: Send the std in ESA units as the action scales (else 1).
-        strength: ESA's strength ``f`` in ``(0, 1]`` under a fade: the action scales sent are
-            ``f`` times the usual ones.
-    """
-
-    head: AdvantageMlp
-    features: npt.NDArray[Any]
-    mean: npt.NDArray[np.float32]
-    std: npt.NDArray[np.float32]
-    use_policy_std: bool = True
-    strength: float = 1.0
-
-
 class FusedBatch(Protocol):
     """A batch whose engine runs a whole step in one call: the in-process engine's."""
 
@@ -188,25 +159,6 @@ class FusedBatch(Protocol):
         A quadratic critic is evaluated at the clipped probes. With ``paired``, the critic at
         the applied actions is reported as the references. Returns the probes and the applied
         actions.
-        """
-        ...
-
-    def step_head(
-        self,
-        steps: I64Array,
-        next_starts: BoolArray,
-        episode_starts: npt.ArrayLike | None,
-        actions: npt.NDArray[np.float32],
-        step: HeadStep,
-        *,
-        paired: bool,
-        stats: StepStats | None,
-        improvement: bool,
-    ) -> tuple[F64Array, npt.NDArray[np.float32]]:
-        """ESAPPO's step for its advantage head (:meth:`SessionBatch.step` of a HeadStep).
-
-        At full strength; ``steps`` and ``next_starts`` are the batch's bookkeeping, updated
-        in place. Returns the shift and the executed actions.
         """
         ...
 

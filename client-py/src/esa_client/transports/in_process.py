@@ -12,17 +12,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-import numpy.typing as npt
-
-from .._native import BatchHandle, Engine, EngineError, StepStats
+from .._native import BatchHandle, Engine, EngineError
 from ..errors import TypedErrors
-from ..state import BoolArray, F64Array, I64Array
+from ..state import F64Array
 from .base import (
     BatchProbe,
     BatchReport,
     BatchTransport,
-    HeadStep,
     LinearCritic,
     QuadraticCritic,
 )
@@ -84,36 +80,6 @@ class InProcessBatch(BatchTransport):
                 critic.offset,
                 paired,
                 *curved,
-            )
-
-    def step_head(
-        self,
-        steps: I64Array,
-        next_starts: BoolArray,
-        episode_starts: npt.ArrayLike | None,
-        actions: npt.NDArray[np.float32],
-        step: HeadStep,
-        *,
-        paired: bool,
-        stats: StepStats | None,
-        improvement: bool,
-    ) -> tuple[F64Array, npt.NDArray[np.float32]]:
-        """ESAPPO's step for its advantage head in one engine call (``Engine.step_head``)."""
-        with _typed_errors:
-            return self._engine.step_head(
-                self._resolved(),
-                steps,
-                next_starts,
-                episode_starts,
-                step.head,
-                step.features,
-                actions,
-                step.mean,
-                step.std,
-                step.use_policy_std,
-                paired,
-                stats,
-                improvement,
             )
 
     def report(self, request: BatchReport) -> F64Array:

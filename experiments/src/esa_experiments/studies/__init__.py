@@ -11,9 +11,6 @@ Every study module defines:
 * ``report(store, args) -> str``: writes the study's PNGs and Markdown table
   from the finished runs and returns the Markdown section for RESULTS.md.
 
-A study that decides its runs as it goes (``default_search``) also defines
-``drive(budget, seeds, jobs, root, console)``, which ``run`` calls instead of
-executing ``specs``.
 """
 
 from __future__ import annotations
@@ -31,10 +28,6 @@ STUDY_NAMES = (
     "mujoco",
     "ablation",
     "quadrotor",
-    "campaign",
-    "default_search",
-    "ground_truth",
-    "target_search",
     "confirmation",
     "seeking_offline",
     "seeking",
