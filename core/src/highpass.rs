@@ -13,6 +13,18 @@ pub struct Washout {
     at_rest: bool,
 }
 
+/// What a [`Washout`] remembers between samples (its pole comes from the config).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WashoutMemory {
+    /// `x_{k-1}`, the last input.
+    pub previous_input: f64,
+    /// `y_{k-1}`, the last output (0 after an output that overflowed).
+    pub previous_output: f64,
+    /// True until the first sample after a reset: that sample's output is exactly 0.
+    pub at_rest: bool,
+}
+
 impl Washout {
     /// A filter at rest with cutoff `cutoff` rad/s sampled every `dt` seconds.
     pub fn new(cutoff: f64, dt: f64) -> Self {
@@ -27,6 +39,23 @@ impl Washout {
     /// The discrete pole `beta = 1 / (1 + w_h dt)`.
     pub fn beta(&self) -> f64 {
         self.beta
+    }
+
+    /// The filter's memory: the last input and output, and whether it is at rest.
+    pub fn memory(&self) -> WashoutMemory {
+        WashoutMemory {
+            previous_input: self.previous_input,
+            previous_output: self.previous_output,
+            at_rest: self.at_rest,
+        }
+    }
+
+    /// Takes back a memory that [`memory`](Self::memory) gave (of a filter with the same cutoff and
+    /// step), so the next sample is filtered as it would have been.
+    pub fn set_memory(&mut self, memory: WashoutMemory) {
+        self.previous_input = memory.previous_input;
+        self.previous_output = memory.previous_output;
+        self.at_rest = memory.at_rest;
     }
 
     /// Puts the filter back at rest; the next sample yields exactly 0.

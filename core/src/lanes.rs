@@ -132,6 +132,14 @@ impl Field {
     }
 }
 
+/// The per-dimension values a probe holds for the report that answers it (see [`Lanes::held`]).
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Held {
+    pub action: Vec<f64>,
+    pub sine: Vec<f64>,
+    pub scale: Vec<f64>,
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub(crate) struct Lanes {
     columns: DMatrix<f64>,
@@ -196,6 +204,31 @@ impl Lanes {
 
     pub fn shift(&self) -> &[f64] {
         self.column(SHIFT)
+    }
+
+    /// What the last probe held for its report: the sampled action `a_t`, `sin(w tau)` and sigma.
+    pub fn held(&self) -> Held {
+        Held {
+            action: self.column(ACTION).to_vec(),
+            sine: self.column(SINE).to_vec(),
+            scale: self.column(SCALE).to_vec(),
+        }
+    }
+
+    /// Takes back what [`held`](Self::held) gave, and the shift v (D values each).
+    pub fn set_held(&mut self, shift: &[f64], held: &Held) {
+        let c = self.split_mut();
+        let columns = [
+            (c.shift, shift),
+            (c.action, &held.action[..]),
+            (c.sine, &held.sine[..]),
+            (c.scale, &held.scale[..]),
+        ];
+        for (column, values) in columns {
+            for (x, &value) in column.iter_mut().zip(values) {
+                *x = value;
+            }
+        }
     }
 
     /// Holds the action scale sigma for the coming report: 1 for an empty `scale`, else broadcast.

@@ -51,5 +51,5 @@ mod sine;
 
 pub use config::{SessionConfig, MAX_ACTION_DIM};
 pub use error::CoreError;
-pub use highpass::Washout;
-pub use session::{ReportOutcome, Session};
+pub use highpass::{Washout, WashoutMemory};
+pub use session::{ReportOutcome, SavedSession, Session};

@@ -6,6 +6,10 @@ use crate::highpass::Washout;
 use crate::lanes::{Field, Lanes, StepRule};
 use crate::CoreError;
 
+mod saved;
+
+pub use saved::SavedSession;
+
 /// Guard of the response normalization `h / sqrt(m + 1e-12)` (CONTRACT.md section 1b).
 const MEAN_SQUARE_GUARD: f64 = 1e-12;
 
@@ -174,6 +178,11 @@ impl Session {
     /// `normalize_response`).
     pub fn response_mean_square(&self) -> Option<f64> {
         self.mean_square
+    }
+
+    /// Whether the config has `normalize_response` (then m drives the step and outlives episodes).
+    pub fn normalizes_response(&self) -> bool {
+        self.settings.normalize_response
     }
 
     /// How many reports skipped their shift update because it would have made v non-finite.
@@ -406,13 +415,19 @@ impl Session {
         }
         self.probe_pending = false;
         self.report_replayable = false;
+        self.apply_decay();
+        self.episodes
+    }
+
+    /// alpha_e = alpha * gamma_a^e for the current e. A restored session computes it exactly as the
+    /// saved one did, so its rate has the same bits.
+    fn apply_decay(&mut self) {
         let decay = self
             .settings
             .lr_decay
             .unwrap_or(1.0)
             .powf(self.episodes as f64);
         self.lanes.set_rate(decay);
-        self.episodes
     }
 
     /// Moves v (and m) for the filtered response `h`; appends the improved action. False when the update
