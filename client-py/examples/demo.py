@@ -1,13 +1,14 @@
-"""PPO vs ESAPPO on InvertedPendulum-v5 over a few seeds: curves, spread and the campaign's word.
+"""PPO vs ESAPPO on InvertedPendulum-v5 over a few seeds: curves, spread, cost, the studies' word.
 
-This is what ``make demo`` runs. One seed can mislead (seed 0 alone once showed ESAPPO
-slower, others faster), so the demo trains both agents on ``seeds`` seeds with identical
-PPO hyperparameters (the reproduction suite's: 4 envs x 256 steps, 64-64 MLPs), plots
-every seed and the mean, prints each seed's AUC (mean evaluation return over training)
-and the spread, and ends with a line of what the 20-seed confirmation campaign found and
-one of where the study of ESA with curved critics (``seeking``) stands
-(``experiments/results/*/verdicts*.md``, when the checkout has them). ESAPPO uses the PPO
-family's shipped default ``EsaConfig()`` on the in-process engine.
+This is what ``make demo`` runs. One seed can mislead, so the demo trains both agents on
+``seeds`` seeds with identical PPO hyperparameters (the reproduction suite's: 4 envs x 256
+steps, 64-64 MLPs), plots every seed and the mean, prints each seed's AUC (mean evaluation
+return over training), the spread and what ESA cost in training time here, and ends with
+what the 20-seed studies found for the shipped defaults (``experiments/results/*/verdicts*.md``,
+when the checkout has them): ``seeking`` (E2) tested ESAPPO's default, ``EsaConfig.ppo()``
+with the quadratic head and the decoupled objective, as its ``ppo_esa`` arm, and the
+confirmation campaign ESASAC's and ESATD3's. ESAPPO runs its shipped default on the
+in-process engine.
 
 Usage::
 
@@ -36,7 +37,7 @@ from stable_baselines3.common.env_util import make_vec_env  # noqa: E402
 from stable_baselines3.common.evaluation import evaluate_policy  # noqa: E402
 from stable_baselines3.common.vec_env import VecEnv  # noqa: E402
 
-from esa_client.sb3 import ESAPPO, EsaConfig  # noqa: E402
+from esa_client.sb3 import ESAPPO  # noqa: E402
 
 
 @dataclass
@@ -109,7 +110,7 @@ def train(name: str, seed: int, args: Args) -> dict:
         policy_kwargs=dict(net_arch=[64, 64]),
     )
     if name == "ESAPPO":
-        model = ESAPPO("MlpPolicy", env, esa=EsaConfig(), **common)
+        model = ESAPPO("MlpPolicy", env, **common)  # the shipped default, EsaConfig.ppo()
     else:
         model = PPO("MlpPolicy", env, **common)
     print(f"training {name} (seed {seed}) for {args.total_timesteps} steps on {args.env_id}")
@@ -170,13 +171,21 @@ def print_table(results: list[dict], args: Args) -> None:
     for name in ("PPO", "ESAPPO"):
         auc = np.array([r["auc"] for r in results if r["name"] == name])
         print(f"{name:<8} AUC {auc.mean():.1f} (min {auc.min():.1f}, max {auc.max():.1f})")
+    seconds = {
+        name: np.mean([r["train_seconds"] for r in results if r["name"] == name])
+        for name in ("PPO", "ESAPPO")
+    }
+    print(
+        f"ESAPPO's training time here: {seconds['ESAPPO'] / seconds['PPO']:.2f}x PPO's (ESA acts "
+        "over the first half of training; BENCHMARKS.md has the measured overhead)."
+    )
     print(
         f"With {args.seeds} seeds a difference inside that spread is noise; the studies "
         "below use 20 seeds per arm."
     )
 
 
-def verdict_line(study: str, table: str, what: str) -> str:
+def verdict_line(study: str, table: str, what: str, families: tuple[str, ...]) -> str:
     """One line of a study's verdicts, counted from its committed table.
 
     Counts the envs where each family's ESA arm (``PPO+ESA``, or ``PPO+ESA (quadratic)``
@@ -187,6 +196,7 @@ def verdict_line(study: str, table: str, what: str) -> str:
         study: The study's folder under ``experiments/results``.
         table: Its verdict table's file name.
         what: What the line reports, after the study's name.
+        families: The algorithm families whose rows count (``ppo``, ``sac``, ``td3``).
     """
     path = RESULTS / study / table
     if not path.is_file():
@@ -195,6 +205,8 @@ def verdict_line(study: str, table: str, what: str) -> str:
     for line in path.read_text().splitlines():
         cells = [c.strip() for c in line.strip("|").split("|")]
         if len(cells) < 9:
+            continue
+        if cells[0] not in families:
             continue
         family = cells[0].upper()
         if cells[3] != f"{family} (baseline)" or not re.fullmatch(
@@ -232,17 +244,28 @@ def main() -> None:
     print_table(results, args)
     print(
         verdict_line(
-            "confirmation",
-            "verdicts.md",
-            "envs where each family's shipped default is better, equal or worse than its baseline",
+            "seeking",
+            "verdicts first.md",
+            "envs where ESAPPO's shipped default is better, equal or worse than PPO over the "
+            "first third of training",
+            ("ppo",),
         )
     )
     print(
         verdict_line(
             "seeking",
-            "verdicts first.md",
-            "envs where ESA with a curved critic is better, equal or worse than its baseline "
-            "over the first third of training",
+            "verdicts whole.md",
+            "the same over the whole run",
+            ("ppo",),
+        )
+    )
+    print(
+        verdict_line(
+            "confirmation",
+            "verdicts.md",
+            "envs where ESASAC's and ESATD3's shipped defaults are better, equal or worse than "
+            "SAC and TD3",
+            ("sac", "td3"),
         )
     )
     print(f"\nlearning curve: {out / 'learning_curve.png'}; raw numbers: {out / 'results.json'}")

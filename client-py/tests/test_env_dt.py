@@ -33,3 +33,16 @@ def test_dt_sources():
     assert env_dt(NoClock(), override=0.1) == 0.1
     with pytest.raises(ValueError, match=r"EsaConfig\(dt=...\)"):
         env_dt(NoClock())
+
+
+def test_dt_of_a_gymnasium_vector_env_and_its_wrappers():
+    vector = gym.vector.SyncVectorEnv([lambda: gym.make("Pendulum-v1")] * 2)
+    assert env_dt(gym.wrappers.vector.RecordEpisodeStatistics(vector)) == 0.05
+    assert env_dt(gym.vector.SyncVectorEnv([FpsOnly] * 2)) == pytest.approx(0.04)
+
+
+def test_a_vector_wrapper_without_a_clock_is_refused_instead_of_guessing():
+    from esa_client.vector_wrapper import EsaVectorWrapper
+
+    with pytest.raises(ValueError, match=r"EsaConfig\(dt=...\)"):
+        EsaVectorWrapper(gym.vector.SyncVectorEnv([NoClock] * 2), q_fn=lambda o, a: a[:, 0])

@@ -23,7 +23,7 @@ def test_esa_dict_applies_over_the_family_default() -> None:
     ppo = ESAPPO(
         "MlpPolicy", "Pendulum-v1", esa={"amplitude": 0.2, "trust_region": 0.5}, n_steps=64
     )
-    assert ppo.esa == EsaConfig(amplitude=0.2, trust_region=0.5)
+    assert ppo.esa == EsaConfig.ppo(amplitude=0.2, trust_region=0.5)
     td3 = ESATD3("MlpPolicy", "Pendulum-v1", esa={"preset": "paper", "amplitude": 0.1})
     assert td3.esa == EsaConfig.paper(amplitude=0.1)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -221,3 +222,48 @@ def test_the_placebo_follows_a_new_env_with_another_number_of_envs(tmp_path):
     loaded = ESAPPO.load(tmp_path / "model", env=env)
     loaded.learn(3 * 128 * 3)
     assert loaded._esa_placebo is not None and loaded._esa_placebo.signs.shape == (3, 1)
+
+
+class ObservationsOf(gym.Env):
+    """An env of any observation space, a 2-D Box action, rewards for actions near 0.3."""
+
+    def __init__(self, space: spaces.Space) -> None:
+        self.observation_space = space
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        self.metadata = {"render_fps": 20}
+        self._t = 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self._t = 0
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        self._t += 1
+        reward = -float(np.sum((np.asarray(action) - 0.3) ** 2))
+        return self.observation_space.sample(), reward, False, self._t >= 20, {}
+
+
+@pytest.mark.parametrize(
+    ("space", "policy"),
+    [
+        (spaces.Box(-1.0, 1.0, shape=(3,)), "MlpPolicy"),
+        (spaces.Discrete(5), "MlpPolicy"),
+        (spaces.MultiDiscrete([3, 2]), "MlpPolicy"),
+        (spaces.MultiBinary(4), "MlpPolicy"),
+        (spaces.Box(0, 255, shape=(36, 36, 1), dtype=np.uint8), "CnnPolicy"),
+    ],
+    ids=["box", "discrete", "multidiscrete", "multibinary", "image"],
+)
+def test_every_array_observation_space_of_ppo_trains(space, policy):
+    model = ESAPPO(
+        policy,
+        ObservationsOf(space),
+        esa=EsaConfig.ppo(gate=None),
+        n_steps=64,
+        batch_size=32,
+        n_epochs=1,
+        seed=0,
+    )
+    model.learn(3 * 64)
+    assert model._esa_steps > 0, "ESA shifted actions"

@@ -53,7 +53,7 @@ def test_wrapper_applies_the_improved_action(client):
 
 def test_wrapper_runs_in_process_by_default_and_starts_no_server():
     env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn)
-    assert env._client.server is None  # esa-core in this process
+    assert env._sessions.client.server is None  # esa-core in this process
     env.reset(seed=0)
     _, _, _, _, info = env.step(env.action_space.sample())
     assert np.all(np.isfinite(info["esa_action"]))
@@ -63,11 +63,11 @@ def test_wrapper_runs_in_process_by_default_and_starts_no_server():
 def test_wrapper_stops_the_server_it_was_given_to_own(server_bin, monkeypatch):
     monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
     env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn, client=EsaClient.spawn())
-    server = env._client.server
+    server = env._sessions.client.server
     env.reset(seed=0)
     env.step(env.action_space.sample())
     env.close()
     # A client passed in stays the caller's: closing the wrapper leaves it running.
     assert server.running()
-    env._client.close()
+    env._sessions.client.close()
     assert not server.running()

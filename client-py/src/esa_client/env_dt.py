@@ -6,10 +6,19 @@ from typing import Any
 
 
 def _first(env: Any, name: str) -> Any:
-    """Reads attribute ``name`` through wrappers (gymnasium) or from env 0 (SB3 VecEnv)."""
+    """Reads attribute ``name`` through wrappers, or from env 0 of a vector env.
+
+    A gymnasium env reads it through its wrappers; an SB3 ``VecEnv`` and a gymnasium vector
+    env (whose ``get_attr`` takes no indices) from their first env.
+    """
     try:
-        if hasattr(env, "get_attr") and hasattr(env, "num_envs"):
-            return env.get_attr(name, indices=[0])[0]
+        if hasattr(env, "num_envs"):
+            # A gymnasium vector wrapper has no get_attr: its unwrapped vector env has.
+            vector = env if hasattr(env, "get_attr") else env.unwrapped
+            try:
+                return vector.get_attr(name, indices=[0])[0]
+            except TypeError:
+                return vector.get_attr(name)[0]
         return env.get_wrapper_attr(name)
     except AttributeError:
         return None
@@ -23,7 +32,8 @@ def env_dt(env: Any, override: float | None = None) -> float:
     constant); else ``1 / metadata["render_fps"]``.
 
     Args:
-        env: A gymnasium environment (possibly wrapped) or an SB3 ``VecEnv``.
+        env: A gymnasium environment (possibly wrapped), a gymnasium vector env or an SB3
+            ``VecEnv``.
         override: An explicit dt, e.g. ``EsaConfig.dt``.
 
     Raises:

@@ -7,7 +7,6 @@ worker processes that never see the critic) as with ``SyncVectorEnv``.
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Callable
 from typing import Any
 
@@ -17,7 +16,8 @@ import numpy.typing as npt
 
 from .client import EsaClient
 from .config import EsaConfig
-from .errors import EsaError
+from .env_dt import env_dt
+from .wrappers import WrapperSessions
 
 BatchQFunction = Callable[[Any, np.ndarray], npt.ArrayLike]
 """``q_fn(obs_batch, actions_batch) -> (M,)``: the critic at M state-action pairs at once.
@@ -68,8 +68,8 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
             (esa-core in this process, no server), closed by ``close()``.
         action_scale: sigma (the policy's standard deviation if the learner has one): a
             scalar, one value per action dimension, ``(N, D)``, or ``f(obs_batch)``.
-        dt: The envs' control period; None = ``esa.dt``, else the first sub-env's
-            ``dt`` attribute (read with ``get_attr``), else 0.05.
+        dt: The envs' control period; None = ``esa.dt``, else read from the first sub-env
+            (:func:`~esa_client.env_dt.env_dt`: its ``dt``, else ``1 / render_fps``).
     """
 
     def __init__(
@@ -85,26 +85,12 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         """Creates one ESA session per env."""
         super().__init__(env)
         space = env.single_action_space
-        if not isinstance(space, gym.spaces.Box):
-            raise ValueError(f"expected a Box single action space, got {space}")
-        esa = esa if esa is not None else EsaConfig()
-        config = esa.session_config(
-            int(np.prod(space.shape)),
-            self._dt(env, esa, dt),
-            space.low.reshape(-1),
-            space.high.reshape(-1),
-        )
-        self._owns_client = client is None
-        self._client: EsaClient = EsaClient.in_process() if client is None else client
-        try:
-            self._batch = self._client.create_batch(config, env.num_envs)
-        except BaseException:
-            if self._owns_client:
-                self._client.close()
-            raise
-        self._space = space
+        override = dt if dt is not None else None if esa is None else esa.dt
+        self._sessions = WrapperSessions(space, env.num_envs, env_dt(env, override), esa, client)
+        self._batch = self._sessions.batch
+        self._paired = self._sessions.paired
+        self._space = self._sessions.space
         self._q_fn = q_fn
-        self._paired = esa.paired_response
         self.action_scale = action_scale
         """sigma for the next steps; trainers whose policy std changes set it before ``step``."""
         self._next_step = env.metadata.get("autoreset_mode") in (
@@ -114,16 +100,6 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         self._obs: Any = None
         self._starts = np.ones(env.num_envs, dtype=bool)
         self._resetting = np.zeros(env.num_envs, dtype=bool)
-
-    @staticmethod
-    def _dt(env: gym.vector.VectorEnv, esa: EsaConfig, dt: float | None) -> float:
-        if dt is not None:
-            return float(dt)
-        if esa.dt is not None:
-            return float(esa.dt)
-        with contextlib.suppress(Exception):
-            return float(env.get_attr("dt")[0])  # type: ignore[attr-defined]
-        return 0.05
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -173,8 +149,5 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
 
     def close(self, **kwargs: Any) -> None:
         """Closes the sessions (and the client, if this wrapper made it) and the envs."""
-        with contextlib.suppress(EsaError):
-            self._batch.close()
-        if self._owns_client:
-            self._client.close()
+        self._sessions.close()
         super().close(**kwargs)

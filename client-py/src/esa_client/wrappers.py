@@ -21,6 +21,57 @@ ActionScale = float | np.ndarray | Callable[[Any], Any]
 """sigma: a scalar, one value per action dimension, or ``f(observation)`` giving either."""
 
 
+class WrapperSessions:
+    """What both wrappers hold: the ESA sessions of their envs, on a client they may own.
+
+    Args:
+        space: The (single) env's ``Box`` action space.
+        n_envs: How many envs, one session each.
+        dt: The envs' control period.
+        esa: ESA hyperparameters (None: ``EsaConfig()``).
+        client: The client to create the sessions on; None = ``EsaClient.in_process()``
+            (esa-core in this process, no server), closed by :meth:`close`.
+
+    Raises:
+        ValueError: If ``space`` is not a ``Box`` or an ESA setting does not fit the env.
+    """
+
+    def __init__(
+        self,
+        space: gym.Space[Any],
+        n_envs: int,
+        dt: float,
+        esa: EsaConfig | None,
+        client: EsaClient | None,
+    ) -> None:
+        """Creates the sessions (closing the client it made if that fails)."""
+        if not isinstance(space, gym.spaces.Box):
+            raise ValueError(f"expected a Box action space, got {space}")
+        esa = esa if esa is not None else EsaConfig()
+        config = esa.session_config(
+            int(np.prod(space.shape)), dt, space.low.reshape(-1), space.high.reshape(-1)
+        )
+        self.space: gym.spaces.Box = space
+        self.paired = esa.paired_response
+        self._owns_client = client is None
+        self.client: EsaClient = EsaClient.in_process() if client is None else client
+        try:
+            self.batch = self.client.create_batch(config, n_envs)
+        except BaseException:
+            self._close_client()
+            raise
+
+    def _close_client(self) -> None:
+        if self._owns_client:
+            self.client.close()
+
+    def close(self) -> None:
+        """Closes the sessions, and the client if it made it."""
+        with contextlib.suppress(EsaError):
+            self.batch.close()
+        self._close_client()
+
+
 class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     """Improves every action the agent takes with ESA before the env sees it.
 
@@ -66,26 +117,10 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
             self, q_fn=q_fn, esa=esa, client=client, action_scale=action_scale
         )
         gym.ActionWrapper.__init__(self, env)
-        space = env.action_space
-        if not isinstance(space, gym.spaces.Box):
-            raise ValueError(f"expected a Box action space, got {space}")
-        esa = esa if esa is not None else EsaConfig()
-        config = esa.session_config(
-            int(np.prod(space.shape)),
-            env_dt(env, esa.dt),
-            space.low.reshape(-1),
-            space.high.reshape(-1),
-        )
-        self._owns_client = client is None
-        self._client: EsaClient = EsaClient.in_process() if client is None else client
-        try:
-            self._batch = self._client.create_batch(config, 1)
-        except BaseException:
-            if self._owns_client:
-                self._client.close()
-            raise
+        self._sessions = WrapperSessions(env.action_space, 1, env_dt(env, _dt(esa)), esa, client)
+        self._batch = self._sessions.batch
+        self._paired = self._sessions.paired
         self._q_fn = q_fn
-        self._paired = esa.paired_response
         self._action_scale = action_scale
         self._obs: Any = None
         self._episode_start = True
@@ -131,8 +166,10 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
 
     def close(self) -> None:
         """Closes the session, the client if the wrapper made it, and the env."""
-        with contextlib.suppress(EsaError):
-            self._batch.close()
-        if self._owns_client:
-            self._client.close()
+        self._sessions.close()
         super().close()
+
+
+def _dt(esa: EsaConfig | None) -> float | None:
+    """The config's ``dt`` override, if any."""
+    return None if esa is None else esa.dt

@@ -76,22 +76,9 @@ def vector_env_dt(env: Any) -> float | None:
     """Seconds per step of a gymnasium vector env's copies (None without env or dt)."""
     if env is None:
         return None
-    copies = getattr(getattr(env, "unwrapped", env), "envs", None)
-    with contextlib.suppress(ValueError, AttributeError):
-        if copies:  # SyncVectorEnv: read through the first copy's wrappers
-            return env_dt(copies[0])
-        return env_dt(_FirstCopy(env))
+    with contextlib.suppress(ValueError):
+        return env_dt(env)
     return None
-
-
-class _FirstCopy:
-    """An AsyncVectorEnv's first copy as ``env_dt`` reads an env."""
-
-    def __init__(self, env: Any) -> None:
-        self.env = env
-
-    def get_wrapper_attr(self, name: str) -> Any:
-        return self.env.get_attr(name)[0]
 
 
 def _stack(items: list[Any]) -> Any:
