@@ -1,16 +1,15 @@
-"""RLlib SAC with ESA on Pendulum-v1: two env runners, a node sidecar, progress per iteration.
+"""RLlib SAC with ESA on Pendulum-v1: two env runners, progress per iteration.
 
-Needs the ``rllib`` extra, an esa-server for the node sidecar and tyro, which reads the
-command line; ``make setup`` has all three. In a venv of your own, from a clone (esa is not on
-PyPI yet; once it is, ``pip install "esa-client[rllib,server]" tyro``)::
+Needs the ``rllib`` extra and tyro, which reads the command line; ``make setup`` has both.
+In a venv of your own, from a clone (esa is not on PyPI yet; once it is,
+``pip install "esa-client[rllib]" tyro``)::
 
-    pip install -e "./client-py[rllib]" tyro    # the first sidecar builds esa-server (cargo)
+    pip install -e "./client-py[rllib]" tyro
 
-Runs on a laptop (CPU only). ``with_esa`` adds ESA to a plain ``SACConfig``:
-each env copy of each EnvRunner gets an ESA session on this machine's esa-server sidecar,
-which the first runner starts and the last one stops. Each iteration samples 1,000 env
-steps and prints the mean episode return, the fraction of steps on which ESA acted (its
-gate opens once the critic ranks actions well) and the mean shift ``|v(t)|``.
+Runs on a laptop (CPU only). ``with_esa`` adds ESA to a plain ``SACConfig``: each env copy
+of each EnvRunner gets an ESA session in that runner's process (no server). Each iteration
+samples 1,000 env steps and prints the mean episode return, the fraction of steps on which
+ESA acted (its gate opens once the critic ranks actions well) and the mean shift ``|v(t)|``.
 
 Usage::
 

@@ -2,20 +2,18 @@
 
 Two EnvRunners x two envs of SAC and of PPO on Pendulum-v1, a few hundred steps each, on
 one local Ray instance: the env executes the actions ESA applied (RLlib's unsquash of
-the stored ones), the stored actions are ``a_t + v(t)`` with the server's shift, PPO
-stores them unclipped with ``log pi_old(a_t)``, both runners share one node sidecar that
-stops after them, and the env runners' critics are the learner's. Then learning rate 0
+the stored ones), the stored actions are ``a_t + v(t)`` with the engine's shift, PPO
+stores them unclipped with ``log pi_old(a_t)``, each runner keeps its sessions in its own
+process (nothing is started), and the env runners' critics are the learner's. Then learning rate 0
 equals plain RLlib bit for bit (see ``test_learning_rate_zero_equals_plain_rllib`` for
 where RLlib is deterministic).
 """
 
 import dataclasses
-import gc
 import json
 import os
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -86,17 +84,13 @@ def start_ray(attempts=3):
 
 @pytest.fixture(scope="module")
 def ray_session(server_bin, tmp_path_factory):
-    """One local Ray instance; its workers find the server and a private sidecar dir."""
-    sidecar = tmp_path_factory.mktemp("rllib") / "sidecar"
-    saved = {
-        k: os.environ.get(k)
-        for k in ("ESA_SERVER_BIN", "ESA_RLLIB_SIDECAR_DIR", "RAY_gcs_server_port_wait_time_s")
-    }
-    os.environ.update(ESA_SERVER_BIN=server_bin, ESA_RLLIB_SIDECAR_DIR=str(sidecar))
+    """One local Ray instance; its workers find the server binary."""
+    saved = {k: os.environ.get(k) for k in ("ESA_SERVER_BIN", "RAY_gcs_server_port_wait_time_s")}
+    os.environ.update(ESA_SERVER_BIN=server_bin)
     start_ray()
     register_env(ENV, make_env)
     try:
-        yield sidecar
+        yield
     finally:
         ray.shutdown()
         for key, value in saved.items():
@@ -171,18 +165,6 @@ def learner_state(algo):
     return state["learner"]["rl_module"][DEFAULT_MODULE_ID]
 
 
-def wait_stopped(sidecar, timeout=15.0):
-    """True once the node sidecar has stopped (its keeper drops server.json and says so)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        log = (sidecar / "keeper.log").read_text() if (sidecar / "keeper.log").exists() else ""
-        done = log.count("serving ") == log.count("no runner left: stopped")
-        if done and not (sidecar / "server.json").exists():
-            return True
-        time.sleep(0.1)
-    return False
-
-
 def two_runner_run(config, iterations):
     algo = with_esa(config, esa=UNGATED, record_shift=True).build_algo()
     try:
@@ -193,15 +175,11 @@ def two_runner_run(config, iterations):
         algo.stop()
 
 
-def check_shared_sidecar(sidecar, samples):
-    addresses = {s["address"] for s in samples}
+def check_in_process(samples):
+    """Two runner processes, each with its own in-process sessions: no server anywhere."""
     assert len({s["pid"] for s in samples}) == 2
-    assert len(addresses) == 1, addresses
-    assert addresses.pop().startswith(f"unix:{sidecar}/")
-    assert len({i for s in samples for i in s["sessions"]}) == 4  # 2 runners x 2 envs
-    assert wait_stopped(sidecar), "the node sidecar outlived its runners"
-    log = (sidecar / "keeper.log").read_text()
-    assert log.count("serving ") == log.count("no runner left: stopped") >= 1
+    assert {s["address"] for s in samples} == {"in-process"}
+    assert all(len(s["sessions"]) == 2 for s in samples)  # 2 envs a runner
 
 
 def test_sac_two_runners_execute_and_store_esa_actions(ray_session):
@@ -227,7 +205,7 @@ def test_sac_two_runners_execute_and_store_esa_actions(ray_session):
             for k in matching:
                 np.testing.assert_array_equal(s["state"][k], learner[k])
         assert not any(k.startswith(("qf.", "qf_twin.")) for k in s["state"])
-    check_shared_sidecar(ray_session, samples)
+    check_in_process(samples)
 
 
 def test_ppo_two_runners_store_applied_actions_and_behaviour_logp(ray_session):
@@ -251,7 +229,7 @@ def test_ppo_two_runners_store_applied_actions_and_behaviour_logp(ray_session):
         assert head and "esa_active" in s["state"]
         for k in [*head, "esa_active"]:
             np.testing.assert_array_equal(s["state"][k], learner[k])
-    check_shared_sidecar(ray_session, samples)
+    check_in_process(samples)
 
 
 def test_a_runner_goes_on_without_esa_once_its_server_stays_away(ray_session, server_bin):
@@ -321,8 +299,6 @@ def test_learning_rate_zero_equals_plain_rllib(ray_session, algorithm):
     for key in plain_weights:
         np.testing.assert_array_equal(esa_weights[key], plain_weights[key], err_msg=key)
     np.testing.assert_array_equal(esa_actions, plain_actions)
-    gc.collect()  # the local EnvRunner's connector lets go of the sidecar when collected
-    assert wait_stopped(ray_session)
 
 
 def test_with_esa_refuses_what_it_cannot_do():

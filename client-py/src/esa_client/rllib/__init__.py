@@ -14,19 +14,20 @@ Install with ``pip install "esa-client[rllib]"``. One call adds ESA to a config:
     algo = with_esa(config, esa=EsaConfig.off_policy()).build_algo()
     algo.train()
 
-Without ``esa=`` SAC gets ``EsaConfig.off_policy()`` and PPO ``EsaConfig()``, the defaults of
-the SB3 drop-ins ``ESASAC`` and ``ESAPPO``.
+Without ``esa=`` SAC gets ``EsaConfig.off_policy()``, ESASAC's default, and PPO
+``EsaConfig()``: RLlib's PPO has ESAPPO's quadratic head but neither its fade nor its
+decoupled objective, so ``EsaConfig.ppo()`` (which fades) is not its default.
 
 Every env copy of every EnvRunner gets its own ESA session. The env executes, and the
 episode stores, Algorithm 1's action ``a_t + v(t)`` (PPO: unclipped, with its exact
 behaviour log-probability ``log pi_old(a_t)``); the critic is probed on the env runners
 (SAC: the target twins, kept in the env runners' module and synced with the learner's;
-PPO: ESAPPO's advantage head, fitted on the learner and synced the same way). By default
-each node runs one ``esa-server`` sidecar shared by all its runners
-(:class:`EsaService`, ``deploy/README.md``); ``EsaService(address=...)`` or
-``EsaService(zenoh=..., shards=N)`` use a shared or sharded deployment instead.
+PPO: ESAPPO's quadratic head, fitted on the learner and synced the same way). By default
+each runner keeps its sessions in its own process (:class:`EsaService`);
+``EsaService(address=...)`` or ``EsaService(zenoh=..., shards=N)`` use a shared or sharded
+server instead (``deploy/README.md``).
 
-Pieces: :func:`with_esa`, :class:`EsaService`, :class:`NodeSidecar`,
+Pieces: :func:`with_esa`, :class:`EsaService`,
 :class:`EsaModuleToEnv` (the module-to-env ConnectorV2), :class:`EsaSACTorchRLModule`,
 :class:`EsaPPOTorchRLModule`, :class:`EsaSACTorchLearner`, :class:`EsaPPOTorchLearner`.
 """
@@ -36,8 +37,8 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-# Ray is imported on first use of an RLlib piece, so that esa_client.rllib.service (the
-# node sidecar) works without it.
+# Ray is imported on first use of an RLlib piece, so that esa_client.rllib.service works
+# without it.
 _EXPORTS = {
     "ESA_OBS": "modules",
     "ESA_SHIFT": "connector",
@@ -47,7 +48,6 @@ _EXPORTS = {
     "EsaSACTorchLearner": "learners",
     "EsaSACTorchRLModule": "modules",
     "EsaService": "service",
-    "NodeSidecar": "service",
     "with_esa": "configure",
 }
 

@@ -59,7 +59,7 @@ def with_esa(
         from esa_client.rllib import with_esa
 
         config = SACConfig().environment("Pendulum-v1").env_runners(num_env_runners=2)
-        algo = with_esa(config, esa=EsaConfig.off_policy()).build_algo()  # a sidecar per node
+        algo = with_esa(config, esa=EsaConfig.off_policy()).build_algo()  # ESA in each runner
         algo.train()
 
     Args:
@@ -69,7 +69,7 @@ def with_esa(
             ``normalize_actions=True``, the Box scaled to [-1, 1] (PPO) or SAC's squashed
             [-1, 1], the units ESAPPO and ESASAC use. Default: ``EsaConfig.off_policy()``
             for SAC and ``EsaConfig()`` for PPO, as for ``ESASAC`` and ``ESAPPO``.
-        service: Where the sessions live (default: one sidecar per node).
+        service: Where the sessions live (default: in each runner's process).
         probe_critic: SAC: the critic ESA probes, as ``ESASAC``'s ``esa_probe_critic``.
         gate_every: SAC: sampled env steps between two gate checks.
         head_hidden: PPO: hidden units of each of the advantage head's two layers.
@@ -93,6 +93,11 @@ def with_esa(
         esa = EsaConfig.off_policy() if isinstance(config, SACConfig) else EsaConfig()
     if not isinstance(esa, EsaConfig):
         raise ValueError(f"expected esa to be an EsaConfig, got {esa!r}")
+    if esa.fade is not None:
+        raise ValueError(
+            f"expected EsaConfig(fade=None) with RLlib (its runners do not know the training "
+            f"budget a fade is a fraction of), got fade={esa.fade!r}"
+        )
     service = service if service is not None else EsaService()
     if not isinstance(service, EsaService):
         raise ValueError(f"expected service to be an EsaService, got {service!r}")

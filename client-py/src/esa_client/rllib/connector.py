@@ -27,8 +27,8 @@ equals the applied action and the update moves nothing, so the episode's first r
 action is the session's step 1. Starting it there, and not again one step later, keeps
 the session's episode count (``lr_decay``, ``max_episodes``) equal to the env's.
 An EnvRunner that is recreated builds a new connector, hence new sessions; one whose
-server stayed unreachable past ``reconnect_timeout`` reconnects once more (a node sidecar
-is restarted) and starts new sessions, or, with ``EsaService(on_unavailable="skip")``, goes
+server stayed unreachable past ``reconnect_timeout`` reconnects once more and starts new
+sessions, or, with ``EsaService(on_unavailable="skip")``, goes
 on without ESA until an episode starts.
 """
 
@@ -164,7 +164,7 @@ class EsaModuleToEnv(ConnectorV2):
         input_action_space: As for every ConnectorV2.
         esa: The ESA hyperparameters (:func:`~esa_client.rllib.with_esa` passes its own or
             the algorithm's default).
-        service: Where the sessions live (default: the node's sidecar).
+        service: Where the sessions live (default: in this runner's process).
         dt: Seconds per env step when ``EsaConfig.dt`` is None (``with_esa`` reads it
             from the EnvRunner's env).
         record_shift: Also output column ``esa_shift`` (the shift applied, stored with the
@@ -222,7 +222,7 @@ class EsaModuleToEnv(ConnectorV2):
         return self._runtime
 
     def close(self) -> None:
-        """Closes the sessions (and the sidecar hold); a later step reopens them."""
+        """Closes the sessions and the client; a later step reopens them."""
         if self._finalizer is not None:
             self._finalizer()
         self._runtime = self._finalizer = None
@@ -322,7 +322,7 @@ class EsaModuleToEnv(ConnectorV2):
             applied = runtime.step(sampled, starts, q_fn, scale)
         except ServerUnavailable:
             # The server stayed away (on_unavailable="raise"): reconnect once more, e.g. to
-            # a node sidecar started since.
+            # a server restarted since.
             self.close()
             self.reconnects += 1
             if metrics is not None:
