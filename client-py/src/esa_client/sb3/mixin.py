@@ -10,7 +10,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from ..common.controls import Control, RandomDirections, check_control
+from ..common.controls import Control, RandomDirections, check_control, shift_report
 from ..common.runtime import (
     Engine,
     EsaRuntime,
@@ -211,6 +211,26 @@ class EsaMixin(_Algorithm):
             n_envs, action_dim = shift.shape
             self._esa_placebo = RandomDirections(n_envs, action_dim, self.seed)
         return self._esa_placebo(shift, episode_starts)
+
+    def _report_shift(
+        self,
+        sampled: np.ndarray,
+        shift: np.ndarray,
+        mean: np.ndarray,
+        std: np.ndarray,
+        low: np.ndarray,
+        high: np.ndarray,
+        kappa: float | None,
+        strength: float,
+    ) -> None:
+        """Averages :func:`shift_report` of one step, and ESA's strength, into the logger.
+
+        ``std`` is the unfaded action scale and ``kappa`` the trust region (None: no bound).
+        """
+        bound = None if kappa is None else strength * kappa
+        for key, value in shift_report(sampled, shift, mean, std, low, high, bound).items():
+            self.logger.record_mean(f"esa/{key}", value)
+        self.logger.record_mean("esa/strength", strength)
 
     def esa_close(self) -> None:
         """Closes the ESA sessions and stops a spawned server (also done on garbage collection)."""

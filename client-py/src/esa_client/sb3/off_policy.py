@@ -8,7 +8,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.noise import ActionNoise
 
-from ..common.controls import gradient_size, shift_report, unit_gradient
+from ..common.controls import gradient_size, unit_gradient
 from ..common.quadratic_head import rank_correlation
 from ..config import EsaConfig
 from ..transports.base import SMALLEST_SCALE
@@ -120,13 +120,11 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         if strength > 0:
             self._esa_shifted_steps += 1
         if report:
-            bound = self.esa.trust_region
+            kappa = self.esa.trust_region
             if self.esa_control == "gradient":
-                bound = gradient_size(1.0, bound)
+                kappa = gradient_size(1.0, kappa)
             low, high = self._esa_env_bounds()
-            values = shift_report(sampled, shift, mu, strength * sigma, low, high, bound)
-            for key, value in values.items():
-                self.logger.record_mean(f"esa/{key}", value)
+            self._report_shift(sampled, shift, mu, sigma, low, high, kappa, strength)
         buffer_action = executed.reshape(buffer_action.shape).astype(buffer_action.dtype)
         return self.policy.unscale_action(buffer_action), buffer_action
 

@@ -6,18 +6,16 @@ from typing import Any, cast
 
 import numpy as np
 import torch as th
-import torch.nn.functional as F
 from gymnasium import spaces
-from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.distributions import Distribution
 from stable_baselines3.common.preprocessing import preprocess_obs
-from stable_baselines3.common.utils import explained_variance, obs_as_tensor
+from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
 
-from ..common.controls import gradient_size, shift_report, unit_gradient
+from ..common.controls import gradient_size, unit_gradient
 from ..common.quadratic_head import (
     CriticAtStep,
     QuadraticHead,
@@ -28,53 +26,41 @@ from ..common.quadratic_head import (
 )
 from ..config import EsaConfig
 from ..transports.base import SMALLEST_SCALE
-from .esa_buffer import EsaRolloutBuffer, EsaRolloutBufferSamples
+from .decoupled_ppo import DecoupledPPO
 from .mixin import EsaMixin
 
 REPORT_EVERY = 8
 """One step in this many records what the shifts did (:func:`shift_report`)."""
 
 
-class ESAPPO(EsaMixin, PPO):
+class ESAPPO(EsaMixin, DecoupledPPO):
     """PPO with Extremum-Seeking Action selection; a drop-in for ``stable_baselines3.PPO``.
 
-    Each rollout step follows Algorithm 1 of the paper with the bounded, scale-free law of
-    CONTRACT.md section 1b: the policy samples ``a_t``, ESA probes a critic around it, and
-    the env executes ``a_t + v(t)``, the shift before this step's update. The critic is a
-    head quadratic in the action (:mod:`esa_client.common.quadratic_head`), fitted on the
-    normalized GAE advantages of the last ``head_rollouts`` rollouts: ESA's shift converges
-    to its maximum. ESA intervenes while the head passes ``EsaConfig.gate`` on a rollout it
-    was not trained on (``esa/gate_correlation``, ``esa/active``), and fades over the
-    budget of ``learn()`` (``EsaConfig.fade``; the default fades by half of it).
-
-    ``v(t)`` does not depend on ``a_t``, so the executed action's behaviour density is the
-    policy's translated by ``v(t)``: the rollout stores the executed action (unclipped, as
-    SB3 stores its samples) with ``log pi_old(a_t)``, its exact behaviour log-probability.
-    The update is PPO's with the decoupled objective of Hilton, Cobbe and Schulman (2022):
-    the ratio is clipped around the collecting policy ``pi_old`` at the executed action and
-    weighted by ``min(pi_old(x) / b(x), weight_cap)``, so a shift of a sizeable fraction of
-    sigma does not fight the clip. Without a shift it is PPO's objective.
-
-    ESA works in the policy's action space scaled to [-1, 1] by the Box bounds, so one
-    ``EsaConfig`` means the same on every env; the trust region bounds the shift in units of
-    the policy's standard deviation. ``squash_output`` policies are refused (a shifted
-    squashed sample has no density under the policy), and so are Dict observations (the
-    decoupled objective's buffer holds array observations: flatten them with gymnasium's
-    ``FlattenObservation``). ``predict`` is unchanged: evaluation uses the plain policy. With
-    ``EsaConfig(learning_rate=0)`` training is plain PPO with the same seed, bit for bit.
+    Each rollout step is Algorithm 1 of the paper with the bounded law of CONTRACT.md
+    section 1b: the policy samples ``a_t``, ESA probes a head quadratic in the action
+    (:mod:`esa_client.common.quadratic_head`, fitted on the GAE advantages of the last
+    ``head_rollouts`` rollouts) and the env executes ``a_t + v(t)``; the shift converges to
+    the head's maximum, bounded by ``trust_region`` policy standard deviations. ESA acts
+    while the head passes ``EsaConfig.gate`` and fades over ``learn()``'s budget
+    (``EsaConfig.fade``: the default's is half of it). The rollout stores the executed
+    action, unclipped, with ``log pi_old(a_t)``, its exact behaviour log-probability, and
+    the update is PPO's with the decoupled objective (Hilton, Cobbe and Schulman, 2022): the
+    ratio is clipped around ``pi_old`` at the executed action and weighted by
+    ``min(pi_old / b, weight_cap)``. With ``EsaConfig(learning_rate=0)`` it trains as PPO,
+    to float rounding. ``squash_output`` policies and Dict observations are refused (flatten
+    those with gymnasium's ``FlattenObservation``); ``predict`` is PPO's.
 
     Example::
 
-        model = ESAPPO("MlpPolicy", "InvertedPendulum-v5")   # EsaConfig.ppo() by default
+        model = ESAPPO("MlpPolicy", "InvertedPendulum-v5")  # EsaConfig.ppo() by default
         model.learn(50_000)
 
     Args:
         policy: As for PPO.
         env: As for PPO.
         *args: Further positional arguments of PPO.
-        **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin` (``esa``,
-            default ``EsaConfig.ppo()``; ``esa_engine``, ``esa_address``, ``esa_control``,
-            ...), and any other PPO argument.
+        **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin`, and
+            any other PPO argument.
 
     Raises:
         ValueError: If the action space is not a Box, the observations are a Dict, the policy
@@ -91,8 +77,6 @@ class ESAPPO(EsaMixin, PPO):
     """Minibatch size of the head's fit."""
     head_rollouts = 4
     """How many of the latest rollouts the head is fitted on."""
-    weight_cap = 2.0
-    """The decoupled objective's cap on ``pi_old / b`` (>= 1)."""
 
     esa_head: nn.Module
     # Defaults until training (or a load) sets them; the scaling is read before _setup_model
@@ -107,24 +91,11 @@ class ESAPPO(EsaMixin, PPO):
         return EsaConfig.ppo()
 
     def _setup_model(self) -> None:
-        if isinstance(self.observation_space, spaces.Dict):
-            raise ValueError(
-                "expected array observations for ESAPPO (its decoupled objective's buffer "
-                f"holds arrays), got {self.observation_space}: wrap the env in gymnasium's "
-                "FlattenObservation, or train a plain PPO"
-            )
-        if self.rollout_buffer_class is None:
-            self.rollout_buffer_class = EsaRolloutBuffer
         super()._setup_model()
         if self.policy.squash_output:
             raise ValueError(
                 "expected a policy without squash_output for ESAPPO (the shifted sample "
                 "must have a density under the policy), got squash_output=True"
-            )
-        if not isinstance(self.rollout_buffer, EsaRolloutBuffer):
-            raise ValueError(
-                "expected an EsaRolloutBuffer (or a subclass) as rollout_buffer_class, got "
-                f"{type(self.rollout_buffer).__name__}"
             )
         features_dim = spaces.flatdim(self.observation_space)
         action_dim = int(np.prod(self.action_space.shape or ()))
@@ -216,7 +187,8 @@ class ESAPPO(EsaMixin, PPO):
         if self.esa_control == "placebo":
             shift = self._placebo(shift, starts)
         if self._esa_steps % REPORT_EVERY == 0:
-            self._record_shift(sample, shift, mean, std, f)
+            low, high = self._esa_box().low.reshape(-1), self._esa_box().high.reshape(-1)
+            self._report_shift(sample, shift, mean, std, low, high, self.esa.trust_region, f)
         self._esa_steps += 1
         return self._execute(sample, shift, std)
 
@@ -257,19 +229,6 @@ class ESAPPO(EsaMixin, PPO):
     def _closed_form(self, critic: CriticAtStep) -> Any:
         """The critic the engine evaluates at the probes: the quadratic head's closed form."""
         return critic.closed_form()
-
-    def _record_shift(
-        self, sample: np.ndarray, shift: np.ndarray, mean: np.ndarray, std: np.ndarray, f: float
-    ) -> None:
-        box = self._esa_box()
-        kappa = self.esa.trust_region
-        bound = None if kappa is None else f * kappa
-        report = shift_report(
-            sample, shift, mean, std, box.low.reshape(-1), box.high.reshape(-1), bound
-        )
-        for key, value in report.items():
-            self.logger.record_mean(f"esa/{key}", value)
-        self.logger.record_mean("esa/strength", f)
 
     def collect_rollouts(
         self,
@@ -342,8 +301,7 @@ class ESAPPO(EsaMixin, PPO):
         own, so PPO's random draws are SB3's.
         """
         self._check_gate()
-        self._prepare_update()
-        self._train_policy()
+        super().train()
         self.logger.record("esa/head_loss", self._fit_critic())
 
     def _fit_critic(self) -> float:
@@ -379,114 +337,6 @@ class ESAPPO(EsaMixin, PPO):
         self._esa_head_data = [*self._esa_head_data, rollout][-self.head_rollouts :]
         self._esa_head_fitted = True
         self.logger.record("esa/active", float(self._esa_active))
-
-    def _prepare_update(self) -> None:
-        """Stores ``log pi_old(x)`` of each executed action, for the decoupled objective."""
-        buffer = cast(EsaRolloutBuffer, self.rollout_buffer)
-        obs = buffer.to_torch(buffer.observations.reshape(-1, *buffer.obs_shape))
-        actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
-        with th.no_grad():
-            # The policy that collected the rollout: train() has not updated it yet.
-            proximal = self.policy.get_distribution(obs).log_prob(actions)
-        buffer.extras["proximal_log_prob"] = (
-            proximal.cpu().numpy().reshape(buffer.buffer_size, buffer.n_envs)
-        )
-
-    def _policy_ratio(
-        self, samples: EsaRolloutBufferSamples, log_prob: th.Tensor
-    ) -> tuple[th.Tensor, th.Tensor | float]:
-        """``(log of the reference density, weight)`` of the clipped objective.
-
-        The decoupled objective's reference is the proximal policy ``pi_old`` at the
-        executed action, weighted by ``pi_old / b`` (capped); PPO's is ``b`` itself.
-        """
-        reference = samples.extras["proximal_log_prob"].flatten()
-        weight = th.exp(reference - samples.old_log_prob).clamp(max=self.weight_cap)
-        return reference, weight
-
-    def _optimizer_step(self, samples: EsaRolloutBufferSamples) -> None:
-        """The policy's optimizer step, after PPO's gradient clipping."""
-        self.policy.optimizer.step()
-
-    def _train_policy(self) -> None:
-        """SB3's ``PPO.train`` with the objective of :meth:`_policy_ratio`."""
-        self.policy.set_training_mode(True)
-        self._update_learning_rate(self.policy.optimizer)
-        clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
-        if self.clip_range_vf is not None:
-            clip_range_vf = self.clip_range_vf(self._current_progress_remaining)  # type: ignore[operator]
-        entropy_losses, pg_losses, value_losses, clip_fractions = [], [], [], []
-        continue_training = True
-        for epoch in range(self.n_epochs):
-            approx_kl_divs = []
-            for rollout_data in self.rollout_buffer.get(self.batch_size):
-                samples = cast(EsaRolloutBufferSamples, rollout_data)
-                values, log_prob, entropy = self.policy.evaluate_actions(
-                    samples.observations, samples.actions
-                )
-                values = values.flatten()
-                advantages = samples.advantages
-                # Normalization does not make sense if mini batchsize == 1.
-                if self.normalize_advantage and len(advantages) > 1:
-                    advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-                reference, weight = self._policy_ratio(samples, log_prob)
-                ratio = th.exp(log_prob - reference)
-                policy_loss_1 = advantages * ratio
-                policy_loss_2 = advantages * th.clamp(ratio, 1 - clip_range, 1 + clip_range)
-                policy_loss = -(weight * th.min(policy_loss_1, policy_loss_2)).mean()
-                pg_losses.append(policy_loss.item())
-                clip_fraction = th.mean((th.abs(ratio - 1) > clip_range).float()).item()
-                clip_fractions.append(clip_fraction)
-                if self.clip_range_vf is None:
-                    values_pred = values
-                else:
-                    values_pred = samples.old_values + th.clamp(
-                        values - samples.old_values, -clip_range_vf, clip_range_vf
-                    )
-                value_loss = F.mse_loss(samples.returns, values_pred)
-                value_losses.append(value_loss.item())
-                if entropy is None:
-                    entropy_loss = -th.mean(-log_prob)
-                else:
-                    entropy_loss = -th.mean(entropy)
-                entropy_losses.append(entropy_loss.item())
-                loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
-                # Schulman's estimator of the KL to the policy the ratio is taken against.
-                with th.no_grad():
-                    log_ratio = log_prob - reference
-                    approx_kl_div = th.mean((th.exp(log_ratio) - 1) - log_ratio).cpu().numpy()
-                    approx_kl_divs.append(approx_kl_div)
-                if self.target_kl is not None and approx_kl_div > 1.5 * self.target_kl:
-                    continue_training = False
-                    if self.verbose >= 1:
-                        print(
-                            f"Early stopping at step {epoch} due to reaching max kl: "
-                            f"{approx_kl_div:.2f}"
-                        )
-                    break
-                self.policy.optimizer.zero_grad()
-                loss.backward()
-                th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                self._optimizer_step(samples)
-            self._n_updates += 1
-            if not continue_training:
-                break
-        explained_var = explained_variance(
-            self.rollout_buffer.values.flatten(), self.rollout_buffer.returns.flatten()
-        )
-        self.logger.record("train/entropy_loss", np.mean(entropy_losses))
-        self.logger.record("train/policy_gradient_loss", np.mean(pg_losses))
-        self.logger.record("train/value_loss", np.mean(value_losses))
-        self.logger.record("train/approx_kl", np.mean(approx_kl_divs))
-        self.logger.record("train/clip_fraction", np.mean(clip_fractions))
-        self.logger.record("train/loss", loss.item())
-        self.logger.record("train/explained_variance", explained_var)
-        if hasattr(self.policy, "log_std"):
-            self.logger.record("train/std", th.exp(self.policy.log_std).mean().item())
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/clip_range", clip_range)
-        if self.clip_range_vf is not None:
-            self.logger.record("train/clip_range_vf", clip_range_vf)
 
 
 def _gaussian(distribution: Distribution) -> th.distributions.Normal:
