@@ -1,9 +1,11 @@
 """PPO with ESA, cleanrl style: one file, a dataclass of arguments, gymnasium vector envs.
 
 cleanrl's ``ppo_continuous_action.py`` plus what ESA needs of an on-policy learner (as
-``ESAPPO`` does it): PPO has no Q-network, so a small advantage head
-``A(s, a) = w(s) . (a - mu(s)) / sigma`` is fitted on each rollout's GAE advantages and is the
-critic ESA probes, all envs in one call per step (``EsaVectorWrapper``). The rollout stores
+``ESAPPO`` does it): PPO has no Q-network, so a small head quadratic in
+``z = (a - mu(s)) / sigma``, ``A = w(s) . z + sum_j u_j(s) (z_j^2 - 1)`` with ``u <= 0``
+(``esa_client.common.quadratic_head``), is fitted on each rollout's GAE advantages and is the
+critic ESA probes: it has a maximum for ESA to seek. All envs in one call per step
+(``EsaVectorWrapper``). The rollout stores
 the executed action ``a_t + v(t)`` (``info["esa_action"]``) with ``log pi_old(a_t)``, its
 behaviour log-probability, so the PPO ratio stays an importance ratio.
 
@@ -33,6 +35,7 @@ import tyro
 from torch import nn, optim
 
 from esa_client import EsaConfig
+from esa_client.common.quadratic_head import QuadraticHead
 from esa_client.vector_wrapper import EsaVectorWrapper
 
 
@@ -71,7 +74,7 @@ class Args:
     esa: bool = True
     """Improve the actions with ESA."""
     head_epochs: int = 5
-    """Epochs of the advantage head's fit per rollout."""
+    """Epochs of the quadratic head's fit per rollout."""
     ci: bool = False
     """A tiny budget for CI: two rollouts of 2 x 128 steps."""
 
@@ -102,8 +105,9 @@ class Agent(nn.Module):
             layer(obs_dim, 64), nn.Tanh(), layer(64, 64), nn.Tanh(), layer(64, act_dim, 0.01)
         )
         self.actor_logstd = nn.Parameter(torch.zeros(1, act_dim))
-        # ESA's critic: A(s, a) = w(s) . (a - mu(s)) / sigma, fitted on GAE advantages.
-        self.adv_head = nn.Sequential(layer(obs_dim, 64), nn.Tanh(), layer(64, act_dim, 0.01))
+        # ESA's critic: a head quadratic in the policy-normalized action, fitted on GAE
+        # advantages.
+        self.adv_head = QuadraticHead(obs_dim, act_dim)
 
     def dist(self, obs: torch.Tensor) -> torch.distributions.Normal:
         mean = self.actor_mean(obs)
@@ -111,7 +115,8 @@ class Agent(nn.Module):
 
     def advantage(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         d = self.dist(obs)
-        return (self.adv_head(obs) * (act - d.loc.detach()) / d.scale.detach()).sum(-1)
+        advantage: torch.Tensor = self.adv_head(obs, (act - d.loc.detach()) / d.scale.detach())
+        return advantage
 
 
 def main(args: Args) -> dict[str, Any]:
@@ -136,7 +141,7 @@ def main(args: Args) -> dict[str, Any]:
 
         @torch.no_grad()
         def q_fn(obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
-            """The advantage head at M pairs: one call for all envs."""
+            """The quadratic head at M pairs: one call for all envs."""
             o = torch.as_tensor(obs, dtype=torch.float32)
             return agent.advantage(o, torch.as_tensor(actions, dtype=torch.float32)).numpy()
 
