@@ -334,9 +334,8 @@ def test_share_features_extractor_false_trains(client):
 def test_runtime_rejects_a_non_positive_improvement_stride(every):
     # Checked before anything connects: no server, env or sessions are needed.
     with pytest.raises(ValueError, match=f"expected improvement_every >= 1, got {every}"):
-        EsaRuntime(
-            EsaConfig(), None, None, None, None, np.zeros(1), np.ones(1), improvement_every=every
-        )
+        config = EsaConfig().session_config(1, 0.05)
+        EsaRuntime(EsaConfig(), config, 1, np.zeros(1), np.ones(1), improvement_every=every)
 
 
 def test_a_zero_policy_std_keeps_the_action_instead_of_failing():

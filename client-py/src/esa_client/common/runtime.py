@@ -12,7 +12,6 @@ import numpy as np
 from .._native import StepStats
 from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
-from ..env_dt import env_dt
 from ..errors import EsaError, ServerUnavailable, SessionNotFound
 from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
 from ..transports.base import SMALLEST_SCALE, LinearCritic, QuadraticCritic
@@ -87,15 +86,6 @@ QFunction = Callable[[np.ndarray], np.ndarray]
 """Maps ``(k N, D)`` actions to ``(k N,)`` values at the N current observations tiled k times."""
 
 
-class VecEnvLike(Protocol):
-    """What the runtime reads of a VecEnv: the env count (``dt`` is read by ``env_dt``)."""
-
-    @property
-    def num_envs(self) -> int:
-        """The number of envs N."""
-        ...
-
-
 class LoggerLike(Protocol):
     """What the runtime writes to: an SB3 ``Logger`` (or anything with its ``record``)."""
 
@@ -130,14 +120,12 @@ class EsaRuntime:
 
     Args:
         esa: The ESA hyperparameters.
-        address: Server address, or None to spawn a private server for this learner
-            (unless ``engine`` is ``"inprocess"``).
-        vec_env: The learner's VecEnv (gives the env count and ``dt``).
-        low: Lower action bounds of the space ESA works in (shape ``(D,)``); None for an
-            unbounded space (PPO's Gaussian, whose samples SB3 stores unclipped).
-        high: Upper action bounds, or None.
+        config: The sessions' config (``EsaConfig.session_config`` for the env).
+        n_envs: How many sessions (one per env).
         clip_low: Bounds the environment clips to, for the clipped-action statistic.
         clip_high: See ``clip_low``.
+        address: Server address, or None to spawn a private server for this learner
+            (unless ``engine`` is ``"inprocess"``).
         improvement_every: Measure ``esa/improvement`` (the critic's Q at the applied
             minus at the sampled actions) on one step in this many. It costs a critic
             evaluation that training does not need, so it is sampled, not paid per step.
@@ -155,13 +143,12 @@ class EsaRuntime:
     def __init__(
         self,
         esa: EsaConfig,
-        address: str | None,
-        vec_env: VecEnvLike,
-        low: np.ndarray | None,
-        high: np.ndarray | None,
+        config: SessionConfig,
+        n_envs: int,
         clip_low: np.ndarray,
         clip_high: np.ndarray,
         *,
+        address: str | None = None,
         improvement_every: int = 8,
         spawn: dict[str, Any] | None = None,
         engine: Engine | None = None,
@@ -173,11 +160,10 @@ class EsaRuntime:
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
         skip = check_on_unavailable(on_unavailable)
         reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
-        config = esa.session_config(clip_low.size, env_dt(vec_env, esa.dt), low, high)
         client = open_client(
             choose_engine(engine, address, spawn), address, spawn, reconnect_timeout
         )
-        self._attach(esa, client, config, vec_env.num_envs, clip_low, clip_high, improvement_every)
+        self._attach(esa, client, config, n_envs, clip_low, clip_high, improvement_every)
         self.on_unavailable = skip
 
     @classmethod

@@ -176,16 +176,14 @@ class EsaMixin(_Algorithm):
     def _esa_runtime(self) -> EsaRuntime:
         if self._esa is None:
             assert self.env is not None, "ESA steps run in rollouts, which need an env"
-            low, high = self._esa_space()
             clip_low, clip_high = self._esa_env_bounds()
             self._esa = EsaRuntime(
                 self.esa,
-                self.esa_address,
-                self.env,
-                low,
-                high,
+                self._esa_session_config(),
+                self.env.num_envs,
                 clip_low,
                 clip_high,
+                address=self.esa_address,
                 spawn=self.esa_spawn,
                 engine=self.esa_engine,
                 # Models saved before these existed load without them.

@@ -164,16 +164,23 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
             sigma: The action scale.
             strength: ESA's strength under the fade, in [0, 1].
         """
+        anchor = self._anchor(sampled, mu)
         if self.esa_control == "gradient":
-            shift = self._gradient_shift(obs, sampled, sigma, strength)
+            shift = self._gradient_shift(obs, anchor, sigma, strength)
         else:
-            applied = self._esa_step(obs, sampled, sigma, strength)
-            if self.esa_control is None:
+            applied = self._esa_step(obs, anchor, sigma, strength)
+            if self.esa_control is None and anchor is sampled:
                 # The session's own action, not a_t + (applied - a_t): the same bits.
                 return applied, applied - sampled
-            shift = self._placebo(applied - sampled, self._episode_starts())
+            shift = applied - anchor
+            if self.esa_control == "placebo":
+                shift = self._placebo(shift, self._episode_starts())
         executed: np.ndarray = np.clip(sampled + shift, -1.0, 1.0)
         return executed, shift
+
+    def _anchor(self, sampled: np.ndarray, mu: np.ndarray) -> np.ndarray:
+        """Where the shift is found: at the policy's sample ``a_t``."""
+        return sampled
 
     def _episode_starts(self) -> np.ndarray:
         """True where an env starts an episode at this step."""

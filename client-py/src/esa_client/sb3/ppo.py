@@ -306,10 +306,12 @@ class ESAPPO(EsaMixin, DecoupledPPO):
 
     def _fit_critic(self) -> float:
         """Fits the critic on the kept rollouts; returns the mean loss."""
-        return fit_critic(
-            self.esa_head,
-            self.esa_head_optimizer,
-            self._esa_head_data,
+        return fit_critic(self.esa_head, self.esa_head_optimizer, **self._fit_arguments())
+
+    def _fit_arguments(self) -> dict[str, Any]:
+        """The fit's data and schedule, on the critic's own generator."""
+        return dict(
+            rollouts=self._esa_head_data,
             rng=self._esa_rng,
             epochs=self.head_epochs,
             batch_size=self.head_batch_size,

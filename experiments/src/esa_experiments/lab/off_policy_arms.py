@@ -37,22 +37,8 @@ class MeanAnchor(_Base):
     and the policy's noise is kept on top, as Optimistic Actor-Critic shifts its mean.
     """
 
-    def _shifted(
-        self,
-        obs: Any,
-        sampled: np.ndarray,
-        mu: np.ndarray,
-        sigma: np.ndarray,
-        strength: float,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        if self.esa_control == "gradient":
-            shift = self._gradient_shift(obs, mu, sigma, strength)
-        else:
-            shift = self._esa_step(obs, mu, sigma, strength) - mu
-            if self.esa_control == "placebo":
-                shift = self._placebo(shift, self._episode_starts())
-        executed: np.ndarray = np.clip(sampled + shift, -1.0, 1.0)
-        return executed, shift
+    def _anchor(self, sampled: np.ndarray, mu: np.ndarray) -> np.ndarray:
+        return mu
 
 
 class ExecutedProbe(_Base):

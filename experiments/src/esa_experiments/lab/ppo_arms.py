@@ -89,14 +89,7 @@ class LinearHead(_Base):
     def _fit_critic(self) -> float:
         head = self.esa_head
         assert isinstance(head, AdvantageHead)
-        return fit(
-            head,
-            self.esa_head_optimizer,
-            self._esa_head_data,
-            rng=self._esa_rng,
-            epochs=self.head_epochs,
-            batch_size=self.head_batch_size,
-        )
+        return fit(head, self.esa_head_optimizer, **self._fit_arguments())
 
     def _esa_mlp(self) -> Any:
         """The head in Rust, copied again whenever its parameters changed."""
