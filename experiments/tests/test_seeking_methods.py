@@ -17,6 +17,7 @@ from esa_experiments.algorithms import (
     matched_noise_sigma,
     resolve_hyperparams,
 )
+from esa_experiments.lab.off_policy_arms import ExecutedProbe, MeanAnchor
 from esa_experiments.tasks import get_task
 
 ENV = "InvertedDoublePendulum-v5"
@@ -39,13 +40,13 @@ def test_each_off_policy_arm_builds_what_its_name_says(arm, method):
         assert not hasattr(model, "esa"), "plain SB3"
     elif arm == "td3_sine":
         assert model.esa == EsaConfig.off_policy(learning_rate=0.0)
-        assert model.esa_execute == "probe"
+        assert isinstance(model, ExecutedProbe)
     else:
         assert model.esa == EsaConfig.off_policy(fade=SEEKING_FADE)
-        shift = {"placebo": "placebo", "qgrad": "gradient", "esa": "esc"}[arm.split("_")[-1]]
-        assert model.esa_shift == shift
-        assert model.esa_anchor == ("mean" if "_mean_" in arm else "sample")
-        assert model.esa_execute == "shifted"
+        control = {"placebo": "placebo", "qgrad": "gradient", "esa": None}[arm.split("_")[-1]]
+        assert model.esa_control == control
+        assert isinstance(model, MeanAnchor) == ("_mean_" in arm)
+        assert not isinstance(model, ExecutedProbe)
 
 
 def test_the_matched_noise_has_the_variance_of_the_executed_sinusoid():
