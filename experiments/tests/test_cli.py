@@ -20,10 +20,10 @@ def run_cli(tmp_path, capsys, *argv):
             f"expected a study in {list(STUDY_NAMES)}, got 'nope'",
         ),
         (["plot", "nope"], "expected a study in"),
-        (["run", "mujoco", "--methods", "ppo", "td3"], "unknown methods ['td3']"),
-        (["run", "mujoco", "--methods", "ppo,bogus"], "unknown methods ['bogus']"),
-        (["run", "mujoco", "--envs", "CartPole-v1"], "unknown envs ['CartPole-v1']"),
-        (["run", "ablation", "--envs", "Hopper-v5"], "unknown envs ['Hopper-v5']"),
+        (["run", "paper_figures", "--methods", "ppo", "td3"], "unknown methods ['td3']"),
+        (["run", "paper_figures", "--methods", "ppo,bogus"], "unknown methods ['bogus']"),
+        (["run", "paper_figures", "--envs", "CartPole-v1"], "unknown envs ['CartPole-v1']"),
+        (["run", "paper_ablations", "--envs", "Hopper-v5"], "unknown envs ['Hopper-v5']"),
         (
             ["run", "example1", "--seeds", "4-1"],
             "--seeds: expected a range low-high with low <= high",
@@ -42,7 +42,7 @@ def test_bad_input_is_rejected(tmp_path, capsys, argv, message):
 
 
 def test_plot_before_running_is_a_clear_error(tmp_path, capsys):
-    code, out = run_cli(tmp_path, capsys, "plot", "mujoco")
+    code, out = run_cli(tmp_path, capsys, "plot", "paper_figures")
     assert code == 2 and "run the study first" in out
 
 
@@ -51,7 +51,7 @@ def test_dry_run_lists_the_selection(tmp_path, capsys):
         tmp_path,
         capsys,
         "run",
-        "mujoco",
+        "paper_figures",
         "--dry-run",
         "--seeds",
         "0-1",
@@ -71,7 +71,7 @@ def test_dry_run_lists_the_selection(tmp_path, capsys):
 def test_list_shows_every_study(tmp_path, capsys):
     code, out = run_cli(tmp_path, capsys, "list")
     assert code == 0
-    for name in ("example1", "mujoco", "ablation", "quadrotor"):
+    for name in STUDY_NAMES:
         assert f"{name}:" in out
 
 
@@ -96,12 +96,12 @@ def test_malformed_command_lines_exit_with_code_2(tmp_path, capsys, monkeypatch,
 
 def test_run_options_parse_into_the_run_command(tmp_path):
     cli = parse(
-        ["--root", str(tmp_path), "run", "mujoco", "--budget", "full", "--seeds", "0-4"]
+        ["--root", str(tmp_path), "run", "paper_figures", "--budget", "full", "--seeds", "0-4"]
         + ["--jobs", "2", "--methods", "ppo", "sac,td3", "--envs", "Hopper-v5", "--dry-run"]
     )
     assert cli.root == tmp_path
     assert cli.command == Run(
-        study="mujoco",
+        study="paper_figures",
         budget="full",
         seeds="0-4",
         jobs=2,
@@ -109,7 +109,7 @@ def test_run_options_parse_into_the_run_command(tmp_path):
         envs=("Hopper-v5",),
         dry_run=True,
     )
-    assert parse(["plot", "mujoco"]).command == Plot(study="mujoco", budget="smoke")
+    assert parse(["plot", "paper_figures"]).command == Plot(study="paper_figures", budget="smoke")
 
 
 def test_help_documents_every_run_option(capsys, monkeypatch):
@@ -120,4 +120,4 @@ def test_help_documents_every_run_option(capsys, monkeypatch):
     text = " ".join(capsys.readouterr().out.split())
     for flag in ("--budget", "--seeds", "--jobs", "--methods", "--envs", "--dry-run"):
         assert flag in text
-    assert "one of example1, mujoco" in text and "Parallel worker processes" in text
+    assert "one of example1, confirmation" in text and "Parallel worker processes" in text

@@ -135,9 +135,13 @@ def test_smoke_budget(name, root, capsys):
     assert {p: p.stat().st_mtime_ns for p in store.runs_dir.iterdir()} == mtimes
 
 
-def test_quadrotor_smoke_flights(root):
-    flights = RunStore("quadrotor", "smoke", root).load("trajectory")
-    assert set(flights.env) == {"Quadrotor-circle", "Quadrotor-eight"}
+def test_paper_figures_smoke_flights(root):
+    """Figure 4: the quadrotor's PPO arms fly their final policy (the smoke test ran them)."""
+    if not RunStore("paper_figures", "smoke", root).runs_dir.is_dir():
+        pytest.skip("the paper_figures smoke run was not selected")
+    flights = RunStore("paper_figures", "smoke", root).load("trajectory")
+    assert set(flights.env) == {"Quadrotor-eight"}
+    assert set(flights.method) == {"ppo", "ppo_esa"}
     assert np.isfinite(
         flights[["x", "y", "z", "target_x", "target_y", "target_z"]].to_numpy()
     ).all()

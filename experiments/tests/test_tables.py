@@ -58,20 +58,22 @@ def test_markdown_table():
 
 
 def test_update_results_replaces_only_its_section(tmp_path):
-    store = RunStore("mujoco", "full", tmp_path)
+    store = RunStore("paper_figures", "full", tmp_path)
     (tmp_path / "RESULTS.md").write_text("# Results\n\nprose stays\n")
-    update_results("mujoco", "first", store)
+    update_results("paper_figures", "first", store)
     update_results("example1", "other", RunStore("example1", "full", tmp_path))
-    update_results("mujoco", "second", store)
+    update_results("paper_figures", "second", store)
     text = (tmp_path / "RESULTS.md").read_text()
     assert "prose stays" in text and "other" in text
     assert "second" in text and "first" not in text
-    assert text.count("<!-- BEGIN mujoco -->") == 1
+    assert text.count("<!-- BEGIN paper_figures -->") == 1
 
 
 def test_smoke_sections_never_touch_results_md(tmp_path):
-    target = update_results("mujoco", "smoke text", RunStore("mujoco", "smoke", tmp_path))
-    assert target == tmp_path / "results-smoke" / "mujoco" / "section.md"
+    target = update_results(
+        "paper_figures", "smoke text", RunStore("paper_figures", "smoke", tmp_path)
+    )
+    assert target == tmp_path / "results-smoke" / "paper_figures" / "section.md"
     assert not (tmp_path / "RESULTS.md").exists()
 
 
@@ -79,3 +81,8 @@ def test_smoke_sections_never_touch_results_md(tmp_path):
 def test_threshold_never_reached(returns):
     table = summary(curve("ppo", 0, returns, 1.0), ["E"], ["ppo"], {}, {"E": 10.0}, {})
     assert table.iloc[0]["steps to threshold"] == "not reached (0/1)"
+
+
+def test_a_pipe_inside_a_cell_is_escaped():
+    text = to_markdown(pd.DataFrame({"KL(b || pi)": ["|v|"]}))
+    assert text == "| KL(b \\|\\| pi) |\n|---|\n| \\|v\\| |"

@@ -4,9 +4,9 @@ Examples::
 
     python -m esa_experiments list
     python -m esa_experiments run example1 --budget full
-    python -m esa_experiments run mujoco --budget full --seeds 0-4 --jobs 2
-    python -m esa_experiments run mujoco --budget smoke --methods ppo ppo_esa --envs Hopper-v5
-    python -m esa_experiments plot mujoco --budget full
+    python -m esa_experiments run paper_figures --budget full --seeds 0-4 --jobs 2
+    python -m esa_experiments run paper_figures --methods ppo ppo_esa --envs Hopper-v5
+    python -m esa_experiments plot paper_figures --budget full
 """
 
 from __future__ import annotations

@@ -13,6 +13,8 @@ import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import pandas as pd
+
 from esa_experiments.algorithms import BASELINE_OF, LABELS
 from esa_experiments.plotting import Panel, learning_curves
 from esa_experiments.runs import RunStore, atomic_write_text
@@ -47,6 +49,9 @@ def rl_section(
     suptitle: str = "",
     ncols: int = 2,
     per_seed: bool = False,
+    frame: pd.DataFrame | None = None,
+    log: pd.DataFrame | None = None,
+    inline: bool = True,
 ) -> str:
     """Writes a study's learning-curve PNG and summary table; returns its Markdown.
 
@@ -61,9 +66,14 @@ def rl_section(
         suptitle: figure title.
         ncols: subplots per row.
         per_seed: also draw every seed's curve (thin lines).
+        frame: the runs to report (default: the store's; a study that reads another
+            study's runs passes them all).
+        log: their training logs (default: the store's).
+        inline: put the tables in the returned Markdown; else link ``table.md``, which
+            holds them either way (keeps RESULTS.md short for studies with many arms).
     """
     labels = {**LABELS, **(labels or {})}
-    frame = store.load()
+    frame = store.load() if frame is None else frame
     figure = learning_curves(
         frame,
         panels,
@@ -75,13 +85,19 @@ def rl_section(
     )
     thresholds = {env: TASKS[env].threshold for env in envs}
     table = to_markdown(summary(frame, envs, methods, labels, thresholds, baselines or BASELINE_OF))
-    stats = exploration_stats(store.load("log"), envs, methods, labels)
+    stats = exploration_stats(store.load("log") if log is None else log, envs, methods, labels)
     if not stats.empty:
         table += (
             "\n\nWhat the exploration add-ons did (training-log means, mean ± SE over seeds):"
             f"\n\n{to_markdown(stats)}"
         )
-    atomic_write_text(store.artifact("table.md"), table + "\n")
+    path = store.artifact("table.md")
+    atomic_write_text(path, table + "\n")
+    if not inline:
+        table = (
+            f"Per arm and env (final return, AUC, steps to threshold, training time, what ESA "
+            f"did): [{path.name}]({store.relative(path)})."
+        )
     return f"![{store.study}]({store.relative(figure)})\n\n{table}\n"
 
 

@@ -68,7 +68,7 @@ class RunSpec:
     """One unit of work of a study.
 
     Attributes:
-        study: study name (``example1``, ``mujoco``, ...).
+        study: study name (``example1``, ``paper_figures``, ...).
         env: environment (or objective) name; part of the file name.
         method: method name; part of the file name.
         seed: random seed.

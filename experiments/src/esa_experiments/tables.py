@@ -10,7 +10,7 @@ Per (env, method), over seeds (mean +- standard error):
 * train s: training wall-clock seconds, evaluation excluded;
 * overhead vs base: mean training wall-clock and CPU time of an ESA method
   divided by those of its base method on the same env (``ppo_esa`` / ``ppo``,
-  ``sac_esa`` / ``sac``; the ablation compares every variant with PPO).
+  ``sac_esa`` / ``sac``; the ablations compare every variant with PPO).
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def summary(
 EXPLORATION_STATS = {
     "esa/mean_abs_shift": "mean abs(applied - sampled action)",
     "esa/shift_over_std": "mean abs(v) / sigma",
-    "esa/kl_per_dim": "KL(behaviour || pi) per dim",
+    "esa/kl_per_dim": "KL(behaviour ‖ pi) per dim",
     "esa/clipped_fraction": "fraction of steps clipped",
     "esa/active": "ESA active (gate open)",
     "esa/gate_correlation": "gate: critic rank correlation",
@@ -139,9 +139,14 @@ def exploration_stats(
     return pd.DataFrame(rows)
 
 
+def _cell(value: object) -> str:
+    # A bare "|" inside a cell ends the cell: escaped, it renders as itself (GFM, mkdocs).
+    return str(value).replace("|", "\\|")
+
+
 def to_markdown(table: pd.DataFrame) -> str:
-    """A GitHub-flavoured Markdown table (no extra dependency)."""
-    header = "| " + " | ".join(map(str, table.columns)) + " |"
+    """A GitHub-flavoured Markdown table (no extra dependency); ``|`` in a cell is escaped."""
+    header = "| " + " | ".join(map(_cell, table.columns)) + " |"
     rule = "|" + "---|" * len(table.columns)
-    body = ["| " + " | ".join(map(str, row)) + " |" for row in table.itertuples(index=False)]
+    body = ["| " + " | ".join(map(_cell, row)) + " |" for row in table.itertuples(index=False)]
     return "\n".join([header, rule, *body])

@@ -1,6 +1,6 @@
 """One reinforcement-learning run: build env and model, train with periodic evaluation.
 
-Shared by the ``mujoco``, ``ablation`` and ``quadrotor`` studies. A run's
+Shared by every RL study. A run's
 ``RunSpec.config`` holds everything (``total_steps``, ``eval_every``,
 ``eval_episodes``, ``hyperparams``), so the run is reproducible from its sidecar.
 

@@ -209,3 +209,41 @@ def diagnostics_table(
                 )
             rows.append(row)
     return pd.DataFrame(rows)
+
+
+VERDICT_COLUMNS = ("mean AUC (arm / reference)", "P(arm better) [95% CI]", "Holm p", "verdict")
+"""The columns of :func:`verdict_table` that :func:`compact_table` puts in one cell."""
+
+
+def _brief(row: pd.Series, suffix: str) -> str:
+    """One metric's verdict in a cell: mean AUCs, P(arm better) with its CI, Holm p, verdict."""
+    auc, p_better, holm_p, verdict = (row[f"{column}{suffix}"] for column in VERDICT_COLUMNS)
+    arm, reference = (float(x) for x in str(auc).split(" / "))
+    return f"{arm:.0f} vs {reference:.0f}, P = {p_better}, p = {holm_p}: {verdict}"
+
+
+def compact_table(primary: pd.DataFrame, whole: pd.DataFrame) -> pd.DataFrame:
+    """Both metrics' verdicts side by side, one row per (env, arm, reference).
+
+    Args:
+        primary: :func:`verdict_table` on the first third of the budget.
+        whole: :func:`verdict_table` on the whole curve.
+
+    Returns:
+        Columns env, arm, against, seeds and one cell per metric (mean AUC of arm and
+        reference, ``P(arm better)`` with its CI, Holm p, verdict); empty if either is.
+    """
+    if primary.empty or whole.empty:
+        return pd.DataFrame()
+    keys = ["family", "env", "method", "against", "seeds"]
+    merged = primary.merge(whole, on=keys, suffixes=(" first", " whole"))
+    return pd.DataFrame(
+        {
+            "env": merged.env,
+            "arm": merged.method,
+            "against": merged.against,
+            "seeds": merged.seeds,
+            "AUC over the first third (primary)": merged.apply(_brief, axis=1, args=(" first",)),
+            "AUC over the whole curve": merged.apply(_brief, axis=1, args=(" whole",)),
+        }
+    )

@@ -25,15 +25,16 @@ from esa_experiments.runs import RunResult, RunSpec, RunStore
 
 STUDY_NAMES = (
     "example1",
-    "mujoco",
-    "ablation",
-    "quadrotor",
     "confirmation",
     "seeking_offline",
     "seeking",
     "zoo_baselines",
     "paper_regime",
+    "paper_figures",
+    "paper_ablations",
 )
+"""The live studies. Superseded ones left the tree (their code is in the history, their
+committed results and provenance stay under ``results/``; RESULTS.md names both)."""
 
 
 class Study(Protocol):
