@@ -4,8 +4,10 @@ Trains a sample of the arms of the studies (the confirmation campaign, E1 and E2
 quadratic and Q-network critics, target mode, gradient controls, placebo, off-policy ESA,
 the executed probe, the mean anchor) for a few rollouts on InvertedPendulum-v5, each built
 as its study builds it (``esa_experiments.algorithms``), and prints a sha256 of the policy's
-and critic's parameters and the evaluation table. Run it before and after a change of the
-drop-ins: equal digests on the same machine mean the change kept every bit.
+and critic's parameters and the evaluation table, then one of the policy and the evaluation
+table alone. Run it before and after a change of the drop-ins: equal digests on the same
+machine mean the change kept every bit (the second: every bit of what the policy learned,
+for a change that touches only the critic).
 
 Usage::
 
@@ -65,26 +67,30 @@ ARMS = (
 )
 
 
-def digest(arm: Arm, seed: int = 0) -> str:
-    """sha256 (16 hex digits) of one short run's parameters and evaluation table."""
+def digest(arm: Arm, seed: int = 0) -> tuple[str, str]:
+    """sha256s (16 hex digits) of one short run: everything, and the policy and evaluation."""
     overrides = None if arm.kappa is None else {"trust_region": arm.kappa}
     spec = rl_spec("fingerprint", ENV, arm.method, seed, "smoke", BUDGET, esa_overrides=overrides)
-    h = hashlib.sha256()
+    whole, policy = hashlib.sha256(), hashlib.sha256()
     with trained(spec, lambda _: None) as (result, model):
-        for module in (model.policy, getattr(model, "esa_head", None)):
-            if module is not None:
-                for p in module.parameters():
-                    h.update(p.detach().cpu().numpy().tobytes())
         columns = ["step", "return_mean", "length_mean", "train_episodes", "train_return_sum"]
-        h.update(result.frame[columns].to_numpy().tobytes())
-    return h.hexdigest()[:16]
+        table = result.frame[columns].to_numpy().tobytes()
+        for p in model.policy.parameters():
+            for h in (whole, policy):
+                h.update(p.detach().cpu().numpy().tobytes())
+        head = getattr(model, "esa_head", None)
+        for p in head.parameters() if head is not None else ():
+            whole.update(p.detach().cpu().numpy().tobytes())
+        whole.update(table)
+        policy.update(table)
+    return whole.hexdigest()[:16], policy.hexdigest()[:16]
 
 
 def main() -> None:
     """Prints one digest per arm."""
     th.set_num_threads(1)
     for arm in ARMS:
-        print(f"{arm.method:32s} {digest(arm)}", flush=True)
+        print(f"{arm.method:32s} {'  '.join(digest(arm))}", flush=True)
 
 
 if __name__ == "__main__":

@@ -81,7 +81,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
     esa_head: nn.Module
     # Defaults until training (or a load) sets them; the scaling is read before _setup_model
     # when a model is loaded with an env (its session config is checked).
-    _esa_scale: tuple[np.ndarray, np.ndarray] | None = None
+    _esa_scale: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
     _esa_head_fitted = False
     _esa_active = False
     _esa_steps = 0
@@ -128,19 +128,24 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         return None, None
 
     def _esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        low, high = super()._esa_env_bounds()
-        center, half_width = self._esa_scaling()
-        return (low - center) / half_width, (high - center) / half_width
+        return self._esa_scaled()[2:]
 
     def _esa_scaling(self) -> tuple[np.ndarray, np.ndarray]:
         """Center and half-width mapping the Box to [-1, 1] (0 and 1 where a side is open)."""
+        return self._esa_scaled()[:2]
+
+    def _esa_scaled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Center, half-width and the Box's bounds in ESA units, computed once per space."""
         if self._esa_scale is None:
-            box = self._esa_box()
-            low, high = box.low.reshape(-1), box.high.reshape(-1)
+            low, high = super()._esa_env_bounds()
             bounded = np.isfinite(low) & np.isfinite(high)
+            center = np.where(bounded, (high + low) / 2, 0.0)
+            half_width = np.where(bounded, (high - low) / 2, 1.0)
             self._esa_scale = (
-                np.where(bounded, (high + low) / 2, 0.0),
-                np.where(bounded, (high - low) / 2, 1.0),
+                center,
+                half_width,
+                (low - center) / half_width,
+                (high - center) / half_width,
             )
         return self._esa_scale
 
@@ -298,11 +303,15 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         """The gate on the new rollout, PPO's update, then the critic's fit.
 
         The update has the decoupled objective; the critic's fit draws from generators of its
-        own, so PPO's random draws are SB3's.
+        own, so PPO's random draws are SB3's. Once the fade is over, nothing of this
+        ``learn()`` probes the critic again, so it is neither scored nor fitted.
         """
-        self._check_gate()
+        probed_again = self._esa_strength() > 0.0
+        if probed_again:
+            self._check_gate()
         super().train()
-        self.logger.record("esa/head_loss", self._fit_critic())
+        if probed_again:
+            self.logger.record("esa/head_loss", self._fit_critic())
 
     def _fit_critic(self) -> float:
         """Fits the critic on the kept rollouts; returns the mean loss."""
