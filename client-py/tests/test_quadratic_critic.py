@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from esa_client import EsaClient, EsaConfig, QuadraticCritic
@@ -194,3 +195,17 @@ def test_esappo_hands_the_engine_the_quadratic_heads_closed_form(monkeypatch):
     model.esa_close()
     assert calls[0] > 100, calls
     assert worst[0] < 1e-6, worst
+
+
+@pytest.mark.parametrize(("features", "dim", "rows"), [(4, 1, 1), (11, 3, 8), (376, 17, 256)])
+def test_the_heads_coefficients_are_its_networks_bit_for_bit(features, dim, rows):
+    # coefficients() skips the module calls; the same kernels must give the same bits.
+    head = QuadraticHead(features, dim)
+    x, z = th.randn(rows, features), th.randn(rows, dim)
+    raw = head.net(x)
+    w, u = head.coefficients(x)
+    assert th.equal(w, raw[:, :dim]) and th.equal(u, -th.nn.functional.softplus(raw[:, dim:]))
+    ours = th.autograd.grad(head(x, z).sum(), list(head.parameters()))
+    plain = (raw[:, :dim] * z + (-th.nn.functional.softplus(raw[:, dim:])) * (z * z - 1)).sum()
+    theirs = th.autograd.grad(plain, list(head.parameters()))
+    assert all(th.equal(a, b) for a, b in zip(ours, theirs, strict=True))
