@@ -125,6 +125,7 @@ pub async fn create_sessions(
         let request = pb::CreateSessionRequest {
             session_id: format!("{prefix}-{i}"),
             config: Some(session_config(dim)),
+            progress: None,
         };
         ids.push(client.create_session(request).await?.session_id);
     }

@@ -490,6 +490,7 @@ async fn start(
                 grpc.create_session(pb::CreateSessionRequest {
                     session_id: id.clone(),
                     config: Some(session_config(dim)),
+                    progress: None,
                 })
                 .await?;
                 shared.recovery_calls.fetch_add(1, Ordering::Relaxed);
@@ -642,6 +643,7 @@ async fn create_big_sessions(addr: SocketAddr) -> (Vec<String>, String) {
                     action_dim: 4096,
                     ..session_config(1)
                 }),
+                progress: None,
             })
             .await;
         match answer {

@@ -213,11 +213,11 @@ def test_a_step_out_of_turn_is_a_step_mismatch_one_call_late(native):
 
 
 @pytest.mark.parametrize("kind", sorted(CRITICS))
-def test_a_broken_exchange_restarts_every_session(native, monkeypatch, kind):
-    batch = native.create_batch(CONFIG, N, use_stream=True)
+def test_a_lost_answer_of_an_applied_step_changes_nothing(native, monkeypatch, kind):
+    batch, twin = (native.create_batch(CONFIG, N, use_stream=True) for _ in "ab")
     for actions, scales, critic, starts in script(5, seed=5):
-        batch.step(actions, CRITICS[kind](critic), starts, action_scales=scales)
-    episodes = [s.episodes_completed for s in batch.states()]
+        for b in (batch, twin):
+            b.step(actions, CRITICS[kind](critic), starts, action_scales=scales)
     ahead = batch._ahead_batch
     receive = ahead.receive_step
     calls = []
@@ -231,15 +231,20 @@ def test_a_broken_exchange_restarts_every_session(native, monkeypatch, kind):
 
     monkeypatch.setattr(ahead, "receive_step", broken)
     sent, _, sent_critic, _ = next(script(1, seed=6))
-    batch.step(sent, CRITICS[kind](sent_critic))  # sends step 5
+    for b in (batch, twin):
+        b.step(sent, CRITICS[kind](sent_critic))  # sends step 5
     actions, scales, critic, _ = next(script(1, seed=7))
-    # Whether step 5 was applied is unknown: every session starts over with this step.
-    _, applied = batch.step(actions, CRITICS[kind](critic), action_scales=scales)
-    np.testing.assert_array_equal(applied, np.clip(actions, -1.0, 1.0))
-    states = batch.states()
-    assert [s.step for s in states] == [1] * N
-    assert [s.episodes_completed for s in states] == [e + 1 for e in episodes]
-    batch.close()
+    # The sessions' states say that step 5 was applied: its shifts are theirs, and the batch
+    # goes on as the one whose answer arrived.
+    applied = [
+        b.step(actions, CRITICS[kind](critic), action_scales=scales)[1] for b in (batch, twin)
+    ]
+    np.testing.assert_array_equal(*applied)
+    assert comparable(batch.states()) == comparable(twin.states())
+    assert [s.step for s in batch.states()] == [7] * N
+    assert batch.sessions_restored == 0
+    for b in (batch, twin):
+        b.close()
 
 
 def test_step_ahead_refuses_bad_configs_and_arrays():

@@ -81,6 +81,16 @@ impl Client {
         self.block_on(self.client.create_session(session_id, config))
     }
 
+    /// CreateSession resuming a lost session's progress ([`crate::Client::resume_session`]).
+    pub fn resume_session(
+        &self,
+        session_id: String,
+        config: pb::SessionConfig,
+        progress: pb::SessionProgress,
+    ) -> Result<String> {
+        self.block_on(self.client.resume_session(session_id, config, progress))
+    }
+
     /// GetSession.
     pub fn get_session(&self, session_id: String) -> Result<pb::GetSessionResponse> {
         self.block_on(self.client.get_session(session_id))

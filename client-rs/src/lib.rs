@@ -276,9 +276,33 @@ impl Client {
         session_id: impl Into<String>,
         config: pb::SessionConfig,
     ) -> Result<String> {
+        self.create(session_id.into(), config, None).await
+    }
+
+    /// CreateSession of a session the server lost (a restart without its state file, a crash,
+    /// an expiry): it starts an episode with `progress`, the episode count and mean square it had
+    /// (the last batch answer's, [`pb::ProbeBatchResponse::episodes_completed`] and
+    /// [`pb::ProbeBatchResponse::response_mean_squares`], or a GetSession's). An existing session
+    /// with the same id and config is kept as it is. Returns the id.
+    pub async fn resume_session(
+        &self,
+        session_id: impl Into<String>,
+        config: pb::SessionConfig,
+        progress: pb::SessionProgress,
+    ) -> Result<String> {
+        self.create(session_id.into(), config, Some(progress)).await
+    }
+
+    async fn create(
+        &self,
+        session_id: String,
+        config: pb::SessionConfig,
+        progress: Option<pb::SessionProgress>,
+    ) -> Result<String> {
         let request = pb::CreateSessionRequest {
-            session_id: session_id.into(),
+            session_id,
             config: Some(config),
+            progress,
         };
         let response = self
             .call(request, |mut s, r| async move { s.create_session(r).await })

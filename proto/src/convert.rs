@@ -2,7 +2,7 @@
 //! serves the contract (the server, the in-process engine). Values are copied as sent;
 //! validation is the core's job (`SessionConfig::validate`).
 
-use esa_core::{Session, SessionConfig};
+use esa_core::{CoreError, Session, SessionConfig};
 
 use crate::v1;
 
@@ -63,3 +63,36 @@ pub fn session_snapshot(session: &Session) -> v1::GetSessionResponse {
         response_mean_square: session.response_mean_square(),
     }
 }
+
+/// The session a CreateSession asks for: a new one, or with `progress` one that resumes a lost
+/// session's episode count and mean square (`Session::resume`).
+pub fn new_session(
+    config: SessionConfig,
+    progress: Option<v1::SessionProgress>,
+) -> Result<Session, CoreError> {
+    match progress {
+        None => Session::new(config),
+        Some(p) => Session::resume(config, p.episodes_completed, p.response_mean_square),
+    }
+}
+
+/// What a batch answer carries of each session's progress: the completed episodes, and the mean
+/// squares with -1 for an unset one (empty when no session normalizes its response).
+pub fn batch_progress<S: std::ops::Deref<Target = Session>>(
+    sessions: &[S],
+) -> (Vec<u64>, Vec<f64>) {
+    let episodes = sessions.iter().map(|s| s.episodes_completed()).collect();
+    let normalizing = sessions.iter().any(|s| s.normalizes_response());
+    let mean_squares = if normalizing {
+        sessions
+            .iter()
+            .map(|s| s.response_mean_square().unwrap_or(UNSET_MEAN_SQUARE))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    (episodes, mean_squares)
+}
+
+/// How a batch answer writes an unset mean square (a set one is never negative).
+pub const UNSET_MEAN_SQUARE: f64 = -1.0;

@@ -140,6 +140,17 @@ pub struct Cli {
     #[arg(long, value_name = "PID")]
     pub parent_pid: Option<u32>,
 
+    /// Keep every session across a graceful stop: on SIGTERM (SIGINT, SIGHUP,
+    /// or --parent-pid's exit) the server finishes the requests in flight and
+    /// writes every live session's full state to this file (mode 0600,
+    /// atomically); on start it restores the sessions the file holds (except
+    /// those idle past --session-ttl) and removes it. A corrupt, truncated,
+    /// foreign or newer-format file, or one that another user owns or others
+    /// can write, stops the start. The file holds what clients sent: keep it
+    /// private.
+    #[arg(long, value_name = "PATH")]
+    pub state_file: Option<PathBuf>,
+
     /// Remove this directory, with everything in it, when the server exits.
     /// Only the directory holding the --uds socket is accepted: it is meant
     /// for a launcher's private temporary directory.

@@ -27,6 +27,7 @@ pub fn grpc_code(err: &Error) -> tonic::Code {
         Code::ResourceExhausted => tonic::Code::ResourceExhausted,
         Code::FailedPrecondition => tonic::Code::FailedPrecondition,
         Code::Unauthenticated => tonic::Code::Unauthenticated,
+        Code::Unavailable => tonic::Code::Unavailable,
     }
 }
 
@@ -98,6 +99,7 @@ mod tests {
             Error::ResourceExhausted(String::new()),
             Error::Core(esa_core::CoreError::NoPendingProbe { step: 0 }),
             Error::Unauthenticated(String::new()),
+            Error::Unavailable(String::new()),
         ];
         for err in cases {
             assert_eq!(grpc_code(&err) as i32, err.code() as i32, "{err:?}");

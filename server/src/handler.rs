@@ -7,8 +7,8 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use esa_core::batch;
 use esa_core::fused_step::{self, CriticValues, LinearCritic, StepCritic};
-use esa_core::{batch, Session};
 use esa_store::unary;
 use prost::Message;
 use subtle::ConstantTimeEq as _;
@@ -22,6 +22,7 @@ use crate::pb::step_stream_request::Kind as StreamRequest;
 use crate::pb::step_stream_response::Kind as StreamResponse;
 use crate::store::SessionStore;
 use crate::throttle::{Throttle, WARNING_PERIOD};
+use esa_proto::convert::{batch_progress, new_session};
 use esa_proto::Rpc;
 
 /// Handles the RPCs of `esa.v1.EsaService` against one session store.
@@ -110,7 +111,7 @@ impl EsaHandler {
         req: pb::CreateSessionRequest,
     ) -> Result<pb::CreateSessionResponse, Error> {
         self.observe(Rpc::CreateSession, || {
-            let session = Session::new(config_from_proto(req.config)?)?;
+            let session = new_session(config_from_proto(req.config)?, req.progress)?;
             let session_id = self.store.create(req.session_id, session)?;
             Ok(pb::CreateSessionResponse { session_id })
         })
@@ -267,7 +268,13 @@ impl EsaHandler {
                 &mut probes,
                 &mut actions,
             )?;
-            Ok(pb::ProbeBatchResponse { probes, actions })
+            let (episodes_completed, response_mean_squares) = batch_progress(sessions);
+            Ok(pb::ProbeBatchResponse {
+                probes,
+                actions,
+                episodes_completed,
+                response_mean_squares,
+            })
         })
     }
 
@@ -333,10 +340,13 @@ impl EsaHandler {
                 .iter()
                 .flat_map(|session| session.shift().iter().copied())
                 .collect();
+            let (episodes_completed, response_mean_squares) = batch_progress(sessions);
             Ok(pb::StepBatchResponse {
                 probes,
                 actions,
                 shifts,
+                episodes_completed,
+                response_mean_squares,
             })
         })
     }

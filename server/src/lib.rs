@@ -21,6 +21,7 @@ pub mod metrics;
 pub mod metrics_endpoint;
 pub mod resources;
 pub mod server;
+pub mod state_file;
 pub mod store;
 pub mod throttle;
 pub mod tls;

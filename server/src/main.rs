@@ -13,6 +13,7 @@ use clap::Parser;
 use esa_server::error::io_context;
 use esa_server::metrics_endpoint::serve_metrics;
 use esa_server::resources;
+use esa_server::state_file::StateFile;
 #[cfg(feature = "zenoh")]
 use esa_server::zenoh_transport::ZenohService;
 use esa_server::{Listener, StartError};
@@ -54,7 +55,23 @@ async fn run(cli: &Cli) -> Result<(), StartError> {
     for warning in cli.exposure_warnings(token.is_some()) {
         tracing::warn!("{warning}");
     }
+    let state_file = cli.state_file.as_deref().map(StateFile::open).transpose()?;
+    let loaded = match &state_file {
+        Some(file) => file.load()?,
+        None => None,
+    };
     let server = cli.server_builder(token, tls).build();
+    let handler = server.handler();
+    if let Some(loaded) = loaded {
+        let written_by = loaded.written_by.clone();
+        let restored = loaded.restore_into(handler.store())?;
+        tracing::info!(
+            sessions = restored.sessions,
+            expired = restored.expired,
+            written_by,
+            "restored the sessions of the state file"
+        );
+    }
     let listener = match &cli.uds {
         Some(path) => Listener::unix_with_mode(path, cli.uds_mode)?,
         None => Listener::tcp(cli.listen).await?,
@@ -75,15 +92,44 @@ async fn run(cli: &Cli) -> Result<(), StartError> {
     #[cfg(feature = "zenoh")]
     let zenoh = start_zenoh(cli, &server).await?;
     let shutdown = shutdown_signal(cli.parent_pid)?;
+    // Its sessions live in this process now: a crash must not bring back a state that clients
+    // have moved past.
+    if let Some(file) = &state_file {
+        file.remove()?;
+    }
     // The line launchers (tests, the Python client) wait for; it comes after
     // binding, so connecting as soon as it is read succeeds.
     announce(&format!("listening on {}", listener.address()?));
-    server.serve(listener, shutdown).await?;
+    let served = server.serve(listener, shutdown).await;
     #[cfg(feature = "zenoh")]
-    if let Some(service) = zenoh {
-        service.close().await?;
-    }
+    let closed = match zenoh {
+        Some(service) => service.close().await,
+        None => Ok(()),
+    };
+    // Written whatever stopped the transports: the sessions are intact either way.
+    let saved = match &state_file {
+        Some(file) => save_state(file, &handler),
+        None => Ok(()),
+    };
+    served?;
+    #[cfg(feature = "zenoh")]
+    closed?;
+    saved?;
     tracing::info!("stopped");
+    Ok(())
+}
+
+/// Lets the requests in flight finish, refuses later ones, and writes every live session to
+/// `file` (nothing is left half-written if that fails).
+fn save_state(file: &StateFile, handler: &esa_server::EsaHandler) -> Result<(), StartError> {
+    handler.store().freeze();
+    let (sessions, bytes) = file.save(handler.store().export())?;
+    tracing::info!(
+        sessions,
+        bytes,
+        path = %file.path().display(),
+        "wrote the state file"
+    );
     Ok(())
 }
 

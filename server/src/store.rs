@@ -20,9 +20,14 @@ use std::time::{Duration, Instant};
 
 use dashmap::mapref::entry::Entry as MapEntry;
 use dashmap::DashMap;
-use esa_core::{footprint, Session};
+use esa_core::{footprint, SavedSession, Session};
 use esa_store::{assign_id, check_same_config, check_session_limit, find, resolve_batch, Error};
-use parking_lot::{Mutex, MutexGuard};
+use parking_lot::{Mutex, MutexGuard, RwLock};
+
+/// Where the store's clock starts, in nanoseconds: not at 0, so that a session imported from a
+/// state file can have been used last before this store existed (its idle time carries over).
+/// 2^62 ns is about 146 years of idle time.
+const CLOCK_ORIGIN: u64 = 1 << 62;
 
 /// One stored session. parking_lot's mutex does not poison, so a panic in one
 /// request could never make a session unusable for the next.
@@ -60,6 +65,21 @@ pub struct SessionStore {
     max_sessions: usize,
     max_memory: usize,
     epoch: Instant,
+    /// True once [`SessionStore::freeze`] ran. Every request holds the read side while it uses
+    /// sessions, so freezing waits for the requests in flight and refuses the later ones.
+    frozen: RwLock<bool>,
+}
+
+/// One session as a state file holds it: its id, everything it holds, and how long it had been
+/// idle.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Exported {
+    /// The session id.
+    pub id: String,
+    /// Everything the session holds.
+    pub session: SavedSession,
+    /// Time since its last request.
+    pub idle: Duration,
 }
 
 impl SessionStore {
@@ -76,7 +96,79 @@ impl SessionStore {
             max_sessions,
             max_memory,
             epoch: Instant::now(),
+            frozen: RwLock::new(false),
         }
+    }
+
+    /// The idle-session TTL; `None` = never.
+    pub fn ttl(&self) -> Option<Duration> {
+        self.ttl_nanos.map(Duration::from_nanos)
+    }
+
+    /// Stops serving: waits for the requests that are using sessions, then refuses every later
+    /// one with UNAVAILABLE (nothing changed), so the sessions hold still for [`export`].
+    ///
+    /// [`export`]: SessionStore::export
+    pub fn freeze(&self) {
+        *self.frozen.write() = true;
+    }
+
+    /// Every live session (not expired), in no particular order, each saved under its lock as the
+    /// iterator reaches it, so that a writer holds one saved session at a time. Call it after
+    /// [`freeze`](SessionStore::freeze): then no request changes them meanwhile.
+    pub fn export(&self) -> impl Iterator<Item = Exported> + '_ {
+        let now = self.now();
+        let slots: Vec<(String, Arc<Slot>)> = self
+            .sessions
+            .iter()
+            .map(|entry| (entry.key().clone(), Arc::clone(entry.value())))
+            .collect();
+        slots
+            .into_iter()
+            .filter(move |(_, slot)| !self.is_expired(slot, now))
+            .map(move |(id, slot)| Exported {
+                session: slot.session.lock().save(),
+                idle: Duration::from_nanos(
+                    now.saturating_sub(slot.last_used.load(Ordering::Relaxed)),
+                ),
+                id,
+            })
+    }
+
+    /// Stores a session that a state file held, as if it had been used last `idle` ago: it
+    /// expires when its TTL has passed since then, and one idle for longer than the TTL already
+    /// is not stored (false). The id must be new here; the limits apply as to a created session.
+    pub fn import(&self, id: String, session: Session, idle: Duration) -> Result<bool, Error> {
+        esa_store::check_id(&id)?;
+        let cost = session_cost(&id, session.action_dim());
+        let last_used = self.now().saturating_sub(duration_nanos(idle));
+        if self.ttl_nanos.is_some_and(|ttl| duration_nanos(idle) > ttl) {
+            return Ok(false);
+        }
+        match self.sessions.entry(id) {
+            MapEntry::Vacant(vacant) => {
+                self.reserve(cost)?;
+                vacant.insert(Slot::new(session, last_used, cost));
+                Ok(true)
+            }
+            MapEntry::Occupied(occupied) => Err(Error::InvalidArgument(format!(
+                "session {:?} appears twice",
+                occupied.key()
+            ))),
+        }
+    }
+
+    /// The read side of the freeze gate, or UNAVAILABLE once the store is frozen.
+    fn open(&self) -> Result<parking_lot::RwLockReadGuard<'_, bool>, Error> {
+        let frozen = self.frozen.read();
+        if *frozen {
+            return Err(Error::Unavailable(
+                "the server is shutting down; retry: a server restarted with its --state-file \
+                 continues this session"
+                    .into(),
+            ));
+        }
+        Ok(frozen)
     }
 
     /// Number of sessions currently held (expired ones count until they are
@@ -105,6 +197,7 @@ impl SessionStore {
     /// its id returned when its config equals the new one; otherwise
     /// ALREADY_EXISTS.
     pub fn create(&self, id: String, session: Session) -> Result<String, Error> {
+        let _open = self.open()?;
         let id = assign_id(&id)?;
         let now = self.now();
         let cost = session_cost(&id, session.action_dim());
@@ -138,6 +231,7 @@ impl SessionStore {
         id: &str,
         f: impl FnOnce(&mut Session) -> Result<R, Error>,
     ) -> Result<R, Error> {
+        let _open = self.open()?;
         let slot = self.lookup(id)?;
         let mut session = slot.session.lock();
         f(&mut session)
@@ -152,6 +246,7 @@ impl SessionStore {
         ids: &[String],
         f: impl FnOnce(&mut [&mut Session]) -> Result<R, Error>,
     ) -> Result<R, Error> {
+        let _open = self.open()?;
         let now = self.now();
         let resolved = resolve_batch(ids, |id| self.live_slot(id, now), Arc::as_ptr)?;
         let (slots, order) = (resolved.items, resolved.order);
@@ -171,6 +266,7 @@ impl SessionStore {
 
     /// Removes the session `id`; NOT_FOUND when it does not exist or expired.
     pub fn close(&self, id: &str) -> Result<(), Error> {
+        let _open = self.open()?;
         let (_, slot) = find(id, |id| self.sessions.remove(id))?;
         self.release(&slot);
         if self.is_expired(&slot, self.now()) {
@@ -264,7 +360,7 @@ impl SessionStore {
     }
 
     fn now(&self) -> u64 {
-        duration_nanos(self.epoch.elapsed())
+        CLOCK_ORIGIN.saturating_add(duration_nanos(self.epoch.elapsed()))
     }
 }
 
@@ -376,6 +472,55 @@ mod tests {
         store.close("a").unwrap();
         store.create("c".into(), session()).unwrap();
         assert_eq!((store.live(), store.memory()), (2, 2 * cost));
+    }
+
+    #[test]
+    fn a_frozen_store_refuses_every_request_and_changes_nothing() {
+        let store = store_with(&["a", "b"]);
+        store.freeze();
+        let ids = ["a".to_owned(), "b".to_owned()];
+        let errors = [
+            store.create("c".into(), session()).unwrap_err(),
+            store.with_session("a", |_| Ok(())).unwrap_err(),
+            store.with_batch(&ids, |_| Ok(())).unwrap_err(),
+            store.close("a").unwrap_err(),
+        ];
+        for err in errors {
+            assert_eq!(err.code(), esa_store::Code::Unavailable);
+            assert!(err.to_string().contains("shutting down"), "{err}");
+        }
+        let mut exported: Vec<String> = store.export().map(|e| e.id).collect();
+        exported.sort();
+        assert_eq!(exported, ["a", "b"]);
+    }
+
+    #[test]
+    fn an_imported_session_keeps_its_state_and_its_idle_time() {
+        let ttl = Duration::from_secs(60);
+        let old = SessionStore::new(Some(ttl), 10, usize::MAX);
+        old.create("a".into(), session()).unwrap();
+        old.with_session("a", |s| {
+            s.end_episode();
+            Ok(())
+        })
+        .unwrap();
+        let [exported] = <[Exported; 1]>::try_from(old.export().collect::<Vec<_>>()).unwrap();
+        assert_eq!(exported.session.episodes_completed, 1);
+        let new = SessionStore::new(Some(ttl), 10, usize::MAX);
+        let restored = Session::restore(exported.session.clone()).unwrap();
+        let idle = Duration::from_secs(30);
+        assert!(new.import("a".into(), restored.clone(), idle).unwrap());
+        let [again] = <[Exported; 1]>::try_from(new.export().collect::<Vec<_>>()).unwrap();
+        assert!(again.idle >= idle && again.idle < ttl, "{:?}", again.idle);
+        assert_eq!(again.session, exported.session);
+        assert_eq!(new.memory(), session_cost("a", 1));
+        let err = new.import("a".into(), restored.clone(), idle).unwrap_err();
+        assert!(err.to_string().contains("twice"), "{err}");
+        // Past its TTL it stays dead, and costs nothing.
+        assert!(!new.import("b".into(), restored, ttl * 2).unwrap());
+        assert_eq!(new.live(), 1);
+        let err = new.with_session("b", |_| Ok(())).unwrap_err();
+        assert_eq!(err.code(), esa_store::Code::NotFound);
     }
 
     #[test]

@@ -99,6 +99,7 @@ fn handler() -> EsaHandler {
         let request = pb::CreateSessionRequest {
             session_id: (*id).into(),
             config: Some(config(dim)),
+            progress: None,
         };
         handler.create_session(request).expect("create");
     }
@@ -346,7 +347,8 @@ fn extreme_request() -> impl Strategy<Value = (Rpc, Vec<u8>)> {
             Rpc::CreateSession,
             pb::CreateSessionRequest {
                 session_id,
-                config: Some(config)
+                config: Some(config),
+                progress: None,
             }
             .encode_to_vec()
         )),

@@ -23,6 +23,9 @@ pub enum Code {
     ResourceExhausted = 8,
     /// Step mismatch, report without probe.
     FailedPrecondition = 9,
+    /// The server is shutting down: nothing changed, and the server that comes back (with its
+    /// state file) answers the same request.
+    Unavailable = 14,
     /// A required auth token is missing or wrong.
     Unauthenticated = 16,
 }
@@ -52,6 +55,9 @@ pub enum Error {
     /// A request message was begun but not completed in time.
     #[error("{0}")]
     DeadlineExceeded(String),
+    /// The server is shutting down and takes no more requests; nothing changed.
+    #[error("{0}")]
+    Unavailable(String),
     /// A session with this id exists with a different config.
     #[error(
         "session {0:?} already exists with a different config; \
@@ -108,6 +114,7 @@ impl Error {
             Error::ResourceExhausted(_) => Code::ResourceExhausted,
             Error::Unauthenticated(_) => Code::Unauthenticated,
             Error::DeadlineExceeded(_) => Code::DeadlineExceeded,
+            Error::Unavailable(_) => Code::Unavailable,
             Error::AlreadyExists(_) => Code::AlreadyExists,
             Error::Item { source, .. } => source.code(),
         }

@@ -181,6 +181,7 @@ fn core_and_batch_errors_keep_their_words_and_get_their_codes() {
         (Code::AlreadyExists, 6),
         (Code::ResourceExhausted, 8),
         (Code::FailedPrecondition, 9),
+        (Code::Unavailable, 14),
         (Code::Unauthenticated, 16),
     ] {
         assert_eq!(

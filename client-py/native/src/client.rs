@@ -131,17 +131,27 @@ impl GrpcClient {
         })
     }
 
-    /// CreateSession from an encoded `esa.v1.SessionConfig`; returns the id.
+    /// CreateSession from an encoded `esa.v1.SessionConfig` (resuming an encoded
+    /// `esa.v1.SessionProgress` when given); returns the id.
+    #[pyo3(signature = (session_id, config, progress = None))]
     fn create_session(
         &self,
         py: Python<'_>,
         session_id: String,
         config: &[u8],
+        progress: Option<&[u8]>,
     ) -> PyResult<String> {
         let config = pb::SessionConfig::decode(config)
             .map_err(|err| PyValueError::new_err(format!("config: {err}")))?;
+        let progress = progress
+            .map(pb::SessionProgress::decode)
+            .transpose()
+            .map_err(|err| PyValueError::new_err(format!("progress: {err}")))?;
         let remote = self.remote(py)?;
-        call(py, &remote, |r| r.create_session(session_id, config))
+        call(py, &remote, |r| match progress {
+            Some(progress) => r.resume_session(session_id, config, progress),
+            None => r.create_session(session_id, config),
+        })
     }
 
     /// GetSession: the encoded `esa.v1.GetSessionResponse`.
@@ -227,6 +237,8 @@ impl GrpcClient {
             dim,
             stream: use_stream.then(|| Mutex::new(None)),
             ahead: Mutex::new(None),
+            sent_ahead: Mutex::new(None),
+            progress: Mutex::new(None),
         }
     }
 
@@ -261,6 +273,12 @@ pub(crate) struct GrpcBatch {
     /// The steps sent ahead (`send_step_linear`): a StepStream on a thread of its own, started
     /// by the first.
     ahead: Mutex<Option<StreamThread>>,
+    /// The last step sent ahead, kept until its answer is read, so that a step whose answer the
+    /// wire lost can be sent again (`resend_step`) without the caller keeping its arrays.
+    sent_ahead: Mutex<Option<Step>>,
+    /// The sessions' progress in the last answer that carried it (episodes completed, mean
+    /// squares): what the client last saw, to resume sessions the server loses.
+    progress: Mutex<Option<(Vec<u64>, Vec<f64>)>>,
 }
 
 /// What a batch sends over its StepStream.
@@ -285,8 +303,10 @@ impl Exchange {
 }
 
 impl GrpcBatch {
-    /// Queues `step` for the batch's stream thread, started here when there is none.
+    /// Queues `step` for the batch's stream thread, started here when there is none, and keeps a
+    /// copy until its answer is read.
     fn send_ahead(&self, py: Python<'_>, step: Step) -> PyResult<()> {
+        *self.sent_ahead.lock() = Some(step.clone());
         let mut ahead = self.ahead.lock();
         let thread = match ahead.as_mut() {
             Some(thread) => thread,
@@ -381,10 +401,19 @@ impl GrpcBatch {
         })
     }
 
+    /// Keeps an answer's progress as what the client last saw of the sessions.
+    fn saw(&self, episodes: Vec<u64>, mean_squares: Vec<f64>) {
+        // An answer of an older server carries none: what was seen before still holds.
+        if episodes.len() == self.session_ids.len() {
+            *self.progress.lock() = Some((episodes, mean_squares));
+        }
+    }
+
     fn probe_answer<'py>(&self, py: Python<'py>, answer: Answer) -> PyResult<Bound<'py, PyTuple>> {
         let Answer::Probe(response) = answer else {
             return Err(out_of_order(py));
         };
+        self.saw(response.episodes_completed, response.response_mean_squares);
         shaped_tuple(
             py,
             [response.probes, response.actions],
@@ -550,6 +579,8 @@ impl GrpcBatch {
         let Answer::Step(response) = answer else {
             return Err(out_of_order(py));
         };
+        self.sent_ahead.lock().take();
+        self.saw(response.episodes_completed, response.response_mean_squares);
         shaped_tuple(
             py,
             [response.probes, response.actions, response.shifts],
@@ -558,11 +589,45 @@ impl GrpcBatch {
         )
     }
 
+    /// Sends the last step sent ahead again, on a new stream (its answer is read with
+    /// `receive_step`): for a step whose answer the wire lost and that the server did not apply.
+    /// A FAILED_PRECONDITION when no step waits for its answer.
+    fn resend_step(&self, py: Python<'_>) -> PyResult<()> {
+        let Some(step) = self.sent_ahead.lock().clone() else {
+            return Err(error_of(
+                py,
+                esa_client::Error::new(
+                    Code::FailedPrecondition,
+                    "no step sent ahead on this batch waits for its answer",
+                ),
+            ));
+        };
+        // Its answer, if the old stream still gave one, would be taken for the new step's.
+        let stale = self.ahead.lock().take();
+        py.detach(|| drop(stale));
+        self.send_ahead(py, step)
+    }
+
+    /// What the last answer that carried it said of each session: `(episodes_completed,
+    /// response_mean_squares)`, `uint64[N]` and `float64[N]` (empty when no session normalizes;
+    /// -1 where m is unset); None before any such answer.
+    fn progress<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyTuple>>> {
+        let Some((episodes, mean_squares)) = self.progress.lock().clone() else {
+            return Ok(None);
+        };
+        let arrays = [
+            episodes.into_pyarray(py).into_any(),
+            mean_squares.into_pyarray(py).into_any(),
+        ];
+        PyTuple::new(py, arrays).map(Some)
+    }
+
     /// Ends the batch's StepStream and its stream thread, if open (answers not read are
     /// dropped); the sessions stay. Idempotent.
     fn close(&self, py: Python<'_>) {
         let stream = self.stream.as_ref().and_then(|slot| slot.lock().take());
         let ahead = self.ahead.lock().take();
+        self.sent_ahead.lock().take();
         py.detach(|| drop((stream, ahead)));
     }
 

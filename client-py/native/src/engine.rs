@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use esa_core::batch;
 use esa_core::fused_step::{self, StepCritic};
 use esa_core::{Session, SessionConfig};
-use esa_proto::convert::session_snapshot;
+use esa_proto::convert::{new_session, session_snapshot};
 use esa_proto::v1 as pb;
 use esa_store::{unary, Error, Key, Sessions, Taken};
 
@@ -110,14 +110,16 @@ impl Engine {
     }
 
     /// Creates a session (a UUID id when `id` is `None` or empty), or returns the existing one with
-    /// the same id and an identical config (ALREADY_EXISTS for another config). The config is
-    /// validated first, then the id, then the limit, as the server does.
+    /// the same id and an identical config (ALREADY_EXISTS for another config). With `progress`,
+    /// a new session resumes it (CreateSession's `progress`). The config is validated first, then
+    /// the id, then the limit, as the server does.
     pub fn create_session(
         &mut self,
         id: Option<&str>,
         config: SessionConfig,
+        progress: Option<pb::SessionProgress>,
     ) -> Result<String, Error> {
-        let session = Session::new(config)?;
+        let session = new_session(config, progress)?;
         self.sessions.create(id.unwrap_or_default(), session)
     }
 

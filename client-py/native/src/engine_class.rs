@@ -130,17 +130,23 @@ impl Engine {
         self.lock(py).contains(session_id)
     }
 
-    /// Creates a session from an encoded `esa.v1.SessionConfig`; returns its id.
-    #[pyo3(signature = (session_id, config))]
+    /// Creates a session from an encoded `esa.v1.SessionConfig` (resuming an encoded
+    /// `esa.v1.SessionProgress` when given); returns its id.
+    #[pyo3(signature = (session_id, config, progress = None))]
     fn create_session(
         &self,
         py: Python<'_>,
         session_id: Option<&str>,
         config: &[u8],
+        progress: Option<&[u8]>,
     ) -> PyResult<String> {
         let config = decode_config(config).map_err(|err| engine_error(py, err))?;
+        let progress = progress
+            .map(decode_progress)
+            .transpose()
+            .map_err(|err| engine_error(py, err))?;
         self.lock(py)
-            .create_session(session_id, config)
+            .create_session(session_id, config, progress)
             .map_err(|err| engine_error(py, err))
     }
 
@@ -514,4 +520,13 @@ pub(crate) fn decode_config(bytes: &[u8]) -> Result<SessionConfig, Error> {
                 "config: expected an encoded esa.v1.SessionConfig message: {err}"
             ))
         })
+}
+
+/// An encoded `esa.v1.SessionProgress` (INVALID_ARGUMENT for bytes that are not one).
+pub(crate) fn decode_progress(bytes: &[u8]) -> Result<pb::SessionProgress, Error> {
+    pb::SessionProgress::decode(bytes).map_err(|err| {
+        Error::InvalidArgument(format!(
+            "progress: expected an encoded esa.v1.SessionProgress message: {err}"
+        ))
+    })
 }

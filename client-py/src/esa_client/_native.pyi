@@ -85,20 +85,25 @@ class Engine:
     def __contains__(self, session_id: str) -> bool:
         """Whether ``session_id`` names a live session."""
 
-    def create_session(self, session_id: str | None, config: bytes) -> str:
+    def create_session(
+        self, session_id: str | None, config: bytes, progress: bytes | None = None
+    ) -> str:
         """Creates a session (CreateSession) and returns its id.
 
         Args:
             session_id: 1 to 128 UTF-8 bytes; None or "" generates a UUID.
             config: An encoded ``esa.v1.SessionConfig`` (``SessionConfig.to_proto()
                 .SerializeToString()``).
+            progress: An encoded ``esa.v1.SessionProgress``: a new session resumes that
+                episode count and mean square (CreateSessionRequest.progress); None: none.
 
         Returns:
             The id. An existing id with an identical config returns that session.
 
         Raises:
-            EngineError: INVALID_ARGUMENT (undecodable or invalid config, malformed id),
-                ALREADY_EXISTS (same id, different config), RESOURCE_EXHAUSTED (limit).
+            EngineError: INVALID_ARGUMENT (undecodable or invalid config or progress,
+                malformed id), ALREADY_EXISTS (same id, different config),
+                RESOURCE_EXHAUSTED (limit).
         """
 
     def get_session(self, session_id: str) -> bytes:
@@ -583,6 +588,26 @@ class GrpcBatch:
                 (UNAVAILABLE when the stream broke: whether it was applied is unknown).
         """
 
+    def resend_step(self) -> None:
+        """Sends the last step sent ahead again, on a new stream; returns at once.
+
+        For a step whose answer the wire lost and that the server did not apply; read its
+        answer with :meth:`receive_step`.
+
+        Raises:
+            StatusError: FAILED_PRECONDITION when no step sent ahead waits for its answer.
+        """
+
+    def progress(
+        self,
+    ) -> tuple[npt.NDArray[np.uint64], npt.NDArray[np.float64]] | None:
+        """Each session's progress in the last answer that carried it (a probe's or a step's).
+
+        Returns:
+            ``(episodes_completed, response_mean_squares)``: uint64[N], and float64[N] with -1
+            where m is unset (empty when no session normalizes); None before such an answer.
+        """
+
     def close(self) -> None:
         """Ends the batch's ``StepStream``, if one is open; the sessions stay. Idempotent."""
 
@@ -671,8 +696,11 @@ class GrpcClient:
         key: bytes | None = None,
         domain: str | None = None,
     ) -> None: ...
-    def create_session(self, session_id: str, config: bytes) -> str:
-        """CreateSession with an encoded ``esa.v1.SessionConfig``; returns the id."""
+    def create_session(self, session_id: str, config: bytes, progress: bytes | None = None) -> str:
+        """CreateSession with an encoded ``esa.v1.SessionConfig``; returns the id.
+
+        ``progress``, an encoded ``esa.v1.SessionProgress``, resumes a lost session's.
+        """
 
     def get_session(self, session_id: str) -> bytes:
         """GetSession: the encoded ``esa.v1.GetSessionResponse``."""

@@ -28,7 +28,7 @@ from .errors import EsaError, ServerUnavailable, StatusCode
 from .reconnect import DEFAULT_RECONNECT_TIMEOUT, Reconnect, check_reconnect_timeout
 from .session import Session, SessionBatch, restore_sessions
 from .sidecar import ServerProcess
-from .state import SessionState, as_batch_configs
+from .state import SessionProgress, SessionState, as_batch_configs
 from .transports.base import Transport
 from .transports.grpc import GrpcTransport, TlsConfig
 
@@ -579,26 +579,37 @@ class EsaClient:
         )
 
     def restore_sessions(
-        self, ids: Sequence[str], configs: SessionConfig | Sequence[SessionConfig]
+        self,
+        ids: Sequence[str],
+        configs: SessionConfig | Sequence[SessionConfig],
+        progress: Sequence[SessionProgress | None] | None = None,
     ) -> int:
         """Recreates, under the same ids and configs, those sessions the server no longer has.
 
-        A session is lost when its server restarts or when it expires after ``--session-ttl``
-        idle seconds; afterwards every call for it raises ``SessionNotFound``. ESA state is
-        per episode, so a session recreated at the start of an episode behaves exactly like
-        the lost one would have: what is lost is the shift of the episode that was running,
-        the episode count (and with it the ``lr_decay`` and ``max_episodes`` progress) and
-        the response normalization's running mean square. Call this when a call raised
-        ``SessionNotFound``, then start a new episode (step 0, ``episode_start=True``).
+        A server stopped gracefully and started again with its ``--state-file`` keeps every
+        session; a session is lost when its server crashes (or restarts without the file) or
+        when it expires after ``--session-ttl`` idle seconds, and afterwards every call for
+        it raises ``SessionNotFound``. A recreated session starts an episode; with
+        ``progress`` it resumes the lost one's episode count (and with it the ``lr_decay`` and
+        ``max_episodes`` progress) and the response normalization's running mean square, so
+        that only the shift of the episode that was running is lost. A batch passes what its
+        last answer said (:meth:`SessionBatch.restore`); a snapshot (:meth:`Session.state`)
+        has it as ``state.progress``. Call this when a call raised ``SessionNotFound``, then
+        start a new episode (step 0, ``episode_start=True``).
 
         Args:
             ids: The session ids, e.g. ``batch.ids``.
             configs: One config for all, or one per id (e.g. ``batch.configs``).
+            progress: One per id, or None: the progress each recreated session resumes
+                (None for an item, or for all: a new session's, no episode completed).
 
         Returns:
             How many sessions were recreated (also added to :attr:`sessions_restored`).
+
+        Raises:
+            ValueError: ``progress`` does not have one item per id.
         """
-        restored = restore_sessions(self.transport, ids, configs)
+        restored = restore_sessions(self.transport, ids, configs, progress)
         self._count_restored(restored)
         return restored
 

@@ -19,12 +19,13 @@ runs in-process, over gRPC or over Zenoh (one server or N shards).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import NamedTuple, TypeVar
+from typing import NamedTuple, Protocol, TypeVar, cast, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
 
 from ._native import EngineError, StepAhead
+from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
 from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch, TypedErrors
 from .reconnect import Reconnect, RetriableErrors
@@ -32,6 +33,7 @@ from .state import (
     BoolArray,
     F64Array,
     I64Array,
+    SessionProgress,
     SessionState,
     as_batch_configs,
     check_array,
@@ -41,12 +43,13 @@ from .transports.base import (
     AheadBatch,
     BatchProbe,
     BatchReport,
+    BatchTransport,
     LinearCritic,
     QuadraticCritic,
     Transport,
 )
 
-__all__ = ["Session", "SessionBatch", "SessionState", "restore_sessions"]
+__all__ = ["Session", "SessionBatch", "SessionProgress", "SessionState", "restore_sessions"]
 
 _engine_errors = TypedErrors(EngineError)
 
@@ -63,23 +66,112 @@ def restore_sessions(
     transport: Transport,
     ids: Sequence[str],
     configs: SessionConfig | Sequence[SessionConfig],
+    progress: Sequence[SessionProgress | None] | None = None,
 ) -> int:
     """Recreates, under the same ids and configs, those sessions ``transport`` no longer has.
 
     See :meth:`esa_client.EsaClient.restore_sessions`.
 
+    Args:
+        transport: Where the sessions live.
+        ids: The session ids.
+        configs: One config for all, or one per id.
+        progress: Per id, the progress a recreated session resumes (None: a new session's).
+
     Returns:
         How many sessions were recreated.
+
+    Raises:
+        ValueError: ``progress`` does not have one item per id.
     """
     per_session = as_batch_configs(configs, len(ids))
+    resumed: Sequence[SessionProgress | None] = [None] * len(ids)
+    if progress is not None:
+        if len(progress) != len(ids):
+            raise ValueError(
+                f"expected one progress per session id ({len(ids)}), got {len(progress)}"
+            )
+        resumed = progress
     restored = 0
-    for session_id, config in zip(ids, per_session, strict=True):
+    for session_id, config, seen in zip(ids, per_session, resumed, strict=True):
         try:
             transport.get_session(session_id)
         except SessionNotFound:
-            transport.create_session(session_id, config.to_proto())
+            if seen is not None and isinstance(transport, _Resumes):
+                transport.resume_session(session_id, config.to_proto(), seen.to_proto())
+            else:
+                transport.create_session(session_id, config.to_proto())
             restored += 1
     return restored
+
+
+@runtime_checkable
+class _Resumes(Protocol):
+    """A transport that creates a session resuming a lost one's progress."""
+
+    def resume_session(
+        self, session_id: str, config: esa_pb2.SessionConfig, progress: esa_pb2.SessionProgress
+    ) -> str:
+        """``CreateSession`` with ``progress``; returns the id."""
+        ...
+
+
+@runtime_checkable
+class _SeesProgress(Protocol):
+    """A batch transport that keeps the sessions' progress of its last answer."""
+
+    def progress(self) -> list[SessionProgress] | None:
+        """Each session's progress as last seen; None before an answer carried it."""
+        ...
+
+
+@runtime_checkable
+class _Resends(Protocol):
+    """A batch that can send its last step sent ahead again (gRPC's StepStream)."""
+
+    def resend_step(self) -> None:
+        """Sends the step whose answer was lost again; its answer comes from ``receive_step``."""
+        ...
+
+    def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
+        """The oldest unanswered step's ``(probes, applied, shifts)``."""
+        ...
+
+
+def _seen_progress(batch: BatchTransport) -> list[SessionProgress] | None:
+    """The sessions' progress in the last answer ``batch`` read, if its transport keeps it."""
+    return batch.progress() if isinstance(batch, _SeesProgress) else None
+
+
+def _step_applied(
+    states: Sequence[SessionState],
+    sent: BatchProbe,
+    steps_before: I64Array,
+    seen: Sequence[SessionProgress] | None,
+) -> bool | None:
+    """Whether the server applied the fused step ``sent``, from its sessions' states now.
+
+    Applied, each session is at the step after the one sent (``sent.steps + 1``) with no probe
+    pending; not applied, at its step before (``steps_before``). The two coincide only for an
+    episode start right after a one-step episode: then the episode count tells them apart,
+    against the count ``seen`` in the answer before. None when the states fit neither, or do
+    not agree (a step is applied to all its sessions or to none).
+    """
+    verdicts: set[bool] = set()
+    for i, state in enumerate(states):
+        after, before = int(sent.steps[i]) + 1, int(steps_before[i])
+        if state.probe_pending or state.step not in (after, before):
+            return None
+        if after != before:
+            verdicts.add(state.step == after)
+            continue
+        if seen is None:
+            return None
+        episodes = seen[i].episodes_completed
+        if state.episodes_completed not in (episodes, episodes + 1):
+            return None
+        verdicts.add(state.episodes_completed == episodes + 1)
+    return verdicts.pop() if len(verdicts) == 1 else None
 
 
 def _check_quadratic(critic: QuadraticCritic, n: int, dim: int) -> None:
@@ -398,9 +490,11 @@ class SessionBatch:
         An error of a step sent ahead surfaces one call late: the next call (or :meth:`flush`)
         raises it, and nothing of that step was applied on the server, although its actions
         were returned. After a broken exchange (the server restarted, or the connection
-        dropped) whether the step was applied is unknown, so every session starts a new
-        episode at the next step (the running shifts are lost, as after a restart); with a
-        reconnect policy that happens within the call.
+        dropped), a reconnect policy asks the server within the call where the sessions
+        are: a step it applied is not sent again, one it did not is, and training goes on
+        bit for bit (:meth:`_resume_ahead`). Only sessions the server lost (a crash) start
+        a new episode at the next step, resuming their episode count and mean square.
+        Without a reconnect policy every session starts a new episode at the next step.
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
@@ -548,8 +642,8 @@ class SessionBatch:
         """The shifts ``v(t + 1)`` of the step in flight, or its error (see :meth:`step`).
 
         A refused step is undone here (its steps and episode starts are due again); after a
-        broken exchange every session restarts: :meth:`restore` (riding out the server's
-        absence with a reconnect policy) and zero shifts.
+        broken exchange a reconnect policy rides out the server's absence and continues where
+        the server is (:meth:`_resume_ahead`); without one every session restarts.
         """
         assert self._ahead is not None
         sent, self._ahead = self._ahead, None
@@ -565,11 +659,7 @@ class SessionBatch:
             self._next_starts = sent.starts_before
             raise
 
-        def attempt(_retrying: bool) -> F64Array:
-            self.restore()
-            return np.zeros((self.n, self.action_dim))
-
-        return self._reconnect.run(attempt)
+        return self._reconnect.run(lambda _: self._resume_ahead(sent))  # restart hook
 
     def _flush_ahead(self) -> None:
         """Reads the answer of a step sent ahead (raising its error), if one is in flight."""
@@ -771,10 +861,11 @@ class SessionBatch:
     def restore(self) -> int:
         """Recreates the sessions the server lost, and starts a new episode in every session.
 
-        For a :class:`SessionNotFound` after a server restart or a TTL expiry (see
-        :meth:`EsaClient.restore_sessions`: the shift of the running episode, the episode
-        count and the response's mean square of a lost session are gone). A deferred
-        report is dropped; the next probe starts step 0 everywhere.
+        For a :class:`SessionNotFound` after a server crash, a restart without its state
+        file, or a TTL expiry (see :meth:`EsaClient.restore_sessions`). A recreated session
+        resumes the episode count and the response's mean square that this batch last saw
+        in an answer; the shift of the running episode is gone. A deferred report is
+        dropped; the next probe starts step 0 everywhere.
 
         Returns:
             How many sessions were recreated.
@@ -785,13 +876,47 @@ class SessionBatch:
             self._ahead = None
             self._batch.close()
         self._shifts = np.zeros((self.n, self.action_dim))
-        restored = restore_sessions(self._transport, self.ids, self.configs)
+        progress = _seen_progress(self._batch)
+        restored = restore_sessions(self._transport, self.ids, self.configs, progress)
         self.sessions_restored += restored
         if self._on_restore is not None:
             self._on_restore(restored)
         self._steps[:] = 0
         self._next_starts[:] = True
         return restored
+
+    def _resume_ahead(self, sent: _InFlight) -> F64Array:
+        """The shifts ``v(t + 1)`` of the step sent ahead whose answer the wire lost.
+
+        The sessions' states tell whether the server applied the step (:func:`_step_applied`):
+        if it did, the shifts are theirs; if not, the same step goes again and its answer
+        gives them. So a server that kept its sessions (a restart with its state file, or a
+        cut connection) continues exactly, and no step is applied twice. When the server
+        lost the sessions, or their states fit neither case, every session restarts its
+        episode (:meth:`restore`) and the shifts are 0. Errors of the wire propagate, for
+        the reconnect policy to retry.
+        """
+        request, ahead = self._last_probe, cast(object, self._ahead_batch)
+        try:
+            states = [self._transport.get_session(i) for i in self.ids]
+        except SessionNotFound:
+            states = []
+        applied = None
+        if states and request is not None:
+            seen = _seen_progress(self._batch)
+            applied = _step_applied(states, request, sent.steps_before, seen)
+        if applied:
+            return np.stack([state.shift for state in states])
+        if applied is False and isinstance(ahead, _Resends):
+            ahead.resend_step()
+            try:
+                return ahead.receive_step()[2]
+            except RetriableErrors:
+                raise
+            except EsaError:
+                pass  # refused after all: the sessions restart below
+        self.restore()
+        return np.zeros((self.n, self.action_dim))
 
     def end_episode(self, indices: npt.ArrayLike | None = None) -> I64Array:
         """Ends the episodes of the given sessions now (one call each; default: all).

@@ -28,6 +28,63 @@ BoolArray = npt.NDArray[np.bool_]
 
 
 @dataclass(frozen=True)
+class SessionProgress:
+    """What a session keeps across episodes besides its config (``esa.v1.SessionProgress``).
+
+    The episode count (and with it the progress of ``lr_decay`` and ``max_episodes``) and the
+    response normalization's running mean square. Batch answers carry it for every session; a
+    session the server lost is recreated with the progress the client last saw
+    (:meth:`esa_client.EsaClient.restore_sessions`).
+
+    Attributes:
+        episodes_completed: Number of completed episodes e.
+        response_mean_square: The running mean square m (``normalize_response``); None while
+            unset.
+    """
+
+    episodes_completed: int
+    response_mean_square: float | None = None
+
+    def __post_init__(self) -> None:
+        """Checks the values as the server does."""
+        if not 0 <= self.episodes_completed < 2**64:
+            raise ValueError(
+                f"expected episodes_completed in [0, 2**64), got {self.episodes_completed}"
+            )
+        m = self.response_mean_square
+        if m is not None and not (np.isfinite(m) and m >= 0):
+            raise ValueError(f"expected a finite response_mean_square >= 0 or None, got {m}")
+
+    def to_proto(self) -> esa_pb2.SessionProgress:
+        """The wire form, ``esa.v1.SessionProgress``."""
+        message = esa_pb2.SessionProgress(episodes_completed=self.episodes_completed)
+        if self.response_mean_square is not None:
+            message.response_mean_square = self.response_mean_square
+        return message
+
+    @classmethod
+    def from_batch_answer(
+        cls, episodes: npt.ArrayLike, mean_squares: npt.ArrayLike
+    ) -> list[SessionProgress]:
+        """Each session's progress from a batch answer's two fields.
+
+        Args:
+            episodes: ``episodes_completed``, one per session.
+            mean_squares: ``response_mean_squares``: one per session, -1 where m is unset, or
+                empty when no session normalizes.
+        """
+        counts = np.asarray(episodes, dtype=np.uint64).tolist()
+        values = np.asarray(mean_squares, dtype=np.float64).tolist()
+        if not values:
+            values = [-1.0] * len(counts)
+        if len(values) != len(counts):
+            raise ValueError(
+                f"expected one mean square per session ({len(counts)}), got {len(values)}"
+            )
+        return [cls(e, None if m < 0 else m) for e, m in zip(counts, values, strict=True)]
+
+
+@dataclass(frozen=True)
 class SessionState:
     """A snapshot of one session (``GetSession``).
 
@@ -47,6 +104,11 @@ class SessionState:
     shift: F64Array
     probe_pending: bool
     response_mean_square: float | None = None
+
+    @property
+    def progress(self) -> SessionProgress:
+        """What the session keeps across episodes: its episode count and mean square."""
+        return SessionProgress(self.episodes_completed, self.response_mean_square)
 
     @classmethod
     def from_proto(cls, message: esa_pb2.GetSessionResponse) -> SessionState:

@@ -44,6 +44,7 @@ fn create_request(id: &str) -> pb::CreateSessionRequest {
     pb::CreateSessionRequest {
         session_id: id.into(),
         config: Some(config(1)),
+        progress: None,
     }
 }
 

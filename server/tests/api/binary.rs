@@ -34,6 +34,7 @@ fn help_documents_every_flag() {
         "--parent-pid",
         "--remove-dir-on-exit",
         "--shutdown-grace",
+        "--state-file",
         "--log-format",
         "--help",
         "--version",

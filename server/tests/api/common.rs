@@ -105,6 +105,7 @@ pub async fn create(client: &mut Client, id: &str, config: pb::SessionConfig) ->
         .create_session(pb::CreateSessionRequest {
             session_id: id.into(),
             config: Some(config),
+            progress: None,
         })
         .await
         .expect("create session")

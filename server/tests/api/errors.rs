@@ -17,6 +17,7 @@ async fn create_result(
         .create_session(pb::CreateSessionRequest {
             session_id: id.into(),
             config,
+            progress: None,
         })
         .await
 }

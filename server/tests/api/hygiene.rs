@@ -154,6 +154,7 @@ async fn a_flood_of_idle_connections_does_not_lock_out_a_real_client() {
         real.create_session(pb::CreateSessionRequest {
             session_id: "real".into(),
             config: Some(config(2)),
+            progress: None,
         }),
     )
     .await;
@@ -200,6 +201,7 @@ async fn out_of_file_descriptors_the_server_backs_off_instead_of_spinning() {
                 .create_session(pb::CreateSessionRequest {
                     session_id: "real".into(),
                     config: Some(config(1)),
+                    progress: None,
                 })
                 .await?,
         )

@@ -93,6 +93,7 @@ async fn create_is_idempotent_for_the_same_config_and_already_exists_otherwise()
             .create_session(pb::CreateSessionRequest {
                 session_id: "s".into(),
                 config: Some(different),
+                progress: None,
             })
             .await,
         Code::AlreadyExists,

@@ -19,6 +19,7 @@ async fn max_sessions_is_resource_exhausted() {
         .create_session(pb::CreateSessionRequest {
             session_id: "d".into(),
             config: Some(config(1)),
+            progress: None,
         })
         .await;
     assert_error(fourth, Code::ResourceExhausted, &["3", "--max-sessions"]);

@@ -16,6 +16,7 @@ mod robustness;
 // Section 1b over every wire, Zenoh among them.
 #[cfg(feature = "zenoh")]
 mod section_1b;
+mod state_file;
 mod stream;
 mod tls;
 mod transport;

@@ -200,6 +200,7 @@ async fn the_session_memory_budget_is_resource_exhausted_and_freed_by_close() {
         .create_session(pb::CreateSessionRequest {
             session_id: "big-3".into(),
             config: Some(config(4096)),
+            progress: None,
         })
         .await;
     assert_error(
@@ -235,6 +236,7 @@ async fn big_sessions_under_a_memory_limit_end_in_resource_exhausted_not_an_abor
             .create_session(pb::CreateSessionRequest {
                 session_id: format!("s{created}"),
                 config: Some(config(4096)),
+                progress: None,
             })
             .await;
         match answer {

@@ -105,6 +105,7 @@ async fn random_call(client: &mut Client, rng: &mut Rng) -> Result<(), tonic::St
             let request = pb::CreateSessionRequest {
                 session_id: rng.id(),
                 config: rng.config(),
+                progress: None,
             };
             client.create_session(request).await.map(drop)
         }
@@ -180,6 +181,7 @@ async fn random_hostile_requests_get_contract_errors_and_the_server_keeps_servin
                     .create_session(pb::CreateSessionRequest {
                         session_id: id.into(),
                         config: Some(config(d)),
+                        progress: None,
                     })
                     .await;
             }

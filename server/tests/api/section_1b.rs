@@ -53,6 +53,7 @@ impl Wire<'_> {
         let request = pb::CreateSessionRequest {
             session_id: id.into(),
             config: Some(config.clone()),
+            progress: None,
         };
         match self {
             Wire::Zenoh(peer) => {
@@ -360,6 +361,7 @@ async fn create_on(wire: &mut Wire<'_>, grpc: &mut Client, id: &str, config: &pb
             let request = pb::CreateSessionRequest {
                 session_id: id.into(),
                 config: Some(config.clone()),
+                progress: None,
             };
             grpc.create_session(request).await.expect("create");
         }

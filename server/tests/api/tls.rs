@@ -112,6 +112,7 @@ async fn round_trip(client: &mut EsaServiceClient<Channel>, id: &str) -> Result<
         .create_session(pb::CreateSessionRequest {
             session_id: id.into(),
             config: Some(config(1)),
+            progress: None,
         })
         .await?;
     let probe = client

@@ -213,6 +213,7 @@ async fn encoded_messages_reach_the_same_sessions() {
             &pb::CreateSessionRequest {
                 session_id: "z".into(),
                 config: Some(config(1)),
+                progress: None,
             }
             .encode_to_vec(),
         )

@@ -47,6 +47,7 @@ fn non_finite_updates_are_warned_about_once_per_period() {
             .create_session(pb::CreateSessionRequest {
                 session_id: "loud".into(),
                 config: Some(config),
+                progress: None,
             })
             .unwrap();
         for step in 0..reports {

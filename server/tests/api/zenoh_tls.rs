@@ -140,6 +140,7 @@ async fn ask(trainer: &Session, id: &str) -> Vec<String> {
     let request = pb::CreateSessionRequest {
         session_id: id.into(),
         config: Some(config(1)),
+        progress: None,
     };
     let replies = trainer
         .get(format!("{PREFIX}/CreateSession"))

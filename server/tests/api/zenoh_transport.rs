@@ -99,6 +99,7 @@ async fn identical_calls_give_identical_answers() {
         &pb::CreateSessionRequest {
             session_id: "over-zenoh".into(),
             config: Some(config(2)),
+            progress: None,
         },
     )
     .await

@@ -23,7 +23,7 @@ from pathlib import Path
 from .._native import GrpcBatch as NativeBatch
 from .._native import GrpcClient, StatusError
 from ..errors import TypedErrors
-from ..state import F64Array
+from ..state import F64Array, SessionProgress
 from .base import BatchProbe, BatchReport, BatchTransport, LinearCritic, PipelinedBatch
 from .native_calls import NativeSessionCalls
 
@@ -96,6 +96,11 @@ class GrpcBatch(BatchTransport):
         """Ends the batch's StepStream, if it has one; the sessions stay."""
         self._batch.close()
 
+    def progress(self) -> list[SessionProgress] | None:
+        """Each session's progress in the last answer that carried it; None before one."""
+        seen = self._batch.progress()
+        return None if seen is None else SessionProgress.from_batch_answer(*seen)
+
 
 class GrpcStepBatch(GrpcBatch, PipelinedBatch):
     """A :class:`GrpcBatch` on a ``StepStream``, whose pair takes one round trip.
@@ -151,6 +156,15 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
         """The oldest unanswered step's ``(probes, applied, shifts)``, or its error."""
         with _typed_errors:
             return self._batch.receive_step()
+
+    def resend_step(self) -> None:
+        """Sends the step whose answer the wire lost again, on a new stream; returns at once.
+
+        For a step the server did not apply (its sessions are still where they were before
+        it): its answer is then read with :meth:`receive_step`.
+        """
+        with _typed_errors:
+            self._batch.resend_step()
 
 
 class GrpcTransport(NativeSessionCalls):

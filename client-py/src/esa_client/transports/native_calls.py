@@ -21,8 +21,8 @@ from ..state import F64Array, SessionState
 class NativeSessions(Protocol):
     """What ``Engine`` and ``GrpcClient`` both answer (see ``esa_client/_native.pyi``)."""
 
-    def create_session(self, session_id: str, config: bytes) -> str:
-        """CreateSession; returns the id."""
+    def create_session(self, session_id: str, config: bytes, progress: bytes | None = None) -> str:
+        """CreateSession (resuming an encoded ``SessionProgress`` if given); returns the id."""
         ...
 
     def get_session(self, session_id: str) -> bytes:
@@ -72,6 +72,14 @@ class NativeSessionCalls:
         """``CreateSession``; an empty id gets a UUID."""
         with self._typed_errors:
             return self._sessions.create_session(session_id, config.SerializeToString())
+
+    def resume_session(
+        self, session_id: str, config: esa_pb2.SessionConfig, progress: esa_pb2.SessionProgress
+    ) -> str:
+        """``CreateSession`` of a lost session, resuming its ``progress``."""
+        encoded = progress.SerializeToString()
+        with self._typed_errors:
+            return self._sessions.create_session(session_id, config.SerializeToString(), encoded)
 
     def get_session(self, session_id: str) -> SessionState:
         """``GetSession``."""

@@ -37,7 +37,7 @@ from google.protobuf.message import DecodeError, Message
 from .._proto.esa.v1 import esa_pb2
 from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, StatusCode, esa_error
 from ..sharding import shard_of, shard_prefix
-from ..state import F64Array, I64Array, SessionState
+from ..state import F64Array, I64Array, SessionProgress, SessionState
 from .base import BatchProbe, BatchReport, BatchTransport
 
 DEFAULT_PREFIX = "esa/v1"
@@ -364,6 +364,15 @@ class ZenohTransport:
         request = esa_pb2.CreateSessionRequest(session_id=session_id, config=config)
         return self._owner(session_id).create_session(request).session_id
 
+    def resume_session(
+        self, session_id: str, config: esa_pb2.SessionConfig, progress: esa_pb2.SessionProgress
+    ) -> str:
+        """``CreateSession`` of a lost session on its shard, resuming its ``progress``."""
+        request = esa_pb2.CreateSessionRequest(
+            session_id=session_id, config=config, progress=progress
+        )
+        return self._owner(session_id).create_session(request).session_id
+
     def get_session(self, session_id: str) -> SessionState:
         """``GetSession``."""
         request = esa_pb2.GetSessionRequest(session_id=session_id)
@@ -458,6 +467,17 @@ class _ServerBatch(BatchTransport):
         self._server = server
         self._ids = tuple(ids)
         self._shape = (len(self._ids), action_dim)
+        # The last probe's answer: what the client last saw of the sessions' progress.
+        self._seen: esa_pb2.ProbeBatchResponse | None = None
+
+    def progress(self) -> list[SessionProgress] | None:
+        """Each session's progress in the last probe's answer; None before one."""
+        seen = self._seen
+        if seen is None or len(seen.episodes_completed) != len(self._ids):
+            return None
+        return SessionProgress.from_batch_answer(
+            seen.episodes_completed, seen.response_mean_squares
+        )
 
     def _values(self, values: Sequence[float]) -> F64Array:
         return np.array(values, dtype=np.float64).reshape(self._shape)
@@ -473,6 +493,7 @@ class _ServerBatch(BatchTransport):
             action_scales=[] if scales is None else scales.ravel().tolist(),
         )
         response = self._server.probe_batch(message)
+        self._seen = response
         return self._values(response.probes), self._values(response.actions)
 
     def report(self, request: BatchReport) -> F64Array:
@@ -537,6 +558,17 @@ class _ShardedBatch(BatchTransport):
         """Sends the per-shard reports concurrently; actions come back in batch order."""
         answers = self._scatter(lambda batch, items: batch.report(_report_part(request, items)))
         return self._merged(answers)
+
+    def progress(self) -> list[SessionProgress] | None:
+        """Each session's progress in its shard's last probe answer; None before every shard's."""
+        merged: list[SessionProgress | None] = [None] * self._shape[0]
+        for items, batch in self._parts.values():
+            part = batch.progress()
+            if part is None:
+                return None
+            for item, progress in zip(items.tolist(), part, strict=True):
+                merged[item] = progress
+        return [p for p in merged if p is not None]
 
 
 def _probe_part(request: BatchProbe, items: I64Array) -> BatchProbe:

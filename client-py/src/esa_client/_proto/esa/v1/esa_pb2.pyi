@@ -22,12 +22,14 @@ class CloseSessionResponse(_message.Message):
     def __init__(self) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ["config", "session_id"]
+    __slots__ = ["config", "progress", "session_id"]
     CONFIG_FIELD_NUMBER: _ClassVar[int]
+    PROGRESS_FIELD_NUMBER: _ClassVar[int]
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     config: SessionConfig
+    progress: SessionProgress
     session_id: str
-    def __init__(self, session_id: _Optional[str] = ..., config: _Optional[_Union[SessionConfig, _Mapping]] = ...) -> None: ...
+    def __init__(self, session_id: _Optional[str] = ..., config: _Optional[_Union[SessionConfig, _Mapping]] = ..., progress: _Optional[_Union[SessionProgress, _Mapping]] = ...) -> None: ...
 
 class CreateSessionResponse(_message.Message):
     __slots__ = ["session_id"]
@@ -84,12 +86,16 @@ class ProbeBatchRequest(_message.Message):
     def __init__(self, session_ids: _Optional[_Iterable[str]] = ..., steps: _Optional[_Iterable[int]] = ..., actions: _Optional[_Iterable[float]] = ..., episode_starts: _Optional[_Iterable[bool]] = ..., action_scales: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ProbeBatchResponse(_message.Message):
-    __slots__ = ["actions", "probes"]
+    __slots__ = ["actions", "episodes_completed", "probes", "response_mean_squares"]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
     PROBES_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_MEAN_SQUARES_FIELD_NUMBER: _ClassVar[int]
     actions: _containers.RepeatedScalarFieldContainer[float]
+    episodes_completed: _containers.RepeatedScalarFieldContainer[int]
     probes: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ...) -> None: ...
+    response_mean_squares: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ..., episodes_completed: _Optional[_Iterable[int]] = ..., response_mean_squares: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ProbeRequest(_message.Message):
     __slots__ = ["action", "action_scale", "episode_start", "session_id", "step"]
@@ -191,6 +197,14 @@ class SessionConfig(_message.Message):
     trust_region: float
     def __init__(self, action_dim: _Optional[int] = ..., dt: _Optional[float] = ..., amplitude: _Optional[_Iterable[float]] = ..., frequency: _Optional[_Iterable[float]] = ..., learning_rate: _Optional[_Iterable[float]] = ..., highpass_cutoff: _Optional[float] = ..., disable_highpass: bool = ..., action_low: _Optional[_Iterable[float]] = ..., action_high: _Optional[_Iterable[float]] = ..., shift_limit: _Optional[float] = ..., lr_decay: _Optional[float] = ..., max_episodes: _Optional[int] = ..., normalize_response: bool = ..., response_rms_rate: _Optional[float] = ..., response_clip: _Optional[float] = ..., shift_leak: _Optional[float] = ..., trust_region: _Optional[float] = ...) -> None: ...
 
+class SessionProgress(_message.Message):
+    __slots__ = ["episodes_completed", "response_mean_square"]
+    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_MEAN_SQUARE_FIELD_NUMBER: _ClassVar[int]
+    episodes_completed: int
+    response_mean_square: float
+    def __init__(self, episodes_completed: _Optional[int] = ..., response_mean_square: _Optional[float] = ...) -> None: ...
+
 class StepBatchRequest(_message.Message):
     __slots__ = ["probe", "q_references", "q_values"]
     PROBE_FIELD_NUMBER: _ClassVar[int]
@@ -202,14 +216,18 @@ class StepBatchRequest(_message.Message):
     def __init__(self, probe: _Optional[_Union[ProbeBatchRequest, _Mapping]] = ..., q_values: _Optional[_Iterable[float]] = ..., q_references: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class StepBatchResponse(_message.Message):
-    __slots__ = ["actions", "probes", "shifts"]
+    __slots__ = ["actions", "episodes_completed", "probes", "response_mean_squares", "shifts"]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    EPISODES_COMPLETED_FIELD_NUMBER: _ClassVar[int]
     PROBES_FIELD_NUMBER: _ClassVar[int]
+    RESPONSE_MEAN_SQUARES_FIELD_NUMBER: _ClassVar[int]
     SHIFTS_FIELD_NUMBER: _ClassVar[int]
     actions: _containers.RepeatedScalarFieldContainer[float]
+    episodes_completed: _containers.RepeatedScalarFieldContainer[int]
     probes: _containers.RepeatedScalarFieldContainer[float]
+    response_mean_squares: _containers.RepeatedScalarFieldContainer[float]
     shifts: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ..., shifts: _Optional[_Iterable[float]] = ...) -> None: ...
+    def __init__(self, probes: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[float]] = ..., shifts: _Optional[_Iterable[float]] = ..., episodes_completed: _Optional[_Iterable[int]] = ..., response_mean_squares: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class StepLinearBatchRequest(_message.Message):
     __slots__ = ["critic_gains", "critic_offsets", "paired", "probe"]
