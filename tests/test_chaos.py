@@ -2,7 +2,8 @@
 
 Over gRPC (grpcio StepStream and unary batches, the native Rust client), SB3's ESAPPO, a
 custom loop on the gymnasium wrapper, and Zenoh (one server, or one of two shards killed
-and restarted).
+and restarted). A server stopped with SIGTERM and started again with its ``--state-file``
+loses no session; one killed with SIGKILL loses them all, and the trainers recreate them.
 
 Every test runs the real server binary on a fixed loopback port (so a restart comes back
 on the same address) and several trainers at once, each a thread with its own client.
@@ -54,12 +55,13 @@ def _free_port() -> int:
 class Server:
     """One esa-server on a fixed loopback port, to kill, restart, stop and continue."""
 
-    def __init__(self) -> None:
+    def __init__(self, *args: str) -> None:
         try:
             self.binary = str(find_server_binary(checkout=REPO_ROOT, build=False))
         except EsaError as err:
             pytest.fail(str(err))
         self.address = f"127.0.0.1:{_free_port()}"
+        self.args = args
         self.process: subprocess.Popen[str] | None = None
         self.start()
 
@@ -67,7 +69,7 @@ class Server:
         deadline = time.monotonic() + 10
         while True:
             process = subprocess.Popen(
-                [self.binary, "--listen", self.address],
+                [self.binary, "--listen", self.address, *self.args],
                 stdout=subprocess.PIPE,
                 stderr=subprocess.DEVNULL,
                 text=True,
@@ -93,6 +95,14 @@ class Server:
     def restart(self, down: float = 1.5) -> None:
         """SIGKILL, ``down`` seconds without a server, then a new one on the same address."""
         self.kill()
+        time.sleep(down)
+        self.start()
+
+    def stop_and_start(self, down: float = 1.0) -> None:
+        """SIGTERM (the server writes its state file and exits), ``down`` s, a new start."""
+        self.signal(signal.SIGTERM)
+        assert self.process is not None
+        assert self.process.wait(timeout=30) == 0
         time.sleep(down)
         self.start()
 
@@ -258,6 +268,36 @@ def test_sigkill_and_restart_under_three_batch_trainers(server, transport):
     for trainer in trainers:
         # The restarted server had none of the sessions: each was recreated once.
         assert trainer.batch.sessions_restored == N_ENVS
+
+
+@pytest.mark.parametrize("transport", list(WIRES))
+def test_sigterm_and_restart_with_a_state_file_under_three_batch_trainers(
+    tmp_path, transport
+):
+    server = Server("--state-file", str(tmp_path / "state"))
+    trainers = [
+        BatchTrainer(
+            server.address,
+            250,
+            seed=i,
+            timeout=1.0,
+            reconnect_timeout=20,
+            **WIRES[transport],
+        )
+        for i in range(3)
+    ]
+
+    def chaos() -> None:
+        time.sleep(0.4)
+        server.stop_and_start()
+
+    try:
+        _run(trainers, chaos, limit=25)
+    finally:
+        server.close()
+    for trainer in trainers:
+        # Every session came back from the state file: none had to be recreated.
+        assert trainer.batch.sessions_restored == 0
 
 
 @pytest.mark.parametrize("transport", list(WIRES))
