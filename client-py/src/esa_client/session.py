@@ -19,13 +19,12 @@ runs in-process, over gRPC or over Zenoh (one server or N shards).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import NamedTuple, Protocol, TypeVar, cast, runtime_checkable
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 from ._native import EngineError, StepAhead
-from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
 from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch, TypedErrors
 from .reconnect import Reconnect, RetriableErrors
@@ -43,7 +42,6 @@ from .transports.base import (
     AheadBatch,
     BatchProbe,
     BatchReport,
-    BatchTransport,
     LinearCritic,
     QuadraticCritic,
     Transport,
@@ -97,50 +95,12 @@ def restore_sessions(
         try:
             transport.get_session(session_id)
         except SessionNotFound:
-            if seen is not None and isinstance(transport, _Resumes):
+            if seen is not None:
                 transport.resume_session(session_id, config.to_proto(), seen.to_proto())
             else:
                 transport.create_session(session_id, config.to_proto())
             restored += 1
     return restored
-
-
-@runtime_checkable
-class _Resumes(Protocol):
-    """A transport that creates a session resuming a lost one's progress."""
-
-    def resume_session(
-        self, session_id: str, config: esa_pb2.SessionConfig, progress: esa_pb2.SessionProgress
-    ) -> str:
-        """``CreateSession`` with ``progress``; returns the id."""
-        ...
-
-
-@runtime_checkable
-class _SeesProgress(Protocol):
-    """A batch transport that keeps the sessions' progress of its last answer."""
-
-    def progress(self) -> list[SessionProgress] | None:
-        """Each session's progress as last seen; None before an answer carried it."""
-        ...
-
-
-@runtime_checkable
-class _Resends(Protocol):
-    """A batch that can send its last step sent ahead again (gRPC's StepStream)."""
-
-    def resend_step(self) -> None:
-        """Sends the step whose answer was lost again; its answer comes from ``receive_step``."""
-        ...
-
-    def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
-        """The oldest unanswered step's ``(probes, applied, shifts)``."""
-        ...
-
-
-def _seen_progress(batch: BatchTransport) -> list[SessionProgress] | None:
-    """The sessions' progress in the last answer ``batch`` read, if its transport keeps it."""
-    return batch.progress() if isinstance(batch, _SeesProgress) else None
 
 
 def _step_applied(
@@ -876,7 +836,7 @@ class SessionBatch:
             self._ahead = None
             self._batch.close()
         self._shifts = np.zeros((self.n, self.action_dim))
-        progress = _seen_progress(self._batch)
+        progress = self._batch.progress()
         restored = restore_sessions(self._transport, self.ids, self.configs, progress)
         self.sessions_restored += restored
         if self._on_restore is not None:
@@ -896,18 +856,18 @@ class SessionBatch:
         episode (:meth:`restore`) and the shifts are 0. Errors of the wire propagate, for
         the reconnect policy to retry.
         """
-        request, ahead = self._last_probe, cast(object, self._ahead_batch)
+        request, ahead = self._last_probe, self._ahead_batch
         try:
             states = [self._transport.get_session(i) for i in self.ids]
         except SessionNotFound:
             states = []
         applied = None
         if states and request is not None:
-            seen = _seen_progress(self._batch)
+            seen = self._batch.progress()
             applied = _step_applied(states, request, sent.steps_before, seen)
         if applied:
             return np.stack([state.shift for state in states])
-        if applied is False and isinstance(ahead, _Resends):
+        if applied is False and ahead is not None:
             ahead.resend_step()
             try:
                 return ahead.receive_step()[2]

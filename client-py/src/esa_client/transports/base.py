@@ -28,7 +28,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from .._proto.esa.v1 import esa_pb2
-from ..state import BoolArray, F64Array, I64Array, SessionState
+from ..state import BoolArray, F64Array, I64Array, SessionProgress, SessionState
 
 SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
 """The floor of the action scale sent for a policy's std (the contract needs sigma > 0)."""
@@ -111,6 +111,10 @@ class AheadBatch(Protocol):
         Raises the step's error (nothing of it was applied), or the wire's (whether it
         was applied is then unknown).
         """
+        ...
+
+    def resend_step(self) -> None:
+        """Sends the step whose answer the wire lost again; ``receive_step`` reads its answer."""
         ...
 
 
@@ -209,6 +213,14 @@ class BatchTransport(ABC):
         """
         return None
 
+    def progress(self) -> list[SessionProgress] | None:
+        """Each session's progress in the last answer read, where the wire carries it.
+
+        None before an answer carried it, and for an in-process engine, which never loses a
+        session to recreate.
+        """
+        return None
+
     def close(self) -> None:  # noqa: B027 (a default, not abstract: most hold nothing)
         """Releases what the batch holds (e.g. its stream); the sessions stay."""
 
@@ -245,6 +257,12 @@ class Transport(Protocol):
 
     def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
         """Creates a session (an empty id: one is generated) and returns its id."""
+        ...
+
+    def resume_session(
+        self, session_id: str, config: esa_pb2.SessionConfig, progress: esa_pb2.SessionProgress
+    ) -> str:
+        """Creates a session that resumes a lost one's ``progress``; returns its id."""
         ...
 
     def get_session(self, session_id: str) -> SessionState:
