@@ -21,7 +21,7 @@ from typing import Annotated
 import numpy as np
 import torch as th
 import tyro
-from esa_client.common.advantage_head import rank_correlation
+from esa_client.common.quadratic_head import rank_correlation
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env

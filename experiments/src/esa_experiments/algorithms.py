@@ -126,7 +126,7 @@ METHODS: dict[str, Method] = {
     "td3_qgrad": Method("TD3+gradient", "td3", "esa", "off_policy", (("esa_shift", "gradient"),)),
     "td3_pink": Method("TD3+pink noise", "td3", "pink"),
     "ddpg_ou": Method("DDPG+OU", "ddpg", "ou"),
-    # Study `seeking` (issue 42), off-policy arms: every ESA arm fades (seeking_off_policy).
+    # Study `seeking` (E2), off-policy arms: every ESA arm fades (seeking_off_policy).
     "sac_esa_fade": Method("SAC+ESA (fade)", "sac", "esa", "seeking_off_policy"),
     "sac_placebo": Method(
         "SAC+placebo", "sac", "esa", "seeking_off_policy", (("esa_shift", "placebo"),)

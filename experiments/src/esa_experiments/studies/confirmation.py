@@ -9,9 +9,10 @@ critic's action gradient: ESC is credited only where it beats it), on the same s
   update pulls the mean toward ``mu_old + v``) and its control ``ppo_qgrad_target``; on
   InvertedPendulum-v5 (30k steps), InvertedDoublePendulum-v5 (100k), the quadrotor
   figure eight (60k) and Hopper-v5 (100k). ``ppo_qgrad`` joined after the other 640
-  runs had finished (the issue asks a control for every ESA arm, and the shipped PPO
-  default had none); it runs the same seeds 0-19 and its comparisons join the PPO
-  family's Holm correction, which can only make that family's verdicts stricter.
+  runs had finished (ESC is credited only where it beats its gradient control, so every
+  ESA arm needs one, and the shipped PPO default had none); it runs the same seeds 0-19
+  and its comparisons join the PPO family's Holm correction, which can only make that
+  family's verdicts stricter.
 * SAC (``EsaConfig.off_policy()``): ``sac``, ``sac_esa``, ``sac_qgrad`` on Hopper-v5 and
   the quadrotor figure eight, 50k steps.
 * TD3 (``EsaConfig.off_policy()``, on top of TD3's Gaussian noise): ``td3``, ``td3_esa``,
@@ -143,7 +144,7 @@ def _markdown(verdicts: pd.DataFrame) -> str:
 
 
 def _goal(verdicts: pd.DataFrame) -> str:
-    """The issue's goal, checked on the shipped defaults' rows of the all-seed verdicts.
+    """The campaign's goal, checked on the shipped defaults' rows of the all-seed verdicts.
 
     Never significantly worse than the baseline on any (family, env), significantly better
     on at least ``GOAL_BETTER`` of them, one on ``GOAL_ENV``. A row is final only with all
@@ -168,7 +169,15 @@ def _goal(verdicts: pd.DataFrame) -> str:
                     continue
                 seeds, verdict = int(hit.seeds.iloc[0]), str(hit.verdict.iloc[0])
                 complete = seeds >= SEED_COUNT
-                row[f"vs {kind}"] = verdict if complete else f"{verdict} (interim, {seeds} seeds)"
+                # The statistic beside the verdict: mean AUCs and P(arm better) with its CI.
+                detail = (
+                    f": AUC {hit['mean AUC (arm / reference)'].iloc[0]}, "
+                    f"P = {hit['P(arm better) [95% CI]'].iloc[0]}"
+                    if "P(arm better) [95% CI]" in hit
+                    else ""
+                )
+                state = "" if complete else f" (interim, {seeds} seeds)"
+                row[f"vs {kind}"] = f"{verdict}{state}{detail}"
                 if kind == "baseline":
                     final += complete
                     better += [env] if "better" in verdict else []
@@ -188,13 +197,13 @@ def _goal(verdicts: pd.DataFrame) -> str:
 
 
 def report(store: RunStore, args: Args) -> str:
-    """Curves with every seed, verdicts (all seeds and halves), aggregates and diagnostics."""
+    """Curves with every seed and the goal; verdicts, halves, aggregates, diagnostics as files."""
     panels = [
         Panel(f"{env}: {family.upper()}", env, ARMS[family])
         for family in ARMS
         for env in ENVS_OF[family]
     ]
-    section = rl_section(store, panels, ENVS, METHODS, ncols=4, per_seed=True)
+    section = rl_section(store, panels, ENVS, METHODS, ncols=4, per_seed=True, inline=False)
     frame = store.load()
     table = _verdicts(frame)
     verdicts = _markdown(table)
@@ -204,17 +213,25 @@ def report(store: RunStore, args: Args) -> str:
     )
     aggregate = aggregate_table(frame, ENVS_OF, COMPARISONS, LABELS)
     diagnostics = diagnostics_table(frame, store.load_meta(), ENVS, METHODS, LABELS)
+    files = {
+        "halves.md": "The verdicts on each half of the seeds (Holm within the half):\n\n" + halves,
+        "aggregates.md": "Aggregated over each family's envs (seeds every env finished):\n\n"
+        + (to_markdown(aggregate) if not aggregate.empty else "(not enough seeds yet)"),
+        "diagnostics.md": "Diagnostics (means over runs; crash = a training episode ended by "
+        f"termination, not the time limit):\n\n{to_markdown(diagnostics)}",
+    }
+    links = [f"[verdicts.md]({store.relative(store.artifact('verdicts.md'))})"]
+    for name, text in files.items():
+        path = store.artifact(name)
+        atomic_write_text(path, text + "\n")
+        links.append(f"[{name}]({store.relative(path)})")
     return (
         f"{section}\n"
-        "The shipped defaults against the goal (from the verdicts below, all seeds):\n\n"
+        "The shipped defaults of the time against the goal (from the verdicts, all seeds: AUC; "
+        "P(arm better) with its stratified-bootstrap 95 % CI; two-sided Mann-Whitney p-values "
+        "Holm-corrected within each family; better / worse when the corrected p < 0.05):\n\n"
         f"{_goal(table)}\n"
-        "Verdicts (AUC; P(arm better) with its stratified-bootstrap 95 % CI; two-sided "
-        "Mann-Whitney p-values Holm-corrected within each family; better / worse when the "
-        "corrected p < 0.05):\n\n"
-        f"{verdicts}\n\nThe same on each half of the seeds (Holm within the half):\n\n"
-        f"{halves}\n\nAggregated over each family's envs (seeds every env finished):\n\n"
-        f"{to_markdown(aggregate) if not aggregate.empty else '(not enough seeds yet)'}\n\n"
-        "Diagnostics (means over runs; crash = a training episode ended by termination, "
-        "not the time limit):\n\n"
-        f"{to_markdown(diagnostics)}\n\nBudgets (per run):\n\n{budget_table(args.budgets)}\n"
+        f"Every comparison, each half of the seeds, the aggregates over envs and the "
+        f"diagnostics: {', '.join(links)}.\n\n"
+        f"Budgets (per run):\n\n{budget_table(args.budgets)}\n"
     )

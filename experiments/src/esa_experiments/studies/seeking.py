@@ -1,6 +1,8 @@
 """E2 of "ESA that seeks": learning curves of E1's candidates against baseline and controls.
 
-Rules, fixed and committed before the first run (issue 42):
+Rules, fixed and committed before the first run (of the "ESA that seeks" round, which
+built critics with curvature, the fade, the placebo and the decoupled objective after the
+confirmation campaign found no acceleration):
 
 * **Arms**, stored under these names (each backed by a method of
   :mod:`esa_experiments.algorithms`):
@@ -64,7 +66,7 @@ from esa_experiments.reporting import budget_table, rl_section
 from esa_experiments.runs import EXPERIMENTS_DIR, RunSpec, RunStore, atomic_write_text
 from esa_experiments.tables import to_markdown
 from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
-from esa_experiments.verdicts import Comparison, verdict_table
+from esa_experiments.verdicts import Comparison, compact_table, verdict_table
 
 NAME = "seeking"
 DESCRIPTION = "E2: E1's candidates vs baseline, placebo, gradient, mean shift, matched noise"
@@ -220,7 +222,15 @@ def report(store: RunStore, args: Args) -> str:
     ]
     baselines = {arm: family for family, arms in ARMS.items() for arm in arms[1:]}
     section = rl_section(
-        store, panels, ENVS, METHODS, labels=labels, baselines=baselines, ncols=4, per_seed=False
+        store,
+        panels,
+        ENVS,
+        METHODS,
+        labels=labels,
+        baselines=baselines,
+        ncols=4,
+        per_seed=False,
+        inline=False,
     )
     tables = {
         "first third (primary)": verdict_table(
@@ -228,11 +238,18 @@ def report(store: RunStore, args: Args) -> str:
         ),
         "whole curve (secondary)": verdict_table(frame, ENVS, COMPARISONS, labels),
     }
-    text = [section]
     for name, table in tables.items():
         markdown = to_markdown(table) if not table.empty else "(no comparison has two seeds yet)"
+        # The full tables (client-py/examples/demo.py reads them by these names).
         atomic_write_text(store.artifact(f"verdicts {name.split()[0]}.md"), markdown + "\n")
-        text.append(f"Verdicts, AUC over the {name}:\n\n{markdown}\n")
+    compact = compact_table(*tables.values())
+    text = [
+        section,
+        "Verdicts (P(arm better) with its 95 % CI, two-sided Mann-Whitney p Holm-corrected "
+        "within each family and metric):\n\n"
+        + (to_markdown(compact) if not compact.empty else "(no comparison has two seeds yet)")
+        + "\n",
+    ]
     text.append(
         outcomes(tables["first third (primary)"], tables["whole curve (secondary)"], labels, picks)
     )

@@ -1,6 +1,8 @@
 """E1 of "ESA that seeks": the offline go/no-go. Does a critic with curvature point uphill?
 
-Rules, fixed and committed before the first run (issue 42):
+Rules, fixed and committed before the first run (of the "ESA that seeks" round, which
+built critics with curvature, the fade, the placebo and the decoupled objective after the
+confirmation campaign found no acceleration: E1 gates E2):
 
 * **Learners.** PPO trained as ``ESAPPO`` with ``EsaConfig(learning_rate=0)`` (bit for bit
   plain PPO, its critic fitted as in training) for each critic: ``ppo_fit_linear`` (the
@@ -288,7 +290,7 @@ def report(store: RunStore, args: Args) -> str:
                     "gradient gain": _cell(gradient),
                     "ESA - placebo": _cell(esc - placebo),
                     "ESA - gradient": _cell(esc - gradient),
-                    "mean |v|/sigma": f"{runs[f'size esc {kappa:g}'].mean():.3f}",
+                    "mean abs(v)/sigma": f"{runs[f'size esc {kappa:g}'].mean():.3f}",
                     "cos(v, mu - a)": (
                         f"{np.nanmean(cosine.to_numpy(float)):+.2f}" if cosine is not None else ""
                     ),
@@ -307,8 +309,7 @@ def report(store: RunStore, args: Args) -> str:
         else:
             envs = ", ".join(passing[(passing.learner == pick[0]) & (passing.kappa == pick[1])].env)
             lines.append(f"- **{family}**: `{pick[0]}` at kappa {pick[1]:g} (passes on {envs}).")
-    markdown = to_markdown(pd.DataFrame(rows))
-    atomic_write_text(store.artifact("table.md"), markdown + "\n")
+    atomic_write_text(store.artifact("table.md"), to_markdown(pd.DataFrame(rows)) + "\n")
     # What study `seeking` (E2) reads to build its candidate arms.
     atomic_write_text(
         store.artifact("picks.json"),
@@ -319,14 +320,33 @@ def report(store: RunStore, args: Args) -> str:
         + "\n",
     )
     figure = _figure(table, store.artifact("seeking_offline.png"))
+    path = store.artifact("table.md")
     return (
         f"![E1]({store.relative(figure)})\n\n"
-        "Mean true-return gain over the sample (discounted, gamma 0.99, "
-        f"{args.horizon} steps, {args.rollouts} rollouts with common random numbers), 95 % "
-        "bootstrap CIs over states, all checkpoints pooled:\n\n"
-        f"{markdown}\n\nDecision (rules in `studies/seeking_offline.py`):\n\n"
-        + "\n".join(lines)
-        + "\n"
+        "Per learner and kappa, the envs where it passes (the CIs of ESA's gain and of ESA "
+        "minus placebo above 0) and the mean over the envs of the true-return gains over "
+        f"the sample (discounted, gamma 0.99, {args.horizon} steps, {args.rollouts} rollouts "
+        "with common random numbers); every env's gains with their 95 % bootstrap CIs over "
+        f"states: [{path.name}]({store.relative(path)}).\n\n"
+        f"{to_markdown(passes_table(table))}\n\n"
+        "Decision (rules in `studies/seeking_offline.py`):\n\n" + "\n".join(lines) + "\n"
+    )
+
+
+def passes_table(table: pd.DataFrame) -> pd.DataFrame:
+    """Per (learner, kappa): where it passes, and its gains averaged over the envs."""
+    return pd.DataFrame(
+        [
+            {
+                "learner": learner,
+                "kappa": f"{kappa:g}",
+                "passes on": ", ".join(pair[pair.passes].env) or "no env",
+                "ESA gain": f"{pair.esc.mean():+.3f}",
+                "ESA - placebo": f"{pair.esc_minus_placebo.mean():+.3f}",
+                "ESA - gradient": f"{pair.esc_minus_gradient.mean():+.3f}",
+            }
+            for (learner, kappa), pair in table.groupby(["learner", "kappa"], sort=False)
+        ]
     )
 
 

@@ -1,6 +1,7 @@
 """E3 of "ESA that seeks": E2's baseline settings against RL Zoo3's tuned settings.
 
-Rules, fixed and committed before the first run (issue 42, "E3, baselines calibrated"):
+Rules, fixed and committed before the first run (E3 of the "ESA that seeks" round:
+are the baselines E2 compares ESA with calibrated?):
 
 * **Question.** Are E2's baselines (``seeking``'s ``ppo``, ``sac``, ``td3``: this suite's
   CPU-sized settings, ``configs/algorithms.toml``) weaker than the tuned settings of RL
@@ -270,20 +271,30 @@ def report(store: RunStore, args: Args) -> str:
     atomic_write_text(store.artifact("table.md"), table + "\n")
     text = [f"![{NAME}]({store.relative(figure)})\n", f"RL Zoo3 arms:\n\n{table}\n"]
     lines = ["Outcome per family (decision rule in `studies/zoo_baselines.py`):", ""]
-    decisions = []
+    decisions, deciding = [], []
     for family in ENVS_OF:
         whole = decision_table(frame, family)
         first = decision_table(seeking.early(frame, args.budgets), family)
         for name, part in (("whole curve, decides", whole), ("first third, shown only", first)):
             markdown = to_markdown(part) if not part.empty else "(no env has two seeds of both)"
             decisions.append(f"{family.upper()}, AUC over the {name}:\n\n{markdown}\n")
+        if not whole.empty:
+            deciding.append(whole.assign(family=family.upper()))
         seeds_of = {
             env: set(zoo[(zoo.env == env) & (zoo.method == ZOO_ARM[family])].seed)
             for env in ENVS_OF[family]
         }
         lines.append(outcome(family, whole, seeds_of))
-    atomic_write_text(store.artifact("decisions.md"), "\n".join(decisions))
-    text.extend(decisions)
+    path = store.artifact("decisions.md")
+    atomic_write_text(path, "\n".join(decisions))
+    if deciding:
+        both = pd.concat(deciding, ignore_index=True)
+        both = both[["family", *(c for c in both.columns if c != "family")]]
+        text.append(f"AUC over the whole curve (decides):\n\n{to_markdown(both)}\n")
+    text.append(
+        f"Both metrics' tables, the first third shown only: [{path.name}]"
+        f"({store.relative(path)}).\n"
+    )
     text.append("\n".join(lines) + "\n")
     if notes:
         text.append("E2's baseline runs E3 could not use:\n\n" + "\n".join(f"- {n}" for n in notes))
