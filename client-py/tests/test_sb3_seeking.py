@@ -147,6 +147,8 @@ def test_a_faded_esappo_executes_the_samples_once_the_fade_is_over(tmp_path):
     # Fitted after rollout 1, ESA fades from 1/2 to 0 over rollout 2 and is off after it.
     assert len(logged(tmp_path)["esa/strength"]) == 1
     assert 0.0 < logged(tmp_path)["esa/strength"][0] <= 0.5
+    # Once the fade is over nothing probes the critic again: it is fitted after rollout 1 only.
+    assert len(logged(tmp_path)["esa/head_loss"]) == 1
     runtime = model._esa_runtime()
     before = runtime.batch.steps.copy()
     sample = np.array([[0.3], [-0.2]])
@@ -202,7 +204,8 @@ def test_dict_observations_are_refused_with_the_alternative():
 
 
 def test_the_quadratic_head_saves_and_loads(tmp_path):
-    model = ppo(ESAPPO, esa=EsaConfig.ppo(gate=None), rollouts=2)
+    # No fade: with one, two rollouts end the fade at the first fit, which is then skipped.
+    model = ppo(ESAPPO, esa=EsaConfig.ppo(gate=None, fade=None), rollouts=2)
     model.save(tmp_path / "model")
     loaded = ESAPPO.load(tmp_path / "model")
     assert isinstance(loaded.esa_head, QuadraticHead)
