@@ -34,7 +34,7 @@ from .errors import (
     StepMismatch,
     Unauthenticated,
 )
-from .session import Session, SessionBatch, SessionState
+from .session import Session, SessionBatch, SessionProgress, SessionState
 from .transports.base import LinearCritic, QuadraticCritic
 from .transports.grpc import TlsConfig
 
@@ -53,6 +53,7 @@ __all__ = [
     "SessionBatch",
     "SessionConfig",
     "SessionNotFound",
+    "SessionProgress",
     "SessionState",
     "StatusCode",
     "StepMismatch",
