@@ -50,16 +50,16 @@ def test_statistics_table_compares_each_arm_with_its_baseline():
         [
             runs("ppo", "E", [100, 110, 120, 130, 140]),
             runs("ppo_esa", "E", [200, 210, 220, 230, 240]),
-            runs("ppo_esa_null", "E", [100, 110, 120, 130, 140]),
+            runs("ppo_qgrad", "E", [100, 110, 120, 130, 140]),
         ]
     )
-    table = statistics(frame, ["E"], ["ppo", "ppo_esa", "ppo_esa_null"]).set_index("method")
+    table = statistics(frame, ["E"], ["ppo", "ppo_esa", "ppo_qgrad"]).set_index("method")
     assert table.loc["PPO", "verdict"] == ""
     assert table.loc["PPO+ESA", "verdict"].startswith("**better**")
-    assert table.loc["PPO+ESA (lr 0)", "verdict"].startswith("**equal**")
+    assert table.loc["PPO+gradient", "verdict"].startswith("**equal**")
     assert table.loc["PPO+ESA", "IQM AUC [95% CI]"].startswith("220.0")
     # Reproducible: the bootstrap is seeded.
-    again = statistics(frame, ["E"], ["ppo", "ppo_esa", "ppo_esa_null"]).set_index("method")
+    again = statistics(frame, ["E"], ["ppo", "ppo_esa", "ppo_qgrad"]).set_index("method")
     pd.testing.assert_frame_equal(table, again)
 
 

@@ -7,12 +7,12 @@ action noise (TD3; Eberhard et al., ICLR 2023). TD3 always explores with action 
 Gaussian unless the method says pink; its ESA arms add ESA on top of that noise.
 
 ESA methods use one preset, the same on every env (no per-env tuning): ``default`` is
-the shipped ``EsaConfig()`` (the PPO family's), ``off_policy`` the off-policy family's
-``EsaConfig.off_policy()``, ``null`` the PPO default with learning rate 0 (the shift
-stays 0: it isolates what the data handling alone does), ``sine`` the off-policy default
-with learning rate 0 (with ``esa_execute='probe'``: exploration by the sinusoid alone),
-``paper`` ``EsaConfig.paper()`` and ``target`` the PPO target mode's setting (picked by
-``target_search`` on InvertedPendulum-v5 tuning seeds), ``seeking_off_policy`` the
+``EsaConfig()`` (the confirmation campaign's PPO default), ``off_policy`` the off-policy
+family's ``EsaConfig.off_policy()``, ``null`` ``EsaConfig()`` with learning rate 0 (the
+shift stays 0: E1's critic fits), ``sine`` the off-policy default with learning rate 0
+(with ``esa_execute='probe'``: exploration by the sinusoid alone), ``target`` the PPO
+target mode's setting (picked by the former ``target_search`` on InvertedPendulum-v5
+tuning seeds), ``seeking_off_policy`` the
 off-policy default faded over ``SEEKING_FADE`` of the budget (study ``seeking``). A
 method's ``options`` are further drop-in arguments: the gradient controls
 (``esa_shift='gradient'``: the same bound, normalisation and gate, the shift along the
@@ -81,8 +81,6 @@ class Method:
 METHODS: dict[str, Method] = {
     "ppo": Method("PPO", "ppo", "none"),
     "ppo_esa": Method("PPO+ESA", "ppo", "esa", "default"),
-    "ppo_esa_null": Method("PPO+ESA (lr 0)", "ppo", "esa", "null"),
-    "ppo_esa_paper": Method("PPO+ESA (paper law)", "ppo", "esa", "paper"),
     "ppo_paramnoise": Method("PPO+ParamNoise", "ppo", "param_noise"),
     "ppo_qgrad": Method("PPO+gradient", "ppo", "esa", "default", (("esa_shift", "gradient"),)),
     "ppo_esa_target": Method("PPO+ESA target", "ppo", "esa", "target", (("esa_mode", "target"),)),
@@ -193,8 +191,6 @@ LABELS = {name: method.label for name, method in METHODS.items()}
 
 BASELINE_OF = {
     "ppo_esa": "ppo",
-    "ppo_esa_null": "ppo",
-    "ppo_esa_paper": "ppo",
     "ppo_qgrad": "ppo",
     "ppo_esa_target": "ppo",
     "ppo_qgrad_target": "ppo",
@@ -332,7 +328,6 @@ def esa_preset(name: str) -> dict[str, Any]:
     presets = {
         "default": EsaConfig(),
         "null": EsaConfig(learning_rate=0.0),
-        "paper": EsaConfig.paper(),
         "off_policy": EsaConfig.off_policy(),
         "sine": EsaConfig.off_policy(learning_rate=0.0),
         "target": EsaConfig(trust_region=TARGET_TRUST_REGION),
