@@ -120,55 +120,6 @@ def server() -> Iterator[Server]:
     running.close()
 
 
-class Proxy:
-    """A loopback TCP proxy to ``upstream`` whose connections can all be cut at once."""
-
-    def __init__(self, upstream: str) -> None:
-        host, port = upstream.rsplit(":", 1)
-        self._upstream = (host, int(port))
-        self._listener = socket.create_server(("127.0.0.1", 0))
-        self.address = f"127.0.0.1:{self._listener.getsockname()[1]}"
-        self._sockets: list[socket.socket] = []
-        self._lock = threading.Lock()
-        self.cuts = 0
-        threading.Thread(target=self._accept, daemon=True).start()
-
-    def _accept(self) -> None:
-        while True:
-            try:
-                client, _ = self._listener.accept()
-            except OSError:
-                return
-            upstream = socket.create_connection(self._upstream)
-            with self._lock:
-                self._sockets += [client, upstream]
-            for a, b in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
-
-    @staticmethod
-    def _pump(source: socket.socket, sink: socket.socket) -> None:
-        with contextlib.suppress(OSError):
-            while data := source.recv(65536):
-                sink.sendall(data)
-        for sock in (source, sink):
-            with contextlib.suppress(OSError):
-                sock.shutdown(socket.SHUT_RDWR)
-
-    def cut(self) -> None:
-        """Breaks every open connection (the server keeps its sessions)."""
-        with self._lock:
-            sockets, self._sockets = self._sockets, []
-            self.cuts += 1
-        for sock in sockets:
-            with contextlib.suppress(OSError):
-                sock.shutdown(socket.SHUT_RDWR)
-            sock.close()
-
-    def close(self) -> None:
-        self._listener.close()
-        self.cut()
-
-
 def _q(probes: np.ndarray) -> np.ndarray:
     return -np.sum((probes - 0.3) ** 2, axis=1)
 
@@ -326,8 +277,8 @@ def test_sigstop_stall_then_sigcont(server, transport):
 
 
 @pytest.mark.parametrize("transport", ["grpc"])
-def test_connection_cut_mid_step_stream(server, transport):
-    proxy = Proxy(server.address)
+def test_connection_cut_mid_step_stream(server, transport, loopback_proxy):
+    proxy = loopback_proxy(server.address)
     trainers = [
         BatchTrainer(
             proxy.address,
@@ -345,10 +296,7 @@ def test_connection_cut_mid_step_stream(server, transport):
             time.sleep(0.25)
             proxy.cut()
 
-    try:
-        _run(trainers, chaos, limit=25)
-    finally:
-        proxy.close()
+    _run(trainers, chaos, limit=25)
     for trainer in trainers:
         assert trainer.batch.sessions_restored == 0
 

@@ -15,7 +15,6 @@ newer, writable by others, expired sessions) are server/tests/api/state_file.rs.
 
 from __future__ import annotations
 
-import contextlib
 import signal
 import socket
 import subprocess
@@ -328,58 +327,11 @@ def test_sigkill_keeps_the_episode_count_and_mean_square_over_zenoh(zenoh_server
         _sigkill_keeps_what_the_client_saw(zenoh_server, client, _pipelined)
 
 
-class HoldingProxy:
-    """A loopback TCP proxy to ``upstream`` that can drop everything it is sent, then cut."""
-
-    def __init__(self, upstream: str) -> None:
-        host, port = upstream.rsplit(":", 1)
-        self._upstream = (host, int(port))
-        self._listener = socket.create_server(("127.0.0.1", 0))
-        self.address = f"127.0.0.1:{self._listener.getsockname()[1]}"
-        self._sockets: list[socket.socket] = []
-        self._lock = threading.Lock()
-        self.holding = False
-        threading.Thread(target=self._accept, daemon=True).start()
-
-    def _accept(self) -> None:
-        while True:
-            try:
-                client, _ = self._listener.accept()
-            except OSError:
-                return
-            upstream = socket.create_connection(self._upstream)
-            with self._lock:
-                self._sockets += [client, upstream]
-            for a, b in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
-
-    def _pump(self, source: socket.socket, sink: socket.socket) -> None:
-        with contextlib.suppress(OSError):
-            while data := source.recv(65536):
-                if not self.holding:
-                    sink.sendall(data)
-        for sock in (source, sink):
-            with contextlib.suppress(OSError):
-                sock.shutdown(socket.SHUT_RDWR)
-
-    def cut(self) -> None:
-        """Breaks every open connection; new ones are forwarded again."""
-        with self._lock:
-            sockets, self._sockets = self._sockets, []
-        for sock in sockets:
-            with contextlib.suppress(OSError):
-                sock.shutdown(socket.SHUT_RDWR)
-            sock.close()
-        self.holding = False
-
-    def close(self) -> None:
-        self._listener.close()
-        self.cut()
-
-
-def test_a_step_that_never_reached_the_server_is_sent_again(grpc_server):
+def test_a_step_that_never_reached_the_server_is_sent_again(
+    grpc_server, loopback_proxy
+):
     expected, expected_states = _reference(_whole)
-    proxy = HoldingProxy(grpc_server.address)
+    proxy = loopback_proxy(grpc_server.address)
 
     def chaos(batch: SessionBatch, t: int) -> None:
         if t == STOP_AT:
@@ -389,16 +341,11 @@ def test_a_step_that_never_reached_the_server_is_sent_again(grpc_server):
             # Step STOP_AT went out into the void; its answer cannot come.
             proxy.cut()
 
-    try:
-        with EsaClient.connect(
-            proxy.address, timeout=1.0, reconnect_timeout=20
-        ) as client:
-            trajectory, batch = _train(client, _whole, True, chaos)
-            _assert_same_run(trajectory, expected)
-            assert _comparable(batch) == expected_states
-            assert batch.sessions_restored == 0
-    finally:
-        proxy.close()
+    with EsaClient.connect(proxy.address, timeout=1.0, reconnect_timeout=20) as client:
+        trajectory, batch = _train(client, _whole, True, chaos)
+        _assert_same_run(trajectory, expected)
+        assert _comparable(batch) == expected_states
+        assert batch.sessions_restored == 0
 
 
 def test_esasac_stopped_and_restarted_ends_where_an_uninterrupted_run_ends(grpc_server):
