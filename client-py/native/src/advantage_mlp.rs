@@ -88,11 +88,11 @@ pub(crate) struct AdvantageMlp {
 
 /// ESAPPO's step inputs, each flat in row order: the sample in ESA units, the critic's gain
 /// (N D values) and offset (N values), and the policy's std in ESA units (N D values).
-pub(crate) struct HeadInputs {
-    pub(crate) scaled: Vec<f64>,
-    pub(crate) gain: Vec<f64>,
-    pub(crate) offset: Vec<f64>,
-    pub(crate) units: Vec<f64>,
+struct HeadInputs {
+    scaled: Vec<f64>,
+    gain: Vec<f64>,
+    offset: Vec<f64>,
+    units: Vec<f64>,
 }
 
 fn invalid(message: String) -> PyErr {
@@ -132,7 +132,7 @@ impl AdvantageMlp {
 
     /// A step's inputs from the policy's float32 `(N, D)` sample, mean and std (see
     /// `step_inputs` and `units`), checking every shape.
-    pub(crate) fn inputs(
+    fn inputs(
         &self,
         features: &Bound<'_, PyAny>,
         actions: &PyReadonlyArray2<'_, f32>,
@@ -193,12 +193,12 @@ impl AdvantageMlp {
     }
 
     /// A step's shift in the Box's units from its sample and answer in ESA units.
-    pub(crate) fn shift_value(&self, scaled: f64, applied: f64, d: usize) -> f64 {
+    fn shift_value(&self, scaled: f64, applied: f64, d: usize) -> f64 {
         (applied - scaled) * self.half_width[d]
     }
 
     /// The env's action: the float32 sample plus the float64 shift, cast back to float32.
-    pub(crate) fn executed_value(sample: f32, shift: f64) -> f32 {
+    fn executed_value(sample: f32, shift: f64) -> f32 {
         // f64 to f32 with `as` rounds to nearest, ties to even: numpy's astype.
         (f64::from(sample) + shift) as f32
     }
@@ -450,7 +450,7 @@ impl AdvantageMlp {
 }
 
 /// `values` as an `(n, dim)` array.
-pub(crate) fn matrix<T: numpy::Element>(
+fn matrix<T: numpy::Element>(
     py: Python<'_>,
     values: Vec<T>,
     n: usize,

@@ -4,7 +4,7 @@
 //! all-or-nothing batches (`esa_core::batch`) without a process or a socket in between. A refused
 //! call raises `EngineError` ([`crate::errors`]) and changes nothing.
 
-use numpy::{IntoPyArray, PyArray2, PyReadonlyArray2, PyReadwriteArray1};
+use numpy::IntoPyArray;
 use parking_lot::{Mutex, MutexGuard};
 use prost::Message;
 use pyo3::exceptions::PyValueError;
@@ -16,11 +16,9 @@ use esa_core::SessionConfig;
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
 
-use crate::advantage_mlp::{matrix, AdvantageMlp};
 use crate::arrays::{shaped, shaped_tuple, Values};
 use crate::engine;
 use crate::errors::engine_error;
-use crate::step_stats::StepStats;
 
 /// By default, batches of more action values than this run with the GIL released (measured:
 /// `native/bench_engine.py --gil`); below it, releasing the GIL and taking it back (and copying the
@@ -34,9 +32,6 @@ pub(crate) struct Engine {
     /// Batches of more action values than this release the GIL.
     detach_values: usize,
 }
-
-/// What `step_head` returns: the shift, float64 (N, D), and the executed actions, float32 (N, D).
-type HeadStep<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<f32>>);
 
 /// A list of session ids resolved once (`Engine.resolve`), for batch calls without hashing.
 #[pyclass(frozen, module = "esa_client._native")]
@@ -335,118 +330,6 @@ impl Engine {
         }
         .map_err(|err| engine_error(py, err))?;
         probe_tuple(py, output, n)
-    }
-
-    /// ESAPPO's whole step in one call, for its advantage head on this engine: the head's
-    /// inputs (`AdvantageMlp.step_inputs`), the probe and report of its linear critic
-    /// (`step_closed_form`), the batch's step bookkeeping, the step's statistics and the executed
-    /// actions. Returns `(shift, executed)`: the shift in the Box's units, float64 `(N, D)`, and
-    /// the env's actions, float32 `(N, D)`, as `AdvantageMlp.shift` and `.executed` give them.
-    ///
-    /// `steps` (int64) and `next_starts` (bool) are the batch's (N,) bookkeeping, updated in
-    /// place as `SessionBatch.step` updates them: a session starting an episode (flagged in
-    /// either) probes step 0, and every session's next step is the one after this. `stats` may
-    /// be None (no statistics). All or nothing: after an error nothing changed, neither the
-    /// sessions nor the bookkeeping nor `stats`.
-    #[pyo3(signature = (
-        handle, steps, next_starts, episode_starts, head, features, actions, mean, std,
-        use_policy_std, paired, stats, improvement
-    ))]
-    #[allow(clippy::too_many_arguments)] // each is one of the step's parts named above
-    fn step_head<'py>(
-        &self,
-        py: Python<'py>,
-        handle: &Bound<'py, BatchHandle>,
-        mut steps: PyReadwriteArray1<'py, i64>,
-        mut next_starts: PyReadwriteArray1<'py, bool>,
-        episode_starts: Option<&Bound<'py, PyAny>>,
-        head: &Bound<'py, AdvantageMlp>,
-        features: &Bound<'py, PyAny>,
-        actions: PyReadonlyArray2<'py, f32>,
-        mean: PyReadonlyArray2<'py, f32>,
-        std: PyReadonlyArray2<'py, f32>,
-        use_policy_std: bool,
-        paired: bool,
-        stats: Option<&Bound<'py, StepStats>>,
-        improvement: bool,
-    ) -> PyResult<HeadStep<'py>> {
-        let (handle, head) = (&handle.get().inner, head.get());
-        let (n, dim) = (handle.len(), head.action_dim());
-        let inputs = head.inputs(features, &actions, &mean, &std)?;
-        let flags = match episode_starts {
-            Some(flags) => Values::<bool>::bools(flags)?,
-            None => Values::empty(),
-        };
-        let (flags, book_steps) = (flags.as_slice(), steps.as_slice_mut()?);
-        let book_starts = next_starts.as_slice_mut()?;
-        if inputs.offset.len() != n
-            || book_steps.len() != n
-            || book_starts.len() != n
-            || !(flags.is_empty() || flags.len() == n)
-        {
-            return Err(PyValueError::new_err(format!(
-                "expected {n} rows of features and actions, {n} steps and next_starts (and {n} \
-                 episode_starts), got {}, {}, {} and {}",
-                inputs.offset.len(),
-                book_steps.len(),
-                book_starts.len(),
-                flags.len()
-            )));
-        }
-        let starts: Vec<bool> = (0..n)
-            .map(|i| book_starts[i] || flags.get(i).copied().unwrap_or(false))
-            .collect();
-        let probed = book_steps
-            .iter()
-            .zip(&starts)
-            .map(|(&step, &start)| if start { Ok(0) } else { u64::try_from(step) })
-            .collect::<Result<Vec<u64>, _>>()
-            .map_err(|_| PyValueError::new_err("steps: expected integers >= 0"))?;
-        let scales: &[f64] = if use_policy_std { &inputs.units } else { &[] };
-        let critic = LinearCritic {
-            gains: &inputs.gain,
-            offsets: &inputs.offset,
-            paired,
-        };
-        let output = self
-            .step_critic_detached(
-                py,
-                handle,
-                &probed,
-                &inputs.scaled,
-                &starts,
-                scales,
-                &critic,
-            )
-            .map_err(|err| engine_error(py, err))?;
-        // Applied: the bookkeeping, the statistics and the executed actions.
-        for ((step, start), probed) in book_steps.iter_mut().zip(book_starts).zip(&probed) {
-            // Probed steps came from non-negative int64s (or 0): one more still fits.
-            *step = i64::try_from(probed + 1).unwrap_or(i64::MAX);
-            *start = false;
-        }
-        let (scaled, applied) = (&inputs.scaled, &output.applied);
-        if let Some(stats) = stats {
-            let stats = stats.get();
-            stats.add(scaled, applied, &inputs.units);
-            if improvement {
-                // The critic at the applied minus at the sampled actions (the offsets cancel).
-                let gained: f64 = (0..n * dim)
-                    .map(|k| inputs.gain[k] * (applied[k] - scaled[k]))
-                    .sum();
-                stats.add_improvement_value(gained / n as f64);
-            }
-        }
-        let shift: Vec<f64> = (0..n * dim)
-            .map(|k| head.shift_value(scaled[k], applied[k], k % dim))
-            .collect();
-        let samples = actions.as_array();
-        let executed: Vec<f32> = samples
-            .iter()
-            .zip(&shift)
-            .map(|(&sample, &shift)| AdvantageMlp::executed_value(sample, shift))
-            .collect();
-        Ok((matrix(py, shift, n, dim)?, matrix(py, executed, n, dim)?))
     }
 
     /// ReportBatch: returns the improved actions.

@@ -10,7 +10,8 @@
 //! - [`errors`]: the exceptions a refused call raises, `EngineError` and `StatusError`, each with
 //!   the gRPC status `code`, `message` and failing batch item `index`.
 //! - [`arrays`]: numpy arguments in, numpy arrays out.
-//! - [`advantage_mlp`]: `AdvantageMlp`, ESAPPO's advantage head forward for one rollout step.
+//! - [`advantage_mlp`]: `AdvantageMlp`, the linear advantage head's forward for one rollout
+//!   step (for the experiments' arms that probe it: `esa_experiments.lab`).
 //! - [`step_ahead`]: `StepAhead`, the applied actions and probes of a pipelined step from the
 //!   shifts the previous step's answer carried.
 //! - [`step_stats`]: `StepStats`, the sums behind a learner's per-step ESA statistics.

@@ -2,8 +2,7 @@
 //!
 //! A learner logs, per step and averaged over its envs, how far ESA moved the actions and how
 //! often they left the env's bounds. Computed in numpy, a dozen small calls per step cost about
-//! as much as the ESA step itself; here a step's sums cost one call, or none when the in-process
-//! engine's head step (`Engine.step_head`) adds them itself.
+//! as much as the ESA step itself; here a step's sums cost one call.
 
 use numpy::{PyUntypedArray, PyUntypedArrayMethods};
 use parking_lot::Mutex;
@@ -73,9 +72,9 @@ impl StepStats {
     }
 
     /// Adds one step of N envs: `sampled` and `applied` (N D values), `scales` the policy's
-    /// std in the same units (N D values) or empty, as `check` requires (`Engine.step_head`
-    /// builds them so). Cannot fail: the head step adds its statistics after the engine step.
-    pub(crate) fn add(&self, sampled: &[f64], applied: &[f64], scales: &[f64]) {
+    /// std in the same units (N D values) or empty, as `check` requires. Cannot fail: callers
+    /// check first.
+    fn add(&self, sampled: &[f64], applied: &[f64], scales: &[f64]) {
         let dim = self.clip_low.len();
         if sampled.is_empty() {
             return;
@@ -113,7 +112,7 @@ impl StepStats {
     }
 
     /// Adds one step's `esa/improvement`: the critic at the applied minus at the sampled actions.
-    pub(crate) fn add_improvement_value(&self, value: f64) {
+    fn add_improvement_value(&self, value: f64) {
         self.sums.lock().add(IMPROVEMENT, value);
     }
 }

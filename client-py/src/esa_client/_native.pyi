@@ -266,59 +266,8 @@ class Engine:
             ValueError: ``low`` or ``high`` without a ``curvature``.
         """
 
-    def step_head(
-        self,
-        handle: BatchHandle,
-        steps: npt.NDArray[np.int64],
-        next_starts: npt.NDArray[np.bool_],
-        episode_starts: npt.ArrayLike | None,
-        head: AdvantageMlp,
-        features: npt.NDArray[np.float32] | npt.NDArray[np.float64],
-        actions: npt.NDArray[np.float32],
-        mean: npt.NDArray[np.float32],
-        std: npt.NDArray[np.float32],
-        use_policy_std: bool,
-        paired: bool,
-        stats: StepStats | None,
-        improvement: bool,
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float32]]:
-        """ESAPPO's whole step for its advantage head in one call.
-
-        ``head.step_inputs`` (the sample and std in ESA units, the head's linear critic),
-        :meth:`step_closed_form` of that critic at the sample (the std in ESA units as the action
-        scales when ``use_policy_std``), the batch's step bookkeeping, the step's statistics
-        and the executed actions: the bits of those parts called one by one
-        (``SessionBatch.step`` of an ``esa_client.transports.base.HeadStep``).
-
-        Args:
-            handle: The N sessions.
-            steps: The batch's int64[N] next steps, updated in place: a session starting an
-                episode probes step 0; afterwards each holds the probed step + 1.
-            next_starts: The batch's bool[N] pending episode starts, cleared in place.
-            episode_starts: bool[N] episode starts of this step, or None.
-            head: The advantage head's copy.
-            features: Its input, ``(N, F)``.
-            actions: The policy's samples, float32 ``(N, D)``.
-            mean: The policy's mean, float32 ``(N, D)``.
-            std: The policy's standard deviation, float32 ``(N, D)``.
-            use_policy_std: Send the std in ESA units as the action scales.
-            paired: Report the critic at the applied actions as the references.
-            stats: Where the step's statistics are added (the std in ESA units as the scale),
-                or None for none.
-            improvement: With ``stats``, also add the critic's improvement,
-                ``Q(applied) - Q(sample)``.
-
-        Returns:
-            ``(shift, executed)``: the shift in the Box's units, float64 ``(N, D)``, and the
-            env's actions, float32 ``(N, D)`` (``head.shift`` and ``head.executed``).
-
-        Raises:
-            ValueError: A shape does not match (nothing changed).
-            EngineError: As :meth:`step_closed_form` (nothing changed).
-        """
-
 class AdvantageMlp:
-    """ESAPPO's advantage head ``w(s)``, a tanh MLP, for one rollout step at a time.
+    """The linear advantage head ``w(s)`` of the experiments' arms, for one rollout step.
 
     A copy of the head's layers (``AdvantageHead.snapshot``), computed in float32 without
     numpy's or torch's per-operation dispatch, and the action Box's scaling, for the step's
@@ -386,7 +335,7 @@ class AdvantageMlp:
         npt.NDArray[np.float64],
         npt.NDArray[np.float64],
     ]:
-        """ESAPPO's step inputs in one call: ``(scaled, gain, offset, units)``.
+        """The linear head's step inputs in one call: ``(scaled, gain, offset, units)``.
 
         ``scaled`` is the policy's sample ``actions`` in ESA units, ``(a - c) / h`` in float64
         ``(N, D)`` (the same bits as numpy's float64 arithmetic on the widened values),
