@@ -224,7 +224,7 @@ def test_ppo_two_runners_store_applied_actions_and_behaviour_logp(ray_session):
         np.testing.assert_allclose(s["logp"], behaviour, rtol=1e-5, atol=1e-5)
         # ... not the policy's density at x.
         assert not np.allclose(s["logp"], dist.logp(torch.as_tensor(x)).numpy())
-        # The advantage head on the env runner is the one the learner fitted.
+        # The quadratic head on the env runner is the one the learner fitted.
         head = [k for k in learner if k.startswith("esa_head.")]
         assert head and "esa_active" in s["state"]
         for k in [*head, "esa_active"]:
@@ -330,7 +330,7 @@ def test_with_esa_defaults_as_the_sb3_drop_ins(make, default):
 
 
 def test_the_shared_esa_code_imports_without_stable_baselines3():
-    # esa_client.rllib runs ESA with the SB3 drop-ins' runtime and advantage head: those
+    # esa_client.rllib runs ESA with the SB3 drop-ins' runtime and quadratic head: those
     # must not pull in stable-baselines3, which esa-client[rllib] does not install.
     code = (
         "import sys; sys.modules['stable_baselines3'] = None\n"

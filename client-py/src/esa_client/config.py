@@ -442,8 +442,8 @@ class EsaConfig:
         """The shipped default of the off-policy drop-ins (``ESASAC``, ``ESATD3``).
 
         ``EsaConfig()`` with a wider trust region: an off-policy learner pays no importance
-        ratio for shifted data, and its twin Q critic is steadier than PPO's advantage head.
-        The bound is the pre-declared pick of the ``ground_truth`` study on SAC (tuning
+        ratio for shifted data, and its twin Q critic is steadier than PPO's fitted head. The
+        bound is the pre-declared pick of the (former) ``ground_truth`` study on SAC (tuning
         seeds 100-102, InvertedPendulum-v5 and Hopper-v5): the largest bound whose
         measured Monte-Carlo return gain is above 0 with 95 % confidence on both envs
         (``experiments/RESULTS.md``).

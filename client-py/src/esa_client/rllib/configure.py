@@ -48,7 +48,7 @@ def with_esa(
     whose env-runner copy keeps the critic ESA probes), the learner
     (:class:`~esa_client.rllib.learners.EsaSACTorchLearner` /
     :class:`~esa_client.rllib.learners.EsaPPOTorchLearner`: the gate, and PPO's
-    advantage head) and appends :class:`~esa_client.rllib.connector.EsaModuleToEnv` to
+    quadratic head) and appends :class:`~esa_client.rllib.connector.EsaModuleToEnv` to
     the module-to-env connectors (after yours). Call it after setting the environment,
     model and ``normalize_actions``; change none of these three afterwards.
 
@@ -72,7 +72,7 @@ def with_esa(
         service: Where the sessions live (default: in each runner's process).
         probe_critic: SAC: the critic ESA probes, as ``ESASAC``'s ``esa_probe_critic``.
         gate_every: SAC: sampled env steps between two gate checks.
-        head_hidden: PPO: hidden units of each of the advantage head's two layers.
+        head_hidden: PPO: hidden units of each of the quadratic head's two layers.
         head_learning_rate: PPO: Adam learning rate of the head.
         head_epochs: PPO: passes over its data each time the head is fitted.
         head_batch_size: PPO: minibatch size when fitting the head.

@@ -122,7 +122,7 @@ def sac_critic_quality(module: EsaSACTorchRLModule, batch: dict[str, Any], gamma
 
 
 class EsaRolloutRecorder(ConnectorV2):
-    """Learner connector piece (after GAE): keeps what the advantage head learns from.
+    """Learner connector piece (after GAE): keeps what the quadratic head learns from.
 
     For every :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule` in the batch, puts
     ``(Rollout(features, z, normalized advantages), advantages)`` of the loss-masked rows
@@ -201,7 +201,7 @@ class EsaPPOTorchLearner(PPOTorchLearner):
             self._learner_connector.append(EsaRolloutRecorder(self._esa_pending))
 
     def configure_optimizers_for_module(self, module_id: Any, config: Any = None) -> None:
-        """RLlib's default Adam over the module's parameters, less the advantage head's."""
+        """RLlib's default Adam over the module's parameters, less the quadratic head's."""
         assert self._module is not None  # built before the optimizers
         module = self._module[module_id]
         head = getattr(_unwrapped(module), "esa_head", None)

@@ -234,7 +234,7 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
     """
 
     def setup(self) -> None:
-        """Builds RLlib's PPO module and the advantage head."""
+        """Builds RLlib's PPO module and the quadratic head."""
         super().setup()
         self._setup_esa()
         if self.get_exploration_action_dist_cls() is not TorchDiagGaussian:
@@ -245,7 +245,7 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
         if self.model_config.get("use_lstm") or self.model_config.get("use_attention"):
             raise ValueError("expected a stateless PPO module for ESA, got a recurrent one")
         if self.observation_space is None:
-            raise ValueError("expected an observation space for ESA's advantage head, got None")
+            raise ValueError("expected an observation space for ESA's quadratic head, got None")
         features = int(gym.spaces.flatdim(self.observation_space))
         # A forked generator: the head must not move PPO's random stream.
         with torch.random.fork_rng(devices=[]):
@@ -272,7 +272,7 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
         return (actions.reshape(len(actions), -1) - mean) / log_std.exp()
 
     def esa_q(self, obs: Any, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """The advantage head at ``(obs, actions)``."""
+        """The quadratic head at ``(obs, actions)``."""
         advantage: torch.Tensor = self.esa_head(
             self.esa_features(obs), self.esa_z(dist_inputs, actions)
         )

@@ -67,7 +67,7 @@ class BatchReport(NamedTuple):
 class LinearCritic(NamedTuple):
     """A critic linear in the action at each session's state: ``Q_i(a) = gain_i . a + offset_i``.
 
-    ESAPPO's advantage head has this form; an in-process engine evaluates it itself
+    A linear advantage head has this form; an in-process engine evaluates it itself
     (:meth:`~esa_client.session.SessionBatch.step`).
 
     Attributes:
