@@ -312,6 +312,8 @@ def test_with_esa_refuses_what_it_cannot_do():
         with_esa(PPOConfig(), head_epochs=0)
     with pytest.raises(ValueError, match="EsaConfig"):
         with_esa(PPOConfig(), esa={"amplitude": 0.1})
+    with pytest.raises(ValueError, match=r"expected EsaConfig\(fade=None\) with RLlib"):
+        with_esa(PPOConfig(), esa=EsaConfig.ppo())
     config = with_esa(PPOConfig())
     # Twice replaces the first connector instead of stacking two.
     factory = with_esa(config)._module_to_env_connector
