@@ -16,21 +16,15 @@ from __future__ import annotations
 
 import contextlib
 import signal
-import socket
-import subprocess
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from pathlib import Path
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pytest
 from esa_client import EsaClient, EsaConfig, EsaError, ServerUnavailable, SessionConfig
 from esa_client.common.runtime import EsaRuntime
 from esa_client.sharding import shard_of
-from esa_client.sidecar import find_server_binary
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
 
 CONFIG = SessionConfig(
     action_dim=2,
@@ -45,79 +39,9 @@ N_ENVS = 2
 EPISODE = 40
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
-class Server:
-    """One esa-server on a fixed loopback port, to kill, restart, stop and continue."""
-
-    def __init__(self, *args: str) -> None:
-        try:
-            self.binary = str(find_server_binary(checkout=REPO_ROOT, build=False))
-        except EsaError as err:
-            pytest.fail(str(err))
-        self.address = f"127.0.0.1:{_free_port()}"
-        self.args = args
-        self.process: subprocess.Popen[str] | None = None
-        self.start()
-
-    def start(self) -> None:
-        deadline = time.monotonic() + 10
-        while True:
-            process = subprocess.Popen(
-                [self.binary, "--listen", self.address, *self.args],
-                stdout=subprocess.PIPE,
-                stderr=subprocess.DEVNULL,
-                text=True,
-            )
-            assert process.stdout is not None
-            line = process.stdout.readline()
-            if line.startswith("listening on "):
-                self.process = process
-                return
-            process.wait()  # the port may linger a moment after a kill
-            assert time.monotonic() < deadline, f"server did not restart: {line!r}"
-            time.sleep(0.05)
-
-    def signal(self, number: int) -> None:
-        assert self.process is not None
-        self.process.send_signal(number)
-
-    def kill(self) -> None:
-        self.signal(signal.SIGKILL)
-        assert self.process is not None
-        self.process.wait()
-
-    def restart(self, down: float = 1.5) -> None:
-        """SIGKILL, ``down`` seconds without a server, then a new one on the same address."""
-        self.kill()
-        time.sleep(down)
-        self.start()
-
-    def stop_and_start(self, down: float = 1.0) -> None:
-        """SIGTERM (the server writes its state file and exits), ``down`` s, a new start."""
-        self.signal(signal.SIGTERM)
-        assert self.process is not None
-        assert self.process.wait(timeout=30) == 0
-        time.sleep(down)
-        self.start()
-
-    def close(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.send_signal(signal.SIGCONT)
-            self.process.kill()
-            self.process.wait()
-
-
 @pytest.fixture
-def server() -> Iterator[Server]:
-    running = Server()
-    yield running
-    running.close()
+def server(esa_server):
+    return esa_server()
 
 
 def _q(probes: np.ndarray) -> np.ndarray:
@@ -223,9 +147,9 @@ def test_sigkill_and_restart_under_three_batch_trainers(server, transport):
 
 @pytest.mark.parametrize("transport", list(WIRES))
 def test_sigterm_and_restart_with_a_state_file_under_three_batch_trainers(
-    tmp_path, transport
+    tmp_path, transport, esa_server
 ):
-    server = Server("--state-file", str(tmp_path / "state"))
+    server = esa_server(state_file=tmp_path / "state")
     trainers = [
         BatchTrainer(
             server.address,
@@ -242,10 +166,7 @@ def test_sigterm_and_restart_with_a_state_file_under_three_batch_trainers(
         time.sleep(0.4)
         server.stop_and_start()
 
-    try:
-        _run(trainers, chaos, limit=25)
-    finally:
-        server.close()
+    _run(trainers, chaos, limit=25)
     for trainer in trainers:
         # Every session came back from the state file: none had to be recreated.
         assert trainer.batch.sessions_restored == 0
@@ -481,38 +402,11 @@ def test_sigkill_and_restart_under_two_gymnasium_wrapper_loops(server):
 
 
 @pytest.mark.parametrize("shards", [1, 2])
-def test_zenoh_server_or_shard_killed_and_restarted(shards):
+def test_zenoh_server_or_shard_killed_and_restarted(shards, esa_server):
     pytest.importorskip("zenoh")
-    try:
-        executable = str(find_server_binary(checkout=REPO_ROOT, build=False))
-    except EsaError as err:
-        pytest.fail(str(err))
-    endpoints = [f"tcp/127.0.0.1:{_free_port()}" for _ in range(shards)]
-
-    def start(i: int) -> subprocess.Popen[str]:
-        shard = ["--shard", f"{i}/{shards}"] if shards > 1 else []
-        args = [
-            "--listen",
-            "127.0.0.1:0",
-            "--zenoh",
-            "--zenoh-listen",
-            endpoints[i],
-            *shard,
-        ]
-        process = subprocess.Popen(
-            [executable, *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-        )
-        assert process.stdout is not None
-        for _ in range(4):
-            if "zenoh listening" in process.stdout.readline():
-                return process
-        process.kill()
-        pytest.fail("esa-server --zenoh did not start")
-
-    servers = [start(i) for i in range(shards)]
+    shard = [["--shard", f"{i}/{shards}"] if shards > 1 else [] for i in range(shards)]
+    servers = [esa_server(*shard[i], zenoh=True) for i in range(shards)]
+    endpoints = [server.address for server in servers]
     wire = {"transport": "zenoh", "shards": shards if shards > 1 else None}
     trainers = [
         BatchTrainer(endpoints, 250, seed=i, timeout=1.0, reconnect_timeout=20, **wire)
@@ -524,15 +418,7 @@ def test_zenoh_server_or_shard_killed_and_restarted(shards):
 
     def chaos() -> None:
         time.sleep(0.4)
-        servers[victim].kill()
-        servers[victim].wait()
-        time.sleep(1.5)
-        servers[victim] = start(victim)
+        servers[victim].restart()
 
-    try:
-        _run(trainers, chaos, limit=30)
-    finally:
-        for process in servers:
-            process.kill()
-            process.wait()
+    _run(trainers, chaos, limit=30)
     assert trainers[0].batch.sessions_restored > 0

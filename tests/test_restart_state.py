@@ -15,19 +15,15 @@ newer, writable by others, expired sessions) are server/tests/api/state_file.rs.
 
 from __future__ import annotations
 
-import signal
-import socket
-import subprocess
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
-from esa_client import EsaClient, EsaError, SessionConfig
+from esa_client import EsaClient, SessionConfig
 from esa_client.session import SessionBatch
-from esa_client.sidecar import find_server_binary
 from esa_client.state import SessionProgress
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -52,103 +48,20 @@ STOP_AT = 3 * EPISODE + 10
 RMS_RATE = 0.05
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
-class Server:
-    """esa-server on a fixed loopback port (gRPC, or Zenoh) with a state file."""
-
-    def __init__(self, state_dir: Path, *, zenoh: bool = False) -> None:
-        try:
-            self.binary = str(find_server_binary(checkout=REPO_ROOT, build=False))
-        except EsaError as err:
-            pytest.fail(str(err))
-        self.state_file = state_dir / "esa-state"
-        self.zenoh = zenoh
-        port = _free_port()
-        self.address = f"tcp/127.0.0.1:{port}" if zenoh else f"127.0.0.1:{port}"
-        self.process: subprocess.Popen[str] | None = None
-        self.starts = 0
-        self.start()
-
-    def _args(self) -> list[str]:
-        state = ["--state-file", str(self.state_file)]
-        if self.zenoh:
-            return [
-                "--listen",
-                "127.0.0.1:0",
-                "--zenoh",
-                "--zenoh-listen",
-                self.address,
-                *state,
-            ]
-        return ["--listen", self.address, *state]
-
-    def start(self) -> None:
-        """Starts the server; retries while the port lingers after a stop."""
-        deadline = time.monotonic() + 10
-        ready = "zenoh listening" if self.zenoh else "listening on "
-        while True:
-            process = subprocess.Popen(
-                [self.binary, *self._args()],
-                stdout=subprocess.PIPE,
-                stderr=subprocess.DEVNULL,
-                text=True,
-            )
-            assert process.stdout is not None
-            for line in process.stdout:
-                if line.startswith(ready):
-                    self.process = process
-                    self.starts += 1
-                    return
-            process.wait()
-            assert time.monotonic() < deadline, "the server did not start again"
-            time.sleep(0.05)
-
-    def stop(self) -> None:
-        """SIGTERM: the server finishes what is in flight, writes its state file and exits 0."""
-        assert self.process is not None
-        self.process.send_signal(signal.SIGTERM)
-        assert self.process.wait(timeout=30) == 0
-        assert self.state_file.exists()
-
-    def kill(self) -> None:
-        """SIGKILL: everything in the server's memory is lost."""
-        assert self.process is not None
-        self.process.kill()
-        self.process.wait()
-
-    def start_later(self, down: float) -> threading.Thread:
-        """Starts the server again after ``down`` seconds, on a thread of its own."""
-        thread = threading.Thread(
-            target=lambda: (time.sleep(down), self.start()), daemon=True
-        )
-        thread.start()
-        return thread
-
-    def close(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.kill()
-            self.process.wait()
+@pytest.fixture
+def state_file(tmp_path: Path) -> Path:
+    return tmp_path / "esa-state"
 
 
 @pytest.fixture
-def grpc_server(tmp_path: Path) -> Iterator[Server]:
-    server = Server(tmp_path)
-    yield server
-    server.close()
+def grpc_server(esa_server, state_file):
+    return esa_server(state_file=state_file)
 
 
 @pytest.fixture
-def zenoh_server(tmp_path: Path) -> Iterator[Server]:
+def zenoh_server(esa_server, state_file):
     pytest.importorskip("zenoh")
-    server = Server(tmp_path, zenoh=True)
-    yield server
-    server.close()
+    return esa_server(zenoh=True, state_file=state_file)
 
 
 def _critic(points: np.ndarray) -> np.ndarray:
@@ -233,7 +146,9 @@ def _assert_same_run(trajectory: list[np.ndarray], expected: list[np.ndarray]) -
 
 
 @pytest.mark.parametrize("wire", list(WIRES))
-def test_sigterm_and_restart_continue_bit_for_bit_over_grpc(grpc_server, wire):
+def test_sigterm_and_restart_continue_bit_for_bit_over_grpc(
+    grpc_server, state_file, wire
+):
     connect, step = WIRES[wire]
     expected, expected_states = _reference(step)
     restarts: list[threading.Thread] = []
@@ -251,7 +166,7 @@ def test_sigterm_and_restart_continue_bit_for_bit_over_grpc(grpc_server, wire):
         assert _comparable(batch) == expected_states
         assert batch.sessions_restored == 0
     assert grpc_server.starts == 2
-    assert not grpc_server.state_file.exists(), "a loaded state file is removed"
+    assert not state_file.exists(), "a loaded state file is removed"
 
 
 def test_sigterm_and_restart_continue_bit_for_bit_over_zenoh(zenoh_server):
@@ -273,7 +188,7 @@ def test_sigterm_and_restart_continue_bit_for_bit_over_zenoh(zenoh_server):
 
 
 def _sigkill_keeps_what_the_client_saw(
-    server: Server, client: EsaClient, step: Step
+    server: Any, client: EsaClient, step: Step
 ) -> None:
     seen: list[list[SessionProgress]] = []
     checked: list[int] = []
