@@ -84,6 +84,19 @@ def test_the_committed_runs_are_reused_as_the_rules_say(study, planned, reused):
             assert spec.env in study.REUSED[spec.method]
 
 
+def test_every_ablation_arm_is_cut_at_the_first_third_of_ppos_budget():
+    full = paper_ablations.BUDGETS["full"]
+    budget = full.budgets[paper_ablations.ENV].on_policy
+    steps = np.arange(0, budget + 1, 2048)
+    frame = pd.concat(
+        pd.DataFrame({"env": paper_ablations.ENV, "method": arm, "step": steps})
+        for arm in paper_ablations.METHODS
+    )
+    last = paper_ablations.first_third(frame, full).groupby("method").step.max()
+    assert sorted(last.index) == sorted(paper_ablations.METHODS)
+    assert (last == budget // 3).all()
+
+
 def test_the_budgets_are_e2s_and_walker2d_gets_hoppers():
     budgets = paper_figures.BUDGETS["full"].budgets
     e2 = seeking.BUDGETS["full"].budgets

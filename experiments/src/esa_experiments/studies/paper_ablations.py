@@ -214,6 +214,14 @@ def outcome(primary: pd.DataFrame, whole: pd.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
+def first_third(frame: pd.DataFrame, args: Args) -> pd.DataFrame:
+    """The rows of the primary metric, each arm cut at the first third of PPO's budget.
+
+    Every arm is a PPO run, whatever its stored name (``K0.2``, ``fade1``).
+    """
+    return seeking.early(frame, args.budgets, family=lambda _arm: "ppo")
+
+
 def report(store: RunStore, args: Args) -> str:
     """Three panels (amplitude, frequency, decay), the verdicts against the default, outcome."""
     plan = planned(args, store.budget, paper_figures.study_seeds(store), ENVS, METHODS)
@@ -233,7 +241,7 @@ def report(store: RunStore, args: Args) -> str:
         log=log,
         inline=False,
     )
-    primary = verdict_table(seeking.early(frame, args.budgets), ENVS, COMPARISONS, labels)
+    primary = verdict_table(first_third(frame, args), ENVS, COMPARISONS, labels)
     whole = verdict_table(frame, ENVS, COMPARISONS, labels)
     for name, table in (("first", primary), ("whole", whole)):
         atomic_write_text(store.artifact(f"verdicts_{name}.md"), to_markdown(table) + "\n")

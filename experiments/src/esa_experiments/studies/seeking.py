@@ -54,6 +54,7 @@ confirmation campaign found no acceleration):
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -198,12 +199,23 @@ COMPARISONS = tuple(
 )
 
 
-def early(frame: pd.DataFrame, budgets: dict[str, StepBudget]) -> pd.DataFrame:
-    """The evaluation rows within the first third of each run's budget."""
+def early(
+    frame: pd.DataFrame,
+    budgets: dict[str, StepBudget],
+    family: Callable[[str], str] = family_of,
+) -> pd.DataFrame:
+    """The evaluation rows within the first third of each run's budget.
+
+    Args:
+        frame: Evaluation rows of runs (``env``, ``method``, ``step``).
+        budgets: Each env's budget.
+        family: The family of a stored arm name: ``ppo`` runs PPO's budget, any other the
+            off-policy one.
+    """
 
     def limit(row: pd.Series) -> float:
         budget = budgets[str(row.env)]
-        total = budget.on_policy if family_of(str(row.method)) == "ppo" else budget.off_policy
+        total = budget.on_policy if family(str(row.method)) == "ppo" else budget.off_policy
         return EARLY * total
 
     return frame[frame.step <= frame.apply(limit, axis=1)]
