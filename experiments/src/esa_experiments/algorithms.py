@@ -125,40 +125,23 @@ METHODS: dict[str, Method] = {
     "td3_pink": Method("TD3+pink noise", "td3", "pink"),
     "ddpg_ou": Method("DDPG+OU", "ddpg", "ou"),
     # Study `seeking` (E2), off-policy arms: every ESA arm fades (seeking_off_policy).
-    "sac_esa_fade": Method("SAC+ESA (fade)", "sac", "esa", "seeking_off_policy"),
-    "sac_placebo": Method(
-        "SAC+placebo", "sac", "esa", "seeking_off_policy", (("esa_shift", "placebo"),)
-    ),
-    "sac_qgrad_fade": Method(
-        "SAC+gradient (fade)", "sac", "esa", "seeking_off_policy", (("esa_shift", "gradient"),)
-    ),
-    "sac_mean_esa": Method(
-        "SAC+ESA at the mean", "sac", "esa", "seeking_off_policy", (("esa_anchor", "mean"),)
-    ),
-    "sac_mean_qgrad": Method(
-        "SAC+gradient at the mean",
-        "sac",
-        "esa",
-        "seeking_off_policy",
-        (("esa_anchor", "mean"), ("esa_shift", "gradient")),
-    ),
-    "td3_esa_fade": Method("TD3+ESA (fade)", "td3", "esa", "seeking_off_policy"),
-    "td3_placebo": Method(
-        "TD3+placebo", "td3", "esa", "seeking_off_policy", (("esa_shift", "placebo"),)
-    ),
-    "td3_qgrad_fade": Method(
-        "TD3+gradient (fade)", "td3", "esa", "seeking_off_policy", (("esa_shift", "gradient"),)
-    ),
-    "td3_mean_esa": Method(
-        "TD3+ESA at the mean", "td3", "esa", "seeking_off_policy", (("esa_anchor", "mean"),)
-    ),
-    "td3_mean_qgrad": Method(
-        "TD3+gradient at the mean",
-        "td3",
-        "esa",
-        "seeking_off_policy",
-        (("esa_anchor", "mean"), ("esa_shift", "gradient")),
-    ),
+    **{
+        f"{family}_{arm}": Method(
+            f"{family.upper()}+{label}", family, "esa", "seeking_off_policy", options
+        )
+        for family in ("sac", "td3")
+        for arm, label, options in (
+            ("esa_fade", "ESA (fade)", ()),
+            ("placebo", "placebo", (("esa_shift", "placebo"),)),
+            ("qgrad_fade", "gradient (fade)", (("esa_shift", "gradient"),)),
+            ("mean_esa", "ESA at the mean", (("esa_anchor", "mean"),)),
+            (
+                "mean_qgrad",
+                "gradient at the mean",
+                (("esa_anchor", "mean"), ("esa_shift", "gradient")),
+            ),
+        )
+    },
     "td3_gauss_matched": Method(
         "TD3+Gaussian noise (sine's variance)", "td3", "none", noise_match="sine"
     ),
