@@ -12,7 +12,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 
 use esa_core::fused_step::{LinearCritic, QuadraticCritic, StepCritic};
-use esa_core::SessionConfig;
+use esa_core::{CoreError, SessionConfig};
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
 
@@ -403,6 +403,20 @@ pub(crate) fn decode_config(bytes: &[u8]) -> Result<SessionConfig, Error> {
                 "config: expected an encoded esa.v1.SessionConfig message: {err}"
             ))
         })
+}
+
+/// Checks an encoded `esa.v1.SessionConfig` against every rule of CONTRACT.md sections 1 and 1b,
+/// as creating a session does, so that a config is refused where it is built, by the same rules
+/// and words as on every transport.
+///
+/// Raises `ValueError` naming the first bad field ("frequency[1]: expected ..., got ...").
+#[pyfunction]
+pub(crate) fn check_config(config: &[u8]) -> PyResult<()> {
+    let config = decode_config(config).map_err(|err| PyValueError::new_err(err.to_string()))?;
+    config.validate().map_err(|err| match err {
+        CoreError::InvalidConfig(message) => PyValueError::new_err(message),
+        other => PyValueError::new_err(other.to_string()),
+    })
 }
 
 /// An encoded `esa.v1.SessionProgress` (INVALID_ARGUMENT for bytes that are not one).

@@ -3,7 +3,8 @@
 //! Each file holds one concern; this one only declares them and registers what Python sees:
 //!
 //! - [`engine_class`]: `Engine` and `BatchHandle`, esa-core in-process over numpy arrays, on the
-//!   handle cache of [`engine`] over esa-store's sessions by id. Validation, error codes and
+//!   handle cache of [`engine`] over esa-store's sessions by id, and `check_config`, the one
+//!   validation of a session config. Validation, error codes and
 //!   messages are the server's (CONTRACT.md section 2).
 //! - [`client`]: `GrpcClient` and `GrpcBatch`, the same calls to an esa-server over gRPC (tonic),
 //!   the GIL released while they wait.
@@ -39,6 +40,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
     m.add_class::<engine_class::Engine>()?;
     m.add_class::<engine_class::BatchHandle>()?;
+    m.add_function(wrap_pyfunction!(engine_class::check_config, m)?)?;
     m.add_class::<advantage_mlp::AdvantageMlp>()?;
     m.add_class::<step_ahead::StepAhead>()?;
     m.add_class::<step_stats::StepStats>()?;

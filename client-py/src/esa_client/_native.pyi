@@ -30,6 +30,15 @@ MAX_ID_BYTES: int
 DETACH_VALUES: int
 """Default ``Engine(detach_values=...)``: larger batches release the GIL while they run."""
 
+def check_config(config: bytes) -> None:
+    """Checks an encoded ``esa.v1.SessionConfig`` as creating a session does.
+
+    Every rule of CONTRACT.md sections 1 and 1b.
+
+    Raises:
+        ValueError: Naming the first bad field ("frequency[1]: expected ..., got ...").
+    """
+
 class EngineError(Exception):
     """A refused call; nothing changed.
 

@@ -1,10 +1,10 @@
 """Session configs: the wire-level :class:`SessionConfig` and the user-facing :class:`EsaConfig`.
 
-:class:`SessionConfig` mirrors ``esa.v1.SessionConfig`` field for field and checks
-the same rules as the server (CONTRACT.md section 1), so a bad value fails early
-with a ``ValueError`` naming the field. :class:`EsaConfig` holds the ESA
-hyperparameters a trainer exposes and turns them into a :class:`SessionConfig`
-once the environment's action space and time step are known.
+:class:`SessionConfig` mirrors ``esa.v1.SessionConfig`` field for field; esa-core checks
+it where it is built, with the rules and words of every transport (CONTRACT.md sections 1
+and 1b), so a bad value fails early with a ``ValueError`` naming the field.
+:class:`EsaConfig` holds the ESA hyperparameters a trainer exposes and turns them into a
+:class:`SessionConfig` once the environment's action space and time step are known.
 """
 
 from __future__ import annotations
@@ -17,16 +17,15 @@ from typing import Any
 
 import numpy as np
 
+from ._native import check_config
 from ._proto.esa.v1 import esa_pb2
 
 Vector = float | Sequence[float] | np.ndarray
 """A per-dimension value: a scalar (broadcast to every dimension) or one value per dimension."""
 
-MAX_ACTION_DIM = 4096
 
-
-def _as_tuple(name: str, value: Vector | None, action_dim: int) -> tuple[float, ...]:
-    """Returns ``value`` as a tuple of floats of length 0, 1 or ``action_dim``.
+def _as_tuple(name: str, value: Vector | None) -> tuple[float, ...]:
+    """Returns ``value`` as a tuple of floats (its length is esa-core's to check).
 
     None and an empty sequence (the stored form of an unset field) both mean unset, so a
     validated config can be rebuilt from its own fields (``dataclasses.replace``).
@@ -38,12 +37,7 @@ def _as_tuple(name: str, value: Vector | None, action_dim: int) -> tuple[float, 
         return ()
     if array.ndim > 1:
         raise ValueError(f"expected {name} to be a scalar or 1-D sequence, got shape {array.shape}")
-    flat = tuple(float(x) for x in array.reshape(-1))
-    if len(flat) not in (1, action_dim):
-        raise ValueError(
-            f"expected {name} to have length 1 or action_dim={action_dim}, got length {len(flat)}"
-        )
-    return flat
+    return tuple(float(x) for x in array.reshape(-1))
 
 
 def _check(ok: bool, expected: str, got: object) -> None:
@@ -51,8 +45,17 @@ def _check(ok: bool, expected: str, got: object) -> None:
         raise ValueError(f"expected {expected}, got {got!r}")
 
 
-def _all_finite(values: tuple[float, ...]) -> bool:
-    return all(math.isfinite(x) for x in values)
+def _is_int(value: object, bits: int) -> bool:
+    """Whether ``value`` fits the contract's unsigned integer of ``bits`` bits."""
+    return (
+        isinstance(value, (int, np.integer))
+        and not isinstance(value, bool)
+        and 0 <= value < 2**bits
+    )
+
+
+def _is_real(value: object) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 def _finite_bound(bound: Vector | None, unbounded: float) -> Vector | None:
@@ -130,74 +133,30 @@ class SessionConfig:
     trust_region: float | None = None
 
     def __post_init__(self) -> None:
-        """Validates every field and normalizes vectors to tuples."""
-        d = self.action_dim
-        _check(
-            isinstance(d, (int, np.integer)) and 1 <= d <= MAX_ACTION_DIM,
-            f"action_dim in [1, {MAX_ACTION_DIM}]",
-            d,
-        )
-        object.__setattr__(self, "action_dim", int(d))
-        _check(math.isfinite(self.dt) and self.dt > 0, "dt finite and > 0", self.dt)
+        """Checks each field's type and stores vectors as tuples; esa-core checks the values.
+
+        Raises:
+            ValueError: Naming the first bad field ("expected ..., got ..."), in esa-core's
+                words for a value the contract refuses (``check_config``).
+        """
+        _check(_is_int(self.action_dim, 32), "action_dim an integer", self.action_dim)
+        _check(_is_int(self.max_episodes, 64), "max_episodes an integer >= 0", self.max_episodes)
+        for name in ("action_dim", "max_episodes"):
+            object.__setattr__(self, name, int(getattr(self, name)))
+        _check(_is_real(self.dt), "dt a real number", self.dt)
+        object.__setattr__(self, "dt", float(self.dt))
         for name in ("amplitude", "frequency", "learning_rate", "action_low", "action_high"):
-            object.__setattr__(self, name, _as_tuple(name, getattr(self, name), d))
-        for name in ("amplitude", "frequency", "learning_rate"):
-            _check(len(getattr(self, name)) > 0, f"{name} to be set", getattr(self, name))
-            _check(_all_finite(getattr(self, name)), f"{name} finite", getattr(self, name))
-        _check(min(self._values("amplitude")) >= 0, "amplitude >= 0", self.amplitude)
-        _check(min(self._values("frequency")) > 0, "frequency > 0", self.frequency)
-        _check(min(self._values("learning_rate")) >= 0, "learning_rate >= 0", self.learning_rate)
-        _check(
-            max(self._values("frequency")) * self.dt < math.pi,
-            f"frequency * dt < pi (Nyquist), i.e. frequency < {math.pi / self.dt:.6g} rad/s "
-            f"for dt={self.dt}",
-            self.frequency,
-        )
-        if self.highpass_cutoff is not None:
-            _check(
-                math.isfinite(self.highpass_cutoff) and self.highpass_cutoff > 0,
-                "highpass_cutoff finite and > 0",
-                self.highpass_cutoff,
-            )
-        # The contract rejects infinities anywhere in a request; EsaConfig.session_config
-        # turns a gymnasium Box's infinite bounds into float max, which clips to the same.
-        for name in ("action_low", "action_high"):
-            _check(
-                _all_finite(getattr(self, name)),
-                f"{name} finite (empty = unbounded; +-sys.float_info.max = unbounded in "
-                "one dimension)",
-                getattr(self, name),
-            )
-        if self.action_low and self.action_high:
-            low = np.broadcast_to(self.action_low, d)
-            high = np.broadcast_to(self.action_high, d)
-            _check(
-                bool(np.all(low < high)),
-                "action_low < action_high in every dimension",
-                (self.action_low, self.action_high),
-            )
-        for name in ("shift_limit", "response_clip", "trust_region"):
+            object.__setattr__(self, name, _as_tuple(name, getattr(self, name)))
+        for name in _OPTIONAL_SCALARS:
             value = getattr(self, name)
             if value is not None:
-                _check(math.isfinite(value) and value > 0, f"{name} finite and > 0", value)
-        for name in ("lr_decay", "response_rms_rate"):
+                _check(_is_real(value), f"{name} a real number (or None)", value)
+                object.__setattr__(self, name, float(value))
+        for name in ("disable_highpass", "normalize_response"):
             value = getattr(self, name)
-            if value is not None:
-                _check(0 < value <= 1, f"{name} in (0, 1]", value)
-        if self.shift_leak is not None:
-            _check(0 <= self.shift_leak < 1, "shift_leak in [0, 1)", self.shift_leak)
-        _check(
-            isinstance(self.normalize_response, (bool, np.bool_)),
-            "normalize_response a bool",
-            self.normalize_response,
-        )
-        object.__setattr__(self, "normalize_response", bool(self.normalize_response))
-        _check(
-            isinstance(self.max_episodes, (int, np.integer)) and self.max_episodes >= 0,
-            "max_episodes an integer >= 0",
-            self.max_episodes,
-        )
-        object.__setattr__(self, "max_episodes", int(self.max_episodes))
+            _check(isinstance(value, (bool, np.bool_)), f"{name} a bool", value)
+            object.__setattr__(self, name, bool(value))
+        check_config(self.to_proto().SerializeToString())
 
     def _values(self, name: str) -> tuple[float, ...]:
         """A vector field as stored: a tuple, since ``__post_init__`` normalized every one."""
