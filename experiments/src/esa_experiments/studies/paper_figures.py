@@ -308,16 +308,21 @@ def outcome(primary: pd.DataFrame, whole: pd.DataFrame, frame: pd.DataFrame) -> 
             continue
         state = "reproduced" if len(holds) >= MIN_ENVS else "partly" if holds else "not reproduced"
         provisional = "" if complete else " (provisional: not every arm has 5 seeds), so far"
+
         lines.append(
-            f"- **{family.upper()}**{provisional}"
-            f": **{state}**: {LABELS[arm]} is better than {LABELS[family]} early and worse "
-            f"nowhere on {holds or 'no env'} (of {len(ENVS)}); it also beats "
-            f"{' and '.join(LABELS[r] for r in others)} there on {beats or 'no env'}; worse than "
-            f"{LABELS[family]} on {harm or 'no env'}"
-            + (f"; no verdict yet on {open_envs}" if open_envs else "")
+            f"- **{family.upper()}**{provisional}: **{state}**. Envs where {LABELS[arm]} is "
+            f"better than {LABELS[family]} early and worse on neither metric: {_envs(holds)} "
+            f"(of {len(ENVS)}); where it also beats "
+            f"{' and '.join(LABELS[r] for r in others)}: {_envs(beats)}; where it is worse "
+            f"than {LABELS[family]}: {_envs(harm)}"
+            + (f"; no verdict yet: {_envs(open_envs)}" if open_envs else "")
             + "."
         )
     return "\n".join(lines) + "\n"
+
+
+def _envs(names: list[str]) -> str:
+    return ", ".join(names) if names else "none"
 
 
 def _full_target(env_key: str) -> np.ndarray:
