@@ -478,19 +478,13 @@ class SessionBatch:
                 finite numbers, or a linear or quadratic critic's shapes or values are wrong
                 (nothing changed).
         """
-        self._check_critic(critic)
         ahead = self._ahead_batch
-        probes: F64Array | None
         if ahead is not None and not want_probes:
-            probes, applied = (
-                None,
-                self._step_ahead(ahead, actions, critic, episode_starts, action_scales, paired),
+            self._check_critic(critic)
+            return None, self._step_ahead(
+                ahead, actions, critic, episode_starts, action_scales, paired
             )
-        else:
-            probes, applied = self._step_here(
-                actions, critic, episode_starts, action_scales, paired
-            )
-        return probes, applied
+        return self._step_here(actions, critic, episode_starts, action_scales, paired)
 
     def _step_here(
         self,
@@ -503,6 +497,7 @@ class SessionBatch:
         """:meth:`step` waiting for its answer: one engine call in-process, else two."""
         fused = self._fused
         if fused is None or not isinstance(critic, _ClosedForm) or self._deferred is not None:
+            self._check_critic(critic)
             probes, applied = self.probe_applied(
                 actions, episode_starts, action_scales=action_scales
             )
@@ -511,7 +506,13 @@ class SessionBatch:
             return probes, applied
         # In this process: no wire to ride out, so no reconnect around the call.
         request = self._probe_request(actions, episode_starts, None, action_scales)
-        answer = fused.step_closed_form(request, critic, paired)
+        try:
+            answer = fused.step_closed_form(request, critic, paired)
+        except ValueError:
+            # esa-core checks the critic itself, all or nothing; checking it here first too
+            # would cost more than the step. A refusal is told in the words of every transport.
+            self._check_critic(critic)
+            raise
         self._steps = request.steps + 1
         self._last_probe = request
         self._next_starts[:] = False
