@@ -25,7 +25,9 @@ the applied actions, scored in the same critic batch as the probes. Two ways:
 - ``pair``: ``probe_applied`` + the critic + ``report``: two round trips per step;
 - ``pipelined``: ``probe_applied`` + the critic + ``report(defer=True)``: the
   report rides with the next step's probe, one round trip per step on the
-  StepStream (two messages written before either answer is read).
+  StepStream (two messages written before either answer is read);
+- ``step`` (in-process only): ``SessionBatch.step`` of a quadratic critic, ESAPPO's step,
+  which the engine runs in one call.
 
 Usage::
 
@@ -46,6 +48,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 from esa_client import EsaClient, SessionConfig
+from esa_client.transports.base import QuadraticCritic
 
 from servers import baseline_server, esa_server_tcp, server_binary
 
@@ -120,16 +123,38 @@ def section_1b_step(batch, actions: np.ndarray, *, defer: bool) -> Callable[[], 
     return step
 
 
+def closed_form_step(batch, actions: np.ndarray) -> Callable[[], None]:
+    """ESAPPO's step: ``SessionBatch.step`` of a quadratic critic, evaluated by the engine."""
+    rng = np.random.default_rng(1)
+    n, dim = actions.shape
+    critic = QuadraticCritic(
+        rng.normal(size=(n, dim)),
+        -np.abs(rng.normal(size=(n, dim))),
+        rng.normal(size=n),
+        np.full(dim, -1.0),
+        np.full(dim, 1.0),
+    )
+    scales = np.full(actions.shape, 0.3)
+
+    def step() -> None:
+        batch.step(actions, critic, action_scales=scales, paired=True)
+
+    return step
+
+
 def measure(batch, args: Args, law: str = "1", mode: str = "pair") -> dict:
     """Runs steps on ``batch`` for the warm-up, then times each step; returns the summary.
 
     ``law`` "1" is section 1's pair; "1b" is Algorithm 1's step with the section 1b
-    inputs, ``mode`` "pair" (two round trips) or "pipelined" (deferred report).
+    inputs, ``mode`` "pair" (two round trips), "pipelined" (deferred report) or "step"
+    (``SessionBatch.step`` of a quadratic critic, ESAPPO's).
     """
     rng = np.random.default_rng(0)
     actions = rng.uniform(-0.5, 0.5, size=(batch.n, batch.action_dim))
     if law == "1":
         one_step = section_1_step(batch, actions)
+    elif mode == "step":
+        one_step = closed_form_step(batch, actions)
     else:
         one_step = section_1b_step(batch, actions, defer=mode == "pipelined")
 
@@ -236,7 +261,7 @@ def section_1b_targets() -> list[Target]:
 
 
 # (law, mode) of each section 1b row; pipelining only changes anything on the StepStream.
-SECTION_1B_ROWS = [("1", "pair"), ("1b", "pair"), ("1b", "pipelined")]
+SECTION_1B_ROWS = [("1", "pair"), ("1b", "pair"), ("1b", "pipelined"), ("1b", "step")]
 
 
 def main_rows(args: Args) -> list[dict]:
@@ -269,6 +294,8 @@ def section_1b_rows(args: Args) -> list[dict]:
                 for law, mode in SECTION_1B_ROWS:
                     if mode == "pipelined" and api in ("batch", "native"):
                         continue  # two unary round trips: the same as the pair
+                    if mode == "step" and server != "esa-native":
+                        continue  # one engine call only in-process; a wire's is the pipelined
                     config = session_config(args.dim) if law == "1" else section_1b_config(args.dim)
                     batch = client.create_batch(config, n, use_stream=api.endswith("stream"))
                     result = measure(batch, args, law, mode)
