@@ -11,9 +11,7 @@ from ``target/criterion`` when ``core.json`` is missing). Every issue-7 target
 is listed with its measured figure and PASS or MISS.
 
 CONTRACT.md section 1b has its own section, from ``section_1b.json``
-(client_latency.py ``--parts 1b``). ``bench/run.sh --section-1b`` measures only
-that section, with its own ``section_1b_core.json`` and ``section_1b_run.json``;
-after a full run it shares ``core.json`` and ``run.json`` with the rest.
+(client_latency.py ``--parts 1b``), measured in the same run as the rest.
 
 Usage::
 
@@ -797,13 +795,7 @@ def ratio_text(value: float, base: float) -> str:
     return f"{value / base:.2f}x"
 
 
-def section_1b_section(
-    python: dict,
-    laws: dict[str, Medians],
-    run: dict | None,
-    own_run: bool,
-    main_run: dict | None = None,
-) -> list[str]:
+def section_1b_section(python: dict, laws: dict[str, Medians]) -> list[str]:
     """Markdown for CONTRACT.md section 1b: the core pair and the Python step, 1b against 1."""
     args = python["args"]
     lines = [
@@ -815,27 +807,6 @@ def section_1b_section(
         "run.",
         "",
     ]
-    if own_run and run:
-        lines += [
-            "Measured in a run of its own (`bench/run.sh --section-1b`), not in the run of "
-            "the sections above:",
-            "",
-        ]
-        if main_run and main_run.get("cpu_model") != run.get("cpu_model"):
-            lines[-2] = lines[-2].removesuffix(":") + (
-                f", and on another CPU ({run.get('cpu_model')} here, "
-                f"{main_run.get('cpu_model')} there): compare figures within this section only."
-            )
-        lines += [
-            *machine_lines(run),
-            "",
-            "Commands:",
-            "",
-            "```",
-            *run["commands"],
-            "```",
-            "",
-        ]
     if laws.get("1b"):
         lines += [
             "### Core pair",
@@ -951,9 +922,6 @@ def main(args: Args) -> None:
     laws = core_medians(load(args.results / "core.json"), args.criterion)
     core = laws["1"]
     section_1b = load(args.results / "section_1b.json")
-    # A section 1b run of its own brings its own core medians and run record.
-    own_core = load(args.results / "section_1b_core.json")
-    own_run = load(args.results / "section_1b_run.json")
     plot(server, python, args.results / PLOT_NAME)
 
     lines = [
@@ -993,9 +961,7 @@ def main(args: Args) -> None:
     if training:
         lines += training_section(training) + [""]
     if section_1b:
-        laws_1b = core_medians(own_core, args.criterion) if own_core else laws
-        own = own_run is not None
-        lines += section_1b_section(section_1b, laws_1b, own_run or run, own, run) + [""]
+        lines += section_1b_section(section_1b, laws) + [""]
     soak = load(args.results / "soak.json")
     if soak:
         lines += soak_section(soak) + [""]

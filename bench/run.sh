@@ -4,22 +4,17 @@
 # the training-overhead bench, then bench/report.py writes BENCHMARKS.md and
 # bench/results/latency_vs_batch.png. Everything stays on loopback.
 #
-# Usage: bench/run.sh [--quick] [--section-1b]
+# Usage: bench/run.sh [--quick]
 #   --quick: short windows for a smoke test; the results still go to bench/results/,
 #     so do not commit a quick run.
-#   --section-1b: only what CONTRACT.md section 1b changed: the core pair bench (both
-#     laws) and the Python section 1b rows, with their own core medians and run record
-#     (section_1b_core.json, section_1b_run.json); the other results stay as they are.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 QUICK=false
-SECTION_1B=false
 for arg in "$@"; do
   case $arg in
     --quick) QUICK=true ;;
-    --section-1b) SECTION_1B=true ;;
-    *) echo "usage: bench/run.sh [--quick] [--section-1b]" >&2; exit 2 ;;
+    *) echo "usage: bench/run.sh [--quick]" >&2; exit 2 ;;
   esac
 done
 
@@ -43,15 +38,8 @@ else
 fi
 
 mkdir -p "$RESULTS"
-if $SECTION_1B; then
-  CORE_JSON=$RESULTS/section_1b_core.json
-  RUN_JSON=$RESULTS/section_1b_run.json
-else
-  CORE_JSON=$RESULTS/core.json
-  RUN_JSON=$RESULTS/run.json
-  # A full run measures section 1b too: its own-run records would be stale.
-  rm -f "$RESULTS/section_1b_core.json" "$RESULTS/section_1b_run.json"
-fi
+CORE_JSON=$RESULTS/core.json
+RUN_JSON=$RESULTS/run.json
 started=$(date -u +%FT%TZ)
 loadavg_start=$(cat /proc/loadavg)
 # On a VM the hypervisor's steal time slows every figure; its share is reported.
@@ -73,37 +61,28 @@ run() {
   "$@"
 }
 
-if $SECTION_1B; then
-  run "$CARGO" build --release -p esa-server
-else
-  run "$CARGO" build --release -p esa-server -p esa-bench
-fi
+run "$CARGO" build --release -p esa-server -p esa-bench
 run "$CARGO" bench -p esa-core --bench pair -- --noplot "${CRITERION_ARGS[@]}"
 run "$PY" bench/report.py --snapshot-core "$CORE_JSON"
 
-if $SECTION_1B; then
-  run "$PY" bench/python/client_latency.py --parts 1b \
-    --section-1b-out "$RESULTS/section_1b.json" "${PY_ARGS[@]}"
-else
-  # The Python baseline on a free loopback port, for the load generator's comparison.
-  coproc BASELINE { exec "$PY" bench/python/baseline_server.py --listen 127.0.0.1:0; }
-  baseline_pid=$BASELINE_PID
-  read -r -u "${BASELINE[0]}" line
-  baseline_addr=${line##* }
-  commands+=("$PY bench/python/baseline_server.py --listen 127.0.0.1:0  # -> $baseline_addr")
-  run target/release/esa-bench --server "$ESA_SERVER_BIN" --json "$RESULTS/server.json" \
-    --baseline "$baseline_addr" "${BENCH_ARGS[@]}"
-  kill "$baseline_pid"
-  wait "$baseline_pid" 2>/dev/null || true
-  baseline_pid=
+# The Python baseline on a free loopback port, for the load generator's comparison.
+coproc BASELINE { exec "$PY" bench/python/baseline_server.py --listen 127.0.0.1:0; }
+baseline_pid=$BASELINE_PID
+read -r -u "${BASELINE[0]}" line
+baseline_addr=${line##* }
+commands+=("$PY bench/python/baseline_server.py --listen 127.0.0.1:0  # -> $baseline_addr")
+run target/release/esa-bench --server "$ESA_SERVER_BIN" --json "$RESULTS/server.json" \
+  --baseline "$baseline_addr" "${BENCH_ARGS[@]}"
+kill "$baseline_pid"
+wait "$baseline_pid" 2>/dev/null || true
+baseline_pid=
 
-  run "$PY" bench/python/client_latency.py --out "$RESULTS/python.json" \
-    --section-1b-out "$RESULTS/section_1b.json" "${PY_ARGS[@]}"
-  run "$PY" bench/python/throughput_ab.py --out "$RESULTS/throughput_ab.json" "${PY_ARGS[@]}"
-  run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TRAIN_ARGS[@]}"
-  # The wheel and the binaries as the last builds left them (`make wheel` builds the wheel).
-  run "$PY" bench/python/artifact_sizes.py --out "$RESULTS/sizes.json"
-fi
+run "$PY" bench/python/client_latency.py --out "$RESULTS/python.json" \
+  --section-1b-out "$RESULTS/section_1b.json" "${PY_ARGS[@]}"
+run "$PY" bench/python/throughput_ab.py --out "$RESULTS/throughput_ab.json" "${PY_ARGS[@]}"
+run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TRAIN_ARGS[@]}"
+# The wheel and the binaries as the last builds left them (`make wheel` builds the wheel).
+run "$PY" bench/python/artifact_sizes.py --out "$RESULTS/sizes.json"
 
 finished=$(date -u +%FT%TZ)
 loadavg_end=$(cat /proc/loadavg)
