@@ -157,7 +157,8 @@ class ZenohRpc(Generic[Response]):
 
         Raises:
             EsaError: The server's error as its typed exception; ``ServerUnavailable``
-                when no server serves the key; ``DeadlineExceeded`` when none answered in
+                when no server serves the key (before the query, or by its deadline);
+                ``DeadlineExceeded`` when a server that still serves it did not answer in
                 time; :class:`TwoServersAnswered` when more than one peer answered.
         """
         if not self.matched:
@@ -183,7 +184,12 @@ class ZenohRpc(Generic[Response]):
         reply = answers[0]
         if reply.ok is not None:
             return self._decode(self._response, reply.ok.payload.to_bytes())
-        raise self._error(reply.err)
+        error = self._error(reply.err)
+        if isinstance(error, DeadlineExceeded) and not self.matched:
+            # The server went away while the query waited: each querier learns of it on its
+            # own, so a query can leave on a route that is already dead. Say what happened.
+            raise self._unavailable() from None
+        raise error
 
     def _unavailable(self) -> ServerUnavailable:
         return ServerUnavailable(
