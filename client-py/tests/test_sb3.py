@@ -26,6 +26,7 @@ from esa_client.common.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
 from esa_client.transports.grpc import GrpcTransport
 from esa_client.transports.in_process import InProcessTransport
+from esa_client.transports.stepping import AheadStepper
 
 N_ENVS = 4
 pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")
@@ -67,18 +68,21 @@ def esa_calls(monkeypatch):
         calls["scales"].append(kwargs.get("action_scales"))
         return probes, applied
 
-    step_ahead = SessionBatch._step_ahead
+    step_ahead = AheadStepper.step
 
-    def recording_ahead(self, ahead, actions, critic, episode_starts, action_scales, paired):
-        applied = step_ahead(self, ahead, actions, critic, episode_starts, action_scales, paired)
-        calls["sampled"].append(np.array(actions, dtype=np.float64))
-        calls["applied"].append(applied.copy())
-        calls["scales"].append(action_scales)
-        return applied
+    def recording_ahead(self, batch, actions, critic, episode_starts, action_scales, *flags):
+        probes, applied = step_ahead(
+            self, batch, actions, critic, episode_starts, action_scales, *flags
+        )
+        if probes is None:  # sent ahead: probe_applied did not see it
+            calls["sampled"].append(np.array(actions, dtype=np.float64))
+            calls["applied"].append(applied.copy())
+            calls["scales"].append(action_scales)
+        return probes, applied
 
     monkeypatch.setattr(SessionBatch, "probe_applied", recording)
     # A step sent ahead through the gRPC client's stream skips probe_applied.
-    monkeypatch.setattr(SessionBatch, "_step_ahead", recording_ahead)
+    monkeypatch.setattr(AheadStepper, "step", recording_ahead)
     return calls
 
 
@@ -472,7 +476,7 @@ def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatc
         )
         model.learn(400)
         assert model._esa is not None
-        assert (model._esa.batch._ahead_batch is not None) == (engine == "sidecar")
+        assert isinstance(model._esa.batch._stepper, AheadStepper) == (engine == "sidecar")
         # A step sent ahead leaves no probes.
         assert (model._esa.last_probes is None) == (engine == "sidecar")
         runs.append((model.replay_buffer.actions.copy(), parameters(model)))

@@ -21,6 +21,7 @@ from esa_client import (
     StepMismatch,
 )
 from esa_client._native import EngineError, StatusError, StepAhead
+from esa_client.transports.stepping import AheadStepper
 
 CONFIG = SessionConfig(
     action_dim=2,
@@ -86,7 +87,8 @@ def test_the_actions_and_states_are_the_in_process_steps_bits(native, paired, ki
     local = EsaClient.in_process()
     ahead = native.create_batch(CONFIG, N, use_stream=True)
     whole = local.create_batch(CONFIG, N)
-    assert ahead._ahead_batch is not None and whole._ahead_batch is None
+    assert isinstance(ahead._stepper, AheadStepper)
+    assert not isinstance(whole._stepper, AheadStepper)
     for actions, scales, linear, starts in script(300):
         critic = CRITICS[kind](linear)
         _, applied = ahead.step(actions, critic, starts, action_scales=scales, paired=paired)
@@ -106,7 +108,7 @@ def test_without_a_pipelining_stream_it_is_step(native):
         local.create_batch(CONFIG, N),
     ):
         twin = local.create_batch(CONFIG, N)
-        assert batch._ahead_batch is None
+        assert not isinstance(batch._stepper, AheadStepper)
         for actions, scales, critic, starts in script(40, seed=1):
             _, applied = batch.step(actions, critic, starts, action_scales=scales)
             _, expected = twin.step(actions, critic, starts, action_scales=scales)
@@ -218,7 +220,7 @@ def test_a_lost_answer_of_an_applied_step_changes_nothing(native, monkeypatch, k
     for actions, scales, critic, starts in script(5, seed=5):
         for b in (batch, twin):
             b.step(actions, CRITICS[kind](critic), starts, action_scales=scales)
-    ahead = batch._ahead_batch
+    ahead = batch._batch
     receive = ahead.receive_step
     calls = []
 

@@ -19,17 +19,15 @@ runs in-process, over gRPC or over Zenoh (one server or N shards).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import NamedTuple, TypeVar
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
-from ._native import EngineError, StepAhead
 from .config import SessionConfig
-from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch, TypedErrors
-from .reconnect import Reconnect, RetriableErrors
+from .errors import SessionNotFound, StatusCode, StepMismatch
+from .reconnect import Reconnect
 from .state import (
-    BoolArray,
     F64Array,
     I64Array,
     SessionProgress,
@@ -38,26 +36,12 @@ from .state import (
     check_array,
     check_indices,
 )
-from .transports.base import (
-    AheadBatch,
-    BatchProbe,
-    BatchReport,
-    LinearCritic,
-    QuadraticCritic,
-    Transport,
-)
+from .transports.base import BatchProbe, BatchReport, Transport
+from .transports.stepping import Critic
 
 __all__ = ["Session", "SessionBatch", "SessionProgress", "SessionState", "restore_sessions"]
 
-_engine_errors = TypedErrors(EngineError)
-
 _Answer = TypeVar("_Answer")
-
-Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic | QuadraticCritic
-"""What :meth:`SessionBatch.step` scores the probes with."""
-
-_ClosedForm = (LinearCritic, QuadraticCritic)
-"""The critics an in-process engine evaluates itself."""
 
 
 def restore_sessions(
@@ -101,77 +85,6 @@ def restore_sessions(
                 transport.create_session(session_id, config.to_proto())
             restored += 1
     return restored
-
-
-def _step_applied(
-    states: Sequence[SessionState],
-    sent: BatchProbe,
-    steps_before: I64Array,
-    seen: Sequence[SessionProgress] | None,
-) -> bool | None:
-    """Whether the server applied the fused step ``sent``, from its sessions' states now.
-
-    Applied, each session is at the step after the one sent (``sent.steps + 1``) with no probe
-    pending; not applied, at its step before (``steps_before``). The two coincide only for an
-    episode start right after a one-step episode: then the episode count tells them apart,
-    against the count ``seen`` in the answer before. None when the states fit neither, or do
-    not agree (a step is applied to all its sessions or to none).
-    """
-    verdicts: set[bool] = set()
-    for i, state in enumerate(states):
-        after, before = int(sent.steps[i]) + 1, int(steps_before[i])
-        if state.probe_pending or state.step not in (after, before):
-            return None
-        if after != before:
-            verdicts.add(state.step == after)
-            continue
-        if seen is None:
-            return None
-        episodes = seen[i].episodes_completed
-        if state.episodes_completed not in (episodes, episodes + 1):
-            return None
-        verdicts.add(state.episodes_completed == episodes + 1)
-    return verdicts.pop() if len(verdicts) == 1 else None
-
-
-def _check_quadratic(critic: QuadraticCritic, n: int, dim: int) -> None:
-    """Checks a :class:`QuadraticCritic` for ``n`` sessions of dimension ``dim``.
-
-    Raises:
-        ValueError: A shape is wrong, a coefficient not finite, a curvature positive, or a
-            bound NaN or a low above its high.
-    """
-    shape = (n, dim)
-    shapes = [np.shape(part) for part in critic[:3]]
-    if shapes != [shape, shape, (n,)]:
-        raise ValueError(
-            f"critic: expected gain and curvature of shape {shape} and offset of shape {(n,)}, "
-            f"got {shapes[0]}, {shapes[1]} and {shapes[2]}"
-        )
-    for name, values in zip(("gain", "curvature", "offset"), critic[:3], strict=True):
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"critic: expected a finite {name}, got {values!r}")
-    if np.any(np.asarray(critic.curvature) > 0):
-        raise ValueError(f"critic: expected curvature <= 0, got {critic.curvature!r}")
-    low, high = critic.low, critic.high
-    if low is None or high is None:
-        if low is not None or high is not None:
-            raise ValueError(f"critic: expected both bounds or neither, got {low!r} and {high!r}")
-        return
-    bounds = (np.shape(low), np.shape(high))
-    if bounds != ((dim,), (dim,)):
-        raise ValueError(
-            f"critic: expected low and high of shape {(dim,)}, got {bounds[0]} and {bounds[1]}"
-        )
-    if not np.all(np.asarray(low) <= np.asarray(high)):
-        raise ValueError(f"critic: expected low <= high (no NaN), got {low!r} and {high!r}")
-
-
-class _InFlight(NamedTuple):
-    """What a step sent ahead by :meth:`SessionBatch.step` replaced, restored if it fails."""
-
-    steps_before: I64Array
-    starts_before: BoolArray
 
 
 class Session:
@@ -340,13 +253,7 @@ class SessionBatch:
         self._reconnect = reconnect
         # The last probe sent: replayed into recreated sessions before a lone report.
         self._last_probe: BatchProbe | None = None
-        # A step sent ahead: the one whose answer is not read yet, and what to restore if it
-        # fails; the shifts v(t) of the next step (from the last answer read).
-        self._ahead: _InFlight | None = None
-        self._shifts: F64Array = np.zeros((self.n, self.action_dim))
-        self._ahead_engine: StepAhead | None = None
-        self._ahead_batch = self._batch.ahead()
-        self._fused = self._batch.fused()
+        self._stepper = self._batch.stepper()
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
 
@@ -399,7 +306,7 @@ class SessionBatch:
             ``(probes, applied)``, both shape ``(N, D)``: the probes, and
             ``clip(a_t + v(t))``, the shift before this step's report.
         """
-        self._flush_ahead()
+        self._stepper.flush(self)
         request = self._probe_request(actions, episode_starts, steps, action_scales)
         deferred = self._deferred
         if self._reconnect is None:
@@ -417,6 +324,12 @@ class SessionBatch:
         self._next_starts[:] = False
         return answer
 
+    def _sent(self, request: BatchProbe) -> None:
+        """Counts a whole step (probe and report) of ``request`` as sent."""
+        self._steps = request.steps + 1
+        self._last_probe = request
+        self._next_starts[:] = False
+
     def step(
         self,
         actions: npt.ArrayLike,
@@ -430,39 +343,28 @@ class SessionBatch:
         """A whole step of Algorithm 1 (section 1b), in as few waits as the transport allows.
 
         :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the probes
-        (and at the applied actions as ``q_references`` when ``paired``). The transport
-        decides how it runs, with the same bits everywhere:
-
-        - in-process, a :class:`~esa_client.transports.base.LinearCritic` or
-          :class:`~esa_client.transports.base.QuadraticCritic` is evaluated by the engine
-          itself: probe and report run in one call, with nothing deferred;
-        - through a gRPC StepStream the step is sent ahead of its answer (unless
-          ``want_probes``): the applied actions are computed here with esa-core's own
-          function from the shifts ``v(t)`` that the previous step's answer carried (0 at an
-          episode start), and the step (probe, critic, report) goes as one message whose
-          answer is read at the next call, so the round trip overlaps the environment's step
-          and the learner's work (CONTRACT.md section 1b, implementation note 8). A
-          :class:`~esa_client.transports.base.LinearCritic` is evaluated by the server
-          (``step_linear_batch``); any other critic is evaluated here, at the probes computed
-          the same way, and its values go with the step (``step_batch``);
-        - elsewhere, the probe waits for its answer and the report rides with the next one.
+        (and at the applied actions as ``q_references`` when ``paired``). The transport's
+        :class:`~esa_client.transports.stepping.Stepper` decides how it runs, with the same
+        bits everywhere: in-process a linear or quadratic critic is evaluated by the engine in
+        one call; on a gRPC StepStream the step is sent ahead of its answer (unless
+        ``want_probes``), which is read at the next call; elsewhere the probe waits for its
+        answer and the report rides with the next one.
 
         An error of a step sent ahead surfaces one call late: the next call (or :meth:`flush`)
         raises it, and nothing of that step was applied on the server, although its actions
         were returned. After a broken exchange (the server restarted, or the connection
         dropped), a reconnect policy asks the server within the call where the sessions
         are: a step it applied is not sent again, one it did not is, and training goes on
-        bit for bit (:meth:`_resume_ahead`). Only sessions the server lost (a crash) start
-        a new episode at the next step, resuming their episode count and mean square.
-        Without a reconnect policy every session starts a new episode at the next step.
+        bit for bit. Only sessions the server lost (a crash) start a new episode at the next
+        step, resuming their episode count and mean square. Without a reconnect policy every
+        session starts a new episode at the next step.
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
             critic: The critic at the N current states: maps ``(k N, D)`` actions (the
                 states tiled k times) to ``(k N,)`` values, or
                 ``Q_i(a) = gain_i . a + offset_i`` as a
-                :class:`~esa_client.transports.base.LinearCritic`, or a
-                :class:`~esa_client.transports.base.QuadraticCritic`.
+                :class:`~esa_client.LinearCritic`, or a :class:`~esa_client.QuadraticCritic`.
             episode_starts: As for :meth:`probe_applied`.
             action_scales: As for :meth:`probe_applied`.
             paired: Report the critic at the applied actions as the references.
@@ -478,154 +380,9 @@ class SessionBatch:
                 finite numbers, or a linear or quadratic critic's shapes or values are wrong
                 (nothing changed).
         """
-        ahead = self._ahead_batch
-        if ahead is not None and not want_probes:
-            self._check_critic(critic)
-            return None, self._step_ahead(
-                ahead, actions, critic, episode_starts, action_scales, paired
-            )
-        return self._step_here(actions, critic, episode_starts, action_scales, paired)
-
-    def _step_here(
-        self,
-        actions: npt.ArrayLike,
-        critic: Critic,
-        episode_starts: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-        paired: bool,
-    ) -> tuple[F64Array, F64Array]:
-        """:meth:`step` waiting for its answer: one engine call in-process, else two."""
-        fused = self._fused
-        if fused is None or not isinstance(critic, _ClosedForm) or self._deferred is not None:
-            self._check_critic(critic)
-            probes, applied = self.probe_applied(
-                actions, episode_starts, action_scales=action_scales
-            )
-            q = np.asarray(critic(np.concatenate([probes, applied]) if paired else probes))
-            self.report(q[: self.n], q_references=q[self.n :] if paired else None, defer=True)
-            return probes, applied
-        # In this process: no wire to ride out, so no reconnect around the call.
-        request = self._probe_request(actions, episode_starts, None, action_scales)
-        try:
-            answer = fused.step_closed_form(request, critic, paired)
-        except ValueError:
-            # esa-core checks the critic itself, all or nothing; checking it here first too
-            # would cost more than the step. A refusal is told in the words of every transport.
-            self._check_critic(critic)
-            raise
-        self._steps = request.steps + 1
-        self._last_probe = request
-        self._next_starts[:] = False
-        return answer
-
-    def _step_ahead(
-        self,
-        ahead: AheadBatch,
-        actions: npt.ArrayLike,
-        critic: Critic,
-        episode_starts: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-        paired: bool,
-    ) -> F64Array:
-        """:meth:`step` sent ahead of its answer on ``ahead``; returns the applied actions."""
-        if self._deferred is not None:
-            self.flush()
-        if self._ahead is not None:
-            self._shifts = self._receive_ahead(ahead)
-        request = self._probe_request(actions, episode_starts, None, action_scales)
-        before = _InFlight(self._steps, self._next_starts.copy())
-        try:
-            applied = self._send_ahead(ahead, request, critic, paired)
-        except RetriableErrors:
-            if self._reconnect is None:
-                raise
-            request, applied = self._reconnect.run(
-                lambda _: self._restart(
-                    request, lambda restart: self._send_ahead(ahead, restart, critic, paired)
-                )
-            )
-        self._ahead = before
-        self._steps = request.steps + 1
-        self._last_probe = request
-        self._next_starts[:] = False
-        return applied
-
-    def _check_critic(self, critic: Critic) -> None:
-        """A linear or quadratic critic's shapes (and a quadratic one's values), else nothing."""
-        if not isinstance(critic, _ClosedForm):
-            return
-        shape = (self.n, self.action_dim)
-        gain_shape, offset_shape = np.shape(critic.gain), np.shape(critic.offset)
-        if isinstance(critic, LinearCritic):
-            if gain_shape != shape or offset_shape != (self.n,):
-                raise ValueError(
-                    f"critic: expected gain of shape {shape} and offset of shape {(self.n,)}, "
-                    f"got {gain_shape} and {offset_shape}"
-                )
-            return
-        _check_quadratic(critic, self.n, self.action_dim)
-
-    def _send_ahead(
-        self,
-        batch: AheadBatch,
-        request: BatchProbe,
-        critic: Critic,
-        paired: bool,
-    ) -> F64Array:
-        """Sends ``request``'s step, computed from the shifts in hand; returns its actions.
-
-        The actions and scales (and a critic's values) are checked before anything is sent:
-        an error there is this call's.
-        """
-        engine = self._ahead_engine
-        if engine is None:
-            engine = StepAhead([c.to_proto().SerializeToString() for c in self.configs])
-            self._ahead_engine = engine
-        shifts = self._shifts
-        if request.episode_starts.any():
-            shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
-        if isinstance(critic, LinearCritic):
-            # The server evaluates it (step_linear_batch).
-            with _engine_errors:
-                applied: F64Array = engine(shifts, request.actions, request.action_scales)
-            batch.send_step_linear(request, critic, paired)
-            return applied
-        with _engine_errors:
-            probes, applied = engine.probes(
-                shifts, request.steps, request.actions, request.action_scales
-            )
-        points = np.concatenate([probes, applied]) if paired else probes
-        q = check_array(critic(points), (len(points),), "critic values", finite=True)
-        batch.send_step(request, q[: self.n], q[self.n :] if paired else None)
-        return applied
-
-    def _receive_ahead(self, batch: AheadBatch) -> F64Array:
-        """The shifts ``v(t + 1)`` of the step in flight, or its error (see :meth:`step`).
-
-        A refused step is undone here (its steps and episode starts are due again); after a
-        broken exchange a reconnect policy rides out the server's absence and continues where
-        the server is (:meth:`_resume_ahead`); without one every session restarts.
-        """
-        assert self._ahead is not None
-        sent, self._ahead = self._ahead, None
-        try:
-            return batch.receive_step()[2]
-        except RetriableErrors:
-            if self._reconnect is None:
-                self._next_starts[:] = True
-                self._steps[:] = 0
-                raise
-        except EsaError:
-            self._steps = sent.steps_before
-            self._next_starts = sent.starts_before
-            raise
-
-        return self._reconnect.run(lambda _: self._resume_ahead(sent))  # restart hook
-
-    def _flush_ahead(self) -> None:
-        """Reads the answer of a step sent ahead (raising its error), if one is in flight."""
-        if self._ahead is not None and self._ahead_batch is not None:
-            self._shifts = self._receive_ahead(self._ahead_batch)
+        return self._stepper.step(
+            self, actions, critic, episode_starts, action_scales, paired, want_probes
+        )
 
     def _probe_request(
         self,
@@ -759,7 +516,7 @@ class SessionBatch:
         Returns:
             The improved actions ``clip(a_t + v(t + 1))``, shape ``(N, D)``; None if deferred.
         """
-        self._flush_ahead()
+        self._stepper.flush(self)
         # Copies: a deferred report must not change with the caller's arrays.
         q = np.array(check_array(q_values, (self.n,), "q_values"))
         references = None
@@ -791,7 +548,7 @@ class SessionBatch:
             EsaError: The step's error (see :meth:`step`), or the report's (it then
                 stays pending).
         """
-        self._flush_ahead()
+        self._stepper.flush(self)
         if self._deferred is not None:
             sent, _ = self._send_report(self._deferred)
             self._deferred = None
@@ -832,11 +589,7 @@ class SessionBatch:
             How many sessions were recreated.
         """
         self._deferred = None
-        if self._ahead is not None:
-            # Its answer would be read as the next step's: a new stream starts clean.
-            self._ahead = None
-            self._batch.close()
-        self._shifts = np.zeros((self.n, self.action_dim))
+        self._stepper.reset()
         progress = self._batch.progress()
         restored = restore_sessions(self._transport, self.ids, self.configs, progress)
         self.sessions_restored += restored
@@ -845,39 +598,6 @@ class SessionBatch:
         self._steps[:] = 0
         self._next_starts[:] = True
         return restored
-
-    def _resume_ahead(self, sent: _InFlight) -> F64Array:
-        """The shifts ``v(t + 1)`` of the step sent ahead whose answer the wire lost.
-
-        The sessions' states tell whether the server applied the step (:func:`_step_applied`):
-        if it did, the shifts are theirs; if not, the same step goes again and its answer
-        gives them. So a server that kept its sessions (a restart with its state file, or a
-        cut connection) continues exactly, and no step is applied twice. When the server
-        lost the sessions, or their states fit neither case, every session restarts its
-        episode (:meth:`restore`) and the shifts are 0. Errors of the wire propagate, for
-        the reconnect policy to retry.
-        """
-        request, ahead = self._last_probe, self._ahead_batch
-        try:
-            states = [self._transport.get_session(i) for i in self.ids]
-        except SessionNotFound:
-            states = []
-        applied = None
-        if states and request is not None:
-            seen = self._batch.progress()
-            applied = _step_applied(states, request, sent.steps_before, seen)
-        if applied:
-            return np.stack([state.shift for state in states])
-        if applied is False and ahead is not None:
-            ahead.resend_step()
-            try:
-                return ahead.receive_step()[2]
-            except RetriableErrors:
-                raise
-            except EsaError:
-                pass  # refused after all: the sessions restart below
-        self.restore()
-        return np.zeros((self.n, self.action_dim))
 
     def end_episode(self, indices: npt.ArrayLike | None = None) -> I64Array:
         """Ends the episodes of the given sessions now (one call each; default: all).
@@ -912,7 +632,7 @@ class SessionBatch:
         A deferred report is dropped: it cannot change anything the caller still sees.
         """
         self._deferred = None
-        self._ahead = None
+        self._stepper.reset()
         self._batch.close()
         for session_id in self.ids:
             self._transport.close_session(session_id)

@@ -12,9 +12,9 @@ way of reaching the update law implements them:
 :class:`~esa_client.EsaClient`'s constructors choose a transport and own its lifetime. The
 batch half (:class:`BatchTransport`) is array-based, not protobuf-based, so that an
 in-process implementation builds no messages; transports that send messages build them.
-What a wire offers beyond the batch's round trips (a whole step in one engine call, or a
-step sent ahead of its answer) a batch says through :meth:`BatchTransport.fused` and
-:meth:`BatchTransport.ahead`, so that sessions never ask which transport they are on.
+Each batch also chooses how a whole step runs on it (:meth:`BatchTransport.stepper`: round
+trips, one engine call, or a step sent ahead of its answer), so that sessions never ask
+which transport they are on.
 Every failure a transport raises is an :class:`~esa_client.errors.EsaError` (built by
 :func:`~esa_client.errors.error_for`), with ``index`` set when one batch item caused it.
 """
@@ -23,148 +23,28 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from typing import NamedTuple, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from .._proto.esa.v1 import esa_pb2
-from ..state import BoolArray, F64Array, I64Array, SessionProgress, SessionState
+from ..state import F64Array, SessionProgress, SessionState
+from .messages import BatchProbe, BatchReport, LinearCritic, QuadraticCritic
+from .stepping import Stepper
+
+__all__ = [
+    "SMALLEST_SCALE",
+    "BatchProbe",
+    "BatchReport",
+    "BatchTransport",
+    "LinearCritic",
+    "PipelinedBatch",
+    "QuadraticCritic",
+    "Transport",
+]
 
 SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
 """The floor of the action scale sent for a policy's std (the contract needs sigma > 0)."""
-
-
-class BatchProbe(NamedTuple):
-    """The probes of one step for the N sessions of a batch (``ProbeBatch``).
-
-    Attributes:
-        steps: Each session's step, shape ``(N,)``.
-        actions: The sampled actions, shape ``(N, D)``.
-        episode_starts: Episode-start flags, shape ``(N,)``.
-        action_scales: sigma per session and dimension, shape ``(N, D)``; None for all 1.
-    """
-
-    steps: I64Array
-    actions: F64Array
-    episode_starts: BoolArray
-    action_scales: F64Array | None
-
-
-class BatchReport(NamedTuple):
-    """The reports of one step for the N sessions of a batch (``ReportBatch``).
-
-    Attributes:
-        steps: Each session's step (the probed one), shape ``(N,)``.
-        q_values: Q at each probe, shape ``(N,)``.
-        q_references: Q at each applied action, shape ``(N,)``; None for no reference.
-    """
-
-    steps: I64Array
-    q_values: F64Array
-    q_references: F64Array | None
-
-
-class LinearCritic(NamedTuple):
-    """A critic linear in the action at each session's state: ``Q_i(a) = gain_i . a + offset_i``.
-
-    A linear advantage head has this form; an in-process engine evaluates it itself
-    (:meth:`~esa_client.session.SessionBatch.step`).
-
-    Attributes:
-        gain: ``gain_i`` per session and dimension, shape ``(N, D)``.
-        offset: ``offset_i`` per session, shape ``(N,)``.
-    """
-
-    gain: F64Array
-    offset: F64Array
-
-    def __call__(self, actions: F64Array) -> F64Array:
-        """Q of ``(k N, D)`` actions for the N states tiled k times, shape ``(k N,)``."""
-        points = actions.reshape(-1, *self.gain.shape)
-        values: F64Array = ((points * self.gain).sum(axis=2) + self.offset).reshape(-1)
-        return values
-
-
-class AheadBatch(Protocol):
-    """A batch that sends a whole step and reads its answer later.
-
-    The wire's ``step_linear_batch`` and ``step_batch`` (CONTRACT.md section 1b,
-    implementation note 8): the server probes, evaluates the linear critic (or takes the
-    critic's values the client computed at the same probes) and reports in one request, and
-    answers with the shifts ``v(t + 1)``, from which the client computes the next step's
-    applied actions and probes itself. Requests are answered in the order they were sent.
-    """
-
-    def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
-        """Sends the step for a linear critic; returns once it is on its way."""
-        ...
-
-    def send_step(
-        self, request: BatchProbe, q_values: F64Array, q_references: F64Array | None
-    ) -> None:
-        """Sends the step with the critic's values at its probes; returns once it is on its way."""
-        ...
-
-    def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
-        """The oldest unanswered step's ``(probes, applied, shifts)``, each ``(N, D)``.
-
-        Raises the step's error (nothing of it was applied), or the wire's (whether it
-        was applied is then unknown).
-        """
-        ...
-
-    def resend_step(self) -> None:
-        """Sends the step whose answer the wire lost again; ``receive_step`` reads its answer."""
-        ...
-
-
-class QuadraticCritic(NamedTuple):
-    """A critic concave quadratic in the action at each session's state, flat past a box.
-
-    ``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`` with
-    ``x = clip(a, low, high)``, the action the environment executes, and every
-    ``curvature_ij <= 0``. ESAPPO's quadratic head has this form; an in-process engine
-    evaluates it itself (:meth:`~esa_client.session.SessionBatch.step`), any other transport
-    here at the probes.
-
-    Attributes:
-        gain: ``gain_i`` per session and dimension, shape ``(N, D)``.
-        curvature: ``curvature_i`` per session and dimension, ``<= 0``, shape ``(N, D)``.
-        offset: ``offset_i`` per session, shape ``(N,)``.
-        low: The box's lower bounds in the actions' units, shape ``(D,)`` (``-inf`` where
-            open); None with ``high`` None for no box.
-        high: Its upper bounds, shape ``(D,)`` (``+inf`` where open), or None.
-    """
-
-    gain: F64Array
-    curvature: F64Array
-    offset: F64Array
-    low: F64Array | None = None
-    high: F64Array | None = None
-
-    def __call__(self, actions: F64Array) -> F64Array:
-        """Q of ``(k N, D)`` actions for the N states tiled k times, shape ``(k N,)``."""
-        points = actions.reshape(-1, *self.gain.shape)
-        if self.low is not None and self.high is not None:
-            points = np.clip(points, self.low, self.high)
-        terms = self.gain * points + self.curvature * points * points
-        values: F64Array = (terms.sum(axis=2) + self.offset).reshape(-1)
-        return values
-
-
-class FusedBatch(Protocol):
-    """A batch whose engine runs a whole step in one call: the in-process engine's."""
-
-    def step_closed_form(
-        self, request: BatchProbe, critic: LinearCritic | QuadraticCritic, paired: bool
-    ) -> tuple[F64Array, F64Array]:
-        """ProbeBatch, then ReportBatch of ``critic`` at the probes, in one engine call.
-
-        A quadratic critic is evaluated at the clipped probes. With ``paired``, the critic at
-        the applied actions is reported as the references. Returns the probes and the applied
-        actions.
-        """
-        ...
 
 
 class BatchTransport(ABC):
@@ -197,21 +77,13 @@ class BatchTransport(ABC):
         self.report(report)
         return self.probe(probe)
 
-    def fused(self) -> FusedBatch | None:
-        """This batch's whole-step engine calls (:class:`FusedBatch`), if it has any.
+    def stepper(self) -> Stepper:
+        """How :meth:`~esa_client.SessionBatch.step` runs on this batch: its round trips.
 
-        The in-process engine runs a step (probe, a linear or quadratic critic, report) in one call;
-        over a wire there is none, and the step is its round trips.
+        A transport with more to offer returns its own (a whole step in one engine call,
+        or a step sent ahead of its answer).
         """
-        return None
-
-    def ahead(self) -> AheadBatch | None:
-        """This batch's calls that send a whole step before reading its answer, if any.
-
-        Only a wire that carries steps in order without waiting (gRPC's ``StepStream``)
-        has them.
-        """
-        return None
+        return Stepper()
 
     def progress(self) -> list[SessionProgress] | None:
         """Each session's progress in the last answer read, where the wire carries it.

@@ -26,6 +26,7 @@ from ..errors import TypedErrors
 from ..state import F64Array, SessionProgress
 from .base import BatchProbe, BatchReport, BatchTransport, LinearCritic, PipelinedBatch
 from .native_calls import NativeSessionCalls
+from .stepping import AheadStepper
 
 _typed_errors = TypedErrors(StatusError)
 
@@ -106,7 +107,7 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
     """A :class:`GrpcBatch` on a ``StepStream``, whose pair takes one round trip.
 
     It also sends a whole step (for a linear critic, or with the critic's values) without
-    waiting for its answer (:class:`~esa_client.transports.base.AheadBatch`).
+    waiting for its answer (:class:`~esa_client.transports.stepping.AheadBatch`).
     """
 
     def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
@@ -121,9 +122,9 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
                 probe.action_scales,
             )
 
-    def ahead(self) -> GrpcStepBatch:
-        """This batch: its stream thread sends steps ahead of their answers."""
-        return self
+    def stepper(self) -> AheadStepper:
+        """Its stream thread sends steps ahead of their answers."""
+        return AheadStepper(self)
 
     def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
         """Sends the step's probe, ``critic`` and report as one message; returns at once."""

@@ -15,14 +15,10 @@ from collections.abc import Sequence
 from .._native import BatchHandle, Engine, EngineError
 from ..errors import TypedErrors
 from ..state import F64Array
-from .base import (
-    BatchProbe,
-    BatchReport,
-    BatchTransport,
-    LinearCritic,
-    QuadraticCritic,
-)
+from .base import BatchTransport
+from .messages import BatchProbe, BatchReport, LinearCritic, QuadraticCritic
 from .native_calls import NativeSessionCalls
+from .stepping import FusedStepper
 
 _typed_errors = TypedErrors(EngineError)
 
@@ -57,9 +53,9 @@ class InProcessBatch(BatchTransport):
                 request.action_scales,
             )
 
-    def fused(self) -> InProcessBatch:
-        """This batch: the engine runs a whole step in one call."""
-        return self
+    def stepper(self) -> FusedStepper:
+        """The engine runs a whole step in one call."""
+        return FusedStepper(self)
 
     def step_closed_form(
         self, request: BatchProbe, critic: LinearCritic | QuadraticCritic, paired: bool
