@@ -12,25 +12,24 @@ batch steps the same way on every transport and never asks which one it holds (a
   is read at the next call (CONTRACT.md section 1b, implementation note 8).
 
 Every stepper gives the same bits. A stepper is the batch's own step kept beside the wires
-that choose it, so it reads and sets the batch's step counters directly.
+that choose it, so it reads and sets the batch's step counters directly (what it uses of
+the batch is :class:`SessionBatch` here).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import NamedTuple, Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 from .._native import EngineError, StepAhead
+from ..config import SessionConfig
 from ..errors import EsaError, SessionNotFound, TypedErrors
-from ..reconnect import RetriableErrors
+from ..reconnect import Reconnect, RetriableErrors
 from ..state import BoolArray, F64Array, I64Array, SessionProgress, SessionState, check_array
 from .messages import BatchProbe, LinearCritic, QuadraticCritic
-
-if TYPE_CHECKING:
-    from ..session import SessionBatch
 
 Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic | QuadraticCritic
 """What :meth:`~esa_client.SessionBatch.step` scores the probes with."""
@@ -39,6 +38,68 @@ _ClosedForm = (LinearCritic, QuadraticCritic)
 """The critics an in-process engine evaluates itself."""
 
 _engine_errors = TypedErrors(EngineError)
+
+_Answer = TypeVar("_Answer")
+
+
+class SessionBatch(Protocol):
+    """What a stepper uses of the :class:`~esa_client.SessionBatch` it steps."""
+
+    n: int
+    action_dim: int
+    ids: tuple[str, ...]
+    configs: tuple[SessionConfig, ...]
+    _steps: I64Array
+    _next_starts: BoolArray
+    _reconnect: Reconnect | None
+
+    def probe_applied(
+        self,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None = None,
+        *,
+        steps: npt.ArrayLike | None = None,
+        action_scales: npt.ArrayLike | None = None,
+    ) -> tuple[F64Array, F64Array]:
+        """The probes and the actions to apply."""
+        ...
+
+    def report(
+        self,
+        q_values: npt.ArrayLike,
+        *,
+        q_references: npt.ArrayLike | None = None,
+        steps: npt.ArrayLike | None = None,
+        defer: bool = False,
+    ) -> F64Array | None:
+        """Reports the critic's values."""
+        ...
+
+    def flush(self) -> None:
+        """Reads a step in flight and sends a deferred report."""
+        ...
+
+    def restore(self) -> int:
+        """Recreates lost sessions; every session starts a new episode."""
+        ...
+
+    def states(self) -> list[SessionState]:
+        """Each session's state on its server."""
+        ...
+
+    def _probe_request(
+        self,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None,
+        steps: npt.ArrayLike | None,
+        action_scales: npt.ArrayLike | None,
+    ) -> BatchProbe: ...
+
+    def _sent(self, request: BatchProbe) -> None: ...
+
+    def _restart(
+        self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
+    ) -> tuple[BatchProbe, _Answer]: ...
 
 
 class Stepper:
@@ -296,7 +357,7 @@ class AheadStepper(Stepper):
         the wire propagate, for the reconnect policy to retry.
         """
         try:
-            states = [batch._transport.get_session(i) for i in batch.ids]
+            states = batch.states()
         except SessionNotFound:
             states = []
         applied = None
