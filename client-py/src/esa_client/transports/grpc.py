@@ -84,14 +84,12 @@ class GrpcBatch(BatchTransport):
     def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
         """Sends one ProbeBatch."""
         with _typed_errors:
-            return self._batch.probe(
-                request.steps, request.actions, request.episode_starts, request.action_scales
-            )
+            return self._batch.probe(*request)
 
     def report(self, request: BatchReport) -> F64Array:
         """Sends one ReportBatch."""
         with _typed_errors:
-            return self._batch.report(request.steps, request.q_values, request.q_references)
+            return self._batch.report(*request)
 
     def close(self) -> None:
         """Ends the batch's StepStream, if it has one; the sessions stay."""
@@ -112,15 +110,7 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
 
     def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
         with _typed_errors:
-            return self._batch.report_then_probe(
-                report.steps,
-                report.q_values,
-                report.q_references,
-                probe.steps,
-                probe.actions,
-                probe.episode_starts,
-                probe.action_scales,
-            )
+            return self._batch.report_then_probe(*(report + probe))
 
     def stepper(self) -> AheadStepper:
         """Its stream thread sends steps ahead of their answers."""
@@ -129,29 +119,14 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
     def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
         """Sends the step's probe, ``critic`` and report as one message; returns at once."""
         with _typed_errors:
-            self._batch.send_step_linear(
-                request.steps,
-                request.actions,
-                request.episode_starts,
-                request.action_scales,
-                critic.gain,
-                critic.offset,
-                paired,
-            )
+            self._batch.send_step_linear(*request, critic.gain, critic.offset, paired)
 
     def send_step(
         self, request: BatchProbe, q_values: F64Array, q_references: F64Array | None
     ) -> None:
         """Sends the step's probe and the critic's values at it as one message; returns at once."""
         with _typed_errors:
-            self._batch.send_step(
-                request.steps,
-                request.actions,
-                request.episode_starts,
-                request.action_scales,
-                q_values,
-                q_references,
-            )
+            self._batch.send_step(*request, q_values, q_references)
 
     def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
         """The oldest unanswered step's ``(probes, applied, shifts)``, or its error."""

@@ -45,13 +45,7 @@ class InProcessBatch(BatchTransport):
     def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
         """ProbeBatch in-process."""
         with _typed_errors:
-            return self._engine.probe(
-                self._resolved(),
-                request.steps,
-                request.actions,
-                request.episode_starts,
-                request.action_scales,
-            )
+            return self._engine.probe(self._resolved(), *request)
 
     def stepper(self) -> FusedStepper:
         """The engine runs a whole step in one call."""
@@ -67,23 +61,13 @@ class InProcessBatch(BatchTransport):
             curved = (critic.curvature, critic.low, critic.high)
         with _typed_errors:
             return self._engine.step_closed_form(
-                self._resolved(),
-                request.steps,
-                request.actions,
-                request.episode_starts,
-                request.action_scales,
-                critic.gain,
-                critic.offset,
-                paired,
-                *curved,
+                self._resolved(), *request, critic.gain, critic.offset, paired, *curved
             )
 
     def report(self, request: BatchReport) -> F64Array:
         """ReportBatch in-process."""
         with _typed_errors:
-            return self._engine.report(
-                self._resolved(), request.steps, request.q_values, request.q_references
-            )
+            return self._engine.report(self._resolved(), *request)
 
 
 class InProcessTransport(NativeSessionCalls):

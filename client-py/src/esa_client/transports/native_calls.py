@@ -9,61 +9,21 @@ server's typed ones; the two transports add their batches and lifetimes.
 
 from __future__ import annotations
 
-from typing import Protocol
-
-import numpy.typing as npt
-
+from .._native import Engine, GrpcClient
 from .._proto.esa.v1 import esa_pb2
 from ..errors import TypedErrors
 from ..state import F64Array, SessionState
 
 
-class NativeSessions(Protocol):
-    """What ``Engine`` and ``GrpcClient`` both answer (see ``esa_client/_native.pyi``)."""
-
-    def create_session(self, session_id: str, config: bytes, progress: bytes | None = None) -> str:
-        """CreateSession (resuming an encoded ``SessionProgress`` if given); returns the id."""
-        ...
-
-    def get_session(self, session_id: str) -> bytes:
-        """GetSession, as encoded ``GetSessionResponse`` bytes."""
-        ...
-
-    def close_session(self, session_id: str) -> None:
-        """CloseSession."""
-        ...
-
-    def end_episode(self, session_id: str) -> int:
-        """EndEpisode; returns the completed-episode count."""
-        ...
-
-    def probe_one(
-        self,
-        session_id: str,
-        step: int,
-        action: npt.ArrayLike,
-        episode_start: bool,
-        action_scale: npt.ArrayLike | None = None,
-    ) -> tuple[F64Array, F64Array]:
-        """Probe; returns the probe and the applied action."""
-        ...
-
-    def report_one(
-        self, session_id: str, step: int, q_value: float, q_reference: float | None = None
-    ) -> F64Array:
-        """Report; returns the improved action."""
-        ...
-
-
 class NativeSessionCalls:
-    """The per-session Transport methods over a :class:`NativeSessions`.
+    """The per-session Transport methods over an ``Engine`` or a ``GrpcClient``.
 
     Args:
         sessions: The native object that holds or reaches the sessions.
         typed_errors: Translates that object's exception into the typed errors.
     """
 
-    def __init__(self, sessions: NativeSessions, typed_errors: TypedErrors) -> None:
+    def __init__(self, sessions: Engine | GrpcClient, typed_errors: TypedErrors) -> None:
         """Forwards to ``sessions``."""
         self._sessions = sessions
         self._typed_errors = typed_errors
