@@ -45,6 +45,7 @@ DEFAULT_PREFIX = "esa/v1"
 Response = TypeVar("Response", bound=Message)
 Decoded = TypeVar("Decoded", bound=Message)
 Answer = TypeVar("Answer")
+_Request = TypeVar("_Request", BatchProbe, BatchReport)
 
 
 class TwoServersAnswered(EsaError):
@@ -225,12 +226,7 @@ class ZenohRpc(Generic[Response]):
 
 
 class _Server:
-    """The queriers of one server's key prefix (``esa/v1``, ``esa/v1/shard/1``), one per RPC.
-
-    Batches go as ``ProbeBatch`` / ``ReportBatch`` queries: a Zenoh query already carries one
-    message, so there is no stream to keep open (the ``StepStream`` key answers one
-    ``StepStreamRequest`` per query, which would save nothing here).
-    """
+    """The queriers of one server's key prefix (``esa/v1``, ``esa/v1/shard/1``), one per RPC."""
 
     def __init__(
         self, session: zenoh.Session, prefix: str, timeout: float, token: str | None
@@ -248,16 +244,6 @@ class _Server:
         self.report = rpc("Report", esa_pb2.ReportResponse)
         self.probe_batch = rpc("ProbeBatch", esa_pb2.ProbeBatchResponse)
         self.report_batch = rpc("ReportBatch", esa_pb2.ReportBatchResponse)
-        self._rpcs: tuple[ZenohRpc[Any], ...] = (
-            self.create_session,
-            self.get_session,
-            self.close_session,
-            self.end_episode,
-            self.probe,
-            self.report,
-            self.probe_batch,
-            self.report_batch,
-        )
 
     def healthy(self, timeout: float, *, wait_for_ready: bool) -> bool:
         """True if the server behind this prefix answers a query within ``timeout`` seconds."""
@@ -267,16 +253,15 @@ class _Server:
         try:
             # An empty id is refused by every server: any answer proves it serves.
             probe(esa_pb2.GetSessionRequest())
-        except (ServerUnavailable, DeadlineExceeded):
-            return False
-        except EsaError:
-            return True
+        except EsaError as err:
+            return not isinstance(err, (ServerUnavailable, DeadlineExceeded))
         return True
 
     def close(self) -> None:
         """Undeclares every querier."""
-        for rpc in self._rpcs:
-            rpc.close()
+        for rpc in list(vars(self).values()):
+            if isinstance(rpc, ZenohRpc):
+                rpc.close()
 
 
 class ZenohTransport:
@@ -430,7 +415,9 @@ class ZenohTransport:
     ) -> BatchTransport:
         """The batch's queries: to its one server, or split over the shards that own ``ids``.
 
-        ``use_stream`` changes nothing: every query is one message already.
+        ``use_stream`` changes nothing: a query already carries one message, so there is no
+        stream to keep open (the ``StepStream`` key answers one ``StepStreamRequest`` per
+        query, which would save nothing here).
         """
         owner = np.array([self.shard_of(i) for i in ids], dtype=np.int64)
         parts = {s: np.flatnonzero(owner == s) for s in np.unique(owner).tolist()}
@@ -556,13 +543,13 @@ class _ShardedBatch(BatchTransport):
 
     def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
         """Sends the per-shard probes concurrently; answers come back in batch order."""
-        answers = self._scatter(lambda batch, items: batch.probe(_probe_part(request, items)))
+        answers = self._scatter(lambda batch, items: batch.probe(_part(request, items)))
         probes = self._merged({s: a[0] for s, a in answers.items()})
         return probes, self._merged({s: a[1] for s, a in answers.items()})
 
     def report(self, request: BatchReport) -> F64Array:
         """Sends the per-shard reports concurrently; actions come back in batch order."""
-        answers = self._scatter(lambda batch, items: batch.report(_report_part(request, items)))
+        answers = self._scatter(lambda batch, items: batch.report(_part(request, items)))
         return self._merged(answers)
 
     def progress(self) -> list[SessionProgress] | None:
@@ -577,23 +564,10 @@ class _ShardedBatch(BatchTransport):
         return [p for p in merged if p is not None]
 
 
-def _probe_part(request: BatchProbe, items: I64Array) -> BatchProbe:
-    scales = request.action_scales
-    return BatchProbe(
-        request.steps[items],
-        request.actions[items],
-        request.episode_starts[items],
-        None if scales is None else scales[items],
-    )
-
-
-def _report_part(request: BatchReport, items: I64Array) -> BatchReport:
-    references = request.q_references
-    return BatchReport(
-        request.steps[items],
-        request.q_values[items],
-        None if references is None else references[items],
-    )
+def _part(request: _Request, items: I64Array) -> _Request:
+    """The rows ``items`` of every array of ``request`` (None stays None)."""
+    rows: list[Any] = [None if array is None else array[items] for array in request]
+    return type(request)(*rows)
 
 
 def _renumbered(err: EsaError, items: I64Array, shard: int) -> EsaError:
