@@ -1,14 +1,7 @@
-"""``EsaClient``: the session API, and the three ways to build a client.
+"""``EsaClient``: the session API over a running server, a spawned one, or esa-core in-process.
 
-- :meth:`EsaClient.connect` reaches running servers: over gRPC (``host:port`` or
-  ``unix:/path``), or over Zenoh (``transport="zenoh"``: one server, or ``shards=N``);
-- :meth:`EsaClient.spawn` starts a private server first (gRPC on a Unix socket, or
-  ``esa-server --zenoh`` on loopback, N of them with ``shards=N``) and owns it;
-- :meth:`EsaClient.in_process` needs no server: esa-core compiled into this package.
-
-Each builds the :class:`~esa_client.transports.base.Transport` it needs
-(:mod:`esa_client.transports`) and wraps it in an :class:`EsaClient`, whose sessions and
-batches (:mod:`esa_client.session`) are written against that interface only.
+Each constructor builds the :class:`~esa_client.transports.base.Transport` it needs and wraps
+it in an :class:`EsaClient`, whose sessions and batches are written against that interface.
 """
 
 from __future__ import annotations
@@ -18,7 +11,7 @@ import os
 import secrets
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, TypedDict, TypeVar, get_args
 
@@ -77,17 +70,6 @@ def resolve_token(token: str | None, token_file: str | os.PathLike[str] | None) 
     return token.strip()
 
 
-def _check_address(address: str) -> str:
-    if address.startswith("unix:"):
-        if len(address) <= len("unix:"):
-            raise ValueError(f"expected 'unix:/path/to/socket', got {address!r}")
-        return address
-    host, sep, port = address.rpartition(":")
-    if not sep or not host or not port.isdigit():
-        raise ValueError(f"expected 'host:port' or 'unix:/path', got {address!r}")
-    return address
-
-
 def _check_transport(transport: str, **zenoh_only: object) -> None:
     """Raises ValueError for an unknown transport, or Zenoh options given to gRPC."""
     if transport not in _TRANSPORTS:
@@ -101,7 +83,13 @@ def _grpc_transport(
     address: str, timeout: float, token: str | None, tls: TlsConfig | None
 ) -> GrpcTransport:
     """The gRPC transport to ``address``, checked."""
-    address = _check_address(address)
+    if address.startswith("unix:"):
+        if len(address) <= len("unix:"):
+            raise ValueError(f"expected 'unix:/path/to/socket', got {address!r}")
+    else:
+        host, sep, port = address.rpartition(":")
+        if not sep or not host or not port.isdigit():
+            raise ValueError(f"expected 'host:port' or 'unix:/path', got {address!r}")
     if tls is not None and address.startswith("unix:"):
         raise ValueError(
             f"expected a host:port address with tls (the server serves TLS on TCP only), "
@@ -162,9 +150,8 @@ class EsaClient:
     """A client of esa sessions, built by :meth:`connect`, :meth:`spawn` or :meth:`in_process`.
 
     Every call has a deadline of ``timeout`` seconds; a lost connection raises
-    :class:`~esa_client.errors.ServerUnavailable` at once instead of waiting, except in a
-    batch (:meth:`create_batch`), which retries for up to :attr:`reconnect_timeout`
-    seconds and then raises it.
+    :class:`~esa_client.errors.ServerUnavailable` at once, except in a batch, which rides it
+    out (:class:`~esa_client.SessionBatch`).
 
     Example::
 
@@ -192,7 +179,7 @@ class EsaClient:
         reconnect_timeout: How long a batch keeps retrying when the server is unreachable
             (down, restarting, stalled, or the connection or stream broke), in seconds,
             before it raises ``ServerUnavailable``; 0 raises the first failure. Set by
-            ``connect``/``spawn`` (default 60); read by :meth:`create_batch`.
+            ``connect``/``spawn`` (default 60).
     """
 
     def __init__(self, transport: Transport, *, address: str, timeout: float) -> None:
@@ -259,9 +246,7 @@ class EsaClient:
                 built from ``address`` (e.g. client mode to a ``zenohd`` router).
             wait_ready: Wait (up to ``timeout``) until every server answers before
                 returning. None: Zenoh waits, gRPC connects lazily on the first call.
-            reconnect_timeout: How long the client's batches retry (capped exponential
-                backoff with jitter) when the server is unreachable, restarting or
-                stalled, before they raise ``ServerUnavailable``; 0: raise at once.
+            reconnect_timeout: The client's :attr:`reconnect_timeout`.
 
         Raises:
             ValueError: A malformed argument, or one the transport does not take.
@@ -323,17 +308,14 @@ class EsaClient:
     ) -> EsaClient:
         """Starts a private esa-server and returns a client connected to it.
 
-        gRPC: the server listens on a Unix socket in a private
-        directory. Zenoh: ``esa-server --zenoh`` on loopback, N processes (``--shard
-        i/N``) with ``shards=N``; each also serves gRPC on a private socket
-        (``client.servers[i].address``) and requires a fresh random token
-        (``client.servers[i].token``), since a loopback port is open to every local user.
+        gRPC: the server listens on a Unix socket in a private directory. Zenoh: ``esa-server
+        --zenoh`` on loopback, N processes (``--shard i/N``) with ``shards=N``; each also serves
+        gRPC on a private socket (``client.servers[i].address``) and requires a fresh random
+        token (``client.servers[i].token``), since a loopback port is open to every local user.
 
-        The server is found via ``binary``, ``ESA_SERVER_BIN``, the ``esa-server`` wheel
-        (``pip install "esa-client[server]"``), a cargo build of this repository or
-        ``PATH`` (see :func:`esa_client.sidecar.find_server_binary`),
-        and stopped by :meth:`close` (or at interpreter exit at the latest); if this
-        process dies first, whatever the signal, the server stops by itself.
+        The server is found by :func:`esa_client.sidecar.find_server_binary` and stopped by
+        :meth:`close` (or at interpreter exit at the latest); if this process dies first,
+        whatever the signal, the server stops by itself.
 
         Args:
             binary: Path of the esa-server executable; None searches for it.
@@ -349,7 +331,7 @@ class EsaClient:
             timeout: Per-call deadline of the returned client.
             startup_timeout: Seconds to wait for each server to report healthy.
             prefix: Zenoh only: the ``--zenoh-prefix`` to serve and use.
-            reconnect_timeout: As for :meth:`connect`.
+            reconnect_timeout: The client's :attr:`reconnect_timeout`.
 
         Raises:
             ValueError: If a limit is not a number at least its minimum, or an argument
@@ -396,24 +378,8 @@ class EsaClient:
             def open_transport() -> Transport:
                 return _grpc_transport(address, timeout, None, None)
 
-        client = cls._owning(servers, open_transport, address, timeout, startup_timeout)
-        client.reconnect_timeout = reconnect_timeout
-        return client
-
-    @classmethod
-    def _owning(
-        cls,
-        servers: Sequence[ServerProcess],
-        open_transport: Callable[[], Transport],
-        address: str,
-        timeout: float,
-        startup_timeout: float,
-    ) -> EsaClient:
-        """A client over ``open_transport()`` that owns ``servers``, once they are healthy.
-
-        If connecting or waiting fails, the servers are stopped before the error
-        propagates, so no child process outlives a failed :meth:`spawn`.
-        """
+        # If connecting or waiting fails, the servers stop before the error propagates, so
+        # no child process outlives a failed spawn.
         client: EsaClient | None = None
         try:
             client = cls(open_transport(), address=address, timeout=timeout)
@@ -425,6 +391,7 @@ class EsaClient:
             for server in servers:
                 server.stop()
             raise
+        client.reconnect_timeout = reconnect_timeout
         return client
 
     @classmethod
@@ -544,13 +511,6 @@ class EsaClient:
                 instead of ``ProbeBatch`` / ``ReportBatch`` calls (in-process and Zenoh
                 batches have no stream to keep: one call is one message there).
 
-        The batch rides out a lost server for up to :attr:`reconnect_timeout` seconds:
-        it repeats the failed step with capped exponential backoff and jitter; once the
-        server answers again, it sends what the server has not applied (by the
-        sessions' step numbers, so no report is applied twice) and recreates sessions a
-        restarted server lost, which then start a new episode (losing that episode's
-        shift, the episode count and the response's mean square).
-
         Returns:
             The batch. If creating one of the sessions fails, those already created
             are closed before the error is raised.
@@ -589,13 +549,9 @@ class EsaClient:
         A server stopped gracefully and started again with its ``--state-file`` keeps every
         session; a session is lost when its server crashes (or restarts without the file) or
         when it expires after ``--session-ttl`` idle seconds, and afterwards every call for
-        it raises ``SessionNotFound``. A recreated session starts an episode; with
-        ``progress`` it resumes the lost one's episode count (and with it the ``lr_decay`` and
-        ``max_episodes`` progress) and the response normalization's running mean square, so
-        that only the shift of the episode that was running is lost. A batch passes what its
-        last answer said (:meth:`SessionBatch.restore`); a snapshot (:meth:`Session.state`)
-        has it as ``state.progress``. Call this when a call raised ``SessionNotFound``, then
-        start a new episode (step 0, ``episode_start=True``).
+        it raises ``SessionNotFound``. Call this then, and start a new episode (step 0,
+        ``episode_start=True``); :meth:`SessionBatch.restore` says what a recreated session
+        keeps. A snapshot (:meth:`Session.state`) has its ``progress``.
 
         Args:
             ids: The session ids, e.g. ``batch.ids``.
