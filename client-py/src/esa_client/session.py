@@ -1,19 +1,10 @@
 """Sessions on an esa server: one :class:`Session`, or a :class:`SessionBatch` for N envs.
 
-Both track their sessions' step counters, so callers only pass actions and
-Q-values. A failed call changes no counter, so repeating it is safe (the server
-treats a repeated probe or report of the same step as a retry). One exception
-follows from the contract: if an episode-start probe reached the server but its
-answer was lost, repeating it ends one more (empty) episode, which counts toward
-``lr_decay`` and ``max_episodes``.
-
-Algorithm 1's step (CONTRACT.md section 1b) needs one round trip: ``probe_applied``
-returns the probe and the action to apply, ``clip(a_t + v(t))``; the report of that
-step can then be deferred (``report(..., defer=True)``) and rides with the next
-probe, pipelined on a StepStream.
-
-Both are written against :class:`~esa_client.transports.base.Transport` only: the same code
-runs in-process, over gRPC or over Zenoh (one server or N shards).
+Both track their sessions' step counters, so callers only pass actions and Q-values. A
+failed call changes no counter, so repeating it is safe (the server treats a repeated probe
+or report of the same step as a retry). One exception follows from the contract: if an
+episode-start probe reached the server but its answer was lost, repeating it ends one more
+(empty) episode, which counts toward ``lr_decay`` and ``max_episodes``.
 """
 
 from __future__ import annotations
@@ -212,6 +203,13 @@ class SessionBatch:
     Created by :meth:`EsaClient.create_batch`. Arrays in and out are numpy with the
     batch as the first axis.
 
+    The batch rides out a lost server (down, restarting, stalled, or the connection broke)
+    for up to the client's ``reconnect_timeout``, then raises ``ServerUnavailable``: it
+    repeats the failed call with capped exponential backoff and jitter, asks the server
+    where the sessions are (their step numbers) and sends only what it has not applied, so
+    no update is applied twice and training goes on bit for bit. Sessions the server lost
+    (a crash) are recreated and start a new episode (:meth:`restore` says what is lost).
+
     Attributes:
         ids: The N session ids, in batch order.
         configs: The N session configs.
@@ -237,8 +235,8 @@ class SessionBatch:
             configs: Their configs (one action dimension).
             use_stream: Ask the transport for one persistent stream for the round trips.
             on_restore: Told how many sessions each :meth:`restore` recreated.
-            reconnect: How to ride out a lost server (see :meth:`probe_applied`); None
-                raises the wire's first error.
+            reconnect: How to ride out a lost server (as above); None raises the wire's
+                first error.
         """
         self._transport = transport
         self.ids = tuple(ids)
@@ -352,12 +350,8 @@ class SessionBatch:
 
         An error of a step sent ahead surfaces one call late: the next call (or :meth:`flush`)
         raises it, and nothing of that step was applied on the server, although its actions
-        were returned. After a broken exchange (the server restarted, or the connection
-        dropped), a reconnect policy asks the server within the call where the sessions
-        are: a step it applied is not sent again, one it did not is, and training goes on
-        bit for bit. Only sessions the server lost (a crash) start a new episode at the next
-        step, resuming their episode count and mean square. Without a reconnect policy every
-        session starts a new episode at the next step.
+        were returned. A broken exchange is ridden out as for every call (:class:`SessionBatch`);
+        without a reconnect policy, every session starts a new episode at the next step.
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
@@ -581,9 +575,10 @@ class SessionBatch:
 
         For a :class:`SessionNotFound` after a server crash, a restart without its state
         file, or a TTL expiry (see :meth:`EsaClient.restore_sessions`). A recreated session
-        resumes the episode count and the response's mean square that this batch last saw
-        in an answer; the shift of the running episode is gone. A deferred report is
-        dropped; the next probe starts step 0 everywhere.
+        resumes the episode count (and with it the ``lr_decay`` and ``max_episodes``
+        progress) and the response's mean square that this batch last saw in an answer; the
+        shift of the running episode is gone. A deferred report is dropped; the next probe
+        starts step 0 everywhere.
 
         Returns:
             How many sessions were recreated.
