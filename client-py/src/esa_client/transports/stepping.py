@@ -1,19 +1,10 @@
-"""How :meth:`~esa_client.SessionBatch.step` runs: one step of Algorithm 1, per transport.
+"""How :meth:`~esa_client.SessionBatch.step` runs on each transport, with the same bits.
 
-Each :class:`~esa_client.transports.base.BatchTransport` chooses its :class:`Stepper`, so a
-batch steps the same way on every transport and never asks which one it holds (as an httpx
-``Client`` hands each request to whatever transport it was given):
-
-- :class:`Stepper`, the default: the probe waits for its answer, and the report rides with
-  the next probe;
-- :class:`FusedStepper`, in-process: the engine evaluates a linear or quadratic critic
-  itself, probe and report in one call;
-- :class:`AheadStepper`, on a gRPC StepStream: the step is sent ahead of its answer, which
-  is read at the next call (CONTRACT.md section 1b, implementation note 8).
-
-Every stepper gives the same bits. A stepper is the batch's own step kept beside the wires
-that choose it, so it reads and sets the batch's step counters directly (what it uses of
-the batch is :class:`SessionBatch` here).
+Each :class:`~esa_client.transports.base.BatchTransport` chooses its :class:`Stepper`
+(:class:`FusedStepper` in-process, :class:`AheadStepper` on a gRPC StepStream), so a batch
+never asks which transport it holds. A stepper is the batch's own step kept beside the
+wires that choose it, so it reads and sets the batch's step counters directly (what it uses
+of the batch is :class:`SessionBatch` here).
 """
 
 from __future__ import annotations
@@ -181,13 +172,10 @@ class FusedStepper(Stepper):
 
 
 class AheadBatch(Protocol):
-    """A batch that sends a whole step and reads its answer later.
+    """A batch that sends a whole step and reads its answer later, in the order sent.
 
     The wire's ``step_linear_batch`` and ``step_batch`` (CONTRACT.md section 1b,
-    implementation note 8): the server probes, evaluates the linear critic (or takes the
-    critic's values the client computed at the same probes) and reports in one request, and
-    answers with the shifts ``v(t + 1)``, from which the client computes the next step's
-    applied actions and probes itself. Requests are answered in the order they were sent.
+    implementation note 8), answered with the shifts ``v(t + 1)``.
     """
 
     def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
@@ -232,12 +220,10 @@ class _InFlight(NamedTuple):
 class AheadStepper(Stepper):
     """A step sent ahead of its answer, unless the caller waits for its probes.
 
-    The applied actions are computed here with esa-core's own function from the shifts
-    ``v(t)`` that the previous step's answer carried (0 at an episode start); the step
-    (probe, critic, report) goes as one message whose answer is read at the next call, so
-    the round trip overlaps the environment's step and the learner's work. The server
-    evaluates a :class:`~esa_client.transports.messages.LinearCritic` itself; any other
-    critic is evaluated here, at the probes computed the same way.
+    The applied actions, and the probes for a critic evaluated here (the server evaluates a
+    ``LinearCritic`` itself), are computed with esa-core's own function from the shifts
+    ``v(t)`` of the previous step's answer (0 at an episode start); the step goes as one
+    message whose answer is read at the next call, overlapping the env's and learner's work.
     """
 
     def __init__(self, ahead: AheadBatch) -> None:
@@ -350,11 +336,9 @@ class AheadStepper(Stepper):
 
         The sessions' states tell whether the server applied the step (:func:`_step_applied`):
         if it did, the shifts are theirs; if not, the same step goes again and its answer
-        gives them. So a server that kept its sessions (a restart with its state file, or a
-        cut connection) continues exactly, and no step is applied twice. When the server
-        lost the sessions, or their states fit neither case, every session restarts its
-        episode (:meth:`~esa_client.SessionBatch.restore`) and the shifts are 0. Errors of
-        the wire propagate, for the reconnect policy to retry.
+        gives them. When the server lost the sessions, or their states fit neither case,
+        every session restarts its episode (:meth:`~esa_client.SessionBatch.restore`) and the
+        shifts are 0. Errors of the wire propagate, for the reconnect policy to retry.
         """
         try:
             states = batch.states()
