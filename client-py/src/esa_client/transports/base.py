@@ -6,15 +6,13 @@ way of reaching the update law implements them:
 
 - the in-process engine of ``esa_client._native``, which takes numpy arrays directly
   (:mod:`esa_client.transports.in_process`);
-- gRPC through the Rust client of ``esa_client._native`` (:mod:`esa_client.transports.grpc`);
-- Zenoh queries to one server or N shards (:mod:`esa_client.transports.zenoh`).
+- gRPC through the Rust client of ``esa_client._native``: TLS, token, health, one
+  ``StepStream`` per batch (:mod:`esa_client.transports.grpc`);
+- Zenoh queries to one server or N shards, extra ``esa-client[zenoh]``
+  (:mod:`esa_client.transports.zenoh`).
 
-:class:`~esa_client.EsaClient`'s constructors choose a transport and own its lifetime. The
-batch half (:class:`BatchTransport`) is array-based, not protobuf-based, so that an
+The batch half (:class:`BatchTransport`) is array-based, not protobuf-based, so that an
 in-process implementation builds no messages; transports that send messages build them.
-Each batch also chooses how a whole step runs on it (:meth:`BatchTransport.stepper`: round
-trips, one engine call, or a step sent ahead of its answer), so that sessions never ask
-which transport they are on.
 Every failure a transport raises is an :class:`~esa_client.errors.EsaError` (built by
 :func:`~esa_client.errors.error_for`), with ``index`` set when one batch item caused it.
 """

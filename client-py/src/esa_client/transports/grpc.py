@@ -6,11 +6,10 @@ no thread hand-off and no Python-level message building (numpy arrays go straigh
 request). It raises the :class:`~esa_client.errors.EsaError` subclass of the server's status
 code, with the failing item; it speaks TLS and mutual TLS (rustls, :class:`TlsConfig`), sends
 the auth token with every call and asks the server's health service whether it serves. A
-batch opened with ``use_stream`` sends its calls as
-messages of a ``StepStream`` of its own, and the pipelined pair (a deferred report and the
-next probe) as two messages before reading either answer: one round trip, about a third of
-the two unary calls' time on a Unix socket (``bench/NOTES.md``). A batch without a stream
-makes ``ProbeBatch`` / ``ReportBatch`` calls.
+batch opened with ``use_stream`` sends its calls as messages of a ``StepStream`` of its own,
+and the pipelined pair (a deferred report and the next probe) as two messages before reading
+either answer: one round trip, about a third of the two unary calls' time on a Unix socket
+(``bench/NOTES.md``). A batch without a stream makes ``ProbeBatch`` / ``ReportBatch`` calls.
 """
 
 from __future__ import annotations

@@ -1,11 +1,8 @@
-"""The :class:`~esa_client.transports.base.Transport` over ``esa_client._native``, in-process.
+"""The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.Engine``.
 
-``esa_client._native.Engine`` is esa-core itself, compiled into the package: the server's
-update law, validation and error codes, without a process or a socket in between. This
+The engine is esa-core in this process (:meth:`esa_client.EsaClient.in_process`); this
 transport hands it numpy arrays as they come (no messages are built for the round trips)
-and turns its ``EngineError`` into the :class:`~esa_client.errors.EsaError` subclass the
-server's status code maps to, with the same failing item. Nothing is shared with other
-processes: a trainer that needs its sessions elsewhere uses the sidecar.
+and turns its ``EngineError`` into the typed error of the server's status code.
 """
 
 from __future__ import annotations
