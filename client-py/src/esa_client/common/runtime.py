@@ -97,26 +97,16 @@ class LoggerLike(Protocol):
 class EsaRuntime:
     """Connection, sessions and statistics of one learner; never pickled with the model.
 
-    Each step is Algorithm 1 with the section 1b law (CONTRACT.md): one ``probe_applied``
-    gives the probes and the actions to apply, ``a_t + v(t)``; one critic batch scores
-    the probes (and, with ``paired_response``, the applied actions as the reference);
-    the report is deferred and rides with the next step's probe on the StepStream, so a
-    step costs one round trip. A :class:`LinearCritic` (ESAPPO's head) or a
-    :class:`QuadraticCritic` is evaluated by the engine itself, in-process in one call.
-    Through a gRPC StepStream a step does not
-    wait at all (:meth:`SessionBatch.step` sends it ahead: the actions, and the probes
-    where the critic is evaluated here, come from the previous answer's shifts, and the
-    round trip overlaps the env's step and the learner's update), unless the trainer needs
-    the step's probes from the server (``want_probes``).
+    Each step is one :meth:`SessionBatch.step` of the envs' batch on a StepStream, with
+    the section 1b law (CONTRACT.md) and the config's ``paired_response``.
 
-    Sessions the server loses (a restart, a TTL expiry during a long pause) are
-    recreated and restarted at the next step, and counted (``esa/sessions_restored``):
-    what is lost is the shift of the episodes then running. A server that is down,
-    restarting or stalled is waited for, retrying with backoff, for up to
-    ``reconnect_timeout`` seconds; then ``on_unavailable`` decides: ``"raise"`` ends
-    training with ``ServerUnavailable``, ``"skip"`` applies the sampled actions unchanged
-    (no ESA) until the next episode start of any env, where it tries the server once again
-    (steps without ESA are counted as ``esa/unavailable_steps``, one per env).
+    Sessions the server loses (a restart, a TTL expiry during a long pause) are recreated
+    and restarted at the next step, and counted (``esa/sessions_restored``). A server that
+    is down, restarting or stalled is waited for as the batch does (:class:`SessionBatch`)
+    for up to ``reconnect_timeout`` seconds; then ``on_unavailable`` decides: ``"raise"``
+    ends training with ``ServerUnavailable``, ``"skip"`` applies the sampled actions
+    unchanged (no ESA) until the next episode start of any env, where it tries the server
+    once again (steps without ESA are counted as ``esa/unavailable_steps``, one per env).
 
     Args:
         esa: The ESA hyperparameters.
@@ -246,9 +236,8 @@ class EsaRuntime:
         Args:
             sampled: The policy's samples a_t, shape ``(N, D)`` (any float dtype).
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
-            q_fn: The critic at the current observations (:meth:`SessionBatch.step`: a
-                :class:`LinearCritic` or :class:`QuadraticCritic` is evaluated by the
-                in-process engine itself).
+            q_fn: The critic at the current observations, as :meth:`SessionBatch.step`
+                takes it.
             policy_std: The policy's standard deviation, shape ``(N, D)``; sent as the
                 action scale when ``use_policy_std`` (else 1).
             want_probes: Wait for the server's probes of this step (``last_probes``), for
