@@ -52,15 +52,7 @@ def with_esa(
     the module-to-env connectors (after yours). Call it after setting the environment,
     model and ``normalize_actions``; change none of these three afterwards.
 
-    Example::
-
-        from ray.rllib.algorithms.sac import SACConfig
-        from esa_client import EsaConfig
-        from esa_client.rllib import with_esa
-
-        config = SACConfig().environment("Pendulum-v1").env_runners(num_env_runners=2)
-        algo = with_esa(config, esa=EsaConfig.off_policy()).build_algo()  # ESA in each runner
-        algo.train()
+    :mod:`esa_client.rllib` shows an example.
 
     Args:
         config: A ``SACConfig`` or ``PPOConfig`` (changed in place, like RLlib's own

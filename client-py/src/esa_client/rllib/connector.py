@@ -7,12 +7,10 @@ converted to numpy and split per env copy, then the user's pieces run, then
 the user slot, so every action it writes is both what the env executes (after RLlib's
 unsquash/clip) and what the episode stores for training.
 
-Each step, for the N env copies of the EnvRunner (one ESA session each, one StepStream),
-it runs the SB3 drop-ins' ESA step (:class:`esa_client.common.runtime.EsaRuntime`, the
-same code): Algorithm 1 with the section 1b law of CONTRACT.md. The policy's samples and
-standard deviations go to the server, the module's critic scores the probes and the
-applied actions in one batch, the report rides with the next probe, and the action
-becomes ``a_t + v(t)``:
+Each step, for the N env copies of the EnvRunner (one ESA session each), it runs the SB3
+drop-ins' ESA step (:class:`esa_client.common.runtime.EsaRuntime`, the same code) with the
+policy's samples and standard deviations and the module's critic, and the action becomes
+``a_t + v(t)``:
 
 - PPO: stored unclipped with RLlib's ``action_logp`` left at ``log pi_old(a_t)``, the
   exact behaviour log-probability of the shifted action (``v(t)`` does not depend on
@@ -26,10 +24,8 @@ That step starts the new session episode: its probe is at phase 0, where the pro
 equals the applied action and the update moves nothing, so the episode's first real
 action is the session's step 1. Starting it there, and not again one step later, keeps
 the session's episode count (``lr_decay``, ``max_episodes``) equal to the env's.
-An EnvRunner that is recreated builds a new connector, hence new sessions; one whose
-server stayed unreachable past ``reconnect_timeout`` reconnects once more and starts new
-sessions, or, with ``EsaService(on_unavailable="skip")``, goes
-on without ESA until an episode starts.
+An EnvRunner that is recreated builds a new connector, hence new sessions; for a server
+that stays unreachable see ``EsaService``'s ``on_unavailable``.
 """
 
 from __future__ import annotations

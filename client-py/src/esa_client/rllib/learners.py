@@ -1,21 +1,6 @@
 """Learners that keep the ESA critic fitted and the gate set, on the learner side.
 
-:class:`EsaSACTorchLearner` is RLlib's SAC learner plus ``ESASAC``'s gate: every
-``gate_every`` sampled env steps it computes, on the train batch being learned from, the
-rank correlation between the probed critic's ``Q(s, a) - Q(s, mu)`` and the one-step
-advantage ``r + gamma^n V(s') - V(s)`` with ``V(s) = Q(s, mu)``, and sets the module's
-``esa_active``. ESASAC computes it on the transitions collected since its last check;
-RLlib's replay buffer lives elsewhere, so here it is the replay sample of that update.
-
-:class:`EsaPPOTorchLearner` is RLlib's PPO learner plus ``ESAPPO``'s head training, with
-ESAPPO's own code (:mod:`esa_client.common.quadratic_head`): a learner connector piece after
-RLlib's GAE records, for every train batch, the observations, the policy-normalized
-actions ``z = (x - mu_old) / sigma_old`` (``mu_old``, ``sigma_old`` from the behaviour
-distribution inputs stored with the episodes) and the GAE advantages (loss-masked rows
-only); after PPO's update the learner checks the gate on that rollout (the head has not
-seen it yet), then fits the head on the last ``head_rollouts`` rollouts with its own Adam
-optimizer and generator. PPO's optimizer never sees the head's parameters. The head's
-weights and ``esa_active`` reach the env runners with the next weight sync.
+The head's weights and ``esa_active`` reach the env runners with the next weight sync.
 """
 
 from __future__ import annotations
@@ -53,9 +38,12 @@ def _gate(module: EsaPPOTorchRLModule | EsaSACTorchRLModule) -> float | None:
 
 
 class EsaSACTorchLearner(SACTorchLearner):
-    """SAC's learner, setting the ``esa_active`` of an ``EsaSACTorchRLModule``.
+    """SAC's learner, setting the ``esa_active`` of an ``EsaSACTorchRLModule``: ESASAC's gate.
 
-    With ``EsaConfig(gate=None)`` ESA turns on at the first update (when RLlib's
+    Every ``gate_every`` sampled env steps it computes :func:`sac_critic_quality` on the
+    train batch being learned from. ESASAC computes it on the transitions collected since
+    its last check; RLlib's replay buffer lives elsewhere, so here it is the replay sample
+    of that update. With ``EsaConfig(gate=None)`` ESA turns on at the first update (when RLlib's
     ``num_steps_sampled_before_learning_starts`` have been sampled), as in ESASAC.
     Logged per module: ``esa/gate_correlation`` (at each check), ``esa/active``.
     """
@@ -126,7 +114,8 @@ class EsaRolloutRecorder(ConnectorV2):
 
     For every :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule` in the batch, puts
     ``(Rollout(features, z, normalized advantages), advantages)`` of the loss-masked rows
-    into ``pending[module_id]``; the batch itself is left as it is.
+    into ``pending[module_id]``, with ``z = (x - mu_old) / sigma_old`` from the behaviour
+    distribution inputs stored with the episodes; the batch itself is left as it is.
     """
 
     def __init__(self, pending: dict[Any, Any], **kwargs: Any) -> None:
@@ -180,8 +169,9 @@ class EsaPPOTorchLearner(PPOTorchLearner):
     Per update, after PPO's own: the gate (``esa/gate_correlation``: the head's rank
     correlation with the GAE advantages of the new rollout, before it is trained on it),
     then :func:`esa_client.common.quadratic_head.fit_critic` on the last ``head_rollouts`` rollouts
-    (``head_epochs`` passes, minibatches of ``head_batch_size``, Adam at
-    ``head_learning_rate``; logged ``esa/head_loss``), then ``esa_active``. With
+    (``head_epochs`` passes, minibatches of ``head_batch_size``, an Adam of its own at
+    ``head_learning_rate`` and a generator of its own; logged ``esa/head_loss``), then
+    ``esa_active``. The rollouts come from :class:`EsaRolloutRecorder`, after RLlib's GAE. With
     ``EsaConfig(gate=None)`` ESA turns on after the first fit, as in ESAPPO.
 
     Supports one learner (``num_learners`` 0 or 1): with more, each would fit its own

@@ -1,17 +1,10 @@
 """RLModules whose env-runner copies keep the critic ESA probes.
 
 RLlib builds the RLModule of every EnvRunner ``inference_only``: SAC's Q networks are
-dropped there, and PPO has no action-value network at all. ESA probes a critic at
-action time, on the env runners, so:
-
-- :class:`EsaSACTorchRLModule` keeps the Q networks it probes (by default the Polyak
-  target twins, ``probe_critic="target_mean"``, as ``ESASAC``) in its inference-only
-  copy. They are part of the weights the learner ships to the env runners after every
-  update (``get_non_inference_attributes`` no longer lists them), so they stay synced.
-- :class:`EsaPPOTorchRLModule` adds ``ESAPPO``'s quadratic head
-  (:class:`esa_client.common.quadratic_head.QuadraticHead`, shared code) to PPO's default
-  module. The learner fits it (:class:`~esa_client.rllib.learners.EsaPPOTorchLearner`)
-  and it travels to the env runners with the policy's weights.
+dropped there, and PPO has no action-value network at all. ESA probes a critic at action
+time, on the env runners, so :class:`EsaSACTorchRLModule` keeps the Q networks it probes
+and :class:`EsaPPOTorchRLModule` adds ``ESAPPO``'s quadratic head, and both ship them to
+the env runners with the weights the learner syncs after every update.
 
 Both carry ``esa_active``, a buffer the learner sets from ``EsaConfig.gate`` and that
 ships with the weights: the env runners' connector shifts actions only while it is 1.
@@ -87,11 +80,15 @@ class EsaModuleMixin:
         def parameters(self, recurse: bool = True) -> Iterator[torch.nn.Parameter]:
             """``nn.Module.parameters``."""
 
-    def _setup_esa(self) -> None:
+    def _setup_esa(self, distribution: type[Any], name: str) -> None:
+        """Reads the settings, adds ``esa_active`` and checks the exploration distribution."""
         self.esa_settings = settings_of(self)
         self.esa_action_dim = int(np.prod(_box(self.action_space).shape))
         # Off until the learner says otherwise (with gate=None: at its first update).
         self.register_buffer("esa_active", torch.zeros((), dtype=torch.float32))
+        got: Any = self.get_exploration_action_dist_cls()  # type: ignore[attr-defined]
+        if got is not distribution:
+            raise ValueError(f"expected {name} for ESA, got {got.__name__}")
 
     def esa_is_active(self) -> bool:
         """Whether the learner's gate lets ESA shift actions now."""
@@ -129,18 +126,15 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
 
     ``model_config["esa"]["probe_critic"]`` picks them as in ``ESASAC``: the online or the
     Polyak target twins, their minimum or mean (default ``target_mean``). Only those are
-    kept and shipped to the env runners; the learner's module is RLlib's, unchanged.
+    kept, and shipped to the env runners after every update (as
+    :meth:`get_non_inference_attributes` no longer lists them); the learner's module is
+    RLlib's, unchanged.
     """
 
     def setup(self) -> None:
         """Builds RLlib's SAC module, plus the probed Q networks when inference-only."""
         super().setup()
-        self._setup_esa()
-        if self.get_exploration_action_dist_cls() is not TorchSquashedGaussian:
-            raise ValueError(
-                "expected SAC's squashed Gaussian for ESA, got "
-                f"{self.get_exploration_action_dist_cls().__name__}"
-            )
+        self._setup_esa(TorchSquashedGaussian, "SAC's squashed Gaussian")
         probe = self.esa_settings.get("probe_critic", "target_mean")
         if probe not in PROBE_CRITICS:
             raise ValueError(f"expected probe_critic in {PROBE_CRITICS}, got {probe!r}")
@@ -236,12 +230,7 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
     def setup(self) -> None:
         """Builds RLlib's PPO module and the quadratic head."""
         super().setup()
-        self._setup_esa()
-        if self.get_exploration_action_dist_cls() is not TorchDiagGaussian:
-            raise ValueError(
-                "expected PPO's diagonal Gaussian for ESA, got "
-                f"{self.get_exploration_action_dist_cls().__name__}"
-            )
+        self._setup_esa(TorchDiagGaussian, "PPO's diagonal Gaussian")
         if self.model_config.get("use_lstm") or self.model_config.get("use_attention"):
             raise ValueError("expected a stateless PPO module for ESA, got a recurrent one")
         if self.observation_space is None:

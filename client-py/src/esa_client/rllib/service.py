@@ -1,13 +1,4 @@
-"""Where the env runners' ESA sessions live: in each runner's process, or a given server.
-
-By default (``EsaService()``) every EnvRunner keeps its envs' sessions in its own process
-(esa-core, ``EsaClient.in_process()``): nothing is started, and nothing outlives the
-runner. ``EsaService(address="host:port")`` (or ``"unix:/path"``) uses a shared server over
-gRPC, ``EsaService(zenoh="tcp/host:7447")`` one over Zenoh, and
-``EsaService(zenoh=..., shards=N)`` N servers started with ``--shard i/N``
-(``deploy/README.md``); start those servers yourself (``esa-server``, or the Kubernetes
-manifests of ``deploy/``).
-"""
+"""Where the env runners' ESA sessions live: in each runner's process, or a given server."""
 
 from __future__ import annotations
 
@@ -24,7 +15,9 @@ class EsaService:
     """Where the EnvRunners' sessions live (the ``service`` of :func:`~esa_client.rllib.with_esa`).
 
     With no address and no Zenoh locator, each EnvRunner keeps its sessions in its own
-    process (esa-core): no server, nothing started.
+    process (esa-core, ``EsaClient.in_process()``): nothing is started, and nothing outlives
+    the runner. Servers given by ``address`` or ``zenoh`` are started by you (``esa-server``,
+    or the Kubernetes manifests of ``deploy/``, whose README shows sharding).
 
     Args:
         address: A running server over gRPC, ``host:port`` or ``unix:/path``, reachable
