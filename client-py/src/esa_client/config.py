@@ -1,11 +1,4 @@
-"""Session configs: the wire-level :class:`SessionConfig` and the user-facing :class:`EsaConfig`.
-
-:class:`SessionConfig` mirrors ``esa.v1.SessionConfig`` field for field; esa-core checks
-it where it is built, with the rules and words of every transport (CONTRACT.md sections 1
-and 1b), so a bad value fails early with a ``ValueError`` naming the field.
-:class:`EsaConfig` holds the ESA hyperparameters a trainer exposes and turns them into a
-:class:`SessionConfig` once the environment's action space and time step are known.
-"""
+"""Session configs: the wire-level :class:`SessionConfig` and the user-facing :class:`EsaConfig`."""
 
 from __future__ import annotations
 
@@ -85,10 +78,12 @@ _OPTIONAL_SCALARS = (
 
 @dataclass(frozen=True)
 class SessionConfig:
-    """The configuration of one ESA session, mirroring ``esa.v1.SessionConfig``.
+    """The configuration of one ESA session, mirroring ``esa.v1.SessionConfig`` field for field.
 
-    Vector fields accept a scalar (broadcast to all ``action_dim`` dimensions) or
-    one value per dimension; they are stored as tuples of floats, as given.
+    esa-core checks it where it is built, with the rules and words of every transport
+    (CONTRACT.md sections 1 and 1b), so a bad value fails early with a ``ValueError``
+    naming the field. Vector fields accept a scalar (broadcast to all ``action_dim``
+    dimensions) or one value per dimension; they are stored as tuples of floats, as given.
 
     Attributes:
         action_dim: Action dimension D, 1 <= D <= 4096.
@@ -221,7 +216,7 @@ PPO_FADE = 0.5
 
 @dataclass
 class EsaConfig:
-    """ESA hyperparameters for a trainer (:mod:`esa_client.sb3`, :mod:`esa_client.wrappers`).
+    """ESA hyperparameters for a trainer, turned into a :class:`SessionConfig` per environment.
 
     ``EsaConfig()`` is the bounded, scale-free law of CONTRACT.md section 1b (normalized
     response, paired reference, trust region in units of the policy's standard deviation,
