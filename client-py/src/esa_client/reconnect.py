@@ -1,14 +1,7 @@
 """Riding out a lost server: retries with capped exponential backoff and jitter.
 
-A call that fails with :class:`~esa_client.errors.ServerUnavailable` (the server is down,
-restarting, or the connection or StepStream broke) or
-:class:`~esa_client.errors.DeadlineExceeded` (the server stalled) is repeated, after a
-pause that doubles from ``initial_backoff`` up to ``max_backoff`` (each pause drawn
-between half and all of it, so that many trainers do not reconnect in lockstep), until it
-succeeds or ``timeout`` seconds have passed since the first failure. Repeating is safe by
-the contract's step numbers (CONTRACT.md section 2, "Retries are safe"); what the batch
-does between two attempts (look at the sessions' steps, recreate lost sessions) is
-:class:`~esa_client.session.SessionBatch`'s business.
+Repeating a call is safe by the contract's step numbers (CONTRACT.md section 2, "Retries are
+safe"); what a batch does between two attempts is :class:`~esa_client.SessionBatch`'s.
 """
 
 from __future__ import annotations
@@ -27,7 +20,8 @@ DEFAULT_RECONNECT_TIMEOUT = 60.0
 """How long a client keeps trying to reach a lost server before it gives up, in seconds."""
 
 RetriableErrors = (ServerUnavailable, DeadlineExceeded)
-"""The failures of the wire, not of the request: repeating the request may succeed."""
+"""The failures of the wire, not of the request (the server is down, restarting or stalled,
+or the connection or stream broke): repeating the request may succeed."""
 
 _T = TypeVar("_T")
 
@@ -42,6 +36,10 @@ def check_reconnect_timeout(timeout: float) -> float:
 @dataclass(frozen=True)
 class Reconnect:
     """How long, and how often, to repeat a call that the wire failed.
+
+    A call failing with :data:`RetriableErrors` is repeated after a pause that doubles from
+    ``initial_backoff`` up to ``max_backoff``, each pause drawn between half and all of it
+    so that many trainers do not reconnect in lockstep.
 
     Args:
         address: The server(s), for the message of the final error.
