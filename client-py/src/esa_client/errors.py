@@ -1,12 +1,8 @@
 """Typed exceptions for everything the esa server (or the connection to it) can report.
 
-Every failure surfaces as an :class:`EsaError` subclass carrying the status ``code`` (a
-:class:`StatusCode`, the client's own: gRPC's canonical codes, whatever the transport),
-the server's ``message`` and, for an error about one item of a batch, the item's
-``index``. Every transport builds them through :func:`error_for`; :func:`esa_error` maps a
-``StreamError`` message (Zenoh, ``StepStream``) onto them, and the extension's
-``EngineError`` and ``StatusError`` carry the code and the failing item as data
-(:class:`TypedErrors`), never read from a message.
+Every transport builds them through :func:`error_for`, from the code and failing item as
+data (a ``StreamError``, or the extension's errors through :class:`TypedErrors`), never read
+from a message.
 """
 
 from __future__ import annotations
@@ -54,7 +50,7 @@ class StatusCode(enum.IntEnum):
 
 
 class EsaError(Exception):
-    """Base class of all esa client errors.
+    """Base class of all esa client errors, whatever the transport.
 
     Attributes:
         code: The :class:`StatusCode` the server (or the transport) reported.
@@ -110,8 +106,8 @@ class ResourceExhausted(EsaError):
 class Unauthenticated(EsaError, PermissionError):
     """The server requires an auth token and none, or another one, was sent (``UNAUTHENTICATED``).
 
-    Give the client the server's token: ``EsaClient(..., token=...)``, ``token_file=...`` or
-    the ``ESA_AUTH_TOKEN`` environment variable.
+    Give the client the server's token: ``EsaClient.connect(..., token=...)``,
+    ``token_file=...`` or the ``ESA_AUTH_TOKEN`` environment variable.
     """
 
 
@@ -194,7 +190,6 @@ class TypedErrors:
 
     def __enter__(self) -> None:
         """Nothing to set up."""
-        return None
 
     def __exit__(
         self,
