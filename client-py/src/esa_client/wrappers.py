@@ -81,9 +81,8 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     ``a_t + v(t)``. ``info["esa_action"]`` holds that applied action, so a learner can
     store it, as the paper does. Each ``reset`` starts a new ESA episode.
 
-    The session is a one-env :class:`~esa_client.session.SessionBatch`, so a server
-    that restarts or stalls is ridden out as for the SB3 drop-ins (for up to the
-    client's ``reconnect_timeout``, the lost episode's shift restarting from 0).
+    The session is a one-env :class:`~esa_client.SessionBatch`, which rides out a server
+    that restarts or stalls.
 
     Example::
 
@@ -117,7 +116,8 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
             self, q_fn=q_fn, esa=esa, client=client, action_scale=action_scale
         )
         gym.ActionWrapper.__init__(self, env)
-        self._sessions = WrapperSessions(env.action_space, 1, env_dt(env, _dt(esa)), esa, client)
+        dt = env_dt(env, None if esa is None else esa.dt)
+        self._sessions = WrapperSessions(env.action_space, 1, dt, esa, client)
         self._batch = self._sessions.batch
         self._paired = self._sessions.paired
         self._q_fn = q_fn
@@ -168,8 +168,3 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         """Closes the session, the client if the wrapper made it, and the env."""
         self._sessions.close()
         super().close()
-
-
-def _dt(esa: EsaConfig | None) -> float | None:
-    """The config's ``dt`` override, if any."""
-    return None if esa is None else esa.dt
