@@ -1,14 +1,4 @@
-"""Finding, starting and stopping a private ``esa-server`` process (used by ``EsaClient.spawn``).
-
-The server listens on a Unix socket (mode 0600) in a fresh temporary directory, so
-no other user can reach it and nothing is left behind: :meth:`ServerProcess.stop`
-sends SIGTERM (then SIGKILL after a grace period) and removes the directory, and a
-``weakref.finalize`` hook does the same at interpreter exit or garbage collection.
-If this process dies without running either (SIGKILL, or a signal Python does not
-handle such as SIGTERM or SIGHUP), the server notices that its parent is gone
-(``--parent-pid``), shuts down and removes the directory itself
-(``--remove-dir-on-exit``).
-"""
+"""Finding, starting and stopping a private ``esa-server`` process (used by ``EsaClient.spawn``)."""
 
 from __future__ import annotations
 
@@ -34,14 +24,6 @@ BINARY_NAME = "esa-server"
 # src/esa_client/sidecar.py -> repository root (only in a source checkout).
 _REPO_ROOT = Path(__file__).resolve().parents[3]
 _STDERR_TAIL = 2000
-
-
-def _tail(path: Path) -> str:
-    try:
-        text = path.read_text(errors="replace")
-    except OSError:
-        return "(no server output)"
-    return text[-_STDERR_TAIL:].strip() or "(no server output)"
 
 
 def _cargo_build(repo: Path) -> Path:
@@ -195,6 +177,14 @@ def _terminate(process: subprocess.Popen[bytes], workdir: Path, grace: float) ->
 class ServerProcess:
     """A running ``esa-server`` child process listening on a private Unix socket.
 
+    The socket (mode 0600) is in a fresh temporary directory, so no other user can reach it
+    and nothing is left behind: :meth:`stop` sends SIGTERM (then SIGKILL after a grace
+    period) and removes the directory, and a ``weakref.finalize`` hook does the same at
+    interpreter exit or garbage collection. If this process dies without running either
+    (SIGKILL, or a signal Python does not handle such as SIGTERM or SIGHUP), the server
+    notices that its parent is gone (``--parent-pid``), shuts down and removes the directory
+    itself (``--remove-dir-on-exit``).
+
     Attributes:
         binary: The executable that was started.
         address: The gRPC target, ``unix:/tmp/esa-.../esa.sock``.
@@ -289,7 +279,11 @@ class ServerProcess:
 
     def output_tail(self) -> str:
         """The last lines the server wrote to stdout/stderr."""
-        return _tail(self._log_path)
+        try:
+            text = self._log_path.read_text(errors="replace")
+        except OSError:
+            return "(no server output)"
+        return text[-_STDERR_TAIL:].strip() or "(no server output)"
 
     def announced(self, prefix: str, timeout: float) -> list[str]:
         """Waits for the ``listening on`` line; returns what follows ``prefix`` in earlier lines.

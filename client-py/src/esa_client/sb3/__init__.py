@@ -9,6 +9,7 @@ Switching a script to ESA is one import and one argument::
 
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING, Any
 
 # torch loads torch._dynamo (and triton's native libraries) lazily at the first optimizer
@@ -23,27 +24,19 @@ if TYPE_CHECKING:
     from .sac import ESASAC
     from .td3 import ESATD3
 
+_DROP_INS = {"ESAPPO": "ppo", "ESASAC": "sac", "ESATD3": "td3"}
+
 
 def __getattr__(name: str) -> Any:
     """Imports a drop-in on first use.
 
     So ``esa_client.sb3`` (and ``EsaConfig`` from it) imports without stable-baselines3
-    installed; the framework-neutral runtime and advantage head live in
+    installed; the framework-neutral runtime and quadratic head live in
     :mod:`esa_client.common`.
     """
-    if name == "ESAPPO":
-        from .ppo import ESAPPO
-
-        return ESAPPO
-    if name == "ESASAC":
-        from .sac import ESASAC
-
-        return ESASAC
-    if name == "ESATD3":
-        from .td3 import ESATD3
-
-        return ESATD3
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    if name not in _DROP_INS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_DROP_INS[name]}"), name)
 
 
 __all__ = ["ESAPPO", "ESASAC", "ESATD3", "EsaConfig"]
