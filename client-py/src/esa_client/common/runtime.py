@@ -91,7 +91,6 @@ class LoggerLike(Protocol):
 
     def record(self, key: str, value: Any) -> None:
         """Records one value under ``key``."""
-        ...
 
 
 class EsaRuntime:

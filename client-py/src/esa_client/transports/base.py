@@ -127,25 +127,20 @@ class Transport(Protocol):
 
     def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
         """Creates a session (an empty id: one is generated) and returns its id."""
-        ...
 
     def resume_session(
         self, session_id: str, config: esa_pb2.SessionConfig, progress: esa_pb2.SessionProgress
     ) -> str:
         """Creates a session that resumes a lost one's ``progress``; returns its id."""
-        ...
 
     def get_session(self, session_id: str) -> SessionState:
         """Returns a snapshot of the session."""
-        ...
 
     def close_session(self, session_id: str) -> None:
         """Closes the session; its id is unknown afterwards."""
-        ...
 
     def end_episode(self, session_id: str) -> int:
         """Ends the session's episode; returns its completed-episode count."""
-        ...
 
     def probe(
         self,
@@ -156,13 +151,11 @@ class Transport(Protocol):
         action_scale: F64Array | None,
     ) -> tuple[F64Array, F64Array]:
         """``Probe`` of one session: returns the probe and the applied action, ``(D,)`` each."""
-        ...
 
     def report(
         self, session_id: str, step: int, q_value: float, q_reference: float | None
     ) -> F64Array:
         """``Report`` of one session: returns the improved action, ``(D,)``."""
-        ...
 
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool
@@ -175,12 +168,9 @@ class Transport(Protocol):
             use_stream: Prefer one persistent stream (gRPC ``StepStream``) where the
                 transport has one; others ignore it or use their message equivalent.
         """
-        ...
 
     def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
         """True if every server behind this transport answers within ``timeout`` seconds."""
-        ...
 
     def close(self) -> None:
         """Releases the transport (connections, threads). Idempotent."""
-        ...

@@ -53,7 +53,6 @@ class SessionBatch(Protocol):
         action_scales: npt.ArrayLike | None = None,
     ) -> tuple[F64Array, F64Array]:
         """The probes and the actions to apply."""
-        ...
 
     def report(
         self,
@@ -64,19 +63,15 @@ class SessionBatch(Protocol):
         defer: bool = False,
     ) -> F64Array | None:
         """Reports the critic's values."""
-        ...
 
     def flush(self) -> None:
         """Reads a step in flight and sends a deferred report."""
-        ...
 
     def restore(self) -> int:
         """Recreates lost sessions; every session starts a new episode."""
-        ...
 
     def states(self) -> list[SessionState]:
         """Each session's state on its server."""
-        ...
 
     def _probe_request(
         self,
@@ -132,7 +127,6 @@ class FusedBatch(Protocol):
         the applied actions is reported as the references. Returns the probes and the applied
         actions.
         """
-        ...
 
 
 class FusedStepper(Stepper):
@@ -180,13 +174,11 @@ class AheadBatch(Protocol):
 
     def send_step_linear(self, request: BatchProbe, critic: LinearCritic, paired: bool) -> None:
         """Sends the step for a linear critic; returns once it is on its way."""
-        ...
 
     def send_step(
         self, request: BatchProbe, q_values: F64Array, q_references: F64Array | None
     ) -> None:
         """Sends the step with the critic's values at its probes; returns once it is on its way."""
-        ...
 
     def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
         """The oldest unanswered step's ``(probes, applied, shifts)``, each ``(N, D)``.
@@ -194,19 +186,15 @@ class AheadBatch(Protocol):
         Raises the step's error (nothing of it was applied), or the wire's (whether it
         was applied is then unknown).
         """
-        ...
 
     def resend_step(self) -> None:
         """Sends the step whose answer the wire lost again; ``receive_step`` reads its answer."""
-        ...
 
     def progress(self) -> list[SessionProgress] | None:
         """Each session's progress in the last answer read (None before one)."""
-        ...
 
     def close(self) -> None:
         """Ends the stream; the next step starts a new one."""
-        ...
 
 
 class _InFlight(NamedTuple):
