@@ -75,6 +75,9 @@ _OPTIONAL_SCALARS = (
 )
 """The proto3 ``optional double`` fields of ``SessionConfig`` (None = unset)."""
 
+_VECTORS = ("amplitude", "frequency", "learning_rate", "action_low", "action_high")
+"""The repeated ``double`` fields of ``SessionConfig``, stored as tuples (bounds: empty = unset)."""
+
 
 @dataclass(frozen=True)
 class SessionConfig:
@@ -140,7 +143,7 @@ class SessionConfig:
             object.__setattr__(self, name, int(getattr(self, name)))
         _check(_is_real(self.dt), "dt a real number", self.dt)
         object.__setattr__(self, "dt", float(self.dt))
-        for name in ("amplitude", "frequency", "learning_rate", "action_low", "action_high"):
+        for name in _VECTORS:
             object.__setattr__(self, name, _as_tuple(name, getattr(self, name)))
         for name in _OPTIONAL_SCALARS:
             value = getattr(self, name)
@@ -153,14 +156,9 @@ class SessionConfig:
             object.__setattr__(self, name, bool(value))
         check_config(self.to_proto().SerializeToString())
 
-    def _values(self, name: str) -> tuple[float, ...]:
-        """A vector field as stored: a tuple, since ``__post_init__`` normalized every one."""
-        values: tuple[float, ...] = getattr(self, name)
-        return values
-
     def vector(self, name: str) -> np.ndarray:
         """Returns a vector field broadcast to shape ``(action_dim,)`` (empty bounds give +-inf)."""
-        values = self._values(name)
+        values: tuple[float, ...] = getattr(self, name)  # a tuple, since __post_init__
         if not values:
             fill = -np.inf if name == "action_low" else np.inf
             return np.full(self.action_dim, fill)
@@ -168,22 +166,9 @@ class SessionConfig:
 
     def to_proto(self) -> esa_pb2.SessionConfig:
         """Returns the ``esa.v1.SessionConfig`` message for this config."""
-        message = esa_pb2.SessionConfig(
-            action_dim=self.action_dim,
-            dt=self.dt,
-            amplitude=self._values("amplitude"),
-            frequency=self._values("frequency"),
-            learning_rate=self._values("learning_rate"),
-            disable_highpass=self.disable_highpass,
-            action_low=self._values("action_low"),
-            action_high=self._values("action_high"),
-            max_episodes=self.max_episodes,
-            normalize_response=self.normalize_response,
-        )
-        for name in _OPTIONAL_SCALARS:
-            if getattr(self, name) is not None:
-                setattr(message, name, getattr(self, name))
-        return message
+        # Every field as stored (vectors as tuples); an unset optional scalar stays unset.
+        values = {field.name: getattr(self, field.name) for field in fields(self)}
+        return esa_pb2.SessionConfig(**{k: v for k, v in values.items() if v is not None})
 
     @classmethod
     def from_proto(cls, message: esa_pb2.SessionConfig) -> SessionConfig:
@@ -191,16 +176,12 @@ class SessionConfig:
         # Field name -> value, checked by __post_init__ like any constructor argument.
         values: dict[str, Any] = {}
         for field in fields(cls):
-            if field.name in _OPTIONAL_SCALARS:
-                values[field.name] = (
-                    getattr(message, field.name) if message.HasField(field.name) else None
-                )
-            elif field.name in ("amplitude", "frequency", "learning_rate"):
-                values[field.name] = tuple(getattr(message, field.name))
-            elif field.name in ("action_low", "action_high"):
-                values[field.name] = tuple(getattr(message, field.name)) or None
-            else:
-                values[field.name] = getattr(message, field.name)
+            value = getattr(message, field.name)
+            if field.name in _VECTORS:
+                value = tuple(value)
+            elif field.name in _OPTIONAL_SCALARS and not message.HasField(field.name):
+                value = None
+            values[field.name] = value
         return cls(**values)
 
 
