@@ -33,16 +33,12 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
     Subclasses say where the policy's action is and how wide it is
     (:meth:`_policy_mean_and_std`).
 
-    The controls (``esa_control``) share everything but the shift, so that a gain can be
-    credited: ``"gradient"``: the shift is ``f kappa sigma u`` with ``u`` the probed
-    critic's action gradient at ``a_t`` in units of sigma, normalised to length 1, and
-    ``kappa`` the config's ``trust_region`` (1 when unset), computed here with autograd,
-    no session; ``"placebo"``: ESA's sessions run as for ESA, and the env executes
-    ``clip(a_t + |v| s)`` with a random sign vector ``s`` per env and episode.
-
-    Under ``EsaConfig.fade`` every shift is scaled by the same strength ``f``, falling from
-    1 to 0 over that fraction of the budget of ``learn()``; from ``f = 0`` on the env
-    executes ``a_t`` and no session steps.
+    The controls (``esa_control``, :mod:`esa_client.common.controls`) share everything but
+    the shift: ``"gradient"`` is :meth:`_gradient_shift` (autograd, no session);
+    ``"placebo"`` runs ESA's sessions, and the env executes ``clip(a_t + |v| s)`` with a
+    random sign vector ``s`` per env and episode. Under ``EsaConfig.fade`` every shift is
+    scaled by the same strength ``f``; from ``f = 0`` on the env executes ``a_t`` and no
+    session steps.
 
     On one in ``SHIFT_REPORT_EVERY`` of the steps a shift is applied on,
     :func:`~esa_client.common.controls.shift_report` of it is averaged into the logger:
