@@ -354,7 +354,8 @@ ECHO_WORDS = (
     "`echo` = the same pair of requests (their sizes) sent by the same client library to a "
     "bare server that returns the bytes it gets, on the same kind of socket in the same run: "
     "the host's floor for a gRPC round trip, against which a row's ratio holds across hosts "
-    "(none in-process or over Zenoh; not measured where `-`)."
+    "(none in-process or over Zenoh; not measured where `-`). The echo pair is two unary "
+    "calls, so a StepStream row, whose messages open no new HTTP/2 stream, can go below it."
 )
 
 

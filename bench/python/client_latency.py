@@ -231,6 +231,12 @@ def echo_servers() -> Iterator[dict[str, str]]:
         yield {"tcp": tcp, "uds": uds}
 
 
+def echo_text(row: dict) -> str:
+    """A row's echo p50 for the progress lines."""
+    echo = row["echo_p50_us"]
+    return "n/a" if echo is None else f"{echo:.1f} us"
+
+
 def with_echo(row: dict, batch: SessionBatch, echoes: dict[str, str], args: Args) -> dict:
     """``row`` with the echo floor of its socket kind (None in-process and over Zenoh)."""
     address = echoes.get(row["socket"])
@@ -306,7 +312,7 @@ def main_rows(args: Args) -> list[dict]:
                     batch.close()
                     print(
                         f"{server:<14} {socket:<10} {api:<6} N={n:<3} p50 {row['p50_us']:8.1f} us"
-                        f"  p99 {row['p99_us']:8.1f} us  echo p50 {row['echo_p50_us']} us",
+                        f"  p99 {row['p99_us']:8.1f} us  echo p50 {echo_text(row)}",
                         flush=True,
                     )
     return rows
@@ -357,7 +363,7 @@ def section_1b_rows_of(
             print(
                 f"{server:<14} {socket:<10} {api:<6} N={n:<3} law {law:<2} {mode:<9} "
                 f"p50 {row['p50_us']:8.1f} us  p99 {row['p99_us']:8.1f} us  "
-                f"echo p50 {row['echo_p50_us']} us",
+                f"echo p50 {echo_text(row)}",
                 flush=True,
             )
     return rows

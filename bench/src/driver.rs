@@ -82,7 +82,9 @@ pub async fn connect(address: &Address) -> Result<Client> {
 pub async fn channel(address: &Address) -> Result<Channel> {
     Ok(match address {
         Address::Zenoh(_) => {
-            return Err(Error::Protocol("a Zenoh address has no HTTP/2 channel".into()))
+            return Err(Error::Protocol(
+                "a Zenoh address has no HTTP/2 channel".into(),
+            ))
         }
         Address::Tcp(addr) => {
             Endpoint::try_from(format!("http://{addr}"))?

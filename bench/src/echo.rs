@@ -83,13 +83,19 @@ impl EchoServer {
             let echo = tower::service_fn(|call: Request<Bytes>| async move {
                 Ok::<_, Status>(Response::new(call.into_inner()))
             });
-            Ok::<_, Infallible>(tonic::server::Grpc::new(RawCodec).unary(echo, request).await)
+            Ok::<_, Infallible>(
+                tonic::server::Grpc::new(RawCodec)
+                    .unary(echo, request)
+                    .await,
+            )
         });
         let (address, dir) = match socket {
             Socket::Tcp => {
-                let incoming = TcpIncoming::bind("127.0.0.1:0".parse().map_err(|err| {
-                    Error::Protocol(format!("loopback address: {err}"))
-                })?)?
+                let incoming = TcpIncoming::bind(
+                    "127.0.0.1:0"
+                        .parse()
+                        .map_err(|err| Error::Protocol(format!("loopback address: {err}")))?,
+                )?
                 .with_nodelay(Some(true));
                 let address = Address::Tcp(incoming.local_addr()?);
                 runtime.spawn(Server::builder().serve_with_incoming(service, incoming));
