@@ -97,8 +97,8 @@ fmt: venv ## apply rustfmt and ruff format
 bench: setup ## run every benchmark (core, server, Python client, training) -> BENCHMARKS.md
 	PY=$(PY) CARGO=$(CARGO) bash bench/run.sh
 
-soak: setup ## a few minutes of load with floods and faults -> the soak section of BENCHMARKS.md
-	PY=$(PY) CARGO=$(CARGO) bash bench/soak.sh
+soak: setup ## a few minutes of load with floods and faults, then the long fuzz run -> tests/soak/RESULTS.md
+	PY=$(PY) CARGO=$(CARGO) bash tests/soak/run.sh
 
 .PHONY: wheel
 # What would be uploaded to PyPI, in dist/: an sdist and one manylinux wheel for each of
@@ -151,7 +151,7 @@ $(PROTO_VENV)/.installed: client-py/scripts/gen_proto.py
 	$(PROTO_VENV)/bin/python -m pip install --quiet "grpcio-tools==$$(sed -n 's/^GENERATOR = "\(.*\)"/\1/p' $<)"
 	touch $@
 
-proto: $(PROTO_VENV)/.installed ## regenerate the committed Python stubs (client-py's messages, bench's grpcio service) with the pinned generator
+proto: $(PROTO_VENV)/.installed ## regenerate the committed Python stubs (client-py's messages) with the pinned generator
 	$(PROTO_VENV)/bin/python client-py/scripts/gen_proto.py
 
 proto-check: $(PROTO_VENV)/.installed ## fail if the committed gRPC stubs differ from the generator's output

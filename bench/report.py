@@ -1,17 +1,12 @@
-"""Writes BENCHMARKS.md and the latency-vs-batch PNG from the results of ``bench/run.sh``.
+"""Writes BENCHMARKS.md and the latency-vs-batch PNG from the results of one ``bench/run.sh``.
 
-Reads ``bench/results/``: ``server.json`` (esa-bench), ``python.json``
+Reads ``bench/results/``: ``server.json`` (esa-bench), ``python.json`` and ``section_1b.json``
 (client_latency.py), ``training.json`` (training_overhead.py), ``sizes.json``
-(artifact_sizes.py: the wheel and the binaries), ``throughput_ab.json``
-(throughput_ab.py: batch-64 throughput against the grpcio baseline in alternating
-windows), ``run.json``
-(machine, load and commands, written by run.sh) and ``core.json``, the medians
-of the core pair bench that run.sh copies out of criterion's estimates (read
-from ``target/criterion`` when ``core.json`` is missing). Every issue-7 target
-is listed with its measured figure and PASS or MISS.
-
-CONTRACT.md section 1b has its own section, from ``section_1b.json``
-(client_latency.py ``--parts 1b``), measured in the same run as the rest.
+(artifact_sizes.py), ``run.json`` (machine, load and commands, written by run.sh) and
+``core.json``, the medians of the core pair bench that run.sh copies out of criterion's
+estimates (read from ``target/criterion`` when ``core.json`` is missing). Every target is
+listed with its measured figure and PASS or MISS; every gRPC latency row stands beside the
+same host's bare echo round trip (tonic for the Rust client, grpcio for Python).
 
 Usage::
 
@@ -32,8 +27,6 @@ import tyro
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-
-from soak_report import soak_section  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PLOT_NAME = "latency_vs_batch.png"
@@ -139,11 +132,10 @@ def at_most(limit: float) -> Callable[[float], bool]:
 MIB = 2**20
 
 # Wall-clock of an ESA agent over its plain algorithm, per engine (the sidecar pays the
-# round trips of a process boundary; "none" = the engine-free gradient controls); rows of
-# runs that predate the engine choice ran the sidecar. The off-policy algorithms' own
-# gradient steps per env step dwarf ESA's step, so their budget is tighter. Runs before
-# commit efc54fb timed the same sidecar twice and named one copy "sidecar-native".
-TRAINING_LIMITS = {"inprocess": 1.15, "sidecar": 1.25, "sidecar-native": 1.25, "none": 1.15}
+# round trips of a process boundary; "none" = the engine-free gradient controls). The
+# off-policy algorithms' own gradient steps per env step dwarf ESA's step, so their budget is
+# tighter.
+TRAINING_LIMITS = {"inprocess": 1.15, "sidecar": 1.25, "none": 1.15}
 OFF_POLICY_LIMIT = 1.10
 
 
@@ -174,7 +166,7 @@ def training_limit(row: dict) -> float | None:
         return None
     if row["plain"] != "PPO":
         return OFF_POLICY_LIMIT
-    return TRAINING_LIMITS[row.get("engine", "sidecar")]
+    return TRAINING_LIMITS[row["engine"]]
 
 
 def size_targets(sizes: dict | None) -> list[Target]:
@@ -216,7 +208,6 @@ def targets(
     python: dict | None,
     training: dict | None,
     sizes: dict | None = None,
-    throughput_ab: dict | None = None,
     section_1b: dict | None = None,
 ) -> list[Target]:
     """Every performance target with its measured figure."""
@@ -241,11 +232,14 @@ def targets(
     ]
     for socket, api, how, limit in single:
         row = find(latency, socket=socket, api=api, batch=1)
+        echo = echo_words(row["p50_us"], echo_p50(row)) if row else ""
         out.append(
             Target(
                 f"Rust client, 1 session, {how}, p50",
                 NO_TARGET if limit is None else f"<= {limit:g} us",
-                f"{fmt(row['p50_us'])} us (p99 {fmt(row['p99_us'])} us)" if row else "not measured",
+                f"{fmt(row['p50_us'])} us (p99 {fmt(row['p99_us'])} us{echo})"
+                if row
+                else "not measured",
                 row["p50_us"] <= limit if row and limit is not None else None,
             )
         )
@@ -313,25 +307,6 @@ def targets(
             uds_8["p50_us"] <= 150 if uds_8 else None,
         )
     )
-    baseline_ratio = server_baseline_ratio(server)
-    out.append(
-        Target(
-            "throughput vs Python grpcio baseline at batch 64 (Rust load generator, same loop)",
-            ">= 10x",
-            f"{baseline_ratio:.1f}x" if baseline_ratio else "not measured",
-            baseline_ratio >= 10 if baseline_ratio else None,
-        )
-    )
-    ratio = throughput_ab["ratio_median"] if throughput_ab else None
-    out.append(
-        Target(
-            "throughput vs Python grpcio baseline at batch 64 (Python client, alternating "
-            "windows, median of the rounds)",
-            ">= 10x",
-            f"{ratio:.1f}x" if ratio else "not measured",
-            ratio >= 10 if ratio else None,
-        )
-    )
     for row in training["rows"] if training else []:
         envs = row.get("n_envs", training["args"].get("n_envs"))
         limit = training_limit(row)
@@ -357,27 +332,31 @@ def targets(
     return out
 
 
-def server_baseline_ratio(server: dict | None) -> float | None:
-    """esa-server over baseline session-steps/s under esa-bench's throughput loop (TCP, batch)."""
-    baseline = server.get("baseline") if server else None
-    if not baseline:
-        return None
-    tp = baseline["throughput"]
-    esa = find(server["throughput"], socket="tcp", api="batch", batch=tp["batch"])
-    return esa["session_steps_per_s"] / tp["session_steps_per_s"] if esa else None
+def echo_p50(row: dict) -> float | None:
+    """The p50 of a row's echo floor (esa-bench: ``echo``; Python: ``echo_p50_us``), if any."""
+    echo = row.get("echo")
+    return echo["p50_us"] if echo else row.get("echo_p50_us")
 
 
-def python_ratio(rows: list[dict]) -> float | None:
-    """Best esa-server over best baseline session-steps/s at 64 envs (same Python client)."""
+def echo_words(p50: float, echo: float | None) -> str:
+    """``; 2.1x the echo`` for a target's measured figure, or nothing without an echo."""
+    return f"; {p50 / echo:.1f}x the echo's {fmt(echo)} us" if echo else ""
 
-    def best(server: str) -> float | None:
-        rates = [
-            r["session_steps_per_s"] for r in rows if r["server"] == server and r["envs"] == 64
-        ]
-        return max(rates) if rates else None
 
-    esa, baseline = best("esa-server"), best("python-grpcio")
-    return esa / baseline if esa and baseline else None
+def echo_cells(row: dict) -> list[str]:
+    """A latency table's echo p50 and the row's p50 over it ("-" without an echo)."""
+    echo = echo_p50(row)
+    return [fmt(echo), f"{row['p50_us'] / echo:.1f}x"] if echo else ["-", "-"]
+
+
+ECHO_HEADER = ["echo p50 us", "p50 / echo"]
+ECHO_WORDS = (
+    "`echo` = the same pair of requests (their sizes) sent by the same client library to a "
+    "bare server that returns the bytes it gets, on the same kind of socket in the same run: "
+    "the host's floor for a gRPC round trip, against which a row's ratio holds across hosts "
+    "(none in-process or over Zenoh; not measured where `-`). The echo pair is two unary "
+    "calls, so a StepStream row, whose messages open no new HTTP/2 stream, can go below it."
+)
 
 
 def plot(server: dict | None, python: dict | None, path: Path) -> None:
@@ -451,7 +430,8 @@ def server_sections(server: dict) -> list[str]:
         "`stream` = both on one `StepStream`. `zenoh` = the server with `--zenoh` on its "
         "loopback listener and a Zenoh peer in the load generator: one query per call, and "
         "per StepStream message, on `esa/v1/<RpcName>` (Zenoh runs its own threads in both "
-        "processes, beside the tokio threads counted here).",
+        "processes, beside the tokio threads counted here). "
+        + ECHO_WORDS.replace("the same client library", "tonic"),
         "",
         "### Pair latency, one client",
         "",
@@ -466,12 +446,12 @@ def server_sections(server: dict) -> list[str]:
             fmt(r["p99_us"]),
             fmt(r["mean_us"]),
             f"{r['pairs']:,}",
+            *echo_cells(r),
         ]
         for r in server["latency"]
     ]
-    lines.append(
-        table(["socket", "api", "batch", "p50 us", "p90 us", "p99 us", "mean us", "pairs"], rows)
-    )
+    header = ["socket", "api", "batch", "p50 us", "p90 us", "p99 us", "mean us", "pairs"]
+    lines.append(table(header + ECHO_HEADER, rows))
     if not any(r["socket"] == "zenoh" for r in server["latency"]):
         lines += ["", "Zenoh: not measured in this run."]
     lines += ["", "### Throughput, concurrent clients", ""]
@@ -503,24 +483,6 @@ def server_sections(server: dict) -> list[str]:
             f"{rss['stepped_kib']:,} KiB after one probe + report on each "
             f"({fmt(rss['stepped_bytes_per_session'], 0)} B per session).",
         ]
-    baseline = server.get("baseline")
-    if baseline:
-        tp = baseline["throughput"]
-        lines += [
-            "",
-            "### The Python grpcio baseline under the same load generator",
-            "",
-            f"`bench/python/baseline_server.py` at batch {tp['batch']}, TCP, "
-            f"ProbeBatch/ReportBatch: p50 {fmt(baseline['latency']['p50_us'])} us for one "
-            f"client; {fmt(tp['session_steps_per_s'], 0)} session-steps/s with "
-            f"{tp['concurrency']} clients.",
-        ]
-        esa = find(server["throughput"], socket="tcp", api="batch", batch=tp["batch"])
-        ratio = server_baseline_ratio(server)
-        if esa and ratio:
-            lines[-1] += (
-                f" esa-server, same loop: {fmt(esa['session_steps_per_s'], 0)} (**{ratio:.1f}x**)."
-            )
     return lines
 
 
@@ -536,10 +498,10 @@ def python_section(python: dict) -> list[str]:
         "(`use_stream=False`, the default), `stream` = the StepStream. `uds` is "
         '`EsaClient.spawn()`, what the SB3 drop-ins use with `esa_engine="sidecar"`; '
         "`esa-native` = `EsaClient.in_process()` (esa-core in-process, their default). "
-        "`python-grpcio` = `bench/python/baseline_server.py`. "
         '`zenoh` = `EsaClient.spawn(transport="zenoh")` (esa-server `--zenoh` on '
         "loopback): queries on `esa/v1/ProbeBatch`/`ReportBatch` (`batch` and `stream` "
-        "alike: a Zenoh query is one message already).",
+        "alike: a Zenoh query is one message already). "
+        + ECHO_WORDS.replace("the same client library", "grpcio (`bench/python/echo_server.py`)"),
         "",
     ]
     rows = [
@@ -551,73 +513,24 @@ def python_section(python: dict) -> list[str]:
             fmt(r["p50_us"]),
             fmt(r["p99_us"]),
             fmt(r["session_steps_per_s"], 0),
+            *echo_cells(r),
         ]
         for r in python["rows"]
     ]
-    lines.append(
-        table(["server", "socket", "api", "envs", "p50 us", "p99 us", "session-steps/s"], rows)
-    )
-    lines += ["", "Throughput ratio esa-server / python-grpcio at 64 envs, same client:", ""]
-    for api in ("batch", "stream"):
-        base = find(python["rows"], server="python-grpcio", api=api, envs=64)
-        for socket in ("tcp", "uds", "zenoh"):
-            esa = find(python["rows"], server="esa-server", socket=socket, api=api, envs=64)
-            if esa and base:
-                ratio = esa["session_steps_per_s"] / base["session_steps_per_s"]
-                lines.append(f"- {socket}/{api} vs baseline tcp/{api}: {ratio:.1f}x")
-    ratio = python_ratio(python["rows"])
-    if ratio:
-        lines.append(f"- best vs best: {ratio:.1f}x")
+    header = ["server", "socket", "api", "envs", "p50 us", "p99 us", "session-steps/s"]
+    lines.append(table(header + ECHO_HEADER, rows))
     return lines
 
 
-def throughput_ab_section(ab: dict) -> list[str]:
-    """Markdown for the alternating-window throughput comparison with the baseline."""
-    args = ab["args"]
-    names = list(ab["steps_per_s"])
-    rows = [
-        [str(r), *(f"{ab['steps_per_s'][name][r]:,.0f}" for name in names), f"{ratio:.1f}x"]
-        for r, ratio in enumerate(ab["ratios"])
-    ]
-    return [
-        "## Throughput against the grpcio baseline, alternating windows",
-        "",
-        f"`bench/python/throughput_ab.py`: batch {args['envs']}, D = {args['dim']}, "
-        f"{args['rounds']} rounds of one {args['window']} s window per server and api (the "
-        "order rotating), both servers running throughout; each round's ratio is the faster "
-        "esa-server api over the faster baseline api. Session-steps/s:",
-        "",
-        table(["round", *names, "ratio"], rows),
-        "",
-        f"Median ratio {ab['ratio_median']:.1f}x.",
-    ]
-
-
-def warmup_words(args: dict) -> str:
-    """How a training run warmed up, for its description (runs before the option: none)."""
-    runs = args.get("warmup_runs", 0)
-    if not runs:
-        return ", no warm-up run"
-    return f", after {runs} short untimed run(s) of every agent"
-
-
 def repeat_words(args: dict) -> str:
-    """How a training run repeated its pairs (older runs: in sequence, or one count for all)."""
-    if "ppo_repeats" not in args:
-        return f"{args['repeats']} alternating repeats"
-    counts = (
-        f"{args['ppo_repeats']} repeats of PPO's pairs and {args['repeats']} of SAC's and TD3's"
-    )
-    if "slice_s" not in args:
-        return (
-            f"{counts}, family by family (each family's plain agent, then its ESA agents), "
-            "every other repeat in reverse order"
-        )
+    """How a training run took its turns."""
     return (
-        f"{counts}, family by family; a family's plain agent and its ESA agents train side by "
-        f"side, one at a time, each handing the turn to the next after {args['slice_s']} s "
-        "(round-robin, reversed every other repeat), and an agent's time is the sum of its "
-        "turns, so a drift of the host's speed falls on all of them alike"
+        f"{args['ppo_repeats']} repeats of PPO's pairs and {args['repeats']} of SAC's and "
+        f"TD3's, family by family, after {args['warmup_runs']} short untimed run(s) of every "
+        "agent; a family's plain agent and its ESA agents train side by side, one at a time, "
+        f"each handing the turn to the next after {args['slice_s']} s (round-robin, reversed "
+        "every other repeat), and an agent's time is the sum of its turns, so a drift of the "
+        "host's speed falls on all of them alike"
     )
 
 
@@ -640,23 +553,13 @@ def training_section(training: dict) -> list[str]:
         "private esa-server on a Unix socket (`EsaClient.spawn()`) through the Rust client of "
         "`esa_client._native` (its StepStream, one pipelined round trip per step). "
         f"PPO rollouts of `n_steps={args['ppo_n_steps']}` per env. Wall-clock "
-        f"of `learn()`, {repeat_words(args)}{warmup_words(args)}; "
+        f"of `learn()`, {repeat_words(args)}; "
         "ratio = median of the "
         "per-repeat ratios, with a 95 % percentile-bootstrap interval of that median in "
         "brackets (10,000 resamples of the pairs; 3 pairs or more). The verdict is the "
         "median's.",
         "",
     ]
-    for again in training.get("remeasured", []):
-        lines += [
-            f"Re-measured later ({again['why']})"
-            + (f" on {again['host']}" if "host" in again else "")
-            + warmup_words(again["args"])
-            + ", with their baselines re-timed beside them: "
-            + ", ".join(f"`{name}`" for name in again["rows"])
-            + ".",
-            "",
-        ]
     rows = []
     for r in training["rows"]:
         split = r.get("esa_buckets") or [{}]
@@ -864,10 +767,11 @@ def section_1b_section(python: dict, laws: dict[str, Medians]) -> list[str]:
                 fmt(r["p99_us"]),
                 fmt(r["session_steps_per_s"], 0),
                 ratio_text(r["p50_us"], base["p50_us"]) if base else "-",
+                *echo_cells(r),
             ]
         )
     header = ["server", "socket", "api", "envs", "law", "mode", "p50 us", "p99 us"]
-    header += ["session-steps/s", "p50 vs law 1 pair"]
+    header += ["session-steps/s", "p50 vs law 1 pair", *ECHO_HEADER]
     lines.append(table(header, body))
     summary = []
     for r in rows:
@@ -916,7 +820,6 @@ def main(args: Args) -> None:
     server = load(args.results / "server.json")
     python = load(args.results / "python.json")
     training = load(args.results / "training.json")
-    throughput_ab = load(args.results / "throughput_ab.json")
     run = load(args.results / "run.json")
     sizes = load(args.results / "sizes.json")
     laws = core_medians(load(args.results / "core.json"), args.criterion)
@@ -939,7 +842,7 @@ def main(args: Args) -> None:
             ["target", "goal", "measured", ""],
             [
                 [t.name, t.goal, t.measured, verdict(t)]
-                for t in targets(core, server, python, training, sizes, throughput_ab, section_1b)
+                for t in targets(core, server, python, training, sizes, section_1b)
             ],
         ),
         "",
@@ -956,15 +859,10 @@ def main(args: Args) -> None:
         lines += server_sections(server) + [""]
     if python:
         lines += python_section(python) + [""]
-    if throughput_ab:
-        lines += throughput_ab_section(throughput_ab) + [""]
     if training:
         lines += training_section(training) + [""]
     if section_1b:
         lines += section_1b_section(section_1b, laws) + [""]
-    soak = load(args.results / "soak.json")
-    if soak:
-        lines += soak_section(soak) + [""]
     args.out.write_text("\n".join(lines))
     print(f"wrote {args.out} and {args.results / PLOT_NAME}")
 

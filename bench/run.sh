@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The whole benchmark run behind `make bench`: core criterion bench, the Rust load
-# generator (with the Python grpcio baseline beside it), the Python client bench,
-# the training-overhead bench, then bench/report.py writes BENCHMARKS.md and
+# generator (each row beside a bare tonic echo), the Python client bench (beside a bare
+# grpcio echo), the training-overhead bench, then bench/report.py writes BENCHMARKS.md and
 # bench/results/latency_vs_batch.png. Everything stays on loopback.
 #
 # Usage: bench/run.sh [--quick]
@@ -47,12 +47,7 @@ cpu_start=$(grep '^cpu ' /proc/stat)
 # Samples the load for the report; stopped by its own PID at exit.
 (while true; do cut -d' ' -f1 /proc/loadavg; sleep "$LOAD_INTERVAL"; done) >"$RESULTS/loadavg.tmp.txt" &
 sampler=$!
-baseline_pid=
-cleanup() {
-  kill "$sampler" 2>/dev/null || true
-  [[ -n $baseline_pid ]] && kill "$baseline_pid" 2>/dev/null || true
-}
-trap cleanup EXIT
+trap 'kill "$sampler" 2>/dev/null || true' EXIT
 
 commands=()
 run() {
@@ -65,21 +60,10 @@ run "$CARGO" build --release -p esa-server -p esa-bench
 run "$CARGO" bench -p esa-core --bench pair -- --noplot "${CRITERION_ARGS[@]}"
 run "$PY" bench/report.py --snapshot-core "$CORE_JSON"
 
-# The Python baseline on a free loopback port, for the load generator's comparison.
-coproc BASELINE { exec "$PY" bench/python/baseline_server.py --listen 127.0.0.1:0; }
-baseline_pid=$BASELINE_PID
-read -r -u "${BASELINE[0]}" line
-baseline_addr=${line##* }
-commands+=("$PY bench/python/baseline_server.py --listen 127.0.0.1:0  # -> $baseline_addr")
 run target/release/esa-bench --server "$ESA_SERVER_BIN" --json "$RESULTS/server.json" \
-  --baseline "$baseline_addr" "${BENCH_ARGS[@]}"
-kill "$baseline_pid"
-wait "$baseline_pid" 2>/dev/null || true
-baseline_pid=
-
+  "${BENCH_ARGS[@]}"
 run "$PY" bench/python/client_latency.py --out "$RESULTS/python.json" \
   --section-1b-out "$RESULTS/section_1b.json" "${PY_ARGS[@]}"
-run "$PY" bench/python/throughput_ab.py --out "$RESULTS/throughput_ab.json" "${PY_ARGS[@]}"
 run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TRAIN_ARGS[@]}"
 # The wheel and the binaries as the last builds left them (`make wheel` builds the wheel).
 run "$PY" bench/python/artifact_sizes.py --out "$RESULTS/sizes.json"

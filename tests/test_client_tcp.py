@@ -69,13 +69,9 @@ def test_client_over_tcp_matches_reference(tcp_server):
 
 @pytest.fixture
 def grpcio_server():
-    """The contract as a plain Python grpcio server (bench's baseline), on loopback TCP.
-
-    Its StepStream is a generator, so grpcio sends the response headers only with the first
-    answer: a client that waits for them before sending its first request never gets one.
-    """
+    """A grpcio server whose StepStream sends its headers only with its first answer."""
     yield from serving(
-        [sys.executable, str(REPO_ROOT / "bench/python/baseline_server.py")]
+        [sys.executable, str(REPO_ROOT / "tests/late_headers_server.py")]
     )
 
 

@@ -1,19 +1,20 @@
-"""SessionBatch pair latency from Python, per transport, vs in-process and vs a grpcio baseline.
+"""SessionBatch pair latency from Python, per transport, beside the host's bare gRPC echo.
 
 One pair is what a trainer does per VecEnv step: ``batch.probe(actions, starts)``,
 the critic at the probes (here ``-|probe|^2``), ``batch.report(q)``. Measured for
 N = 1, 8, 64 envs of D = 6 against:
 
-- esa-server over loopback TCP and a Unix socket (``EsaClient.spawn``), each with
-  ``ProbeBatch``/``ReportBatch`` calls and with the ``StepStream``, through grpcio, and
-  with the calls through the Rust client of ``esa_client._native`` (api ``native``,
-  ``EsaClient.connect(...)``);
+- esa-server over loopback TCP and a Unix socket, each with ``ProbeBatch``/``ReportBatch``
+  calls and with the ``StepStream``, through the client's gRPC transport;
 - esa-server with ``--zenoh`` on loopback (``EsaClient.spawn(transport="zenoh")``): the same two
   ways, as queries on ``esa/v1/ProbeBatch``/``ReportBatch`` or one query per
   StepStream message on ``esa/v1/StepStream``;
 - ``EsaClient.in_process()``: esa-core in this process (``esa_client._native``), the
-  in-process engine of the SB3 drop-ins;
-- ``baseline_server.py``, a plain Python grpcio server, through the same client.
+  in-process engine of the SB3 drop-ins.
+
+Beside each row on TCP or a Unix socket stands the same host's floor: a grpcio client's
+pair of calls to a bare grpcio echo server (``echo_server.py``, its own process) on the
+same kind of socket, each call the size of the row's requests (``echo_p50_us``).
 
 Section 1b of CONTRACT.md (``--parts 1b``, written to ``--section-1b-out``): the
 SessionBatch step at N = ``--section-1b-envs`` with every section 1b field on
@@ -39,18 +40,21 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import grpc
 import numpy as np
 import tyro
-from esa_client import EsaClient, SessionConfig
-from esa_client.transports.base import QuadraticCritic
+from esa_client import EsaClient, QuadraticCritic, SessionBatch, SessionConfig
+from esa_client._proto.esa.v1 import esa_pb2
 
-from servers import baseline_server, esa_server_tcp, server_binary
+from echo_server import METHOD, SERVICE
+from servers import echo_server, esa_server_tcp, server_binary
 
 # Steps per episode, as in the MuJoCo tasks (the episode start rides on a probe).
 EPISODE_STEPS = 1000
@@ -163,6 +167,13 @@ def measure(batch, args: Args, law: str = "1", mode: str = "pair") -> dict:
             batch.reset()
         one_step()
 
+    result = timed(pair, batch.n, args)
+    batch.flush()
+    return result
+
+
+def timed(pair: Callable[[int], None], n: int, args: Args) -> dict:
+    """Runs ``pair(step)`` for the warm-up, then times each pair of the window."""
     step = 0
     end = time.perf_counter() + args.warmup
     while time.perf_counter() < end:
@@ -175,8 +186,6 @@ def measure(batch, args: Args, law: str = "1", mode: str = "pair") -> dict:
         pair(step)
         times.append(time.perf_counter_ns() - start)
         step += 1
-    if hasattr(batch, "flush"):
-        batch.flush()
     us = np.asarray(times) / 1e3
     return {
         "pairs": len(times),
@@ -184,8 +193,56 @@ def measure(batch, args: Args, law: str = "1", mode: str = "pair") -> dict:
         "p90_us": float(np.percentile(us, 90)),
         "p99_us": float(np.percentile(us, 99)),
         "mean_us": float(us.mean()),
-        "session_steps_per_s": float(batch.n / (us.mean() / 1e6)),
+        "session_steps_per_s": float(n / (us.mean() / 1e6)),
     }
+
+
+def request_sizes(batch: SessionBatch) -> tuple[int, int]:
+    """The encoded sizes of ``batch``'s ProbeBatch and ReportBatch requests."""
+    n, steps = batch.n, [1] * batch.n
+    probe = esa_pb2.ProbeBatchRequest(
+        session_ids=batch.ids, steps=steps, actions=[0.1] * (n * batch.action_dim)
+    )
+    report = esa_pb2.ReportBatchRequest(session_ids=batch.ids, steps=steps, q_values=[0.1] * n)
+    return probe.ByteSize(), report.ByteSize()
+
+
+def echo_p50(address: str, sizes: tuple[int, int], args: Args) -> float:
+    """p50 of a grpcio client's pair of echo calls of ``sizes`` bytes to ``address``."""
+    with grpc.insecure_channel(address) as channel:
+        call = channel.unary_unary(f"/{SERVICE}/{METHOD}")
+        payloads = [b"*" * size for size in sizes]
+
+        def pair(_: int) -> None:
+            for payload in payloads:
+                call(payload)
+
+        return float(timed(pair, 1, args)["p50_us"])
+
+
+@contextmanager
+def echo_servers() -> Iterator[dict[str, str]]:
+    """The grpcio echo on loopback TCP and on a Unix socket: their addresses by socket kind."""
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        echo_server("127.0.0.1:0") as tcp,
+        echo_server(f"unix:{tmp}/echo.sock") as uds,
+    ):
+        yield {"tcp": tcp, "uds": uds}
+
+
+def echo_text(row: dict) -> str:
+    """A row's echo p50 for the progress lines."""
+    echo = row["echo_p50_us"]
+    return "n/a" if echo is None else f"{echo:.1f} us"
+
+
+def with_echo(row: dict, batch: SessionBatch, echoes: dict[str, str], args: Args) -> dict:
+    """``row`` with the echo floor of its socket kind (None in-process and over Zenoh)."""
+    address = echoes.get(row["socket"])
+    sizes = request_sizes(batch)
+    row["echo_p50_us"] = None if address is None else echo_p50(address, sizes, args)
+    return row
 
 
 @contextmanager
@@ -215,46 +272,20 @@ def targets() -> list[Target]:
                 lambda: EsaClient.spawn(server_binary(), transport="zenoh", timeout=30.0),
             )
         )
-        out.append(("python-grpcio", "tcp", api, lambda: client_at(baseline_server())))
-    out += native_targets()
     out.append(("esa-native", "in-process", "-", EsaClient.in_process))
     return out
-
-
-def native_targets() -> list[Target]:
-    """esa-server over TCP and a Unix socket through the Rust client (batch calls)."""
-    return [
-        ("esa-server", "tcp", "native", lambda: client_at(esa_server_tcp())),
-        (
-            "esa-server",
-            "uds",
-            "native",
-            lambda: EsaClient.spawn(server_binary(), timeout=30.0),
-        ),
-    ]
 
 
 def section_1b_targets() -> list[Target]:
     """The transports of the section 1b rows: esa-server (TCP, Unix socket) and in-process.
 
-    esa-server through grpcio (``batch``: unary calls, ``stream``: the StepStream) and, on
-    the Unix socket, through the Rust client (``native``: unary calls, ``native-stream``:
-    the pipelined pair on its own StepStream).
+    ``batch``: unary calls; ``stream``: the StepStream.
     """
     out: list[Target] = []
     for api in ("batch", "stream"):
         out.append(("esa-server", "tcp", api, lambda: client_at(esa_server_tcp())))
         out.append(
             ("esa-server", "uds", api, lambda: EsaClient.spawn(server_binary(), timeout=30.0))
-        )
-    for api in ("native", "native-stream"):
-        out.append(
-            (
-                "esa-server",
-                "uds",
-                api,
-                lambda: EsaClient.spawn(server_binary(), timeout=30.0),
-            )
         )
     out.append(("esa-native", "in-process", "-", EsaClient.in_process))
     return out
@@ -268,19 +299,22 @@ def main_rows(args: Args) -> list[dict]:
     """Section 1's pair on every target for every N."""
     envs = [int(n) for n in args.envs.split(",")]
     rows = []
-    for server, socket, api, connect in targets():
-        with connect() as client:
-            for n in envs:
-                batch = client.create_batch(session_config(args.dim), n, use_stream=api == "stream")
-                result = measure(batch, args)
-                batch.close()
-                row = {"server": server, "socket": socket, "api": api, "envs": n, **result}
-                rows.append(row)
-                print(
-                    f"{server:<14} {socket:<10} {api:<6} N={n:<3} p50 {row['p50_us']:8.1f} us"
-                    f"  p99 {row['p99_us']:8.1f} us  {row['session_steps_per_s']:10.0f} steps/s",
-                    flush=True,
-                )
+    with echo_servers() as echoes:
+        for server, socket, api, connect in targets():
+            with connect() as client:
+                for n in envs:
+                    batch = client.create_batch(
+                        session_config(args.dim), n, use_stream=api == "stream"
+                    )
+                    result = measure(batch, args)
+                    row = {"server": server, "socket": socket, "api": api, "envs": n, **result}
+                    rows.append(with_echo(row, batch, echoes, args))
+                    batch.close()
+                    print(
+                        f"{server:<14} {socket:<10} {api:<6} N={n:<3} p50 {row['p50_us']:8.1f} us"
+                        f"  p99 {row['p99_us']:8.1f} us  echo p50 {echo_text(row)}",
+                        flush=True,
+                    )
     return rows
 
 
@@ -288,34 +322,50 @@ def section_1b_rows(args: Args) -> list[dict]:
     """Section 1's pair against section 1b's pair and pipelined step, same process and time."""
     envs = [int(n) for n in args.section_1b_envs.split(",")]
     rows = []
-    for server, socket, api, connect in section_1b_targets():
-        with connect() as client:
-            for n in envs:
-                for law, mode in SECTION_1B_ROWS:
-                    if mode == "pipelined" and api in ("batch", "native"):
-                        continue  # two unary round trips: the same as the pair
-                    if mode == "step" and server != "esa-native":
-                        continue  # one engine call only in-process; a wire's is the pipelined
-                    config = session_config(args.dim) if law == "1" else section_1b_config(args.dim)
-                    batch = client.create_batch(config, n, use_stream=api.endswith("stream"))
-                    result = measure(batch, args, law, mode)
-                    batch.close()
-                    row = {
-                        "server": server,
-                        "socket": socket,
-                        "api": api,
-                        "envs": n,
-                        "law": law,
-                        "mode": mode,
-                        **result,
-                    }
-                    rows.append(row)
-                    print(
-                        f"{server:<14} {socket:<10} {api:<6} N={n:<3} law {law:<2} {mode:<9} "
-                        f"p50 {row['p50_us']:8.1f} us  p99 {row['p99_us']:8.1f} us  "
-                        f"{row['session_steps_per_s']:10.0f} steps/s",
-                        flush=True,
-                    )
+    with echo_servers() as echoes:
+        for server, socket, api, connect in section_1b_targets():
+            with connect() as client:
+                rows += section_1b_rows_of(client, server, socket, api, envs, echoes, args)
+    return rows
+
+
+def section_1b_rows_of(
+    client: EsaClient,
+    server: str,
+    socket: str,
+    api: str,
+    envs: list[int],
+    echoes: dict[str, str],
+    args: Args,
+) -> list[dict]:
+    """The section 1b rows of one target."""
+    rows = []
+    for n in envs:
+        for law, mode in SECTION_1B_ROWS:
+            if mode == "pipelined" and api == "batch":
+                continue  # two unary round trips: the same as the pair
+            if mode == "step" and server != "esa-native":
+                continue  # one engine call only in-process; a wire's is the pipelined
+            config = session_config(args.dim) if law == "1" else section_1b_config(args.dim)
+            batch = client.create_batch(config, n, use_stream=api == "stream")
+            result = measure(batch, args, law, mode)
+            row = {
+                "server": server,
+                "socket": socket,
+                "api": api,
+                "envs": n,
+                "law": law,
+                "mode": mode,
+                **result,
+            }
+            rows.append(with_echo(row, batch, echoes, args))
+            batch.close()
+            print(
+                f"{server:<14} {socket:<10} {api:<6} N={n:<3} law {law:<2} {mode:<9} "
+                f"p50 {row['p50_us']:8.1f} us  p99 {row['p99_us']:8.1f} us  "
+                f"echo p50 {echo_text(row)}",
+                flush=True,
+            )
     return rows
 
 

@@ -52,7 +52,7 @@ def esa_server_tcp() -> AbstractContextManager[str]:
     return serving([server_binary(), "--listen", "127.0.0.1:0", "--session-ttl", "0"])
 
 
-def baseline_server() -> AbstractContextManager[str]:
-    """The Python grpcio baseline (``baseline_server.py``) on 127.0.0.1 with a free port."""
-    script = Path(__file__).with_name("baseline_server.py")
-    return serving([sys.executable, str(script), "--listen", "127.0.0.1:0"])
+def echo_server(listen: str) -> AbstractContextManager[str]:
+    """The bare grpcio echo (``echo_server.py``) at ``listen`` (``127.0.0.1:0``, ``unix:/path``)."""
+    script = Path(__file__).with_name("echo_server.py")
+    return serving([sys.executable, str(script), "--listen", listen])

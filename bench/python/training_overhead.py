@@ -39,7 +39,6 @@ Usage::
 
     python bench/python/training_overhead.py [--ppo-steps 12288] [--sac-steps 8000] [--n-envs 1]
         [--agents "ESAPPO,ESATD3 qgrad"] [--engines inprocess]
-        [--remeasure-why "a quiet window after ..."]  # replace only those rows in --out
 """
 
 from __future__ import annotations
@@ -144,8 +143,6 @@ class Args:
     """Seed of the agents and the envs."""
     out: str = "bench/results/training.json"
     """JSON of the timings."""
-    remeasure_why: str = ""
-    """Non-empty: a partial re-measurement; replace only these rows in ``out`` and say why."""
 
 
 WARMUP_GRADIENT_STEPS = 200
@@ -348,11 +345,6 @@ def main() -> None:
     if args.slice_s <= 0:
         raise SystemExit(f"expected --slice-s > 0 (seconds per turn), got {args.slice_s}")
     out = Path(args.out)
-    if args.remeasure_why and not out.exists():
-        # Checked before the measurement, which takes minutes, not after it.
-        raise SystemExit(
-            f"expected an existing {out} to merge --remeasure-why's rows into, got no such file"
-        )
     th.set_num_threads(1)
     # Without it every spawn would first ask cargo whether the binary is up to date.
     os.environ["ESA_SERVER_BIN"] = server_binary()
@@ -414,40 +406,8 @@ def main() -> None:
             print(f"{n_envs} env(s) {esa}/{plain} ratio: {np.median(ratios):.3f} {ratios.round(3)}")
     out.parent.mkdir(parents=True, exist_ok=True)
     result = {"args": dataclasses.asdict(args), "rows": rows}
-    if args.remeasure_why:
-        result = merge_remeasured(json.loads(out.read_text()), result, args.remeasure_why)
     out.write_text(json.dumps(result, indent=2))
     print(f"wrote {out}")
-
-
-def host() -> str:
-    """The CPU model and core count: a re-measurement may run on another host than the rest."""
-    cpuinfo = Path("/proc/cpuinfo")
-    lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
-    models = [line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")]
-    model = models[0] if models else "?"
-    return f"{model}, {os.cpu_count()} cores"
-
-
-def merge_remeasured(full: dict, again: dict, why: str) -> dict:
-    """``full`` with ``again``'s rows in place of its rows of the same pair and env count.
-
-    The report lists every re-measurement (its rows, why and arguments), so a table that
-    mixes runs says which rows came from which.
-    """
-
-    def key(row: dict) -> tuple[str, int]:
-        return row["esa"], row["n_envs"]
-
-    fresh = {key(row): row for row in again["rows"]}
-    rows = [fresh.pop(key(row), row) for row in full["rows"]] + list(fresh.values())
-    record = {
-        "rows": [row["esa"] for row in again["rows"]],
-        "why": why,
-        "host": host(),
-        "args": again["args"],
-    }
-    return {**full, "rows": rows, "remeasured": [*full.get("remeasured", []), record]}
 
 
 if __name__ == "__main__":

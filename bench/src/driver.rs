@@ -9,6 +9,7 @@ use esa_proto::v1::step_stream_request::Kind as Req;
 use esa_proto::v1::step_stream_response::Kind as Resp;
 use esa_proto::Rpc;
 use hyper_util::rt::TokioIo;
+use prost::Message;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::{Channel, Endpoint};
@@ -71,9 +72,19 @@ pub enum Api {
 
 /// Opens a new HTTP/2 connection (or Zenoh session) to `address`.
 pub async fn connect(address: &Address) -> Result<Client> {
-    let channel = match address {
-        Address::Zenoh(locators) => {
-            return Ok(Client::Zenoh(ZenohClient::connect(locators).await?))
+    match address {
+        Address::Zenoh(locators) => Ok(Client::Zenoh(ZenohClient::connect(locators).await?)),
+        _ => Ok(Client::Grpc(EsaServiceClient::new(channel(address).await?))),
+    }
+}
+
+/// Opens a new HTTP/2 connection to a TCP or Unix socket address.
+pub async fn channel(address: &Address) -> Result<Channel> {
+    Ok(match address {
+        Address::Zenoh(_) => {
+            return Err(Error::Protocol(
+                "a Zenoh address has no HTTP/2 channel".into(),
+            ))
         }
         Address::Tcp(addr) => {
             Endpoint::try_from(format!("http://{addr}"))?
@@ -95,8 +106,7 @@ pub async fn connect(address: &Address) -> Result<Client> {
                 }))
                 .await?
         }
-    };
-    Ok(Client::Grpc(EsaServiceClient::new(channel)))
+    })
 }
 
 /// A session config like the SB3 drop-ins send for a `dim`-D Box in [-1, 1].
@@ -279,25 +289,67 @@ impl Stepper {
         }
     }
 
-    async fn probe(&mut self, episode_start: bool) -> Result<Vec<f64>> {
-        if self.api == Api::Unary {
-            let request = pb::ProbeRequest {
-                session_id: self.ids.concat(),
-                step: self.step,
-                action: self.actions.clone(),
-                episode_start,
-                ..Default::default()
-            };
-            return Ok(self.client.probe(request).await?.probe);
+    /// The encoded sizes of this stepper's probe and report requests (not at an episode
+    /// start): what an echo of the same pair carries.
+    pub fn request_sizes(&self) -> (usize, usize) {
+        let q_values = vec![0.0; self.ids.len()];
+        match self.api {
+            Api::Unary => (
+                self.unary_probe(false).encoded_len(),
+                self.unary_report(&q_values).encoded_len(),
+            ),
+            Api::Batch | Api::Stream => (
+                self.probe_batch(false).encoded_len(),
+                self.report_batch(q_values).encoded_len(),
+            ),
         }
+    }
+
+    fn unary_probe(&self, episode_start: bool) -> pb::ProbeRequest {
+        pb::ProbeRequest {
+            session_id: self.ids.concat(),
+            step: self.step,
+            action: self.actions.clone(),
+            episode_start,
+            ..Default::default()
+        }
+    }
+
+    fn unary_report(&self, q_values: &[f64]) -> pb::ReportRequest {
+        pb::ReportRequest {
+            session_id: self.ids.concat(),
+            step: self.step,
+            q_value: q_values.iter().sum(),
+            ..Default::default()
+        }
+    }
+
+    fn probe_batch(&self, episode_start: bool) -> pb::ProbeBatchRequest {
         let n = self.ids.len();
-        let request = pb::ProbeBatchRequest {
+        pb::ProbeBatchRequest {
             session_ids: self.ids.clone(),
             steps: vec![self.step; n],
             actions: self.actions.clone(),
             episode_starts: if episode_start { vec![true; n] } else { vec![] },
             ..Default::default()
-        };
+        }
+    }
+
+    fn report_batch(&self, q_values: Vec<f64>) -> pb::ReportBatchRequest {
+        pb::ReportBatchRequest {
+            session_ids: self.ids.clone(),
+            steps: vec![self.step; self.ids.len()],
+            q_values,
+            ..Default::default()
+        }
+    }
+
+    async fn probe(&mut self, episode_start: bool) -> Result<Vec<f64>> {
+        if self.api == Api::Unary {
+            let request = self.unary_probe(episode_start);
+            return Ok(self.client.probe(request).await?.probe);
+        }
+        let request = self.probe_batch(episode_start);
         match self.stream.as_mut() {
             Some(stream) => match stream.round_trip(Req::ProbeBatch(request)).await? {
                 Resp::ProbeBatch(response) => Ok(response.probes),
@@ -309,20 +361,10 @@ impl Stepper {
 
     async fn report(&mut self, q_values: Vec<f64>) -> Result<Vec<f64>> {
         if self.api == Api::Unary {
-            let request = pb::ReportRequest {
-                session_id: self.ids.concat(),
-                step: self.step,
-                q_value: q_values.iter().sum(),
-                ..Default::default()
-            };
+            let request = self.unary_report(&q_values);
             return Ok(self.client.report(request).await?.action);
         }
-        let request = pb::ReportBatchRequest {
-            session_ids: self.ids.clone(),
-            steps: vec![self.step; self.ids.len()],
-            q_values,
-            ..Default::default()
-        };
+        let request = self.report_batch(q_values);
         match self.stream.as_mut() {
             Some(stream) => match stream.round_trip(Req::ReportBatch(request)).await? {
                 Resp::ReportBatch(response) => Ok(response.actions),

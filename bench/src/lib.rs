@@ -1,12 +1,11 @@
-//! Load generation against the real `esa-server` binary, shared by two
-//! programs: `esa-bench` (latency, throughput and memory per session)
-//! and `esa-soak` (minutes of load with floods and faults).
-//! Everything stays on loopback.
+//! Load generation against the real `esa-server` binary: `esa-bench`
+//! (latency, throughput and memory per session, beside a bare tonic echo),
+//! and the soak test's clients (`tests/soak`). Everything stays on loopback.
 
 pub mod driver;
+pub mod echo;
 pub mod error;
 pub mod measure;
 pub mod memory;
 pub mod server_process;
-pub mod soak;
 pub mod zenoh_client;

@@ -9,11 +9,11 @@
 //! - session-steps per second of several concurrent clients per batch size;
 //! - resident memory per session with many live sessions (a fresh server).
 //!
-//! Optionally it measures a second server at `--baseline ADDR` (the Python
-//! grpcio baseline) with the same throughput loop. Every loop is bounded in
-//! pairs and time; everything stays on loopback. Results go to `--json`.
+//! Beside each gRPC latency row it times a bare tonic echo of the same
+//! requests' sizes on the same kind of socket (`echo`), the floor the row is
+//! compared with. Every loop is bounded in pairs and time; everything stays
+//! on loopback. Results go to `--json`.
 
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -21,6 +21,7 @@ use clap::Parser;
 use serde::Serialize;
 
 use esa_bench::driver::{connect, create_sessions, Api, Stepper};
+use esa_bench::echo::{EchoPair, EchoServer};
 use esa_bench::error::Result;
 use esa_bench::measure::{self, Bounds, Latency, Throughput, Workload};
 use esa_bench::memory::{self, Rss};
@@ -69,13 +70,6 @@ struct Cli {
     /// Sessions created for the memory measurement (0 skips it).
     #[arg(long, default_value_t = 100_000)]
     rss_sessions: usize,
-    /// Also measure the server at this loopback address (e.g. the Python
-    /// baseline) with the throughput loop at `--baseline-batch`.
-    #[arg(long)]
-    baseline: Option<SocketAddr>,
-    /// Batch size of the baseline comparison.
-    #[arg(long, default_value_t = 64)]
-    baseline_batch: usize,
 }
 
 /// A latency measurement and what it measured.
@@ -86,6 +80,9 @@ struct LatencyRow {
     batch: usize,
     #[serde(flatten)]
     latency: Latency,
+    /// The bare tonic echo of the same requests' sizes on the same kind of
+    /// socket (none over Zenoh).
+    echo: Option<Latency>,
 }
 
 /// A throughput measurement and what it measured.
@@ -98,14 +95,6 @@ struct ThroughputRow {
     throughput: Throughput,
 }
 
-/// The baseline server measured with the same loops.
-#[derive(Debug, Serialize)]
-struct Baseline {
-    address: SocketAddr,
-    latency: LatencyRow,
-    throughput: ThroughputRow,
-}
-
 /// Everything one run measured; the report generator reads this.
 #[derive(Debug, Serialize)]
 struct Results {
@@ -116,7 +105,6 @@ struct Results {
     latency: Vec<LatencyRow>,
     throughput: Vec<ThroughputRow>,
     rss: Option<Rss>,
-    baseline: Option<Baseline>,
 }
 
 fn main() -> std::process::ExitCode {
@@ -152,13 +140,16 @@ async fn run(cli: &Cli) -> Result<()> {
         latency: Vec::new(),
         throughput: Vec::new(),
         rss: None,
-        baseline: None,
     };
     // Room for every session the latency and throughput runs hold at once.
     let max_sessions = cli.concurrency.max(1) * cli.batches.iter().max().copied().unwrap_or(1) + 16;
     for &socket in &cli.sockets {
         let server = ServerProcess::start(&cli.server, socket, max_sessions)?;
         let address = server.address();
+        let echo = match socket {
+            Socket::Zenoh => None,
+            Socket::Tcp | Socket::Uds => Some(EchoServer::start(socket)?),
+        };
         for (api, batch) in workloads(&cli.batches) {
             let workload = Workload {
                 api,
@@ -166,16 +157,28 @@ async fn run(cli: &Cli) -> Result<()> {
                 dim: cli.dim,
             };
             let name = format!("{socket:?}-{api:?}-{batch}").to_lowercase();
-            let latency = measure_latency(address, workload, bounds, &name).await?;
+            let (latency, sizes) = measure_latency(address, workload, bounds, &name).await?;
+            let echo = match &echo {
+                Some(server) => {
+                    let mut pair = EchoPair::connect(server, sizes).await?;
+                    Some(measure::latency(&mut pair, bounds).await?)
+                }
+                None => None,
+            };
             eprintln!(
-                "latency    {name:<18} p50 {:>9.1} us  p99 {:>9.1} us  ({} pairs)",
-                latency.p50_us, latency.p99_us, latency.pairs
+                "latency    {name:<18} p50 {:>9.1} us  p99 {:>9.1} us  ({} pairs; echo p50 {})",
+                latency.p50_us,
+                latency.p99_us,
+                latency.pairs,
+                echo.as_ref()
+                    .map_or("n/a".into(), |echo| format!("{:.1} us", echo.p50_us))
             );
             results.latency.push(LatencyRow {
                 socket,
                 api,
                 batch,
                 latency,
+                echo,
             });
             if api == Api::Unary {
                 continue;
@@ -193,9 +196,6 @@ async fn run(cli: &Cli) -> Result<()> {
                 throughput,
             });
         }
-    }
-    if let Some(address) = cli.baseline {
-        results.baseline = Some(measure_baseline(cli, address, bounds).await?);
     }
     if cli.rss_sessions > 0 {
         let rss = memory::rss_per_session(&cli.server, cli.rss_sessions, cli.dim, cli.concurrency)
@@ -224,49 +224,19 @@ fn workloads(batches: &[usize]) -> Vec<(Api, usize)> {
     out
 }
 
-/// One client's pair latency on fresh sessions named after `name`.
+/// One client's pair latency on fresh sessions named after `name`, and the
+/// sizes of its probe and report requests.
 async fn measure_latency(
     address: &Address,
     workload: Workload,
     bounds: Bounds,
     name: &str,
-) -> Result<Latency> {
+) -> Result<(Latency, (usize, usize))> {
     let mut client = connect(address).await?;
     let ids = create_sessions(&mut client, name, workload.batch, workload.dim).await?;
     let mut stepper = Stepper::new(client, workload.api, ids, workload.dim).await?;
     let latency = measure::latency(&mut stepper, bounds).await?;
+    let sizes = stepper.request_sizes();
     stepper.close().await?;
-    Ok(latency)
-}
-
-async fn measure_baseline(cli: &Cli, address: SocketAddr, bounds: Bounds) -> Result<Baseline> {
-    let target = Address::Tcp(address);
-    let workload = Workload {
-        api: Api::Batch,
-        batch: cli.baseline_batch,
-        dim: cli.dim,
-    };
-    let latency = measure_latency(&target, workload, bounds, "baseline-latency").await?;
-    let throughput =
-        measure::throughput(&target, workload, cli.concurrency, bounds, "baseline").await?;
-    eprintln!(
-        "baseline   {address} batch {}: p50 {:.1} us, {:.0} session-steps/s",
-        workload.batch, latency.p50_us, throughput.session_steps_per_s
-    );
-    let row = |latency| LatencyRow {
-        socket: Socket::Tcp,
-        api: Api::Batch,
-        batch: workload.batch,
-        latency,
-    };
-    Ok(Baseline {
-        address,
-        latency: row(latency),
-        throughput: ThroughputRow {
-            socket: Socket::Tcp,
-            api: Api::Batch,
-            batch: workload.batch,
-            throughput,
-        },
-    })
+    Ok((latency, sizes))
 }

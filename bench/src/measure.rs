@@ -64,8 +64,20 @@ pub struct Throughput {
     pub session_steps_per_s: f64,
 }
 
+/// What a latency row times: one pair of round trips.
+pub trait Pair {
+    /// Runs one pair.
+    fn pair(&mut self) -> impl std::future::Future<Output = Result<()>> + Send;
+}
+
+impl Pair for Stepper {
+    async fn pair(&mut self) -> Result<()> {
+        Stepper::pair(self).await
+    }
+}
+
 /// Runs pairs on `stepper` for `bounds.warmup`, then measures each pair.
-pub async fn latency(stepper: &mut Stepper, bounds: Bounds) -> Result<Latency> {
+pub async fn latency(stepper: &mut impl Pair, bounds: Bounds) -> Result<Latency> {
     run_for(stepper, bounds.warmup, bounds.max_pairs).await?;
     // 1 ns .. 60 s at 3 significant digits.
     let mut histogram = Histogram::<u64>::new_with_bounds(1, 60_000_000_000, 3)
@@ -96,7 +108,7 @@ impl Latency {
 
 /// Runs pairs until `duration` has passed or `max_pairs` are done; returns
 /// the number of pairs.
-async fn run_for(stepper: &mut Stepper, duration: Duration, max_pairs: u64) -> Result<u64> {
+async fn run_for(stepper: &mut impl Pair, duration: Duration, max_pairs: u64) -> Result<u64> {
     let end = Instant::now() + duration;
     let mut pairs = 0;
     while pairs < max_pairs && Instant::now() < end {

@@ -9,15 +9,10 @@ The generator is pinned (``GENERATOR``): the oldest grpcio-tools whose output se
 package's dependency floor (protobuf). It conflicts with newer protobuf runtimes, so
 ``make proto`` / ``make proto-check`` run this script in a venv of its own (.venv-proto).
 
-The messages (``esa_pb2``) live privately inside ``esa_client._proto``. The grpcio service
-module (``esa_pb2_grpc``) imports grpcio, which the client does not depend on (its gRPC is the
-extension's Rust client), so it is written beside its one user, the grpcio baseline server in
-``bench/python/``, not into the package.
-
-The proto is compiled with ``-I proto`` so the descriptor keeps its canonical
-name ``esa/v1/esa.proto`` (the name reflection and other languages use). protoc
-then writes ``from esa.v1 import esa_pb2`` into the gRPC module, which would
-need a top-level ``esa`` package; that import is rewritten to the package's messages.
+The messages (``esa_pb2``) live privately inside ``esa_client._proto``; no grpcio service
+module is generated (the client's gRPC is the extension's Rust client). The proto is compiled
+with ``-I proto`` so the descriptor keeps its canonical name ``esa/v1/esa.proto`` (the name
+reflection and other languages use).
 """
 
 from __future__ import annotations
@@ -34,21 +29,13 @@ CLIENT_ROOT = Path(__file__).resolve().parent.parent
 PROTO_ROOT = CLIENT_ROOT.parent / "proto"
 PROTO_FILE = PROTO_ROOT / "esa" / "v1" / "esa.proto"
 STUB_DIR = CLIENT_ROOT / "src" / "esa_client" / "_proto" / "esa" / "v1"
-BENCH_DIR = CLIENT_ROOT.parent / "bench" / "python"
-# Where each generated file is committed.
-DESTINATIONS = {
-    "esa_pb2.py": STUB_DIR,
-    "esa_pb2.pyi": STUB_DIR,
-    "esa_pb2_grpc.py": BENCH_DIR,
-}
-GENERATED_IMPORT = "from esa.v1 import esa_pb2 as"
-PACKAGE_IMPORT = "from esa_client._proto.esa.v1 import esa_pb2 as"
+STUBS = ("esa_pb2.py", "esa_pb2.pyi")
 # Keep in step with the floor in pyproject.toml (protobuf>= its protoc's runtime).
 GENERATOR = "1.49.1"
 
 
 def generate() -> dict[str, str]:
-    """Compile the proto and return the generated files by name, imports fixed."""
+    """Compile the proto and return the generated files by name."""
     version = metadata.version("grpcio-tools")
     if version != GENERATOR:
         raise SystemExit(f"grpcio-tools {version}, not {GENERATOR}: run `make proto`")
@@ -58,17 +45,11 @@ def generate() -> dict[str, str]:
             f"-I{PROTO_ROOT}",
             f"--python_out={out}",
             f"--pyi_out={out}",
-            f"--grpc_python_out={out}",
             str(PROTO_FILE),
         ]
         if protoc.main(args) != 0:
             raise SystemExit(f"protoc failed on {PROTO_FILE}")
-        files = {name: (Path(out) / "esa" / "v1" / name).read_text() for name in DESTINATIONS}
-    grpc_module = files["esa_pb2_grpc.py"]
-    if GENERATED_IMPORT not in grpc_module:
-        raise SystemExit(f"expected {GENERATED_IMPORT!r} in the generated gRPC module, got none")
-    files["esa_pb2_grpc.py"] = grpc_module.replace(GENERATED_IMPORT, PACKAGE_IMPORT)
-    return files
+        return {name: (Path(out) / "esa" / "v1" / name).read_text() for name in STUBS}
 
 
 def main() -> int:
@@ -78,7 +59,7 @@ def main() -> int:
     check = parser.parse_args().check
     stale = []
     for name, text in generate().items():
-        path = DESTINATIONS[name] / name
+        path = STUB_DIR / name
         if check:
             if not path.exists() or path.read_text() != text:
                 stale.append(name)

@@ -30,7 +30,7 @@ ENGINES: tuple[Engine, ...] = get_args(Engine)
 
 DEFAULT_ENGINE: Engine = "inprocess"
 """What ``ESAPPO`` / ``ESASAC`` use when given no server: the in-process engine, measured
-faster for a single-process trainer (README "Choosing the engine")."""
+faster for a single-process trainer (the SB3 guide's "Engines")."""
 
 
 def choose_engine(

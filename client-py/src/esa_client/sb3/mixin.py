@@ -85,7 +85,7 @@ class EsaMixin(_Algorithm):
             esa_engine: Where the sessions live: ``"inprocess"`` (esa-core in this process:
                 no server, nothing shared) or ``"sidecar"`` (an esa-server: ``esa_address``,
                 else a private one). None: the server that ``esa_address`` or ``esa_spawn``
-                describe, else ``"inprocess"`` (README "Choosing the engine").
+                describe, else ``"inprocess"`` (the SB3 guide's "Engines").
             esa_reconnect_timeout: Seconds a rollout waits for an unreachable server
                 (restarting, stalled, connection lost), retrying with backoff, before
                 ``esa_on_unavailable`` applies.

@@ -1,13 +1,15 @@
 //! `esa-soak`: minutes of load on the real `esa-server` with floods and
-//! faults; see `esa_bench::soak`. Writes `--json`, which
-//! `bench/soak_report.py` turns into the soak section of BENCHMARKS.md.
+//! faults (see the `soak` module). Writes `--json`, which
+//! `tests/soak/report.py` turns into `tests/soak/RESULTS.md`.
+
+mod soak;
 
 use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::Parser;
 use esa_bench::error::Result;
-use esa_bench::soak::{self, Plan};
+use soak::Plan;
 
 /// Soaks esa-server with load, floods and faults; writes JSON.
 #[derive(Debug, Parser)]
@@ -17,7 +19,7 @@ struct Cli {
     #[arg(long, default_value = "target/release/esa-server")]
     server: PathBuf,
     /// Where to write the results.
-    #[arg(long, default_value = "bench/results/soak.json")]
+    #[arg(long, default_value = "tests/soak/results/soak.json")]
     json: PathBuf,
     /// Length of the run, seconds.
     #[arg(long, default_value_t = 180.0)]

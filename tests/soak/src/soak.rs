@@ -34,10 +34,10 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tonic::Code;
 
-use crate::driver::{connect, session_config, Api, Client, Stepper};
-use crate::error::{Error, Result};
-use crate::measure::Latency;
-use crate::server_process::{rss_kib, Address, ServerProcess};
+use esa_bench::driver::{connect, session_config, Api, Client, Stepper};
+use esa_bench::error::{Error, Result};
+use esa_bench::measure::Latency;
+use esa_bench::server_process::{rss_kib, Address, ServerProcess};
 
 /// What to run; see the module documentation.
 #[derive(Clone, Debug, Serialize)]
