@@ -71,31 +71,18 @@ def find(rows: list[dict], **match: object) -> dict | None:
     return next((r for r in rows if all(r.get(k) == v for k, v in match.items())), None)
 
 
-def echo_p50(row: dict) -> float | None:
-    """The p50 of the row's echo round trip (esa-bench: ``echo``; Python: ``echo_p50_us``)."""
-    echo = row.get("echo")
-    return echo["p50_us"] if echo else row.get("echo_p50_us")
-
-
-def over_echo(row: dict) -> str:
-    """The row's p50 over its echo's, or "-" where it has none."""
-    echo = echo_p50(row)
-    return f"{row['p50_us'] / echo:.1f}x" if echo else "-"
-
-
-ECHO: list[Column] = [("echo p50 us", lambda r: fmt(echo_p50(r))), ("p50 / echo", over_echo)]
 LATENCY: list[Column] = [col("p50_us", "p50 us", 1), col("p99_us", "p99 us", 1)]
 STEPS: Column = col("session_steps_per_s", "session-steps/s", 0)
 
 
-def echo_words(client: str) -> str:
-    """What the echo columns are, for a section whose client is ``client``."""
-    return (
-        f"`echo` = the same pair of requests (their sizes) sent by {client} to a bare server "
-        "that returns the bytes it gets, on the same kind of socket in the same run: the "
-        "host's floor for a gRPC round trip, against which a row's ratio holds across hosts "
-        "(none in-process or over Zenoh)."
-    )
+GRPCIO: Column = col("grpcio_echo_p50_us", "grpcio echo p50 us", 1)
+TONIC_WORDS = (
+    "`tonic echo` = esa-bench's pair of requests of the same batch (their sizes) sent to a "
+    "bare tonic server that returns the bytes it gets (`bench/src/echo.rs`: two unary calls, "
+    "or two messages on one stream for `stream`), on the same kind of socket in the same run: "
+    "the host's floor for these round trips, against which a row's ratio holds across hosts "
+    "(none in-process or over Zenoh)."
+)
 
 
 def load(path: Path) -> dict | None:
@@ -152,6 +139,25 @@ class Run:
         """The rows of one part (none where it did not run)."""
         data = getattr(self, part)
         return data[key] if data else []
+
+    def tonic_echo(self, row: dict) -> float | None:
+        """The p50 of tonic's echo of the row's round trips (a Python row: at its batch)."""
+        if "envs" in row:
+            match = {"socket": row["socket"], "api": row["api"], "batch": row["envs"]}
+            row = find(self.rows("server", "latency"), **match) or {}
+        return (row.get("echo") or {}).get("p50_us")
+
+    def over_echo(self, row: dict) -> str:
+        """The row's p50 over tonic's echo, or "-" where there is none."""
+        echo = self.tonic_echo(row)
+        return f"{row['p50_us'] / echo:.1f}x" if echo else "-"
+
+    def echo_columns(self) -> list[Column]:
+        """The tonic echo's p50 and the row's over it."""
+        return [
+            ("tonic echo p50 us", lambda r: fmt(self.tonic_echo(r))),
+            ("p50 / tonic echo", self.over_echo),
+        ]
 
     def core_ns(self, law: str, clock: str, dim: int) -> float | None:
         """The core pair's median ns."""
@@ -210,7 +216,7 @@ def targets(run: Run) -> list[dict]:
         ("zenoh", "stream", "StepStream queries over Zenoh", None),
     ]:
         row = find(run.rows("server", "latency"), socket=socket, api=api, batch=1)
-        echo = row and echo_p50(row)
+        echo = row and run.tonic_echo(row)
         add(
             f"Rust client, 1 session, {how}, p50",
             limit,
@@ -218,7 +224,7 @@ def targets(run: Run) -> list[dict]:
             row and row["p50_us"],
             lambda r=row, e=echo: (
                 f"{fmt(r['p50_us'])} us (p99 {fmt(r['p99_us'])} us"
-                + (f"; {over_echo(r)} the echo's {fmt(e)} us)" if e else ")")
+                + (f"; {run.over_echo(r)} tonic's echo, {fmt(e)} us)" if e else ")")
             ),
         )
     best = max(
@@ -328,8 +334,9 @@ def plot(run: Run, path: Path) -> None:
     plt.close(fig)
 
 
-def machine_section(run: dict) -> list[str]:
+def machine_section(runs: Run) -> list[str]:
     """The run's load, CPU time and idle states, and its commands."""
+    run = runs.run or {}
     load, share, idle = run["loadavg"], run["cpu_time_percent"], run["cpuidle"]
     lines = [
         "## Machine and run",
@@ -357,8 +364,9 @@ def machine_section(run: dict) -> list[str]:
 
 def core_section(run: Run) -> list[str]:
     """The core pair bench: both laws, wall and on-CPU, per D."""
-    laws = [law for law in CORE_GROUPS if run.core["medians"].get(law, {}).get("cpu")]
-    dims = sorted({int(d) for law in laws for d in run.core["medians"][law]["cpu"]})
+    medians = run.core["medians"] if run.core else {}
+    laws = [law for law in CORE_GROUPS if medians.get(law, {}).get("cpu")]
+    dims = sorted({int(d) for law in laws for d in medians[law]["cpu"]})
     name = {"1": "section 1", "1b": "1b"}
     columns: list[Column] = [col("D")]
     columns += [
@@ -387,8 +395,9 @@ def core_section(run: Run) -> list[str]:
     return lines
 
 
-def server_section(server: dict) -> list[str]:
+def server_section(run: Run) -> list[str]:
     """The Rust load generator's latency, throughput and memory."""
+    server = run.server or {}
     bounds = server["bounds"]
     warmup, window = (bounds[k]["secs"] + bounds[k]["nanos"] / 1e9 for k in ("warmup", "window"))
     where = [col("socket"), col("api"), col("batch")]
@@ -403,8 +412,7 @@ def server_section(server: dict) -> list[str]:
         "`stream` = both on one `StepStream`. `zenoh` = the server with `--zenoh` on its "
         "loopback listener and a Zenoh peer in the load generator: one query per call, and "
         "per StepStream message, on `esa/v1/<RpcName>` (Zenoh runs its own threads in both "
-        "processes, beside the tokio threads counted here). "
-        + echo_words("tonic (`bench/src/echo.rs`)"),
+        "processes, beside the tokio threads counted here). " + TONIC_WORDS,
         "",
         "### Pair latency, one client",
         "",
@@ -412,7 +420,7 @@ def server_section(server: dict) -> list[str]:
             server["latency"],
             [*where, col("p50_us", "p50 us", 1), col("p90_us", "p90 us", 1)]
             + [col("p99_us", "p99 us", 1), col("mean_us", "mean us", 1), col("pairs", digits=0)]
-            + ECHO,
+            + run.echo_columns(),
         ),
         "",
         "### Throughput, concurrent clients",
@@ -447,8 +455,9 @@ def bounds_words(args: dict, what: str) -> str:
     )
 
 
-def python_section(python: dict) -> list[str]:
+def python_section(run: Run) -> list[str]:
     """The Python client's pair latency per transport."""
+    python = run.python or {}
     return [
         "## Python client (`SessionBatch`)",
         "",
@@ -460,17 +469,22 @@ def python_section(python: dict) -> list[str]:
         'in-process, their default). `zenoh` = `EsaClient.spawn(transport="zenoh")` '
         "(esa-server `--zenoh` on loopback): queries on `esa/v1/ProbeBatch`/`ReportBatch` "
         "(`batch` and `stream` alike: a Zenoh query is one message already). "
-        + echo_words("grpcio (`bench/python/echo_server.py`)"),
+        + TONIC_WORDS
+        + " `grpcio echo` = this client's requests sent the same way by a grpcio client to a "
+        "bare grpcio server (`bench/python/echo_server.py`): the same round trips in Python's "
+        "own gRPC stack, where this client's are tonic's.",
         "",
         table(
             python["rows"],
-            [col("server"), col("socket"), col("api"), col("envs"), *LATENCY, STEPS, *ECHO],
+            [col("server"), col("socket"), col("api"), col("envs"), *LATENCY, STEPS]
+            + [*run.echo_columns(), GRPCIO],
         ),
     ]
 
 
-def section_1b_section(section_1b: dict) -> list[str]:
+def section_1b_section(run: Run) -> list[str]:
     """CONTRACT.md section 1b's step from Python against section 1's pair, and pipelined."""
+    section_1b = run.section_1b or {}
     rows = section_1b["rows"]
     same = ("server", "socket", "api", "envs")
 
@@ -493,12 +507,12 @@ def section_1b_section(section_1b: dict) -> list[str]:
         "next step's probe, one round trip per step on the StepStream (with `batch` calls it "
         "would still be two, so not measured); `step` = `SessionBatch.step` of a quadratic "
         "critic, ESAPPO's step, one engine call in-process. Time is per env step of all N envs. "
-        + echo_words("grpcio"),
+        + TONIC_WORDS,
         "",
         table(
             rows,
             [col(k) for k in (*same, "law", "mode")]
-            + [*LATENCY, STEPS, ("p50 vs law 1 pair", over_pair), *ECHO],
+            + [*LATENCY, STEPS, ("p50 vs law 1 pair", over_pair), *run.echo_columns()],
         ),
     ]
     pipelined = [(r, versus(r, law="1b", mode="pair")) for r in rows if r["mode"] == "pipelined"]
@@ -511,8 +525,9 @@ def section_1b_section(section_1b: dict) -> list[str]:
     ]
 
 
-def training_section(training: dict) -> list[str]:
+def training_section(run: Run) -> list[str]:
     """The training-overhead ratios and where the ESA agents' time went."""
+    training = run.training or {}
     args = training["args"]
 
     def bucket(r: dict, name: str) -> float:
@@ -622,7 +637,7 @@ def main(args: Args) -> None:
     ]
     sections = [
         (run.run, machine_section),
-        (run.core, lambda _: core_section(run)),
+        (run.core, core_section),
         (run.server, server_section),
         (run.python, python_section),
         (run.training, training_section),
@@ -630,7 +645,7 @@ def main(args: Args) -> None:
     ]
     for data, section in sections:
         if data:
-            lines += ["", *section(data)]
+            lines += ["", *section(run)]
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out} and {args.results / PLOT}")
 

@@ -1,4 +1,4 @@
-"""SessionBatch pair latency from Python, per transport, beside the host's bare gRPC echo.
+"""SessionBatch pair latency from Python, per transport, beside a bare grpcio echo.
 
 One pair is what a trainer does per VecEnv step: ``batch.probe(actions, starts)``,
 the critic at the probes (here ``-|probe|^2``), ``batch.report(q)``. Measured for
@@ -12,9 +12,11 @@ N = 1, 8, 64 envs of D = 6 against:
 - ``EsaClient.in_process()``: esa-core in this process (``esa_client._native``), the
   in-process engine of the SB3 drop-ins.
 
-Beside each row on TCP or a Unix socket stands the same host's floor: a grpcio client's
-pair of calls to a bare grpcio echo server (``echo_server.py``, its own process) on the
-same kind of socket, each call the size of the row's requests (``echo_p50_us``).
+Beside each row of the table on TCP or a Unix socket: a grpcio client's pair of echoes (two
+calls, or two messages on one stream for ``stream``) to a bare grpcio echo server
+(``echo_server.py``, its own process) on the same kind of socket, each the size of the row's
+requests (``grpcio_echo_p50_us``): the same round trips in Python's own gRPC stack. The
+client's gRPC is tonic, so its floor is tonic's echo, which esa-bench measures.
 
 Section 1b of CONTRACT.md (``--parts 1b``, written to ``--section-1b-out``): the
 SessionBatch step at N = ``--section-1b-envs`` with every section 1b field on
@@ -40,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import queue
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -53,7 +56,7 @@ import tyro
 from esa_client import EsaClient, QuadraticCritic, SessionBatch, SessionConfig
 from esa_client._proto.esa.v1 import esa_pb2
 
-from echo_server import METHOD, SERVICE
+from echo_server import SERVICE
 from servers import echo_server, esa_server_tcp, server_binary
 
 # Steps per episode, as in the MuJoCo tasks (the episode start rides on a probe).
@@ -207,17 +210,25 @@ def request_sizes(batch: SessionBatch) -> tuple[int, int]:
     return probe.ByteSize(), report.ByteSize()
 
 
-def echo_p50(address: str, sizes: tuple[int, int], args: Args) -> float:
-    """p50 of a grpcio client's pair of echo calls of ``sizes`` bytes to ``address``."""
+def echo_p50(address: str, sizes: tuple[int, int], stream: bool, args: Args) -> float:
+    """p50 of a grpcio client's pair of echoes of ``sizes`` bytes: calls, or stream messages."""
+    payloads = [b"*" * size for size in sizes]
+    outbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
     with grpc.insecure_channel(address) as channel:
-        call = channel.unary_unary(f"/{SERVICE}/{METHOD}")
-        payloads = [b"*" * size for size in sizes]
+        call = channel.unary_unary(f"/{SERVICE}/Echo")
+        answers = channel.stream_stream(f"/{SERVICE}/Stream")(iter(outbox.get, None))
 
         def pair(_: int) -> None:
             for payload in payloads:
-                call(payload)
+                if stream:
+                    outbox.put(payload)
+                    next(answers)
+                else:
+                    call(payload)
 
-        return float(timed(pair, 1, args)["p50_us"])
+        p50 = timed(pair, 1, args)["p50_us"]
+        outbox.put(None)  # ends the stream
+        return float(p50)
 
 
 @contextmanager
@@ -233,16 +244,16 @@ def echo_servers() -> Iterator[dict[str, str]]:
 
 def echo_text(row: dict) -> str:
     """A row's echo p50 for the progress lines."""
-    echo = row["echo_p50_us"]
+    echo = row["grpcio_echo_p50_us"]
     return "n/a" if echo is None else f"{echo:.1f} us"
 
 
 def with_echo(row: dict, batch: SessionBatch, echoes: dict[str, str], args: Args) -> dict:
-    """``row`` with the echo floor of its socket kind (None in-process and over Zenoh)."""
+    """``row`` with the grpcio echo of its socket kind (None in-process and over Zenoh)."""
     address = echoes.get(row["socket"])
-    sizes = request_sizes(batch)
-    row["echo_p50_us"] = None if address is None else echo_p50(address, sizes, args)
-    return row
+    stream = row["api"] == "stream"
+    echo = address and echo_p50(address, request_sizes(batch), stream, args)
+    return {**row, "grpcio_echo_p50_us": echo}
 
 
 @contextmanager
@@ -308,11 +319,12 @@ def main_rows(args: Args) -> list[dict]:
                     )
                     result = measure(batch, args)
                     row = {"server": server, "socket": socket, "api": api, "envs": n, **result}
-                    rows.append(with_echo(row, batch, echoes, args))
+                    row = with_echo(row, batch, echoes, args)
+                    rows.append(row)
                     batch.close()
                     print(
                         f"{server:<14} {socket:<10} {api:<6} N={n:<3} p50 {row['p50_us']:8.1f} us"
-                        f"  p99 {row['p99_us']:8.1f} us  echo p50 {echo_text(row)}",
+                        f"  p99 {row['p99_us']:8.1f} us  grpcio echo p50 {echo_text(row)}",
                         flush=True,
                     )
     return rows
@@ -322,10 +334,9 @@ def section_1b_rows(args: Args) -> list[dict]:
     """Section 1's pair against section 1b's pair and pipelined step, same process and time."""
     envs = [int(n) for n in args.section_1b_envs.split(",")]
     rows = []
-    with echo_servers() as echoes:
-        for server, socket, api, connect in section_1b_targets():
-            with connect() as client:
-                rows += section_1b_rows_of(client, server, socket, api, envs, echoes, args)
+    for server, socket, api, connect in section_1b_targets():
+        with connect() as client:
+            rows += section_1b_rows_of(client, server, socket, api, envs, args)
     return rows
 
 
@@ -335,7 +346,6 @@ def section_1b_rows_of(
     socket: str,
     api: str,
     envs: list[int],
-    echoes: dict[str, str],
     args: Args,
 ) -> list[dict]:
     """The section 1b rows of one target."""
@@ -358,12 +368,11 @@ def section_1b_rows_of(
                 "mode": mode,
                 **result,
             }
-            rows.append(with_echo(row, batch, echoes, args))
+            rows.append(row)
             batch.close()
             print(
                 f"{server:<14} {socket:<10} {api:<6} N={n:<3} law {law:<2} {mode:<9} "
-                f"p50 {row['p50_us']:8.1f} us  p99 {row['p99_us']:8.1f} us  "
-                f"echo p50 {echo_text(row)}",
+                f"p50 {row['p50_us']:8.1f} us  p99 {row['p99_us']:8.1f} us",
                 flush=True,
             )
     return rows

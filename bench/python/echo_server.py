@@ -1,7 +1,8 @@
 """The floor the Python client's gRPC rows stand beside: a bare grpcio echo server.
 
-It answers ``/esa.bench.Echo/Echo`` with the bytes it was sent (no messages decoded, no
-sessions), in a process of its own as esa-server runs in its own. ``client_latency.py``
+It answers ``/esa.bench.Echo/Echo`` with the bytes it was sent, and each message on
+``/esa.bench.Echo/Stream`` likewise (no messages decoded, no sessions), in a process of its
+own as esa-server runs in its own. ``client_latency.py``
 times a grpcio client's pair of such calls, sized like each row's requests, on the same
 kind of socket.
 
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 import grpc
 import tyro
 
-SERVICE, METHOD = "esa.bench.Echo", "Echo"
+SERVICE = "esa.bench.Echo"
 
 
 @dataclass
@@ -37,10 +38,11 @@ def main() -> None:
     """Serves until SIGINT or SIGTERM."""
     args = tyro.cli(Args)
     server = grpc.server(futures.ThreadPoolExecutor(max_workers=4))
-    echo = grpc.unary_unary_rpc_method_handler(lambda request, context: request)
-    server.add_generic_rpc_handlers(
-        (grpc.method_handlers_generic_handler(SERVICE, {METHOD: echo}),)
-    )
+    handlers = {
+        "Echo": grpc.unary_unary_rpc_method_handler(lambda request, context: request),
+        "Stream": grpc.stream_stream_rpc_method_handler(lambda requests, context: requests),
+    }
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE, handlers),))
     port = server.add_insecure_port(args.listen)
     server.start()
     host = args.listen.rpartition(":")[0]

@@ -1,6 +1,7 @@
 //! The floor every gRPC latency row stands beside: a bare tonic server that answers each
-//! unary call with the bytes it was sent (no decoding, no session, no update law), on the
-//! same kind of loopback socket, timed with the same loop. A row's ratio to it says what
+//! unary call, and each message of a stream, with the bytes it was sent (no decoding, no
+//! session, no update law), on the same kind of loopback socket, timed with the same loop;
+//! a StepStream row stands beside the stream, for it pays no call set-up per message. A row's ratio to it says what
 //! esa-server adds to the host's cheapest round trip, and holds across hosts where the
 //! microseconds do not.
 
@@ -9,18 +10,21 @@ use std::convert::Infallible;
 use bytes::{Buf, BufMut, Bytes};
 use http::uri::PathAndQuery;
 use tempfile::TempDir;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
 use tonic::body::Body;
 use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
 use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Channel, Server};
-use tonic::{Request, Response, Status};
+use tonic::{Request, Response, Status, Streaming};
 
-use crate::driver::channel;
+use crate::driver::{channel, Api};
 use crate::error::{Error, Result};
 use crate::measure::Pair;
 use crate::server_process::{Address, Socket};
 
 const ECHO: &str = "/esa.bench.Echo/Echo";
+const STREAM: &str = "/esa.bench.Echo/Stream";
 
 /// Messages as the bytes on the wire: nothing is decoded or encoded.
 #[derive(Clone, Copy, Debug, Default)]
@@ -80,14 +84,18 @@ impl EchoServer {
             .build()?;
         let _context = runtime.enter();
         let service = tower::service_fn(|request: http::Request<Body>| async move {
-            let echo = tower::service_fn(|call: Request<Bytes>| async move {
-                Ok::<_, Status>(Response::new(call.into_inner()))
-            });
-            Ok::<_, Infallible>(
-                tonic::server::Grpc::new(RawCodec)
-                    .unary(echo, request)
-                    .await,
-            )
+            let mut grpc = tonic::server::Grpc::new(RawCodec);
+            Ok::<_, Infallible>(if request.uri().path() == STREAM {
+                let echo = tower::service_fn(|call: Request<Streaming<Bytes>>| async move {
+                    Ok::<_, Status>(Response::new(call.into_inner()))
+                });
+                grpc.streaming(echo, request).await
+            } else {
+                let echo = tower::service_fn(|call: Request<Bytes>| async move {
+                    Ok::<_, Status>(Response::new(call.into_inner()))
+                });
+                grpc.unary(echo, request).await
+            })
         });
         let (address, dir) = match socket {
             Socket::Tcp => {
@@ -135,37 +143,60 @@ impl Drop for EchoServer {
     }
 }
 
-/// Two echo calls in turn, carrying a row's probe and report requests' sizes.
+/// Two echoes in turn, carrying a row's probe and report requests' sizes: two unary calls,
+/// or two messages on one stream for a StepStream row.
 pub struct EchoPair {
     grpc: tonic::client::Grpc<Channel>,
     requests: [Bytes; 2],
+    stream: Option<(mpsc::Sender<Bytes>, Streaming<Bytes>)>,
 }
 
 impl EchoPair {
-    /// A new connection to `server` for requests of `sizes` bytes.
-    pub async fn connect(server: &EchoServer, sizes: (usize, usize)) -> Result<Self> {
-        let grpc = tonic::client::Grpc::new(channel(server.address()).await?);
+    /// A new connection to `server` for requests of `sizes` bytes, as `api` sends them.
+    pub async fn connect(server: &EchoServer, sizes: (usize, usize), api: Api) -> Result<Self> {
+        let mut grpc = tonic::client::Grpc::new(channel(server.address()).await?);
         let requests = [sizes.0, sizes.1].map(|size| Bytes::from(vec![0x2a; size]));
-        Ok(Self { grpc, requests })
+        let mut stream = None;
+        if api == Api::Stream {
+            // One message in flight at a time, as the StepStream rows send theirs.
+            let (sender, receiver) = mpsc::channel(1);
+            ready(&mut grpc).await?;
+            let path = PathAndQuery::from_static(STREAM);
+            let request = Request::new(ReceiverStream::new(receiver));
+            let answers = grpc.streaming(request, path, RawCodec).await?.into_inner();
+            stream = Some((sender, answers));
+        }
+        Ok(Self {
+            grpc,
+            requests,
+            stream,
+        })
     }
+}
+
+async fn ready(grpc: &mut tonic::client::Grpc<Channel>) -> Result<()> {
+    grpc.ready()
+        .await
+        .map_err(|err| Error::Protocol(format!("echo channel: {err}")))
 }
 
 impl Pair for EchoPair {
     async fn pair(&mut self) -> Result<()> {
         for request in &self.requests {
-            self.grpc
-                .ready()
-                .await
-                .map_err(|err| Error::Protocol(format!("echo channel: {err}")))?;
-            let answer: Response<Bytes> = self
-                .grpc
-                .unary(
-                    Request::new(request.clone()),
-                    PathAndQuery::from_static(ECHO),
-                    RawCodec,
-                )
-                .await?;
-            if answer.get_ref().len() != request.len() {
+            let answer = match &mut self.stream {
+                Some((sender, answers)) => {
+                    let closed = || Error::Protocol("echo stream closed".into());
+                    sender.send(request.clone()).await.map_err(|_| closed())?;
+                    answers.message().await?.ok_or_else(closed)?
+                }
+                None => {
+                    ready(&mut self.grpc).await?;
+                    let path = PathAndQuery::from_static(ECHO);
+                    let call = Request::new(request.clone());
+                    self.grpc.unary(call, path, RawCodec).await?.into_inner()
+                }
+            };
+            if answer.len() != request.len() {
                 return Err(Error::Protocol("the echo changed the message".into()));
             }
         }

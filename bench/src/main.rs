@@ -10,9 +10,10 @@
 //! - resident memory per session with many live sessions (a fresh server).
 //!
 //! Beside each gRPC latency row it times a bare tonic echo of the same
-//! requests' sizes on the same kind of socket (`echo`), the floor the row is
-//! compared with. Every loop is bounded in pairs and time; everything stays
-//! on loopback. Results go to `--json`.
+//! requests' sizes on the same kind of socket, sent the same way (calls, or
+//! messages on one stream), the floor the row is compared with (`echo`).
+//! Every loop is bounded in pairs and time; everything stays on loopback.
+//! Results go to `--json`.
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -160,7 +161,7 @@ async fn run(cli: &Cli) -> Result<()> {
             let (latency, sizes) = measure_latency(address, workload, bounds, &name).await?;
             let echo = match &echo {
                 Some(server) => {
-                    let mut pair = EchoPair::connect(server, sizes).await?;
+                    let mut pair = EchoPair::connect(server, sizes, api).await?;
                     Some(measure::latency(&mut pair, bounds).await?)
                 }
                 None => None,
