@@ -7,7 +7,7 @@
 //! exactly as it was (`GetSession` of each, the live count and the memory held).
 //!
 //! `cargo test` runs `ESA_FUZZ_CASES` cases per property (default 2,000); `make soak` runs
-//! 1,000,000 (`bench/soak.sh`).
+//! 1,000,000 (`tests/soak/run.sh`).
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;

@@ -109,7 +109,7 @@ pub struct ClientReport {
     pub lost: bool,
 }
 
-/// Everything the soak measured; `bench/soak_report.py` renders it.
+/// Everything the soak measured; `tests/soak/report.py` renders it.
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {
     pub plan: Plan,
