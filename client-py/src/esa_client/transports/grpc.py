@@ -9,7 +9,8 @@ the auth token with every call and asks the server's health service whether it s
 batch opened with ``use_stream`` sends its calls as messages of a ``StepStream`` of its own,
 and the pipelined pair (a deferred report and the next probe) as two messages before reading
 either answer: one round trip, about a third of the two unary calls' time on a Unix socket
-(BENCHMARKS.md's section 1b rows). A batch without a stream makes ``ProbeBatch`` / ``ReportBatch`` calls.
+(BENCHMARKS.md's section 1b rows). A batch without a stream makes ``ProbeBatch`` /
+``ReportBatch`` calls.
 """
 
 from __future__ import annotations
