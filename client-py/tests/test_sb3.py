@@ -70,14 +70,12 @@ def esa_calls(monkeypatch):
 
     step_ahead = AheadStepper.step
 
-    def recording_ahead(self, batch, actions, critic, episode_starts, action_scales, *flags):
-        probes, applied = step_ahead(
-            self, batch, actions, critic, episode_starts, action_scales, *flags
-        )
+    def recording_ahead(self, batch, call):
+        probes, applied = step_ahead(self, batch, call)
         if probes is None:  # sent ahead: probe_applied did not see it
-            calls["sampled"].append(np.array(actions, dtype=np.float64))
+            calls["sampled"].append(np.array(call.actions, dtype=np.float64))
             calls["applied"].append(applied.copy())
-            calls["scales"].append(action_scales)
+            calls["scales"].append(call.action_scales)
         return probes, applied
 
     monkeypatch.setattr(SessionBatch, "probe_applied", recording)

@@ -28,7 +28,7 @@ from .state import (
     check_indices,
 )
 from .transports.base import BatchProbe, BatchReport, Transport
-from .transports.stepping import Critic
+from .transports.stepping import Critic, StepCall
 
 __all__ = ["Session", "SessionBatch", "SessionProgress", "SessionState", "restore_sessions"]
 
@@ -374,9 +374,8 @@ class SessionBatch:
                 finite numbers, or a linear or quadratic critic's shapes or values are wrong
                 (nothing changed).
         """
-        return self._stepper.step(
-            self, actions, critic, episode_starts, action_scales, paired, want_probes
-        )
+        call = StepCall(actions, critic, episode_starts, action_scales, paired, want_probes)
+        return self._stepper.step(self, call)
 
     def _probe_request(
         self,

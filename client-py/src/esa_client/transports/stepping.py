@@ -88,24 +88,29 @@ class SessionBatch(Protocol):
     ) -> tuple[BatchProbe, _Answer]: ...
 
 
+class StepCall(NamedTuple):
+    """The arguments of one :meth:`~esa_client.SessionBatch.step`, as it documents them."""
+
+    actions: npt.ArrayLike
+    critic: Critic
+    episode_starts: npt.ArrayLike | None
+    action_scales: npt.ArrayLike | None
+    paired: bool
+    want_probes: bool
+
+
 class Stepper:
     """A step as its round trips: the probe waits, and the report rides with the next probe."""
 
-    def step(
-        self,
-        batch: SessionBatch,
-        actions: npt.ArrayLike,
-        critic: Critic,
-        episode_starts: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-        paired: bool,
-        want_probes: bool,
-    ) -> tuple[F64Array | None, F64Array]:
+    def step(self, batch: SessionBatch, call: StepCall) -> tuple[F64Array | None, F64Array]:
         """One step of ``batch`` (see :meth:`~esa_client.SessionBatch.step`)."""
-        check_critic(critic, batch.n, batch.action_dim)
-        probes, applied = batch.probe_applied(actions, episode_starts, action_scales=action_scales)
-        q = np.asarray(critic(np.concatenate([probes, applied]) if paired else probes))
-        batch.report(q[: batch.n], q_references=q[batch.n :] if paired else None, defer=True)
+        check_critic(call.critic, batch.n, batch.action_dim)
+        probes, applied = batch.probe_applied(
+            call.actions, call.episode_starts, action_scales=call.action_scales
+        )
+        q = np.asarray(call.critic(np.concatenate([probes, applied]) if call.paired else probes))
+        references = q[batch.n :] if call.paired else None
+        batch.report(q[: batch.n], q_references=references, defer=True)
         return probes, applied
 
     def flush(self, batch: SessionBatch) -> None:
@@ -136,26 +141,16 @@ class FusedStepper(Stepper):
         """Steps through ``fused``'s engine calls."""
         self._fused = fused
 
-    def step(
-        self,
-        batch: SessionBatch,
-        actions: npt.ArrayLike,
-        critic: Critic,
-        episode_starts: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-        paired: bool,
-        want_probes: bool,
-    ) -> tuple[F64Array | None, F64Array]:
+    def step(self, batch: SessionBatch, call: StepCall) -> tuple[F64Array | None, F64Array]:
         """One engine call (see :meth:`~esa_client.SessionBatch.step`)."""
+        critic = call.critic
         if not isinstance(critic, _ClosedForm):
-            return super().step(
-                batch, actions, critic, episode_starts, action_scales, paired, want_probes
-            )
+            return super().step(batch, call)
         batch.flush()
         # In this process: no wire to ride out, so no reconnect around the call.
-        request = batch._probe_request(actions, episode_starts, None, action_scales)
+        request = batch._probe_request(call.actions, call.episode_starts, None, call.action_scales)
         try:
-            answer = self._fused.step_closed_form(request, critic, paired)
+            answer = self._fused.step_closed_form(request, critic, call.paired)
         except ValueError:
             # esa-core checks the critic itself, all or nothing; checking it here first too
             # would cost more than the step. A refusal is told in the words of every transport.
@@ -222,24 +217,14 @@ class AheadStepper(Stepper):
         self._shifts: F64Array | None = None
         self._engine: StepAhead | None = None
 
-    def step(
-        self,
-        batch: SessionBatch,
-        actions: npt.ArrayLike,
-        critic: Critic,
-        episode_starts: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-        paired: bool,
-        want_probes: bool,
-    ) -> tuple[F64Array | None, F64Array]:
+    def step(self, batch: SessionBatch, call: StepCall) -> tuple[F64Array | None, F64Array]:
         """The step sent ahead (see :meth:`~esa_client.SessionBatch.step`)."""
-        if want_probes:
-            return super().step(
-                batch, actions, critic, episode_starts, action_scales, paired, want_probes
-            )
+        if call.want_probes:
+            return super().step(batch, call)
+        critic, paired = call.critic, call.paired
         check_critic(critic, batch.n, batch.action_dim)
         batch.flush()
-        request = batch._probe_request(actions, episode_starts, None, action_scales)
+        request = batch._probe_request(call.actions, call.episode_starts, None, call.action_scales)
         steps_before, starts_before = batch._steps, batch._next_starts.copy()
         try:
             applied = self._send(batch, request, critic, paired)
