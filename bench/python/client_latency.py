@@ -288,18 +288,11 @@ def targets() -> list[Target]:
 
 
 def section_1b_targets() -> list[Target]:
-    """The transports of the section 1b rows: esa-server (TCP, Unix socket) and in-process.
+    """The transports of the section 1b rows: every target but Zenoh (TCP, Unix socket, in-process).
 
     ``batch``: unary calls; ``stream``: the StepStream.
     """
-    out: list[Target] = []
-    for api in ("batch", "stream"):
-        out.append(("esa-server", "tcp", api, lambda: client_at(esa_server_tcp())))
-        out.append(
-            ("esa-server", "uds", api, lambda: EsaClient.spawn(server_binary(), timeout=30.0))
-        )
-    out.append(("esa-native", "in-process", "-", EsaClient.in_process))
-    return out
+    return [target for target in targets() if target[1] != "zenoh"]
 
 
 # (law, mode) of each section 1b row; pipelining only changes anything on the StepStream.

@@ -47,20 +47,14 @@ class SessionBatch(Protocol):
     def probe_applied(
         self,
         actions: npt.ArrayLike,
-        episode_starts: npt.ArrayLike | None = None,
+        episode_starts: npt.ArrayLike | None,
         *,
-        steps: npt.ArrayLike | None = None,
-        action_scales: npt.ArrayLike | None = None,
+        action_scales: npt.ArrayLike | None,
     ) -> tuple[F64Array, F64Array]:
         """The probes and the actions to apply."""
 
     def report(
-        self,
-        q_values: npt.ArrayLike,
-        *,
-        q_references: npt.ArrayLike | None = None,
-        steps: npt.ArrayLike | None = None,
-        defer: bool = False,
+        self, q_values: npt.ArrayLike, *, q_references: npt.ArrayLike | None, defer: bool
     ) -> F64Array | None:
         """Reports the critic's values."""
 
