@@ -47,8 +47,9 @@ class Engines:
         return [engine.get_session(session_id) for session_id in self.ids]
 
     def step_linear(self, steps, actions, starts, scales, gain, offset, paired):
+        tracked = np.asarray(steps, np.int64)  # advanced in place when applied: a copy
         return self.fused.step_closed_form(
-            self.handles[0], steps, actions, starts, scales, gain, offset, paired
+            self.handles[0], tracked, actions, starts, scales, gain, offset, paired
         )
 
 

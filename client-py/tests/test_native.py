@@ -528,6 +528,37 @@ def test_argument_type_errors(make_config):
     assert len(engine) == 1
 
 
+def test_fused_step_tracks_steps_in_place_and_refuses_bad_ones(make_config):
+    """step_closed_form advances the tracked steps it is given, and only when it applies."""
+    engine = Engine()
+    config = make_config(np.random.default_rng(1), 1)
+    handle = engine.resolve(
+        [engine.create_session(f"s{i}", config_bytes(config)) for i in range(2)]
+    )
+    gain, offset, actions = np.ones(2), np.zeros(2), np.zeros((2, 1))
+
+    def step(steps, starts=(False, False)):
+        return engine.step_closed_form(
+            handle, steps, actions, np.array(starts), None, gain, offset, False
+        )
+
+    steps = np.array([7, 9], np.int64)  # episode starts step at 0 whatever is tracked
+    step(steps, (True, True))
+    step(steps)
+    assert steps.tolist() == [2, 2]
+    before = [engine.get_session(f"s{i}") for i in range(2)]
+    read_only = steps.copy()
+    read_only.flags.writeable = False
+    with pytest.raises(ValueError, match="steps: .*not writeable"):
+        step(read_only)
+    with pytest.raises(ValueError, match="steps: expected integers >= 0, got -1"):
+        step(np.array([2, -1], np.int64))
+    with pytest.raises(TypeError, match="steps"):
+        step(steps.astype(np.uint64))
+    assert [engine.get_session(f"s{i}") for i in range(2)] == before
+    assert steps.tolist() == [2, 2]
+
+
 def test_handles_and_errors_are_plain_python_objects(make_config):
     engine = Engine()
     config = make_config(np.random.default_rng(1), 2)

@@ -147,7 +147,7 @@ def test_the_engine_refuses_what_the_session_would_have(client):
 
     def step(curvature, low, high, paired=False):
         critic = (good.gain, good.offset, paired, curvature, low, high)
-        return engine.step_closed_form(handle, steps, actions, starts, None, *critic)
+        return engine.step_closed_form(handle, steps.copy(), actions, starts, None, *critic)
 
     with pytest.raises(EngineError, match="critic_curvatures: expected values <= 0, got"):
         step(-good.curvature, LOW, HIGH)

@@ -1,5 +1,5 @@
-//! numpy at the module's edge: the values of an array argument ([`Values`], borrowed when the
-//! array allows it, else converted by numpy) and the arrays a call returns ([`shaped`]).
+//! numpy at the module's edge: the values of an array argument ([`Values`], copied, or
+//! converted by numpy) and the arrays a call returns ([`shaped`]).
 
 use numpy::ndarray::Array2;
 use numpy::{Element, IntoPyArray, PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
@@ -8,29 +8,32 @@ use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
 use pyo3::types::{PyDict, PyTuple};
 
-/// The values of an array argument: borrowed from a C-contiguous numpy array of the right dtype,
-/// else converted by numpy (which raises for what it cannot convert).
-pub(crate) enum Values<'py, T: Element> {
-    Array(numpy::PyReadonlyArrayDyn<'py, T>),
-    Owned(Vec<T>),
-}
+/// The values of an array argument, copied (under the GIL) from a C-contiguous numpy array of
+/// the right dtype, else converted by numpy (which raises for what it cannot convert). Owned,
+/// so that a call can release the GIL while Python threads write to the arrays.
+pub(crate) struct Values<T>(Vec<T>);
 
-impl<'py, T: Element + Copy> Values<'py, T> {
+impl<T: Element + Copy> Values<T> {
     pub(crate) fn empty() -> Self {
-        Values::Owned(Vec::new())
+        Values(Vec::new())
     }
 
-    /// Borrows `object` when it is a C-contiguous array of `T`.
-    pub(crate) fn borrow(object: &Bound<'py, PyAny>) -> Option<Self> {
+    /// Copies `object` when it is a C-contiguous array of `T`.
+    pub(crate) fn copied(object: &Bound<'_, PyAny>) -> Option<Self> {
         let array = object.cast::<PyArrayDyn<T>>().ok()?;
         if !array.is_c_contiguous() {
-            return None;
+            return None; // numpy's as_slice also takes Fortran order
         }
-        array.try_readonly().ok().map(Values::Array)
+        // SAFETY: the GIL is held for the copy, so no Python code writes to the array meanwhile
+        // (numpy's own C functions read arrays the same way; its borrow flags cost more than
+        // the copy of a batch).
+        unsafe { array.as_slice() }
+            .ok()
+            .map(|values| Values(values.to_vec()))
     }
 
     /// Converts `object` with `numpy.ascontiguousarray(object, dtype)`.
-    pub(crate) fn convert(object: &Bound<'py, PyAny>, dtype: &str) -> PyResult<Self> {
+    pub(crate) fn convert(object: &Bound<'_, PyAny>, dtype: &str) -> PyResult<Self> {
         let py = object.py();
         let kwargs = PyDict::new(py);
         kwargs.set_item("dtype", dtype)?;
@@ -38,51 +41,46 @@ impl<'py, T: Element + Copy> Values<'py, T> {
         let array = converted.cast_into::<PyArrayDyn<T>>()?;
         let values = array.readonly().as_slice().map(<[T]>::to_vec);
         values
-            .map(Values::Owned)
+            .map(Values)
             .map_err(|err| PyValueError::new_err(err.to_string()))
     }
 
     pub(crate) fn as_slice(&self) -> &[T] {
-        match self {
-            // A C-contiguous array (checked when borrowed) is a slice.
-            Values::Array(array) => array.as_slice().unwrap_or(&[]),
-            Values::Owned(values) => values,
-        }
+        &self.0
     }
 
-    /// The values, owned: what a call that releases the GIL reads, since Python code could
-    /// write to a numpy array meanwhile.
-    pub(crate) fn owned(&self) -> Vec<T> {
-        self.as_slice().to_vec()
+    /// The values.
+    pub(crate) fn owned(self) -> Vec<T> {
+        self.0
     }
 }
 
-impl<'py> Values<'py, f64> {
+impl Values<f64> {
     /// Float values (`actions`, `action_scales`, `q_values`, `q_references`), any shape, C order.
-    pub(crate) fn floats(object: &Bound<'py, PyAny>) -> PyResult<Self> {
-        match Self::borrow(object) {
+    pub(crate) fn floats(object: &Bound<'_, PyAny>) -> PyResult<Self> {
+        match Self::copied(object) {
             Some(values) => Ok(values),
             None => Self::convert(object, "float64"),
         }
     }
 
     /// Optional float values: None reads as none (action scales of all 1, no references).
-    pub(crate) fn floats_or_empty(object: Option<&Bound<'py, PyAny>>) -> PyResult<Self> {
+    pub(crate) fn floats_or_empty(object: Option<&Bound<'_, PyAny>>) -> PyResult<Self> {
         object.map_or_else(|| Ok(Self::empty()), Self::floats)
     }
 }
 
-impl<'py> Values<'py, bool> {
+impl Values<bool> {
     /// Episode-start flags.
-    pub(crate) fn bools(object: &Bound<'py, PyAny>) -> PyResult<Self> {
-        match Self::borrow(object) {
+    pub(crate) fn bools(object: &Bound<'_, PyAny>) -> PyResult<Self> {
+        match Self::copied(object) {
             Some(values) => Ok(values),
             None => Self::convert(object, "bool"),
         }
     }
 }
 
-impl<'py> Values<'py, u64> {
+impl Values<u64> {
     /// Signed steps as unsigned ones; a negative step is a ValueError (numpy would wrap it).
     fn unsigned(signed: &[i64]) -> PyResult<Self> {
         signed
@@ -93,16 +91,16 @@ impl<'py> Values<'py, u64> {
                 })
             })
             .collect::<PyResult<Vec<u64>>>()
-            .map(Values::Owned)
+            .map(Values)
     }
 
     /// Steps: unsigned integers; signed ones must not be negative (numpy would wrap them).
-    pub(crate) fn steps(object: &Bound<'py, PyAny>) -> PyResult<Self> {
-        if let Some(values) = Self::borrow(object) {
+    pub(crate) fn steps(object: &Bound<'_, PyAny>) -> PyResult<Self> {
+        if let Some(values) = Self::copied(object) {
             return Ok(values);
         }
         // int64 is numpy's default integer: read it without numpy's conversion.
-        if let Some(signed) = Values::<i64>::borrow(object) {
+        if let Some(signed) = Values::<i64>::copied(object) {
             return Self::unsigned(signed.as_slice());
         }
         let py = object.py();

@@ -4,7 +4,7 @@
 //! all-or-nothing batches (`esa_core::batch`) without a process or a socket in between. A refused
 //! call raises `EngineError` ([`crate::errors`]) and changes nothing.
 
-use numpy::IntoPyArray;
+use numpy::{IntoPyArray, PyArray1, PyArrayMethods};
 use parking_lot::{Mutex, MutexGuard};
 use prost::Message;
 use pyo3::exceptions::PyValueError;
@@ -83,6 +83,21 @@ fn tiled(bounds: &[f64], n: usize, values: usize) -> Vec<f64> {
     } else {
         bounds.to_vec()
     }
+}
+
+/// The step each session's probe carries: its tracked step, or 0 at an episode start.
+fn step_of_each(tracked: &[i64], starts: &[bool]) -> PyResult<Vec<u64>> {
+    tracked
+        .iter()
+        .zip(starts.iter().chain(std::iter::repeat(&false)))
+        .map(|(&step, &start)| match u64::try_from(step) {
+            _ if start => Ok(0),
+            Ok(step) => Ok(step),
+            Err(_) => Err(PyValueError::new_err(format!(
+                "steps: expected integers >= 0, got {step}"
+            ))),
+        })
+        .collect()
 }
 
 /// `(probes, applied)` of a probe's output, each (n, dim) where the items share a dimension.
@@ -269,7 +284,9 @@ impl Engine {
     /// offset_i` (`esa_core::fused_step::LinearCritic`); with it, concave quadratic in the
     /// clipped action, `Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`,
     /// `x = clip(a, low, high)` (`esa_core::fused_step::QuadraticCritic`), where `low` and
-    /// `high` are the box's D bounds, or None for an unbounded box.
+    /// `high` are the box's D bounds, or None for an unbounded box. `steps` are the sessions'
+    /// tracked steps (an episode start steps at 0), advanced in place when the step is applied,
+    /// so that a batch keeps its count without a numpy operation per step.
     #[pyo3(signature = (
         handle, steps, actions, episode_starts, action_scales, gain, offset, paired,
         curvature = None, low = None, high = None
@@ -279,7 +296,7 @@ impl Engine {
         &self,
         py: Python<'py>,
         handle: &Bound<'py, BatchHandle>,
-        steps: &Bound<'py, PyAny>,
+        steps: &Bound<'py, PyArray1<i64>>,
         actions: &Bound<'py, PyAny>,
         episode_starts: &Bound<'py, PyAny>,
         action_scales: Option<&Bound<'py, PyAny>>,
@@ -292,10 +309,14 @@ impl Engine {
     ) -> PyResult<Bound<'py, PyTuple>> {
         let handle = &handle.get().inner;
         let (n, values) = (handle.len(), handle.values());
-        // Owned: Python threads could write to the arrays while the GIL is released.
-        let steps = Values::<u64>::steps(steps)?.owned();
         let actions = Values::<f64>::floats(actions)?.owned();
         let starts = Values::<bool>::bools(episode_starts)?.owned();
+        let steps_error =
+            |err: &dyn std::fmt::Display| PyValueError::new_err(format!("steps: {err}"));
+        // Borrowed for writing before the step, so that a read-only array changes nothing.
+        let mut tracked = steps.try_readwrite().map_err(|err| steps_error(&err))?;
+        let tracked = tracked.as_slice_mut().map_err(|err| steps_error(&err))?;
+        let carried = step_of_each(tracked, &starts)?;
         let scales = Values::<f64>::floats_or_empty(action_scales)?.owned();
         let gains = Values::<f64>::floats(gain)?.owned();
         let offsets = Values::<f64>::floats(offset)?.owned();
@@ -311,7 +332,7 @@ impl Engine {
                     offsets: &offsets,
                     paired,
                 };
-                self.step_critic_detached(py, handle, &steps, &actions, &starts, &scales, &critic)
+                self.step_critic_detached(py, handle, &carried, &actions, &starts, &scales, &critic)
             }
             Some(curvature) => {
                 let curvatures = Values::<f64>::floats(curvature)?.owned();
@@ -325,10 +346,13 @@ impl Engine {
                     highs: &highs,
                     paired,
                 };
-                self.step_critic_detached(py, handle, &steps, &actions, &starts, &scales, &critic)
+                self.step_critic_detached(py, handle, &carried, &actions, &starts, &scales, &critic)
             }
         }
         .map_err(|err| engine_error(py, err))?;
+        for (count, step) in tracked.iter_mut().zip(&carried) {
+            *count = i64::try_from(step + 1).unwrap_or(i64::MAX);
+        }
         probe_tuple(py, output, n)
     }
 

@@ -230,7 +230,7 @@ class Engine:
     def step_closed_form(
         self,
         handle: BatchHandle,
-        steps: npt.ArrayLike,
+        steps: npt.NDArray[np.int64],
         actions: npt.ArrayLike,
         episode_starts: npt.ArrayLike,
         action_scales: npt.ArrayLike | None,
@@ -253,7 +253,8 @@ class Engine:
 
         Args:
             handle: The N sessions.
-            steps: As for :meth:`probe`.
+            steps: int64[N], C-contiguous: the tracked steps (an episode start steps at 0),
+                advanced in place (each to its step + 1) when the step is applied.
             actions: As for :meth:`probe`.
             episode_starts: As for :meth:`probe`.
             action_scales: As for :meth:`probe`.
@@ -272,7 +273,9 @@ class Engine:
             EngineError: As ProbeBatch; INVALID_ARGUMENT for a gain, offset or curvature of
                 the wrong length or with a non-finite value, a positive curvature, or bounds
                 of the wrong length, NaN or with a low above its high.
-            ValueError: ``low`` or ``high`` without a ``curvature``.
+            ValueError: ``low`` or ``high`` without a ``curvature``, or ``steps`` holding a
+                negative integer or not C-contiguous.
+            TypeError: ``steps`` is not a one-dimensional int64 array.
         """
 
 class AdvantageMlp:

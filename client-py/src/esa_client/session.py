@@ -19,6 +19,7 @@ from .config import SessionConfig
 from .errors import SessionNotFound, StatusCode, StepMismatch
 from .reconnect import Reconnect
 from .state import (
+    BoolArray,
     F64Array,
     I64Array,
     SessionProgress,
@@ -385,6 +386,17 @@ class SessionBatch:
         action_scales: npt.ArrayLike | None,
     ) -> BatchProbe:
         """The checked probe of ``actions``, with the tracked steps unless ``steps`` is given."""
+        a, starts, scales = self._probe_inputs(actions, episode_starts, action_scales)
+        step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
+        return BatchProbe(step, a, starts, scales)
+
+    def _probe_inputs(
+        self,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None,
+        action_scales: npt.ArrayLike | None,
+    ) -> tuple[F64Array, BoolArray, F64Array | None]:
+        """The checked actions, episode starts and action scales of a probe."""
         shape = (self.n, self.action_dim)
         a = check_array(actions, shape, "actions")
         if episode_starts is None:
@@ -393,13 +405,12 @@ class SessionBatch:
             starts = self._next_starts | check_array(
                 episode_starts, (self.n,), "episode_starts", dtype=bool
             )
-        step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
         scales = None
         if action_scales is not None:
             scales = np.asarray(action_scales, np.float64)
             if scales.shape != shape:  # a scalar or a row, for every session
                 scales = np.broadcast_to(scales, shape)
-        return BatchProbe(step, a, starts, scales)
+        return a, starts, scales
 
     def _probe_attempt(
         self, deferred: BatchReport | None, request: BatchProbe, retrying: bool

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 from .._native import BatchHandle, Engine, EngineError
 from ..errors import TypedErrors
-from ..state import F64Array
+from ..state import BoolArray, F64Array, I64Array
 from .base import BatchTransport
 from .messages import BatchProbe, BatchReport, LinearCritic, QuadraticCritic
 from .native_calls import NativeSessionCalls
@@ -49,7 +49,11 @@ class InProcessBatch(BatchTransport):
         return FusedStepper(self)
 
     def step_closed_form(
-        self, request: BatchProbe, critic: LinearCritic | QuadraticCritic, paired: bool
+        self,
+        steps: I64Array,
+        inputs: tuple[F64Array, BoolArray, F64Array | None],
+        critic: LinearCritic | QuadraticCritic,
+        paired: bool,
     ) -> tuple[F64Array, F64Array]:
         """ProbeBatch, then ReportBatch of ``critic`` at the probes, in one engine call."""
         # Curvature and box; none for a linear critic.
@@ -58,7 +62,7 @@ class InProcessBatch(BatchTransport):
             curved = (critic.curvature, critic.low, critic.high)
         with _typed_errors:
             return self._engine.step_closed_form(
-                self._resolved(), *request, critic.gain, critic.offset, paired, *curved
+                self._resolved(), steps, *inputs, critic.gain, critic.offset, paired, *curved
             )
 
     def report(self, request: BatchReport) -> F64Array:

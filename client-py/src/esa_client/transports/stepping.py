@@ -75,6 +75,13 @@ class SessionBatch(Protocol):
         action_scales: npt.ArrayLike | None,
     ) -> BatchProbe: ...
 
+    def _probe_inputs(
+        self,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None,
+        action_scales: npt.ArrayLike | None,
+    ) -> tuple[F64Array, BoolArray, F64Array | None]: ...
+
     def _sent(self, request: BatchProbe) -> None: ...
 
     def _restart(
@@ -118,11 +125,17 @@ class FusedBatch(Protocol):
     """A batch whose engine runs a whole step in one call: the in-process engine's."""
 
     def step_closed_form(
-        self, request: BatchProbe, critic: LinearCritic | QuadraticCritic, paired: bool
+        self,
+        steps: I64Array,
+        inputs: tuple[F64Array, BoolArray, F64Array | None],
+        critic: LinearCritic | QuadraticCritic,
+        paired: bool,
     ) -> tuple[F64Array, F64Array]:
         """ProbeBatch, then ReportBatch of ``critic`` at the probes, in one engine call.
 
-        A quadratic critic is evaluated at the clipped probes. With ``paired``, the critic at
+        ``steps`` are the tracked steps (an episode start steps at 0), advanced in place when
+        the step is applied; ``inputs`` are the probe's actions, episode starts and scales. A
+        quadratic critic is evaluated at the clipped probes. With ``paired``, the critic at
         the applied actions is reported as the references. Returns the probes and the applied
         actions.
         """
@@ -141,16 +154,17 @@ class FusedStepper(Stepper):
         if not isinstance(critic, _ClosedForm):
             return super().step(batch, call)
         batch.flush()
-        # In this process: no wire to ride out, so no reconnect around the call.
-        request = batch._probe_request(call.actions, call.episode_starts, None, call.action_scales)
+        # In this process: no wire to ride out, so no reconnect around the call (nor a probe
+        # to replay into recreated sessions), and the engine advances the steps itself.
+        inputs = batch._probe_inputs(call.actions, call.episode_starts, call.action_scales)
         try:
-            answer = self._fused.step_closed_form(request, critic, call.paired)
+            answer = self._fused.step_closed_form(batch._steps, inputs, critic, call.paired)
         except ValueError:
             # esa-core checks the critic itself, all or nothing; checking it here first too
             # would cost more than the step. A refusal is told in the words of every transport.
             check_critic(critic, batch.n, batch.action_dim)
             raise
-        batch._sent(request)
+        batch._next_starts.fill(False)
         return answer
 
 
