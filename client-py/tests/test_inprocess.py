@@ -20,6 +20,7 @@ from esa_client import (
     EsaClient,
     EsaError,
     InvalidArgument,
+    LinearCritic,
     ResourceExhausted,
     SessionAlreadyExists,
     SessionConfig,
@@ -279,6 +280,17 @@ def test_lost_sessions_are_restored_in_process(local):
     assert batch.probe(np.zeros((2, 2))).shape == (2, 2)
     with pytest.raises(StepMismatch):
         batch.report([1.0, 2.0], steps=[5, 0])
+
+
+def test_a_step_leaves_the_callers_steps_alone(local):
+    """The engine advances the batch's own step count in place, never an array it was given."""
+    batch = local.create_batch(CONFIG, 2)
+    given = np.zeros(2, np.int64)
+    batch.probe(np.zeros((2, 2)), [True, True], steps=given)
+    critic = LinearCritic(np.ones((2, 2)), np.zeros(2))
+    for _ in range(3):  # the first replaces the pending probe of step 0
+        batch.step(np.zeros((2, 2)), critic)
+    assert given.tolist() == [0, 0] and batch.steps.tolist() == [3, 3]
 
 
 def test_the_transport_takes_an_engine(make_config):

@@ -387,7 +387,7 @@ class SessionBatch:
     ) -> BatchProbe:
         """The checked probe of ``actions``, with the tracked steps unless ``steps`` is given."""
         a, starts, scales = self._probe_inputs(actions, episode_starts, action_scales)
-        step = np.where(starts, 0, self._steps) if steps is None else np.asarray(steps, np.int64)
+        step = np.where(starts, 0, self._steps) if steps is None else np.array(steps, np.int64)
         return BatchProbe(step, a, starts, scales)
 
     def _probe_inputs(
