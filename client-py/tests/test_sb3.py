@@ -24,9 +24,8 @@ from stable_baselines3.common.noise import NormalActionNoise
 from esa_client import EsaClient, EsaConfig, SessionBatch
 from esa_client.common.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
-from esa_client.transports.grpc import GrpcTransport
+from esa_client.transports.grpc import AheadStepper, GrpcTransport
 from esa_client.transports.in_process import InProcessTransport
-from esa_client.transports.stepping import AheadStepper
 
 N_ENVS = 4
 pytestmark = pytest.mark.filterwarnings("ignore:rich is experimental")

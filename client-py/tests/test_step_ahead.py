@@ -21,7 +21,7 @@ from esa_client import (
     StepMismatch,
 )
 from esa_client._native import EngineError, StatusError, StepAhead
-from esa_client.transports.stepping import AheadStepper
+from esa_client.transports.grpc import AheadStepper
 
 CONFIG = SessionConfig(
     action_dim=2,

@@ -1,26 +1,11 @@
 """RL Baselines3 Zoo with ESA: ``esappo``, ``esasac`` and ``esatd3`` as RL Zoo algorithms.
 
-RL Zoo picks its algorithm from the dict ``rl_zoo3.utils.ALGOS`` while it parses the command
-line, so the ESA drop-ins are registered there first and the Zoo's own ``train`` / ``enjoy``
-run unchanged::
-
-    python -m esa_client.rl_zoo train --algo esappo --env Pendulum-v1 -n 20000
-    python -m esa_client.rl_zoo train --algo esasac --env Pendulum-v1 -conf my_esa.yml
-    python -m esa_client.rl_zoo enjoy --algo esasac --env Pendulum-v1 -f logs/
-
-Without ``-conf``/``--conf-file`` an algorithm takes the Zoo's tuned hyperparameters of its
-base (``ppo.yml``, ``sac.yml``, ``td3.yml``) and ``EsaConfig``'s family default. In a yaml file
-the ESA settings are one more hyperparameter, a dict of ``EsaConfig`` fields::
-
-    Pendulum-v1:
-      n_timesteps: !!float 2e4
-      policy: 'MlpPolicy'
-      esa:
-        amplitude: 0.2
-        trust_region: 0.5
-
-In Python, :func:`register` does the same for a script that drives ``rl_zoo3`` itself.
-Needs the ``zoo`` extra: ``pip install "esa-client[zoo]"``.
+RL Zoo picks its algorithm from ``rl_zoo3.utils.ALGOS`` while it parses the command line, so
+the drop-ins are registered there first (:func:`register`) and the Zoo's own ``train`` /
+``enjoy`` run unchanged: ``python -m esa_client.rl_zoo train --algo esappo --env
+Pendulum-v1``. Without ``-conf`` an algorithm takes the Zoo's tuned hyperparameters of its
+base; in a yaml file ``esa:`` is a dict of ``EsaConfig`` fields. The Zoo guide
+(``docs/guides/zoo.md``) has examples. Needs the ``zoo`` extra.
 """
 
 from __future__ import annotations

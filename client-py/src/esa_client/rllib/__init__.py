@@ -1,33 +1,11 @@
 """ESA for Ray RLlib (new API stack, torch): SAC and PPO, env runners on many nodes.
 
-Install with ``pip install "esa-client[rllib]"``. One call adds ESA to a config::
-
-    from ray.rllib.algorithms.sac import SACConfig
-    from esa_client import EsaConfig
-    from esa_client.rllib import with_esa
-
-    config = (
-        SACConfig()
-        .environment("Pendulum-v1")
-        .env_runners(num_env_runners=2, num_envs_per_env_runner=2)
-    )
-    algo = with_esa(config, esa=EsaConfig.off_policy()).build_algo()
-    algo.train()
-
-Without ``esa=`` SAC gets ``EsaConfig.off_policy()``, ESASAC's default, and PPO
-``EsaConfig()``: RLlib's PPO has ESAPPO's quadratic head but neither its fade nor its
-decoupled objective, so ``EsaConfig.ppo()`` (which fades) is not its default.
-
-Every env copy of every EnvRunner gets its own ESA session. The env executes, and the
-episode stores, Algorithm 1's action ``a_t + v(t)`` (PPO: unclipped, with its exact
-behaviour log-probability ``log pi_old(a_t)``); the critic is probed on the env runners
-(SAC: the target twins, kept in the env runners' module and synced with the learner's;
-PPO: ESAPPO's quadratic head, fitted on the learner and synced the same way). By default
-each runner keeps its sessions in its own process (:class:`EsaService`);
-``EsaService(address=...)`` or ``EsaService(zenoh=..., shards=N)`` use a shared or sharded
-server instead (``deploy/README.md``).
-
-Pieces: :func:`with_esa`, :class:`EsaService`,
+One call adds ESA to a config: ``with_esa(SACConfig()..., esa=EsaConfig.off_policy())``
+(the RLlib guide, ``docs/guides/rllib.md``, has the whole example). Without ``esa=`` SAC gets
+ESASAC's default and PPO ``EsaConfig()``: RLlib's PPO has ESAPPO's quadratic head but neither
+its fade nor its decoupled objective. Every env copy of every EnvRunner gets its own session,
+kept in the runner's process by default (:class:`EsaService`), or on a shared or sharded
+server. Needs the ``rllib`` extra. Pieces: :func:`with_esa`, :class:`EsaService`,
 :class:`EsaModuleToEnv` (the module-to-env ConnectorV2), :class:`EsaSACTorchRLModule`,
 :class:`EsaPPOTorchRLModule`, :class:`EsaSACTorchLearner`, :class:`EsaPPOTorchLearner`.
 """

@@ -198,10 +198,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         return self._execute(sample, shift, std)
 
     def _execute(self, sample: np.ndarray, shift: np.ndarray, std: np.ndarray) -> np.ndarray:
-        """What the env executes and the buffer stores: ``a_t + v(t)``.
-
-        The sum in float64, cast back to the policy's float32.
-        """
+        """What the env executes and the buffer stores: ``a_t + v(t)``, summed in float64."""
         executed: np.ndarray = (sample.astype(np.float64) + shift).astype(sample.dtype)
         return executed
 

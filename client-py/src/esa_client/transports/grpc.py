@@ -19,16 +19,21 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
+import numpy as np
+
+from .._native import EngineError, GrpcClient, StatusError, StepAhead
 from .._native import GrpcBatch as NativeBatch
-from .._native import GrpcClient, StatusError
-from ..errors import TypedErrors
-from ..state import F64Array, SessionProgress
+from ..errors import EsaError, SessionNotFound, TypedErrors
+from ..reconnect import RetriableErrors
+from ..state import BoolArray, F64Array, I64Array, SessionProgress, SessionState, check_array
 from .base import BatchProbe, BatchReport, BatchTransport, LinearCritic, PipelinedBatch
 from .native_calls import NativeSessionCalls
-from .stepping import AheadStepper
+from .stepping import Critic, SessionBatch, StepCall, Stepper, check_critic
 
 _typed_errors = TypedErrors(StatusError)
+_engine_errors = TypedErrors(EngineError)
 
 
 @dataclass(frozen=True)
@@ -105,7 +110,8 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
     """A :class:`GrpcBatch` on a ``StepStream``, whose pair takes one round trip.
 
     It also sends a whole step (for a linear critic, or with the critic's values) without
-    waiting for its answer (:class:`~esa_client.transports.stepping.AheadBatch`).
+    waiting for its answer (the wire's ``step_linear_batch`` and ``step_batch``, CONTRACT.md
+    section 1b, implementation note 8), for :class:`AheadStepper`.
     """
 
     def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
@@ -129,7 +135,11 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
             self._batch.send_step(*request, q_values, q_references)
 
     def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
-        """The oldest unanswered step's ``(probes, applied, shifts)``, or its error."""
+        """The oldest unanswered step's ``(probes, applied, shifts)``, each ``(N, D)``.
+
+        Raises the step's error (nothing of it was applied), or the wire's (whether it was
+        applied is then unknown).
+        """
         with _typed_errors:
             return self._batch.receive_step()
 
@@ -141,6 +151,176 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
         """
         with _typed_errors:
             self._batch.resend_step()
+
+
+class _InFlight(NamedTuple):
+    """A step sent ahead: what it replaced, restored if it fails, and what it sent."""
+
+    steps_before: I64Array
+    starts_before: BoolArray
+    request: BatchProbe
+
+
+class AheadStepper(Stepper):
+    """A step sent ahead of its answer, unless the caller waits for its probes.
+
+    The applied actions, and the probes for a critic evaluated here (the server evaluates a
+    ``LinearCritic`` itself), are computed with esa-core's own function from the shifts
+    ``v(t)`` of the previous step's answer (0 at an episode start); the step goes as one
+    message whose answer is read at the next call, overlapping the env's and learner's work.
+    """
+
+    def __init__(self, ahead: GrpcStepBatch) -> None:
+        """Sends steps through ``ahead``."""
+        self._ahead = ahead
+        self._in_flight: _InFlight | None = None
+        # The shifts v(t) of the next step, from the last answer read.
+        self._shifts: F64Array | None = None
+        self._engine: StepAhead | None = None
+
+    def step(self, batch: SessionBatch, call: StepCall) -> tuple[F64Array | None, F64Array]:
+        """The step sent ahead (see :meth:`~esa_client.SessionBatch.step`)."""
+        if call.want_probes:
+            return super().step(batch, call)
+        critic, paired = call.critic, call.paired
+        check_critic(critic, batch.n, batch.action_dim)
+        batch.flush()
+        request = batch._probe_request(call.actions, call.episode_starts, None, call.action_scales)
+        steps_before, starts_before = batch._steps, batch._next_starts.copy()
+        try:
+            applied = self._send(batch, request, critic, paired)
+        except RetriableErrors:
+            if batch._reconnect is None:
+                raise
+            request, applied = batch._reconnect.run(
+                lambda _: batch._restart(
+                    request, lambda restart: self._send(batch, restart, critic, paired)
+                )
+            )
+        self._in_flight = _InFlight(steps_before, starts_before, request)
+        batch._sent(request)
+        return None, applied
+
+    def flush(self, batch: SessionBatch) -> None:
+        """Reads the answer of the step in flight (raising its error), if there is one."""
+        if self._in_flight is not None:
+            self._shifts = self._receive(batch)
+
+    def reset(self) -> None:
+        """Forgets the step in flight (its answer would be read as the next step's)."""
+        if self._in_flight is not None:
+            self._in_flight = None
+            self._ahead.close()
+        self._shifts = None
+
+    def _send(
+        self, batch: SessionBatch, request: BatchProbe, critic: Critic, paired: bool
+    ) -> F64Array:
+        """Sends ``request``'s step, computed from the shifts in hand; returns its actions.
+
+        The actions and scales (and a critic's values) are checked before anything is sent:
+        an error there is this call's.
+        """
+        if self._engine is None:
+            self._engine = StepAhead([c.to_proto().SerializeToString() for c in batch.configs])
+        shifts = self._shifts
+        if shifts is None:
+            shifts = np.zeros((batch.n, batch.action_dim))
+        if request.episode_starts.any():
+            shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
+        if isinstance(critic, LinearCritic):
+            # The server evaluates it (step_linear_batch).
+            with _engine_errors:
+                applied: F64Array = self._engine(shifts, request.actions, request.action_scales)
+            self._ahead.send_step_linear(request, critic, paired)
+            return applied
+        with _engine_errors:
+            probes, applied = self._engine.probes(
+                shifts, request.steps, request.actions, request.action_scales
+            )
+        points = np.concatenate([probes, applied]) if paired else probes
+        q = check_array(critic(points), (len(points),), "critic values", finite=True)
+        self._ahead.send_step(request, q[: batch.n], q[batch.n :] if paired else None)
+        return applied
+
+    def _receive(self, batch: SessionBatch) -> F64Array:
+        """The shifts ``v(t + 1)`` of the step in flight, or its error.
+
+        A refused step is undone here (its steps and episode starts are due again); after a
+        broken exchange a reconnect policy rides out the server's absence and continues where
+        the server is (:meth:`_resume`); without one every session restarts.
+        """
+        assert self._in_flight is not None
+        sent, self._in_flight = self._in_flight, None
+        try:
+            return self._ahead.receive_step()[2]
+        except RetriableErrors:
+            if batch._reconnect is None:
+                batch._next_starts[:] = True
+                batch._steps[:] = 0
+                raise
+        except EsaError:
+            batch._steps = sent.steps_before
+            batch._next_starts = sent.starts_before
+            raise
+        return batch._reconnect.run(lambda _: self._resume(batch, sent))  # restart hook
+
+    def _resume(self, batch: SessionBatch, sent: _InFlight) -> F64Array:
+        """The shifts ``v(t + 1)`` of the step sent ahead whose answer the wire lost.
+
+        The sessions' states tell whether the server applied the step (:func:`_step_applied`):
+        if it did, the shifts are theirs; if not, the same step goes again and its answer
+        gives them. When the server lost the sessions, or their states fit neither case,
+        every session restarts its episode (:meth:`~esa_client.SessionBatch.restore`) and the
+        shifts are 0. Errors of the wire propagate, for the reconnect policy to retry.
+        """
+        try:
+            states = batch.states()
+        except SessionNotFound:
+            states = []
+        applied = None
+        if states:
+            applied = _step_applied(states, sent, self._ahead.progress())
+        if applied:
+            return np.stack([state.shift for state in states])
+        if applied is False:
+            self._ahead.resend_step()
+            try:
+                return self._ahead.receive_step()[2]
+            except RetriableErrors:
+                raise
+            except EsaError:
+                pass  # refused after all: the sessions restart below
+        batch.restore()
+        return np.zeros((batch.n, batch.action_dim))
+
+
+def _step_applied(
+    states: list[SessionState], sent: _InFlight, seen: list[SessionProgress] | None
+) -> bool | None:
+    """Whether the server applied the step ``sent`` ahead, from its sessions' states now.
+
+    Applied, each session is at the step after the one sent with no probe pending; not
+    applied, at its step before. The two coincide only for an episode start right after a
+    one-step episode: then the episode count tells them apart, against the count ``seen`` in
+    the answer before. None when the states fit neither, or do not agree (a step is applied
+    to all its sessions or to none).
+    """
+    verdicts: set[bool] = set()
+    for i, state in enumerate(states):
+        after, before = int(sent.request.steps[i]) + 1, int(sent.steps_before[i])
+        if state.probe_pending or state.step not in (after, before):
+            return None
+        if after != before:
+            verdicts.add(state.step == after)
+            continue
+        if seen is None:
+            return None
+        episodes = seen[i].episodes_completed
+        if state.episodes_completed not in (episodes, episodes + 1):
+            return None
+        verdicts.add(state.episodes_completed == episodes + 1)
+    return verdicts.pop() if len(verdicts) == 1 else None
 
 
 class GrpcTransport(NativeSessionCalls):

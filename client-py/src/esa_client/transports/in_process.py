@@ -1,8 +1,9 @@
 """The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.Engine``.
 
 The engine is esa-core in this process (:meth:`esa_client.EsaClient.in_process`); this
-transport hands it numpy arrays as they come (no messages are built for the round trips)
-and turns its ``EngineError`` into the typed error of the server's status code.
+transport hands it numpy arrays as they come (no messages are built for the round trips),
+runs a step of a closed-form critic in one engine call (:class:`FusedStepper`) and turns its
+``EngineError`` into the typed error of the server's status code.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from ..state import BoolArray, F64Array, I64Array
 from .base import BatchTransport
 from .messages import BatchProbe, BatchReport, LinearCritic, QuadraticCritic
 from .native_calls import NativeSessionCalls
-from .stepping import FusedStepper
+from .stepping import CLOSED_FORM, SessionBatch, StepCall, Stepper, check_critic
 
 _typed_errors = TypedErrors(EngineError)
 
@@ -55,7 +56,12 @@ class InProcessBatch(BatchTransport):
         critic: LinearCritic | QuadraticCritic,
         paired: bool,
     ) -> tuple[F64Array, F64Array]:
-        """ProbeBatch, then ReportBatch of ``critic`` at the probes, in one engine call."""
+        """ProbeBatch, then ReportBatch of ``critic`` at the (clipped) probes, in one engine call.
+
+        ``steps``, the tracked steps, advance in place when the step is applied; ``inputs`` are
+        the probe's actions, episode starts and scales; ``paired`` reports the critic at the
+        applied actions as the references. Returns the probes and the applied actions.
+        """
         # Curvature and box; none for a linear critic.
         curved: tuple[F64Array | None, F64Array | None, F64Array | None] = (None, None, None)
         if isinstance(critic, QuadraticCritic):
@@ -69,6 +75,33 @@ class InProcessBatch(BatchTransport):
         """ReportBatch in-process."""
         with _typed_errors:
             return self._engine.report(self._resolved(), *request)
+
+
+class FusedStepper(Stepper):
+    """A step in one engine call for a linear or quadratic critic; round trips for others."""
+
+    def __init__(self, fused: InProcessBatch) -> None:
+        """Steps through ``fused``'s engine calls."""
+        self._fused = fused
+
+    def step(self, batch: SessionBatch, call: StepCall) -> tuple[F64Array | None, F64Array]:
+        """One engine call (see :meth:`~esa_client.SessionBatch.step`)."""
+        critic = call.critic
+        if not isinstance(critic, CLOSED_FORM):
+            return super().step(batch, call)
+        batch.flush()
+        # In this process: no wire to ride out, so no reconnect around the call (nor a probe
+        # to replay into recreated sessions), and the engine advances the steps itself.
+        inputs = batch._probe_inputs(call.actions, call.episode_starts, call.action_scales)
+        try:
+            answer = self._fused.step_closed_form(batch._steps, inputs, critic, call.paired)
+        except ValueError:
+            # esa-core checks the critic itself, all or nothing; checking it here first too
+            # would cost more than the step. A refusal is told in the words of every transport.
+            check_critic(critic, batch.n, batch.action_dim)
+            raise
+        batch._next_starts.fill(False)
+        return answer
 
 
 class InProcessTransport(NativeSessionCalls):
