@@ -82,7 +82,7 @@ impl Values<bool> {
 
 impl Values<u64> {
     /// Signed steps as unsigned ones; a negative step is a ValueError (numpy would wrap it).
-    fn unsigned(signed: &[i64]) -> PyResult<Self> {
+    pub(crate) fn unsigned(signed: &[i64]) -> PyResult<Self> {
         signed
             .iter()
             .map(|&step| {

@@ -51,10 +51,25 @@ impl Engine {
         }
     }
 
-    /// `engine::Engine::step_critic` for a critic over values the caller owns, with the GIL
-    /// released for batches of more than `detach_values` action values.
+    /// `run` on the engine's state for a batch of `handle`, with the GIL released for batches
+    /// of more than `detach_values` action values (their inputs are owned copies, so Python
+    /// threads may write to the arrays they came from meanwhile).
+    fn batch<R: Send>(
+        &self,
+        py: Python<'_>,
+        handle: &engine::Handle,
+        run: impl FnOnce(&mut engine::Engine) -> R + Send,
+    ) -> R {
+        if handle.values() > self.detach_values {
+            py.detach(|| run(&mut self.inner.lock()))
+        } else {
+            run(&mut self.lock(py))
+        }
+    }
+
+    /// `engine::Engine::step_critic` for a critic over values the caller owns ([`Self::batch`]).
     #[allow(clippy::too_many_arguments)] // the step's inputs and the critic
-    fn step_critic_detached(
+    fn step_critic(
         &self,
         py: Python<'_>,
         handle: &engine::Handle,
@@ -64,14 +79,9 @@ impl Engine {
         scales: &[f64],
         critic: &(impl StepCritic + Sync),
     ) -> Result<engine::ProbeOutput, Error> {
-        let run = |engine: &mut engine::Engine| {
+        self.batch(py, handle, |engine| {
             engine.step_critic(handle, steps, actions, starts, scales, critic)
-        };
-        if handle.values() > self.detach_values {
-            py.detach(|| run(&mut self.inner.lock()))
-        } else {
-            run(&mut self.lock(py))
-        }
+        })
     }
 }
 
@@ -87,17 +97,11 @@ fn tiled(bounds: &[f64], n: usize, values: usize) -> Vec<f64> {
 
 /// The step each session's probe carries: its tracked step, or 0 at an episode start.
 fn step_of_each(tracked: &[i64], starts: &[bool]) -> PyResult<Vec<u64>> {
-    tracked
-        .iter()
-        .zip(starts.iter().chain(std::iter::repeat(&false)))
-        .map(|(&step, &start)| match u64::try_from(step) {
-            _ if start => Ok(0),
-            Ok(step) => Ok(step),
-            Err(_) => Err(PyValueError::new_err(format!(
-                "steps: expected integers >= 0, got {step}"
-            ))),
-        })
-        .collect()
+    let mut steps = Values::<u64>::unsigned(tracked)?.owned();
+    for (step, _) in steps.iter_mut().zip(starts).filter(|(_, &start)| start) {
+        *step = 0;
+    }
+    Ok(steps)
 }
 
 /// `(probes, applied)` of a probe's output, each (n, dim) where the items share a dimension.
@@ -254,28 +258,17 @@ impl Engine {
             None => Values::empty(),
         };
         let scales = Values::<f64>::floats_or_empty(action_scales)?;
-        let output = if handle.values() > self.detach_values {
-            let (steps, actions, starts, scales) = (
-                steps.owned(),
-                actions.owned(),
-                starts.owned(),
-                scales.owned(),
-            );
-            py.detach(|| {
-                self.inner
-                    .lock()
-                    .probe(handle, &steps, &actions, &starts, &scales)
+        let output = self
+            .batch(py, handle, |engine| {
+                engine.probe(
+                    handle,
+                    steps.as_slice(),
+                    actions.as_slice(),
+                    starts.as_slice(),
+                    scales.as_slice(),
+                )
             })
-        } else {
-            self.lock(py).probe(
-                handle,
-                steps.as_slice(),
-                actions.as_slice(),
-                starts.as_slice(),
-                scales.as_slice(),
-            )
-        }
-        .map_err(|err| engine_error(py, err))?;
+            .map_err(|err| engine_error(py, err))?;
         probe_tuple(py, output, handle.len())
     }
 
@@ -332,7 +325,7 @@ impl Engine {
                     offsets: &offsets,
                     paired,
                 };
-                self.step_critic_detached(py, handle, &carried, &actions, &starts, &scales, &critic)
+                self.step_critic(py, handle, &carried, &actions, &starts, &scales, &critic)
             }
             Some(curvature) => {
                 let curvatures = Values::<f64>::floats(curvature)?.owned();
@@ -346,7 +339,7 @@ impl Engine {
                     highs: &highs,
                     paired,
                 };
-                self.step_critic_detached(py, handle, &carried, &actions, &starts, &scales, &critic)
+                self.step_critic(py, handle, &carried, &actions, &starts, &scales, &critic)
             }
         }
         .map_err(|err| engine_error(py, err))?;
@@ -370,23 +363,16 @@ impl Engine {
         let steps = Values::<u64>::steps(steps)?;
         let q_values = Values::<f64>::floats(q_values)?;
         let references = Values::<f64>::floats_or_empty(q_references)?;
-        let output = if handle.values() > self.detach_values {
-            let (steps, q_values, references) =
-                (steps.owned(), q_values.owned(), references.owned());
-            py.detach(|| {
-                self.inner
-                    .lock()
-                    .report(handle, &steps, &q_values, &references)
+        let output = self
+            .batch(py, handle, |engine| {
+                engine.report(
+                    handle,
+                    steps.as_slice(),
+                    q_values.as_slice(),
+                    references.as_slice(),
+                )
             })
-        } else {
-            self.lock(py).report(
-                handle,
-                steps.as_slice(),
-                q_values.as_slice(),
-                references.as_slice(),
-            )
-        }
-        .map_err(|err| engine_error(py, err))?;
+            .map_err(|err| engine_error(py, err))?;
         shaped(py, output.actions, handle.len(), output.dim)
     }
 
