@@ -1,4 +1,4 @@
-"""Issue 14 from the client's side: typed errors for limits, tokens, unguessable ids,
+"""Hardening from the client's side: typed errors for limits, tokens, unguessable ids,
 sidecars that die with their trainer, spawn limits and restoring lost sessions."""
 
 import os
