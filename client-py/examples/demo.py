@@ -245,7 +245,7 @@ def main() -> None:
     print(
         verdict_line(
             "seeking",
-            "verdicts first.md",
+            "verdicts_first.md",
             "envs where ESAPPO's shipped default is better, equal or worse than PPO over the "
             "first third of training",
             ("ppo",),
@@ -254,7 +254,7 @@ def main() -> None:
     print(
         verdict_line(
             "seeking",
-            "verdicts whole.md",
+            "verdicts_whole.md",
             "the same over the whole run",
             ("ppo",),
         )

@@ -156,7 +156,7 @@ def report(store: RunStore, args: Args) -> str:
     text = [section]
     for name, table in tables.items():
         markdown = to_markdown(table) if not table.empty else "(no comparison has two seeds yet)"
-        atomic_write_text(store.artifact(f"verdicts {name.split()[0]}.md"), markdown + "\n")
+        atomic_write_text(store.artifact(f"verdicts_{name.split()[0]}.md"), markdown + "\n")
         text.append(f"Verdicts, AUC over the {name}:\n\n{markdown}\n")
     text.append(outcome(tables["first third (primary)"], tables["whole curve (secondary)"]))
     text.append(f"Budget (per run):\n\n{budget_table(args.budgets)}\n")

@@ -253,7 +253,7 @@ def report(store: RunStore, args: Args) -> str:
     for name, table in tables.items():
         markdown = to_markdown(table) if not table.empty else "(no comparison has two seeds yet)"
         # The full tables (client-py/examples/demo.py reads them by these names).
-        atomic_write_text(store.artifact(f"verdicts {name.split()[0]}.md"), markdown + "\n")
+        atomic_write_text(store.artifact(f"verdicts_{name.split()[0]}.md"), markdown + "\n")
     compact = compact_table(*tables.values())
     text = [
         section,
