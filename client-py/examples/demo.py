@@ -4,10 +4,11 @@ This is what ``make demo`` runs. One seed can mislead, so the demo trains both a
 ``seeds`` seeds with identical PPO hyperparameters (the reproduction suite's: 4 envs x 256
 steps, 64-64 MLPs), plots every seed and the mean, prints each seed's AUC (mean evaluation
 return over training), the spread and what ESA cost in training time here, and ends with
-what the 20-seed studies found for the shipped defaults (``experiments/results/*/verdicts*.md``,
-when the checkout has them): ``seeking`` (E2) tested ESAPPO's default, ``EsaConfig.ppo()``
-with the quadratic head and the decoupled objective, as its ``ppo_esa`` arm, and the
-confirmation campaign ESASAC's and ESATD3's. ESAPPO runs its shipped default on the
+what the studies found for the shipped defaults (``experiments/results/*/verdicts*.md``,
+when the checkout has them): ``seeking`` (E2, 20 seeds) tested ESAPPO's default,
+``EsaConfig.ppo()`` with the quadratic head and the decoupled objective, as its ``ppo_esa``
+arm, the confirmation campaign (20 seeds) ESASAC's and ESATD3's, and ``paper_regime`` (10
+seeds) ESAPPO's on a tuned PPO at a million steps. ESAPPO runs its shipped default on the
 in-process engine.
 
 Usage::
@@ -64,7 +65,7 @@ class Args:
     """Folder of the figure and the JSON of every run."""
 
 
-# The studies' seeds per arm (0-19): a comparison counts once it has them all.
+# The 20-seed studies' seeds per arm (0-19): a comparison counts once it has them all.
 STUDY_SEEDS = 20
 RESULTS = Path(__file__).resolve().parents[2] / "experiments/results"
 
@@ -185,22 +186,26 @@ def print_table(results: list[dict], args: Args) -> None:
     )
 
 
-def verdict_line(study: str, table: str, what: str, families: tuple[str, ...]) -> str:
+def verdict_line(
+    study: str, table: str, what: str, families: tuple[str, ...], seeds: int = STUDY_SEEDS
+) -> str:
     """One line of a study's verdicts, counted from its committed table.
 
     Counts the envs where each family's ESA arm (``PPO+ESA``, or ``PPO+ESA (quadratic)``
-    with its critic named) is better, equal or worse than that family's baseline. Only
-    comparisons with all their seeds count; the others are named as in progress.
+    with its critic named) is better, equal or worse than that family's baseline (``PPO``,
+    or ``PPO (RL Zoo3)`` with its settings named). Only comparisons with all their seeds
+    count; the others are named as in progress.
 
     Args:
         study: The study's folder under ``experiments/results``.
         table: Its verdict table's file name.
         what: What the line reports, after the study's name.
         families: The algorithm families whose rows count (``ppo``, ``sac``, ``td3``).
+        seeds: The seeds per arm the study's rules fix.
     """
     path = RESULTS / study / table
     if not path.is_file():
-        return f"{study}: no committed results in this checkout (experiments/RESULTS.md)."
+        return f"{study}: no verdicts in this checkout yet (experiments/RESULTS.md says why)."
     counts: dict[str, dict[str, int]] = {}
     for line in path.read_text().splitlines():
         cells = [c.strip() for c in line.strip("|").split("|")]
@@ -209,11 +214,11 @@ def verdict_line(study: str, table: str, what: str, families: tuple[str, ...]) -
         if cells[0] not in families:
             continue
         family = cells[0].upper()
-        if cells[3] != f"{family} (baseline)" or not re.fullmatch(
+        if not re.fullmatch(rf"{family}( \(.+\))? \(baseline\)", cells[3]) or not re.fullmatch(
             rf"{family}\+ESA( \(.+\))?", cells[2]
         ):
             continue
-        word = re.sub(r"\*", "", cells[-1]) if cells[4] == str(STUDY_SEEDS) else "in progress"
+        word = re.sub(r"\*", "", cells[-1]) if cells[4] == str(seeds) else "in progress"
         tally = counts.setdefault(cells[2], {"better": 0, "equal": 0, "worse": 0})
         tally[word] = tally.get(word, 0) + 1
     parts = [
@@ -222,7 +227,7 @@ def verdict_line(study: str, table: str, what: str, families: tuple[str, ...]) -
         for arm, c in counts.items()
     ]
     return (
-        f"{study} (experiments/RESULTS.md; {what}, with all {STUDY_SEEDS} seeds, Holm-corrected): "
+        f"{study} (experiments/RESULTS.md; {what}, with all {seeds} seeds, Holm-corrected): "
         + ("; ".join(parts) if parts else "no finished comparison yet")
         + "."
     )
@@ -266,6 +271,16 @@ def main() -> None:
             "envs where ESASAC's and ESATD3's shipped defaults are better, equal or worse than "
             "SAC and TD3",
             ("sac", "td3"),
+        )
+    )
+    print(
+        verdict_line(
+            "paper_regime",
+            "verdicts_whole.md",
+            "whether ESAPPO's shipped default is better, equal or worse than RL Zoo3's tuned "
+            "PPO over a million steps on Hopper-v5",
+            ("ppo",),
+            seeds=10,
         )
     )
     print(f"\nlearning curve: {out / 'learning_curve.png'}; raw numbers: {out / 'results.json'}")
