@@ -181,8 +181,8 @@ def print_table(results: list[dict], args: Args) -> None:
         "over the first half of training; BENCHMARKS.md has the measured overhead)."
     )
     print(
-        f"With {args.seeds} seeds a difference inside that spread is noise; the studies "
-        "below use 20 seeds per arm."
+        f"With {args.seeds} seed{'s' if args.seeds > 1 else ''} a difference inside that spread "
+        "is noise; the studies below use 10 or 20 seeds per arm."
     )
 
 
