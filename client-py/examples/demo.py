@@ -24,6 +24,7 @@ import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import matplotlib
 
@@ -65,9 +66,52 @@ class Args:
     """Folder of the figure and the JSON of every run."""
 
 
-# The 20-seed studies' seeds per arm (0-19): a comparison counts once it has them all.
-STUDY_SEEDS = 20
 RESULTS = Path(__file__).resolve().parents[2] / "experiments/results"
+
+
+class StudyVerdicts(NamedTuple):
+    """A committed verdict table the demo ends with, and how to read it."""
+
+    study: str
+    """The study's folder under ``experiments/results``."""
+    table: str
+    """Its verdict table's file name."""
+    what: str
+    """What the line reports, after the study's name."""
+    families: tuple[str, ...]
+    """The algorithm families whose rows count (``ppo``, ``sac``, ``td3``)."""
+    seeds: int
+    """The seeds per arm the study's rules fix: a comparison counts once it has them all."""
+
+
+VERDICTS = (
+    StudyVerdicts(
+        "seeking",
+        "verdicts_first.md",
+        "envs where ESAPPO's shipped default is better, equal or worse than PPO over the "
+        "first third of training",
+        ("ppo",),
+        20,
+    ),
+    StudyVerdicts("seeking", "verdicts_whole.md", "the same over the whole run", ("ppo",), 20),
+    StudyVerdicts(
+        "confirmation",
+        "verdicts.md",
+        "envs where ESASAC's and ESATD3's shipped defaults are better, equal or worse than "
+        "SAC and TD3",
+        ("sac", "td3"),
+        20,
+    ),
+    StudyVerdicts(
+        "paper_regime",
+        "verdicts_whole.md",
+        "whether ESAPPO's shipped default is better, equal or worse than RL Zoo3's tuned "
+        "PPO over a million steps on Hopper-v5",
+        ("ppo",),
+        10,
+    ),
+)
+"""What the studies found for the shipped defaults, in the order the demo prints it."""
 
 
 class Evaluate(BaseCallback):
@@ -180,29 +224,22 @@ def print_table(results: list[dict], args: Args) -> None:
         f"ESAPPO's training time here: {seconds['ESAPPO'] / seconds['PPO']:.2f}x PPO's (ESA acts "
         "over the first half of training; BENCHMARKS.md has the measured overhead)."
     )
+    study_seeds = " or ".join(str(n) for n in sorted({v.seeds for v in VERDICTS}))
     print(
         f"With {args.seeds} seed{'s' if args.seeds > 1 else ''} a difference inside that spread "
-        "is noise; the studies below use 10 or 20 seeds per arm."
+        f"is noise; the studies below use {study_seeds} seeds per arm."
     )
 
 
-def verdict_line(
-    study: str, table: str, what: str, families: tuple[str, ...], seeds: int = STUDY_SEEDS
-) -> str:
+def verdict_line(verdicts: StudyVerdicts) -> str:
     """One line of a study's verdicts, counted from its committed table.
 
     Counts the envs where each family's ESA arm (``PPO+ESA``, or ``PPO+ESA (quadratic)``
     with its critic named) is better, equal or worse than that family's baseline (``PPO``,
     or ``PPO (RL Zoo3)`` with its settings named). Only comparisons with all their seeds
     count; the others are named as in progress.
-
-    Args:
-        study: The study's folder under ``experiments/results``.
-        table: Its verdict table's file name.
-        what: What the line reports, after the study's name.
-        families: The algorithm families whose rows count (``ppo``, ``sac``, ``td3``).
-        seeds: The seeds per arm the study's rules fix.
     """
+    study, table, what, families, seeds = verdicts
     path = RESULTS / study / table
     if not path.is_file():
         return f"{study}: no verdicts in this checkout yet (experiments/RESULTS.md says why)."
@@ -247,42 +284,8 @@ def main() -> None:
     )
     print()
     print_table(results, args)
-    print(
-        verdict_line(
-            "seeking",
-            "verdicts_first.md",
-            "envs where ESAPPO's shipped default is better, equal or worse than PPO over the "
-            "first third of training",
-            ("ppo",),
-        )
-    )
-    print(
-        verdict_line(
-            "seeking",
-            "verdicts_whole.md",
-            "the same over the whole run",
-            ("ppo",),
-        )
-    )
-    print(
-        verdict_line(
-            "confirmation",
-            "verdicts.md",
-            "envs where ESASAC's and ESATD3's shipped defaults are better, equal or worse than "
-            "SAC and TD3",
-            ("sac", "td3"),
-        )
-    )
-    print(
-        verdict_line(
-            "paper_regime",
-            "verdicts_whole.md",
-            "whether ESAPPO's shipped default is better, equal or worse than RL Zoo3's tuned "
-            "PPO over a million steps on Hopper-v5",
-            ("ppo",),
-            seeds=10,
-        )
-    )
+    for verdicts in VERDICTS:
+        print(verdict_line(verdicts))
     print(f"\nlearning curve: {out / 'learning_curve.png'}; raw numbers: {out / 'results.json'}")
 
 
