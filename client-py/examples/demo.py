@@ -285,8 +285,9 @@ def main() -> None:
     )
     print()
     print_table(results, args)
-    for verdicts in VERDICTS:
-        print(verdict_line(verdicts))
+    # dict.fromkeys keeps the order and prints a study without verdicts yet once, not per table.
+    for line in dict.fromkeys(map(verdict_line, VERDICTS)):
+        print(line)
     print(f"\nlearning curve: {out / 'learning_curve.png'}; raw numbers: {out / 'results.json'}")
 
 
