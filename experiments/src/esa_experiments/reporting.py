@@ -101,6 +101,23 @@ def rl_section(
     return f"![{store.study}]({store.relative(figure)})\n\n{table}\n"
 
 
+def verdicts_markdown(table: pd.DataFrame) -> str:
+    """A verdict table as Markdown, or a sentence saying there is none yet."""
+    return to_markdown(table) if not table.empty else "(no comparison has two seeds yet)"
+
+
+def write_verdicts(store: RunStore, primary: pd.DataFrame, whole: pd.DataFrame) -> tuple[str, str]:
+    """Writes a study's full verdict tables and returns their Markdown.
+
+    The files are ``verdicts_first.md`` (the primary metric, the first third of the budget)
+    and ``verdicts_whole.md``; ``client-py/examples/demo.py`` reads them by these names.
+    """
+    first, overall = verdicts_markdown(primary), verdicts_markdown(whole)
+    for name, markdown in (("first", first), ("whole", overall)):
+        atomic_write_text(store.artifact(f"verdicts_{name}.md"), markdown + "\n")
+    return first, overall
+
+
 def update_results(study: str, section: str, store: RunStore) -> Path:
     """Puts a study's generated section into RESULTS.md (full budget) or next to its results."""
     if store.budget != "full":

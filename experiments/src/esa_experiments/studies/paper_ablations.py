@@ -53,9 +53,9 @@ import pandas as pd
 
 from esa_experiments.algorithms import LABELS as METHOD_LABELS
 from esa_experiments.plotting import Panel
-from esa_experiments.reporting import budget_table, rl_section
+from esa_experiments.reporting import budget_table, rl_section, verdicts_markdown, write_verdicts
 from esa_experiments.reuse import Reuse, load_runs, provenance_table, to_run
-from esa_experiments.runs import RunSpec, RunStore, atomic_write_text
+from esa_experiments.runs import RunSpec, RunStore
 from esa_experiments.studies import paper_figures, seeking
 from esa_experiments.tables import to_markdown
 from esa_experiments.training import StepBudget, rl_spec, run_training
@@ -243,14 +243,13 @@ def report(store: RunStore, args: Args) -> str:
     )
     primary = verdict_table(first_third(frame, args), ENVS, COMPARISONS, labels)
     whole = verdict_table(frame, ENVS, COMPARISONS, labels)
-    for name, table in (("first", primary), ("whole", whole)):
-        atomic_write_text(store.artifact(f"verdicts_{name}.md"), to_markdown(table) + "\n")
+    write_verdicts(store, primary, whole)
     compact = compact_table(primary, whole)
     return "\n".join(
         [
             section,
             "Each variant against the default (E2's statistics; Holm within each panel):\n\n"
-            + (to_markdown(compact) if not compact.empty else "(no comparison has two seeds yet)")
+            + verdicts_markdown(compact)
             + "\n",
             outcome(primary, whole),
             "Where each run comes from:\n\n"

@@ -84,9 +84,9 @@ from esa_experiments.envs.trajectory_plot import plot_tracking
 from esa_experiments.evaluation import EVAL_SEED_OFFSET, ProgressFn
 from esa_experiments.plotting import Panel
 from esa_experiments.reliability import probability_of_improvement
-from esa_experiments.reporting import budget_table, rl_section
+from esa_experiments.reporting import budget_table, rl_section, verdicts_markdown, write_verdicts
 from esa_experiments.reuse import Reuse, load_runs, provenance_table, rerun_table, to_run
-from esa_experiments.runs import RunResult, RunSpec, RunStore, atomic_write_text, parse_seeds
+from esa_experiments.runs import RunResult, RunSpec, RunStore, parse_seeds
 from esa_experiments.studies import seeking
 from esa_experiments.tables import to_markdown
 from esa_experiments.tasks import get_task
@@ -410,13 +410,12 @@ def report(store: RunStore, args: Args) -> str:
         inline=False,
     )
     primary, whole = verdicts(frame, args)
-    for name, table in (("first", primary), ("whole", whole)):
-        atomic_write_text(store.artifact(f"verdicts_{name}.md"), to_markdown(table) + "\n")
+    write_verdicts(store, primary, whole)
     compact = compact_table(primary, whole)
     text = [
         section,
         "Figure 5, verdicts (E2's statistics; Holm within each algorithm and env):\n\n"
-        + (to_markdown(compact) if not compact.empty else "(no comparison has two seeds yet)")
+        + verdicts_markdown(compact)
         + "\n",
         outcome(primary, whole, frame),
         figure4(store),

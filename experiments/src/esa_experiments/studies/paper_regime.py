@@ -59,10 +59,9 @@ from typing import Any
 import pandas as pd
 
 from esa_experiments.plotting import Panel
-from esa_experiments.reporting import budget_table, rl_section
-from esa_experiments.runs import RunSpec, RunStore, atomic_write_text
+from esa_experiments.reporting import budget_table, rl_section, write_verdicts
+from esa_experiments.runs import RunSpec, RunStore
 from esa_experiments.studies import seeking
-from esa_experiments.tables import to_markdown
 from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
 from esa_experiments.verdicts import Comparison, verdict_table
 
@@ -154,9 +153,7 @@ def report(store: RunStore, args: Args) -> str:
         "whole curve (secondary)": verdict_table(frame, ENVS, COMPARISONS, LABELS),
     }
     text = [section]
-    for name, table in tables.items():
-        markdown = to_markdown(table) if not table.empty else "(no comparison has two seeds yet)"
-        atomic_write_text(store.artifact(f"verdicts_{name.split()[0]}.md"), markdown + "\n")
+    for name, markdown in zip(tables, write_verdicts(store, *tables.values()), strict=True):
         text.append(f"Verdicts, AUC over the {name}:\n\n{markdown}\n")
     text.append(outcome(tables["first third (primary)"], tables["whole curve (secondary)"]))
     text.append(f"Budget (per run):\n\n{budget_table(args.budgets)}\n")

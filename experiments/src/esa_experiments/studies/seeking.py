@@ -63,9 +63,8 @@ import pandas as pd
 
 from esa_experiments.algorithms import LABELS, seeking_methods
 from esa_experiments.plotting import Panel
-from esa_experiments.reporting import budget_table, rl_section
-from esa_experiments.runs import EXPERIMENTS_DIR, RunSpec, RunStore, atomic_write_text
-from esa_experiments.tables import to_markdown
+from esa_experiments.reporting import budget_table, rl_section, verdicts_markdown, write_verdicts
+from esa_experiments.runs import EXPERIMENTS_DIR, RunSpec, RunStore
 from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
 from esa_experiments.verdicts import Comparison, compact_table, verdict_table
 
@@ -250,17 +249,12 @@ def report(store: RunStore, args: Args) -> str:
         ),
         "whole curve (secondary)": verdict_table(frame, ENVS, COMPARISONS, labels),
     }
-    for name, table in tables.items():
-        markdown = to_markdown(table) if not table.empty else "(no comparison has two seeds yet)"
-        # The full tables (client-py/examples/demo.py reads them by these names).
-        atomic_write_text(store.artifact(f"verdicts_{name.split()[0]}.md"), markdown + "\n")
+    write_verdicts(store, *tables.values())
     compact = compact_table(*tables.values())
     text = [
         section,
         "Verdicts (P(arm better) with its 95 % CI, two-sided Mann-Whitney p Holm-corrected "
-        "within each family and metric):\n\n"
-        + (to_markdown(compact) if not compact.empty else "(no comparison has two seeds yet)")
-        + "\n",
+        "within each family and metric):\n\n" + verdicts_markdown(compact) + "\n",
     ]
     text.append(
         outcomes(tables["first third (primary)"], tables["whole curve (secondary)"], labels, picks)
