@@ -1,12 +1,13 @@
-"""Summary statistics and the RESULTS.md section update."""
+"""Summary statistics, the report helpers' tables and the RESULTS.md section update."""
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from esa_experiments.reporting import update_results
+from esa_experiments.reporting import budget_table, update_results, write_verdicts
 from esa_experiments.runs import RunStore
 from esa_experiments.tables import summary, to_markdown
+from esa_experiments.training import StepBudget
 
 
 def curve(method, seed, returns, seconds):
@@ -86,3 +87,18 @@ def test_threshold_never_reached(returns):
 def test_a_pipe_inside_a_cell_is_escaped():
     text = to_markdown(pd.DataFrame({"KL(b || pi)": ["|v|"]}))
     assert text == "| KL(b \\|\\| pi) |\n|---|\n| \\|v\\| |"
+
+
+def test_budget_table_shows_no_interval_for_a_family_not_trained():
+    table = budget_table({"E": StepBudget(1_000_448, 0, 16_384, 1, 3)})
+    assert table.splitlines()[-1] == "| E | 1,000,448 | 0 | 16,384 / - | 3 |"
+
+
+def test_write_verdicts_writes_both_tables_and_says_when_one_is_empty(tmp_path):
+    store = RunStore("study", "full", base=tmp_path)
+    primary = pd.DataFrame({"env": ["E"], "verdict": ["equal"]})
+    first, whole = write_verdicts(store, primary, pd.DataFrame())
+    assert first == to_markdown(primary)
+    assert whole == "(no comparison has two seeds yet)"
+    assert (store.dir / "verdicts_first.md").read_text() == first + "\n"
+    assert (store.dir / "verdicts_whole.md").read_text() == whole + "\n"

@@ -31,13 +31,15 @@ def budget_table(budgets: Mapping[str, StepBudget]) -> str:
     ]
     for env, b in budgets.items():
         # A family the study does not train has no evaluation interval to show.
-        every = [
-            f"{every:,}" if steps else "-"
-            for steps, every in ((b.on_policy, b.eval_every_on), (b.off_policy, b.eval_every_off))
-        ]
+        on, off = (
+            f"{interval:,}" if steps else "-"
+            for steps, interval in (
+                (b.on_policy, b.eval_every_on),
+                (b.off_policy, b.eval_every_off),
+            )
+        )
         lines.append(
-            f"| {env} | {b.on_policy:,} | {b.off_policy:,} | "
-            f"{every[0]} / {every[1]} | {b.eval_episodes} |"
+            f"| {env} | {b.on_policy:,} | {b.off_policy:,} | {on} / {off} | {b.eval_episodes} |"
         )
     return "\n".join(lines)
 
