@@ -46,7 +46,8 @@ def sibling(name: str) -> ModuleType:
 
 
 assert_bits_equal = sibling("test_native").assert_bits_equal
-landscape, run_batch = sibling("test_section_1b").landscape, sibling("test_section_1b").run_batch
+_bounded_law = sibling("test_bounded_law")
+landscape, run_batch = _bounded_law.landscape, _bounded_law.run_batch
 _zenoh_parity = sibling("test_zenoh_parity")
 session_script, batch_script = _zenoh_parity.session_script, _zenoh_parity.batch_script
 

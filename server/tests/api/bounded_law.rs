@@ -1,9 +1,11 @@
-//! CONTRACT.md section 1b over every transport: gRPC unary (Probe/Report per
-//! session), gRPC batch (ProbeBatch/ReportBatch), the StepStream and Zenoh
-//! queries. On each: the answers equal `esa_core` run directly (the oracle) on
-//! random configs, normalized sessions give the same actions for Q and
-//! c1 * Q + c0, v never leaves the trust region whatever Q reports, and every
-//! bad value is INVALID_ARGUMENT with nothing changed.
+//! The bounded, scale-free law (CONTRACT.md section 1b: Algorithm 1's applied
+//! action, action scales, paired references, the trust region) over every
+//! transport: gRPC unary (Probe/Report per session), gRPC batch
+//! (ProbeBatch/ReportBatch), the StepStream and Zenoh queries. On each: the
+//! answers equal `esa_core` run directly (the oracle) on random configs,
+//! normalized sessions give the same actions for Q and c1 * Q + c0, v never
+//! leaves the trust region whatever Q reports, and every bad value is
+//! INVALID_ARGUMENT with nothing changed.
 
 use esa_core::Session;
 use esa_server::convert::config_from_proto;
@@ -250,7 +252,7 @@ fn landscape(u: &[f64], level: f64) -> f64 {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn section_1b_matches_the_core_over_every_transport() {
+async fn bounded_law_matches_the_core_over_every_transport() {
     let both = start_both(PREFIX).await;
     let mut grpc = both.grpc.client().await;
     let mut rng = Rng(0x51b_2024_cafe_f00d);
@@ -661,7 +663,7 @@ fn bad_configs() -> Vec<(&'static str, pb::SessionConfig)> {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn every_bad_section_1b_value_is_invalid_argument_and_changes_nothing_over_every_transport() {
+async fn every_bad_value_is_invalid_argument_and_changes_nothing_over_every_transport() {
     let both = start_both(PREFIX).await;
     let mut grpc = both.grpc.client().await;
     for (w, mut wire) in wires(&both).await.into_iter().enumerate() {

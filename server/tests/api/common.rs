@@ -422,7 +422,7 @@ impl Rng {
         lo + (hi - lo) * self.next_f64()
     }
 
-    // Only section 1b, compiled with the Zenoh feature, flips coins.
+    // Only bounded_law, compiled with the Zenoh feature, flips coins.
     #[cfg(feature = "zenoh")]
     pub fn coin(&mut self) -> bool {
         self.next_f64() < 0.5

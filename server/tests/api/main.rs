@@ -5,6 +5,9 @@
 mod auth;
 mod batch;
 mod binary;
+// The bounded law (CONTRACT.md section 1b) over every wire, Zenoh among them.
+#[cfg(feature = "zenoh")]
+mod bounded_law;
 mod common;
 mod errors;
 mod fused_step;
@@ -13,9 +16,6 @@ mod lifecycle;
 mod limits;
 mod memory;
 mod robustness;
-// Section 1b over every wire, Zenoh among them.
-#[cfg(feature = "zenoh")]
-mod section_1b;
 mod state_file;
 mod stream;
 mod tls;

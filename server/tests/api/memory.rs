@@ -217,9 +217,9 @@ async fn the_session_memory_budget_is_resource_exhausted_and_freed_by_close() {
 }
 
 /// Under a 1.5 GiB address-space limit, D = 4096 sessions are created until
-/// the server answers RESOURCE_EXHAUSTED (it used to abort after about 5,000,
-/// losing every session); the server keeps serving, and its memory stays
-/// within the limit.
+/// the server answers RESOURCE_EXHAUSTED rather than abort (which would lose
+/// every session); the server keeps serving, and its memory stays within the
+/// limit.
 #[tokio::test]
 async fn big_sessions_under_a_memory_limit_end_in_resource_exhausted_not_an_abort() {
     let limit_kib = 1_536 * 1024;
