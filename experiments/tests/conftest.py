@@ -5,6 +5,6 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 # torch loads torch._dynamo (and triton's native libraries) lazily, at the first optimizer it
-# builds; doing that while an earlier test's gRPC threads are still alive segfaulted (as in
+# builds; doing that while an earlier test's gRPC threads are still alive can segfault (as in
 # esa_client.sb3), so the test session loads it before any channel exists.
 import torch._dynamo  # noqa: E402, F401  (imported for its side effect)

@@ -60,7 +60,7 @@ def test_the_step_inputs_are_numpys_units_and_the_critic_bit_for_bit(head):
     std = rng.uniform(0.1, 1.0, size=(4, 2)).astype(np.float32)
     mlp = head.snapshot(CENTER, HALF_WIDTH)
     scaled, gain, offset, units = mlp.step_inputs(features, sample, mean, std)
-    # What ESAPPO computed in numpy before: the same float64 operations, so the same bits.
+    # The numpy reference: the same float64 operations, so the same bits.
     np.testing.assert_array_equal(scaled, (sample.astype(np.float64) - CENTER) / HALF_WIDTH)
     want_gain, want_offset = mlp.critic(features, mean, std)
     np.testing.assert_array_equal(gain, want_gain)
@@ -76,8 +76,8 @@ def test_the_step_inputs_are_numpys_units_and_the_critic_bit_for_bit(head):
 
 @pytest.mark.parametrize("box_dtype", [np.float16, np.float32, np.float64])
 def test_the_std_in_esa_units_is_numpys_for_the_boxs_dtype(head, box_dtype):
-    # ESAPPO divided the float32 std by the Box's half-width in numpy (in float32 for a
-    # float32 or float16 Box), then the runtime floored it at float32's smallest normal.
+    # The numpy reference: the float32 std divided by the Box's half-width (in float32 for a
+    # float32 or float16 Box), floored at float32's smallest normal.
     half_width = np.array([3.0, 0.1], dtype=box_dtype)
     mlp = head.snapshot(CENTER, half_width)
     rng = np.random.default_rng(4)
@@ -103,7 +103,7 @@ def test_the_shift_and_the_executed_action_are_numpys_bit_for_bit(head, box_dtyp
         scaled = (sample.astype(np.float64) - CENTER) / half_width
         applied = scaled + rng.normal(size=(4, 2)) * 10.0 ** rng.integers(-9, 1)
         shift = mlp.shift(scaled, applied)
-        # What ESAPPO computed in numpy before.
+        # The numpy reference.
         np.testing.assert_array_equal(shift, (applied - scaled) * half_width)
         executed = mlp.executed(sample, shift)
         assert executed.dtype == np.float32

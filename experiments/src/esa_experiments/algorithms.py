@@ -11,15 +11,15 @@ ESA methods use one preset, the same on every env (no per-env tuning): ``default
 family's ``EsaConfig.off_policy()``, ``null`` ``EsaConfig()`` with learning rate 0 (the
 shift stays 0: E1's critic fits), ``sine`` the off-policy default with learning rate 0
 (with ``esa_execute='probe'``: exploration by the sinusoid alone), ``target`` the PPO
-target mode's setting (picked by the former ``target_search`` on InvertedPendulum-v5
-tuning seeds), ``seeking_off_policy`` the
+target mode's setting (the pick of the archived study ``target_search``, on
+InvertedPendulum-v5 tuning seeds: ``results/target_search``), ``seeking_off_policy`` the
 off-policy default faded over ``SEEKING_FADE`` of the budget (study ``seeking``). A
 method's ``options`` are further drop-in arguments: the gradient controls
 (``esa_shift='gradient'``: the same bound, normalisation and gate, the shift along the
 critic's action gradient), the placebos (``esa_shift='placebo'``: ESA's shift sizes in
-random directions), the mean anchor (``esa_anchor='mean'``) and the target mode. The
-options are stored in each run's sidecar as the drop-ins once took them; today each names
-a subclass of :mod:`esa_experiments.lab` (:func:`esa_class`). The matched-noise arms are
+random directions), the mean anchor (``esa_anchor='mean'``) and the target mode. Each
+run's sidecar stores its options (:data:`OPTION_DEFAULTS`); together they name a subclass
+of :mod:`esa_experiments.lab` (:func:`esa_class`). The matched-noise arms are
 plain TD3 whose noise has the variance of ``td3_sine``'s
 executed probe (``noise_match``).
 
@@ -213,15 +213,6 @@ GRADIENT_CONTROL_OF = {
 }
 """The gradient control of an ESA method: ESC is credited only where it beats it."""
 
-PLACEBO_OF = {
-    "sac_esa": "sac_placebo",
-    "sac_esa_fade": "sac_placebo",
-    "td3_esa": "td3_placebo",
-    "td3_esa_fade": "td3_placebo",
-}
-"""The placebo of an ESA method (ESA's shift sizes in random directions): direction is
-credited only where ESC beats it. Keyed by method and by study ``seeking``'s arm names."""
-
 SEEKING_OFF_POLICY_ARMS = {
     "sac": "sac",
     "sac_esa": "sac_esa_fade",
@@ -296,8 +287,8 @@ def seeking_methods(family: str, learner: str) -> dict[str, str]:
     }
 
 
-ADDED_FIELDS = ("fade",)
-"""``EsaConfig`` fields added after the confirmation campaign (None = unset, not stored)."""
+OPTIONAL_FIELDS = ("fade",)
+"""``EsaConfig`` fields a run's config holds only when set (None = unset, not stored)."""
 
 
 def esa_preset(name: str) -> dict[str, Any]:
@@ -318,9 +309,9 @@ def esa_preset(name: str) -> dict[str, Any]:
         "seeking_ppo": EsaConfig(fade=SEEKING_FADE),
     }
     fields = dataclasses.asdict(lookup(presets, name, "an ESA preset"))
-    # Fields EsaConfig gained after runs were stored join a run's config only when set, so
-    # that the finished runs' fingerprints (and with them their results) stay valid.
-    return {k: v for k, v in fields.items() if not (k in ADDED_FIELDS and v is None)}
+    # OPTIONAL_FIELDS join a run's config only when set: the committed runs' configs lack them,
+    # so leaving them out keeps those runs' fingerprints (and with them their results).
+    return {k: v for k, v in fields.items() if not (k in OPTIONAL_FIELDS and v is None)}
 
 
 def matched_noise_sigma(sigma: float, preset: str) -> float:
@@ -433,7 +424,7 @@ def build_model(method: str, env: GymEnv, seed: int, hyperparams: dict[str, Any]
     return cls("MlpPolicy", env, **kwargs, **hp)
 
 
-LEGACY_OPTIONS = {
+OPTION_DEFAULTS = {
     "esa_critic": "linear",
     "esa_objective": "clip",
     "esa_mode": "behaviour",
@@ -442,9 +433,9 @@ LEGACY_OPTIONS = {
     "esa_execute": "shifted",
     "esa_probe_critic": "target_mean",
 }
-"""The drop-ins' options as the studies stored them (a run's ``esa_options``), with the
-defaults they had then: an option a run does not name had its default. The product has
-none of them now; :mod:`esa_experiments.lab` holds each arm as a subclass."""
+"""The options a run may store (its ``esa_options``), each with the value a run that does not
+name it ran with. None of them is an option of the product's drop-ins:
+:mod:`esa_experiments.lab` holds each arm as a subclass (:func:`esa_class`)."""
 
 
 def esa_class(family: str, options: dict[str, Any]) -> tuple[type[BaseAlgorithm], str | None]:
@@ -456,10 +447,10 @@ def esa_class(family: str, options: dict[str, Any]) -> tuple[type[BaseAlgorithm]
     from esa_experiments.lab.off_policy_arms import off_policy_class
     from esa_experiments.lab.ppo_arms import esappo_class
 
-    unknown = sorted(set(options) - {*LEGACY_OPTIONS, "esa_target_weight"})
+    unknown = sorted(set(options) - {*OPTION_DEFAULTS, "esa_target_weight"})
     if unknown:
-        raise ValueError(f"expected options among {sorted(LEGACY_OPTIONS)}, got {unknown}")
-    o = {**LEGACY_OPTIONS, **options}
+        raise ValueError(f"expected options among {sorted(OPTION_DEFAULTS)}, got {unknown}")
+    o = {**OPTION_DEFAULTS, **options}
     shift = o["esa_shift"]
     if shift not in ("esc", "gradient", "placebo"):
         raise ValueError(f"expected esa_shift in ('esc', 'gradient', 'placebo'), got {shift!r}")

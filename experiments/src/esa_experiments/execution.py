@@ -92,8 +92,9 @@ def _import_run_code(studies: list[str]) -> None:
     """Imports the trainers and the runs' studies when the worker starts, not at its first run.
 
     Their imports are otherwise lazy, so a runner going for hours would load code from the
-    working tree as it is at each worker's first run of a kind: once, nine runs failed at
-    0 s on a file caught half-edited. Now a worker runs the code of its start throughout.
+    working tree as it is at each worker's first run of a kind, and a file caught
+    half-edited would fail runs at 0 s. Imported here, a worker runs the code of its start
+    throughout.
     """
     import esa_client.sb3  # noqa: F401
 

@@ -60,7 +60,7 @@ def learning_curves(
     """Evaluation return vs environment steps, one subplot per panel.
 
     Each method's curve is the IQM over seeds with its 95 % stratified-bootstrap CI
-    (``reliability.iqm_curve``), the statistic the verdicts use.
+    (``reliability.iqm_curve``).
 
     Args:
         frame: finished runs (``RunStore.load``) with ``step`` and ``return_mean``.

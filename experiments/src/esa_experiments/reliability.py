@@ -1,45 +1,25 @@
-"""Per-env statistics the way the field now expects them (Agarwal et al., NeurIPS 2021).
+"""Bootstrap statistics of runs over seeds, with ``rliable`` (Agarwal et al., NeurIPS 2021).
 
-With ``rliable``, per (env, method), over the seeds:
-
-* IQM and mean of the AUC (average evaluation return over training), each with a
-  95 % stratified-bootstrap confidence interval;
-* the probability that a run of the method beats a run of its baseline
-  (``P(X > Y)`` on AUC, ties counted half), with its bootstrap CI;
-* a verdict: **better** when that CI lies above 0.5, **worse** when it lies below,
-  **equal** otherwise (no significant difference at this number of seeds).
-
-The learning-curve figures draw the same IQM and CI at every evaluation (``iqm_curve``).
+* ``probability_of_improvement``: the probability that a run of one method beats a run of
+  another (``P(X > Y)``, ties counted half), with its 95 % stratified-bootstrap CI;
+* ``verdict``: **better** when that CI lies above 0.5, **worse** when it lies below,
+  **equal** otherwise (no significant difference at this number of seeds);
+* ``iqm_curve``: the IQM over runs at every evaluation of a learning curve, with its 95 %
+  stratified-bootstrap CI, as the learning-curve figures draw it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-
 import numpy as np
-import pandas as pd
 from rliable import library as rly
 from rliable import metrics
 from scipy.stats import trim_mean
-
-from esa_experiments.algorithms import BASELINE_OF, LABELS
-from esa_experiments.runs import RunStore
-from esa_experiments.tables import per_seed, to_markdown
 
 REPS = 2000
 """Bootstrap resamples (rliable's default is 50,000; 2,000 keeps the report fast)."""
 
 SEED = 0
 """The bootstrap's random seed: the statistics are reproducible from the CSVs."""
-
-
-def _interval(
-    scores: np.ndarray, aggregate: Callable[[np.ndarray], float]
-) -> tuple[float, float, float]:
-    point, ci = rly.get_interval_estimates(
-        {"m": scores[:, None]}, lambda x: np.array([aggregate(x)]), reps=REPS
-    )
-    return float(point["m"][0]), float(ci["m"][0, 0]), float(ci["m"][1, 0])
 
 
 def _iqm_per_point(scores: np.ndarray) -> np.ndarray:
@@ -52,9 +32,9 @@ def _iqm_per_point(scores: np.ndarray) -> np.ndarray:
 def iqm_curve(scores: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """IQM over runs at every point of a curve, with its 95 % stratified-bootstrap CI.
 
-    The statistic of the verdicts, pointwise: rliable's percentile bootstrap with ``REPS``
-    resamples, seeded with ``SEED`` on every call (so a figure does not depend on what was
-    drawn before it). A resample draws whole runs, as rliable's sample-efficiency curves do.
+    rliable's percentile bootstrap with ``REPS`` resamples, seeded with ``SEED`` on every
+    call (so a figure does not depend on what was drawn before it). A resample draws whole
+    runs, as rliable's sample-efficiency curves do.
 
     Args:
         scores: shape (runs, points), finite: one row per seed, one column per x value.
@@ -93,67 +73,3 @@ def verdict(low: float, high: float) -> str:
     if high < 0.5:
         return "worse"
     return "equal"
-
-
-def statistics(
-    frame: pd.DataFrame,
-    envs: Sequence[str],
-    methods: Sequence[str],
-    labels: Mapping[str, str] = LABELS,
-    baselines: Mapping[str, str] = BASELINE_OF,
-) -> pd.DataFrame:
-    """One row per (env, method) with finished runs: IQM, mean, P(improvement), verdict."""
-    np.random.seed(SEED)  # rliable's bootstrap draws from numpy's global generator
-    auc: dict[tuple[str, str], np.ndarray] = {}
-    for env in envs:
-        for method in methods:
-            runs = frame[(frame.env == env) & (frame.method == method)]
-            if not runs.empty:
-                auc[env, method] = per_seed(runs, np.nan).auc.to_numpy(float)
-    rows = []
-    for (env, method), scores in auc.items():
-        iqm = _interval(scores, metrics.aggregate_iqm)
-        mean = _interval(scores, metrics.aggregate_mean)
-        row = {
-            "env": env,
-            "method": labels.get(method, method),
-            "seeds": len(scores),
-            "IQM AUC [95% CI]": f"{iqm[0]:.1f} [{iqm[1]:.1f}, {iqm[2]:.1f}]",
-            "mean AUC [95% CI]": f"{mean[0]:.1f} [{mean[1]:.1f}, {mean[2]:.1f}]",
-            "P(better than base) [95% CI]": "",
-            "verdict": "",
-        }
-        base = baselines.get(method)
-        if base is not None and (env, base) in auc:
-            p, low, high = probability_of_improvement(scores, auc[env, base])
-            row["P(better than base) [95% CI]"] = f"{p:.2f} [{low:.2f}, {high:.2f}]"
-            word = verdict(low, high)
-            relation = "to" if word == "equal" else "than"
-            row["verdict"] = f"**{word}** {relation} {labels.get(base, base)}"
-        rows.append(row)
-    return pd.DataFrame(rows)
-
-
-def reliability_section(
-    store: RunStore,
-    envs: Sequence[str],
-    methods: Sequence[str],
-    labels: Mapping[str, str] | None = None,
-    baselines: Mapping[str, str] | None = None,
-) -> str:
-    """The Markdown statistics table of a study (also written to ``statistics.md``)."""
-    frame = store.load()
-    table = to_markdown(
-        statistics(
-            frame, envs, methods, {**LABELS, **(labels or {})}, {**BASELINE_OF, **(baselines or {})}
-        )
-    )
-    text = (
-        "Per env, over seeds (`rliable`, 95 % stratified-bootstrap CIs, "
-        f"{REPS} resamples, seed {SEED}); AUC = average evaluation return over training; "
-        "P(better than base) = probability that a run beats a run of the baseline on AUC; "
-        "verdict: better / worse when that CI excludes 0.5, else equal:\n\n"
-        f"{table}\n"
-    )
-    (store.artifact("statistics.md")).write_text(table + "\n")
-    return text

@@ -22,7 +22,7 @@ from rliable import library as rly
 from rliable import metrics
 from scipy.stats import mannwhitneyu
 
-from esa_experiments.reliability import REPS, SEED, probability_of_improvement
+from esa_experiments.reliability import REPS, SEED, probability_of_improvement, verdict
 from esa_experiments.tables import per_seed
 
 ALPHA = 0.05
@@ -147,7 +147,7 @@ def aggregate_table(
                 "P(arm better) over envs [95% CI]": (
                     f"{float(point['pair'][0]):.2f} [{low:.2f}, {high:.2f}]"
                 ),
-                "CI verdict": "better" if low > 0.5 else "worse" if high < 0.5 else "equal",
+                "CI verdict": verdict(low, high),
             }
         )
     return pd.DataFrame(rows)
@@ -217,9 +217,9 @@ VERDICT_COLUMNS = ("mean AUC (arm / reference)", "P(arm better) [95% CI]", "Holm
 
 def _brief(row: pd.Series, suffix: str) -> str:
     """One metric's verdict in a cell: mean AUCs, P(arm better) with its CI, Holm p, verdict."""
-    auc, p_better, holm_p, verdict = (row[f"{column}{suffix}"] for column in VERDICT_COLUMNS)
+    auc, p_better, holm_p, word = (row[f"{column}{suffix}"] for column in VERDICT_COLUMNS)
     arm, reference = (float(x) for x in str(auc).split(" / "))
-    return f"{arm:.0f} vs {reference:.0f}, P = {p_better}, p = {holm_p}: {verdict}"
+    return f"{arm:.0f} vs {reference:.0f}, P = {p_better}, p = {holm_p}: {word}"
 
 
 def compact_table(primary: pd.DataFrame, whole: pd.DataFrame) -> pd.DataFrame:

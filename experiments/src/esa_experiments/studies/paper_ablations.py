@@ -23,8 +23,8 @@ Rules, fixed and committed before the first run:
     a policy that falls often decays its ESA faster, so two such arms at one step have
     decayed by different amounts; the fade, tied to the budget, does not.
 * **Reused runs.** ``ppo`` and ``ppo_esa`` are E2's runs of seeds 0-4 (``results/seeking``,
-  the same fingerprints, commit ``51cada4``: see ``paper_figures`` on what that means); the
-  variants run here, from main.
+  the same fingerprints, from E2's code: ``PROVENANCE.md`` names it, and ``paper_figures``
+  says what that means); the variants run here, from main.
 * **Env and budget** E2's InvertedPendulum-v5: 30,720 steps, 5 deterministic evaluation
   episodes every 2,048 steps.
 * **Seeds** 0-4 for every arm (the paper's 5), all run, none dropped, no optional stopping.

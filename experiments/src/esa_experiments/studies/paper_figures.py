@@ -30,11 +30,11 @@ Rules, fixed and committed before the first run:
   Hopper-v5 from E2 (``results/seeking``), ``sac`` and ``sac_esa`` on Hopper-v5 and
   Quadrotor-eight from the confirmation campaign (``results/confirmation``). A run the source
   lacks or holds with other settings is run here. Equal settings are not equal code: E2's
-  PPO+ESA runs came from commit ``51cada4``, whose quadratic head evaluated in float32;
-  main evaluates it in esa-core's float64 closed form, so main's runs of that arm depart
-  from E2's within the run (seed 0 on InvertedPendulum-v5: the same curve to step 10,240,
-  then 90.0 against 90.2 at 12,288; ``results/seeking/PROVENANCE.md``). The report names
-  the source of every run.
+  PPO+ESA runs evaluated the quadratic head in float32 (``PROVENANCE.md`` names their
+  code); main evaluates it in esa-core's float64 closed form, so main's runs of that arm
+  depart from E2's within the run (seed 0 on InvertedPendulum-v5: the same curve to step
+  10,240, then 90.0 against 90.2 at 12,288; ``results/seeking/PROVENANCE.md``). The report
+  names the source of every run.
 * **Figure 4.** ``ppo`` and ``ppo_esa`` on Quadrotor-eight are run here, not reused, because
   the figure needs the trained policies and E2 kept none: after training, each policy's mean
   (deterministic) flies one evaluation episode (reset seed ``10000 + seed``), whose

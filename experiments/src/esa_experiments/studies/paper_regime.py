@@ -2,7 +2,7 @@
 
 Rules, fixed and committed before the first run:
 
-* **Question.** Every efficacy verdict before this study is about PPO at 30,720-100,352
+* **Question.** The other studies' efficacy verdicts are all about PPO at 30,720-100,352
   steps with this suite's untuned settings, which RL Zoo3's tuned PPO beats (study
   ``zoo_baselines``). The paper's claim concerns standard PPO trained to convergence. Does
   ESA, as shipped, speed up a well-tuned PPO there, and does it harm it anywhere?

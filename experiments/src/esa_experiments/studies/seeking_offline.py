@@ -78,8 +78,6 @@ FAMILY = {**{learner: "ppo" for learner in PPO_LEARNERS}, "sac": "off_policy"}
 DEFAULT_SEEDS = "100"
 CHECKPOINTS = (0.1, 0.3, 0.5)
 MIN_ENVS = 2
-COMPARED = ("esc", "placebo", "gradient")
-"""The shifts a row compares, in the order the analysis unpacks them."""
 BOOTSTRAP = 2000
 
 
