@@ -1,18 +1,18 @@
-"""The lab's linear advantage head: the Rust copy a rollout step uses, the fit's gradients.
+"""The lab's linear advantage head: the snapshot a rollout step uses, the fit's gradients.
 
-Both replace torch code for speed and must compute the same function: the copy ``w(s)`` and
-its critic agree with the torch head to float32 precision, the gradients agree with
-autograd's, and bad shapes are refused with a ``ValueError``.
+Both replace torch code for speed and must compute the same function: the snapshot's
+``w(s)`` and its critic agree with the torch head to float32 precision, the gradients agree
+with autograd's, and bad shapes are refused with a ``ValueError``. The snapshot also keeps
+its own bits: each layer's sum in order in float32, the C library's tanh.
 """
 
 import numpy as np
 import pytest
 import torch as th
-from esa_client._native import AdvantageMlp
 from esa_client.sb3 import EsaConfig
 from torch.nn import functional as F
 
-from esa_experiments.lab.linear_head import AdvantageHead, _gradients
+from esa_experiments.lab.linear_head import AdvantageHead, HeadSnapshot, _c_tanhf, _gradients
 from esa_experiments.lab.ppo_arms import esappo_class
 
 LinearESAPPO = esappo_class(critic="linear", objective="clip")
@@ -28,7 +28,7 @@ def head() -> AdvantageHead:
 CENTER, HALF_WIDTH = np.array([0.5, -1.0]), np.array([2.0, 0.25])
 
 
-def test_the_rust_copy_computes_the_torch_heads_w_and_critic(head):
+def test_the_snapshot_computes_the_torch_heads_w_and_critic(head):
     rng = np.random.default_rng(0)
     features = rng.normal(size=(7, 5)).astype(np.float32)
     mlp = head.snapshot(CENTER, HALF_WIDTH)
@@ -51,6 +51,31 @@ def test_the_rust_copy_computes_the_torch_heads_w_and_critic(head):
     # Strided views are read as they are.
     wide = np.repeat(features, 2, axis=1)[:, ::2]
     np.testing.assert_array_equal(mlp.weights(wide), w)
+
+
+def test_each_layer_sums_its_inputs_in_order_in_float32(head):
+    # The snapshot's bits, one value at a time: products and sums in float32, left to
+    # right, then the bias; the C library's tanh between layers.
+    rng = np.random.default_rng(5)
+    features = (rng.normal(size=(3, 5)) * 4).astype(np.float32)
+    layers = [
+        (layer.weight.detach().numpy(), layer.bias.detach().numpy()) for layer in head._linears
+    ]
+    tanh = _c_tanhf()
+    want = []
+    for row in features:
+        hidden = list(row)
+        for index, (weight, bias) in enumerate(layers):
+            out = []
+            for weights_row, b in zip(weight, bias, strict=True):
+                total = np.float32(-0.0)
+                for w, x in zip(weights_row, hidden, strict=True):
+                    total = np.float32(total + np.float32(w * x))
+                out.append(np.float32(total + b))
+            hidden = out if index == len(layers) - 1 else [np.float32(tanh(v)) for v in out]
+        want.append(hidden)
+    got = head.snapshot(CENTER, HALF_WIDTH).weights(features)
+    np.testing.assert_array_equal(got, np.array(want, np.float32).astype(np.float64))
 
 
 def test_the_step_inputs_are_numpys_units_and_the_critic_bit_for_bit(head):
@@ -93,7 +118,7 @@ def test_the_std_in_esa_units_is_numpys_for_the_boxs_dtype(head, box_dtype):
 
 
 @pytest.mark.parametrize("box_dtype", [np.float32, np.float64])
-def test_the_shift_and_the_executed_action_are_numpys_bit_for_bit(head, box_dtype):
+def test_the_shift_is_numpys_bit_for_bit(head, box_dtype):
     # ESAPPO's scaling comes from the Box: float32 bounds give float32 half-widths.
     half_width = HALF_WIDTH.astype(box_dtype)
     mlp = head.snapshot(CENTER, half_width)
@@ -102,31 +127,17 @@ def test_the_shift_and_the_executed_action_are_numpys_bit_for_bit(head, box_dtyp
         sample = rng.normal(size=(4, 2)).astype(np.float32)
         scaled = (sample.astype(np.float64) - CENTER) / half_width
         applied = scaled + rng.normal(size=(4, 2)) * 10.0 ** rng.integers(-9, 1)
-        shift = mlp.shift(scaled, applied)
         # The numpy reference.
-        np.testing.assert_array_equal(shift, (applied - scaled) * half_width)
-        executed = mlp.executed(sample, shift)
-        assert executed.dtype == np.float32
-        want = (sample.astype(np.float64) + shift).astype(np.float32)
-        np.testing.assert_array_equal(executed, want)
-    # A column view, as torch's may be.
-    wide = np.repeat(sample, 2, axis=1)[:, ::2]
-    np.testing.assert_array_equal(mlp.executed(wide, shift), executed)
+        np.testing.assert_array_equal(mlp.shift(scaled, applied), (applied - scaled) * half_width)
 
 
-def test_the_shift_and_the_executed_action_refuse_bad_shapes(head):
+def test_the_shift_refuses_bad_shapes(head):
     mlp = head.snapshot(CENTER, HALF_WIDTH)
-    f64, f32 = np.zeros((2, 2)), np.zeros((2, 2), np.float32)
+    f64 = np.zeros((2, 2))
     with pytest.raises(ValueError, match="applied: expected 2 columns"):
         mlp.shift(f64, np.zeros((2, 3)))
     with pytest.raises(ValueError, match="scaled and applied with as many rows, got 2 and 3"):
         mlp.shift(f64, np.zeros((3, 2)))
-    with pytest.raises(ValueError, match="actions: expected 2 columns"):
-        mlp.executed(np.zeros((2, 1), np.float32), f64)
-    with pytest.raises(ValueError, match="expected actions and shift with as many rows"):
-        mlp.executed(f32, np.zeros((1, 2)))
-    with pytest.raises(TypeError):
-        mlp.executed(f64, f64)  # float64 actions: the policy's sample is float32
 
 
 @pytest.mark.parametrize("dtype", [th.float64, th.float32, th.uint8])
@@ -135,7 +146,7 @@ def test_esappo_reads_a_box_observation_as_sb3_preprocesses_it(dtype):
     obs = (th.rand(5, 3, dtype=th.float64) * 200).to(dtype)
     want = model._head_features(obs).numpy()
     got = model._step_features(obs)
-    # float64 goes to the Rust copy as it is; the copy rounds it as torch's float() does.
+    # float64 goes to the snapshot as it is; it rounds it as torch's float() does.
     assert got.dtype == (np.float64 if dtype == th.float64 else np.float32)
     np.testing.assert_array_equal(got.astype(np.float32), want)
     mlp = model._esa_mlp()
@@ -155,7 +166,7 @@ def test_the_step_inputs_refuse_bad_shapes(head):
         mlp.step_inputs(features, rows, np.ones((1, 2), np.float32), rows)
 
 
-def test_the_rust_copy_refuses_bad_shapes(head):
+def test_the_snapshot_refuses_bad_shapes(head):
     mlp = head.snapshot(CENTER, HALF_WIDTH)
     f32 = np.float32
     with pytest.raises(ValueError, match="features: expected 5 columns"):
@@ -166,14 +177,14 @@ def test_the_rust_copy_refuses_bad_shapes(head):
         mlp.critic(np.zeros((2, 5), f32), np.zeros((3, 2), f32), np.ones((3, 2), f32))
     weights = [np.zeros((4, 5), f32), np.zeros((2, 3), f32)]
     with pytest.raises(ValueError, match="layer 1: expected a weight of shape"):
-        AdvantageMlp(weights, [np.zeros(4, f32), np.zeros(2, f32)], [0.0, 0.0], [1.0, 1.0])
+        HeadSnapshot(weights, [np.zeros(4, f32), np.zeros(2, f32)], [0.0, 0.0], [1.0, 1.0])
     layer = [np.zeros((2, 5), f32)], [np.zeros(2, f32)]
     with pytest.raises(ValueError, match="expected as many biases as weights"):
-        AdvantageMlp(layer[0], [], [0.0, 0.0], [1.0, 1.0])
+        HeadSnapshot(layer[0], [], [0.0, 0.0], [1.0, 1.0])
     with pytest.raises(ValueError, match="center and half_width of length 2"):
-        AdvantageMlp(*layer, [0.0], [1.0])
+        HeadSnapshot(*layer, [0.0], [1.0])
     with pytest.raises(ValueError, match="half_width > 0"):
-        AdvantageMlp(*layer, [0.0, 0.0], [1.0, 0.0])
+        HeadSnapshot(*layer, [0.0, 0.0], [1.0, 0.0])
 
 
 def test_the_fits_gradients_are_autograds(head):
@@ -192,8 +203,8 @@ def test_the_fits_gradients_are_autograds(head):
         np.testing.assert_allclose(gradient, parameter.grad, rtol=1e-4, atol=1e-6)
 
 
-def test_the_rust_copy_follows_every_fit():
-    # Fused Adam writes the parameters without bumping their version counters: the copy
+def test_the_snapshot_follows_every_fit():
+    # Fused Adam writes the parameters without bumping their version counters: the snapshot
     # must still be taken again after each fit, or ESA would keep scoring with a stale head.
     model = LinearESAPPO(
         "MlpPolicy",

@@ -11,8 +11,6 @@
 //! - [`errors`]: the exceptions a refused call raises, `EngineError` and `StatusError`, each with
 //!   the gRPC status `code`, `message` and failing batch item `index`.
 //! - [`arrays`]: numpy arguments in, numpy arrays out.
-//! - [`advantage_mlp`]: `AdvantageMlp`, the linear advantage head's forward for one rollout
-//!   step (for the experiments' arms that probe it: `esa_experiments.lab`).
 //! - [`step_ahead`]: `StepAhead`, the applied actions and probes of a pipelined step from the
 //!   shifts the previous step's answer carried.
 //! - [`step_stats`]: `StepStats`, the sums behind a learner's per-step ESA statistics.
@@ -21,7 +19,6 @@
 
 use pyo3::prelude::*;
 
-mod advantage_mlp;
 mod arrays;
 mod client;
 mod engine;
@@ -32,8 +29,7 @@ mod step_stats;
 
 use esa_store::Code;
 
-/// esa-core in-process (`Engine`, `BatchHandle`, `EngineError`), ESAPPO's head (`AdvantageMlp`), a
-/// gRPC client (`GrpcClient`,
+/// esa-core in-process (`Engine`, `BatchHandle`, `EngineError`), a gRPC client (`GrpcClient`,
 /// `GrpcBatch`, `StatusError`) and the gRPC code numbers.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -41,7 +37,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<engine_class::Engine>()?;
     m.add_class::<engine_class::BatchHandle>()?;
     m.add_function(wrap_pyfunction!(engine_class::check_config, m)?)?;
-    m.add_class::<advantage_mlp::AdvantageMlp>()?;
     m.add_class::<step_ahead::StepAhead>()?;
     m.add_class::<step_stats::StepStats>()?;
     m.add("EngineError", py.get_type::<errors::EngineError>())?;

@@ -74,8 +74,8 @@ class QNetworkCritic(_Base):
 class LinearHead(_Base):
     """ESA probes the linear advantage head ``A = w(s) . z`` (:mod:`.linear_head`).
 
-    Evaluated per step by the head's Rust copy, refreshed whenever a fit or a load changed
-    the head; the engine steps its linear critic.
+    Evaluated per step by the head's snapshot (:class:`.linear_head.HeadSnapshot`), taken
+    again whenever a fit or a load changed the head; the engine steps its linear critic.
     """
 
     _esa_head_snapshot: Any = None
@@ -92,7 +92,7 @@ class LinearHead(_Base):
         return fit(head, self.esa_head_optimizer, **self._fit_arguments())
 
     def _esa_mlp(self) -> Any:
-        """The head in Rust, copied again whenever its parameters changed."""
+        """The head's snapshot, taken again whenever its parameters changed."""
         head = self.esa_head
         assert isinstance(head, AdvantageHead)
         version = head.version()
