@@ -465,7 +465,7 @@ def python_section(run: Run) -> list[str]:
         + bounds_words(python["args"], "pairs")
         + " `batch` = ProbeBatch/ReportBatch calls (`use_stream=False`, the default), "
         "`stream` = the StepStream. `uds` is `EsaClient.spawn()`, what the SB3 drop-ins use "
-        'with `esa_engine="sidecar"`; `esa-native` = `EsaClient.in_process()` (esa-core '
+        'with `esa_client="spawn"`; `esa-native` = `EsaClient.in_process()` (esa-core '
         'in-process, their default). `zenoh` = `EsaClient.spawn(transport="zenoh")` '
         "(esa-server `--zenoh` on loopback): queries on `esa/v1/ProbeBatch`/`ReportBatch` "
         "(`batch` and `stream` alike: a Zenoh query is one message already). "
@@ -552,8 +552,8 @@ def training_section(run: Run) -> list[str]:
         "the same at `gate=None` (and ESAPPO's at `fade=None`: ESA at every step once a critic "
         'exists), the placebo (`esa_control="placebo"`) and the gradient control '
         '(`esa_control="gradient"`, `[none]`: no engine), each ESA agent on every engine '
-        "(`esa_engine`): `[inprocess]` = esa-core in the trainer's process, `[sidecar]` = a "
-        "private esa-server on a Unix socket (`EsaClient.spawn()`) through the Rust client of "
+        "(`esa_client`): `[inprocess]` = esa-core in the trainer's process (None), `[sidecar]` "
+        '= a private esa-server on a Unix socket (`"spawn"`) through the Rust client of '
         "`esa_client._native` (its StepStream, one pipelined round trip per step). Wall-clock "
         f"of `learn()`, {args['ppo_repeats']} repeats of PPO's pairs and {args['repeats']} of "
         f"SAC's and TD3's, family by family, after {args['warmup_runs']} short untimed run(s) "

@@ -240,7 +240,7 @@ def test_gives_up_after_the_deadline_naming_the_address(server):
 def test_runtime_skips_esa_until_the_next_episode_then_resumes(server):
     client = EsaClient.connect(server.address, timeout=0.5, reconnect_timeout=0.5)
     low, high = np.full(2, -1.0), np.full(2, 1.0)
-    runtime = EsaRuntime.on_client(
+    runtime = EsaRuntime(
         EsaConfig(gate=None),
         client,
         EsaConfig(gate=None).session_config(2, 0.02, low, high),
@@ -275,7 +275,7 @@ def test_runtime_skips_esa_until_the_next_episode_then_resumes(server):
             assert np.all(np.abs(first - sampled) <= EsaConfig().trust_region + 1e-12)
             np.testing.assert_array_equal(runtime.step(sampled, starts, q_fn), sampled)
         server.start()
-        client.wait_ready(5)
+        client.check(5)
         # Mid-episode: still without ESA, at no cost of waiting.
         start = time.monotonic()
         np.testing.assert_array_equal(runtime.step(sampled, starts, q_fn), sampled)
@@ -305,8 +305,7 @@ def test_sigkill_and_restart_under_two_esappo_trainers(server, tmp_path):
             "MlpPolicy",
             make_vec_env("Pendulum-v1", n_envs=N_ENVS, seed=i),
             esa=EsaConfig(gate=None),
-            esa_address=server.address,
-            esa_reconnect_timeout=20,
+            esa_client=EsaClient.connect(server.address, reconnect_timeout=20),
             n_steps=n_steps,
             batch_size=64,
             n_epochs=1,
@@ -347,6 +346,7 @@ def test_sigkill_and_restart_under_two_esappo_trainers(server, tmp_path):
         log = (tmp_path / str(i) / "progress.csv").read_text()
         assert "esa/sessions_restored" in log
         model.esa_close()
+        model.esa_client.close()
 
 
 def test_sigkill_and_restart_under_two_gymnasium_wrapper_loops(server):

@@ -286,8 +286,7 @@ def test_esasac_stopped_and_restarted_ends_where_an_uninterrupted_run_ends(grpc_
             "MlpPolicy",
             "Pendulum-v1",
             esa={"gate": None, "lr_decay": 0.8},
-            esa_address=grpc_server.address,
-            esa_reconnect_timeout=30,
+            esa_client=EsaClient.connect(grpc_server.address, reconnect_timeout=30),
             learning_starts=100,
             batch_size=64,
             policy_kwargs={"net_arch": [32, 32]},
@@ -299,6 +298,7 @@ def test_esasac_stopped_and_restarted_ends_where_an_uninterrupted_run_ends(grpc_
         states = runtime.batch.states()
         restored = runtime.batch.sessions_restored
         model.esa_close()
+        model.esa_client.close()
         return model, [states, restored]
 
     uninterrupted, (states, _) = train(None)

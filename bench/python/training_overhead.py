@@ -4,11 +4,11 @@ Each pair trains for the same number of steps on InvertedPendulum-v5, the same s
 and hyperparameters, torch on one thread, with one env by default (SB3's default, how
 most users run it; ``--n-envs 1,8`` adds 8 envs in a ``DummyVecEnv``), PPO with SB3's
 default 2048-step rollouts. Every ESA agent runs once per
-engine (``esa_engine``): ``inprocess`` (esa-core in the trainer's process) and
-``sidecar`` (a private esa-server on a Unix socket, ``EsaClient.spawn()``, called through
-the Rust client of ``esa_client._native``). Only ``learn()`` is timed;
-for the ESA agents that includes opening the engine or spawning the server, the round
-trips, the critic evaluations and ESAPPO's advantage head.
+engine: ``inprocess`` (``esa_client=None``: esa-core in the trainer's process) and
+``sidecar`` (``esa_client="spawn"``: a private esa-server on a Unix socket, called through
+the Rust client of ``esa_client._native``). Only ``learn()`` is timed; for the ESA agents
+that includes creating the sessions, the round trips, the critic evaluations and ESAPPO's
+advantage head, not spawning the server (the model does that when it is built).
 The agents run family by family, and a family's plain agent and its ESA agents train side
 by side: one thread each, of which one at a time runs while the others wait, handing the
 turn to the next every ``slice_s`` seconds of its wall-clock (at a step's end, from a
@@ -105,6 +105,8 @@ PLAIN = {"PPO": PPO, "SAC": SAC, "TD3": TD3}
 DROP_IN = {"PPO": ESAPPO, "SAC": ESASAC, "TD3": ESATD3}
 ENGINE_FREE = "none"
 """The engine column of the engine-free agents."""
+ESA_CLIENT = {"inprocess": None, "sidecar": "spawn"}
+"""Engine column -> the drop-in's ``esa_client``."""
 
 
 @dataclass
@@ -264,7 +266,7 @@ def build(name: str, n_envs: int, args: Args, engine: str | None) -> tuple[BaseA
         name: The agent.
         n_envs: How many envs.
         args: The benchmark settings.
-        engine: The ESA agent's engine (its ``esa_engine``) or ``ENGINE_FREE`` (None for
+        engine: The ESA agent's engine (a key of ``ESA_CLIENT``) or ``ENGINE_FREE`` (None for
             the plain ones).
 
     Returns:
@@ -279,7 +281,7 @@ def build(name: str, n_envs: int, args: Args, engine: str | None) -> tuple[BaseA
         family, cls = agent.plain, DROP_IN[agent.plain]
         common.update(agent.options)
         if engine not in (None, ENGINE_FREE):
-            common["esa_engine"] = engine
+            common["esa_client"] = ESA_CLIENT[engine]
         if agent.esa is not None:
             common["esa"] = agent.esa
     if family == "PPO":

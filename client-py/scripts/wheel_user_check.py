@@ -161,7 +161,8 @@ def train(name: str, make_model: Callable[[], object], steps: int, **learn: obje
     record = RecordServer()
     model.learn(steps, callback=record, **learn)
     model.esa_close()
-    expected = str(find_server_binary()) if model.esa_engine == "sidecar" else "in-process"
+    spawned = model.esa_client.server is not None
+    expected = str(find_server_binary()) if spawned else "in-process"
     assert record.binaries == {expected}, record.binaries
     with open(folder / "progress.csv", newline="") as f:
         rows = list(csv.DictReader(f))
@@ -200,7 +201,7 @@ def server_stage() -> dict[str, object]:
         from esa_client.sb3 import ESAPPO, ESASAC
 
     training = {}
-    for engine in ("inprocess", "sidecar"):
+    for engine in ("in-process", "spawn"):
         with phase(f"ESAPPO [{engine}] Pendulum-v1 512 steps"):
             training[f"ESAPPO [{engine}]"] = train(
                 f"ppo-{engine}",
@@ -208,7 +209,7 @@ def server_stage() -> dict[str, object]:
                     "MlpPolicy",
                     "Pendulum-v1",
                     esa=EsaConfig(gate=None),
-                    esa_engine=engine,
+                    esa_client=engine,
                     n_steps=128,
                     batch_size=64,
                     n_epochs=2,
@@ -217,14 +218,14 @@ def server_stage() -> dict[str, object]:
                 ),
                 512,
             )
-    with phase("ESASAC [sidecar] Pendulum-v1 400 steps"):
-        training["ESASAC [sidecar]"] = train(
+    with phase("ESASAC [spawn] Pendulum-v1 400 steps"):
+        training["ESASAC [spawn]"] = train(
             "sac",
             lambda: ESASAC(
                 "MlpPolicy",
                 "Pendulum-v1",
                 esa=EsaConfig(gate=None),
-                esa_engine="sidecar",
+                esa_client="spawn",
                 learning_starts=100,
                 batch_size=64,
                 seed=0,

@@ -75,7 +75,7 @@ def step_pair(client: EsaClient) -> np.ndarray:
 def test_the_factories_choose_the_transport(local, client):
     assert isinstance(local.transport, GrpcTransport) and local.healthy()
     assert local.address.startswith("unix:")
-    with EsaClient.connect(local.address, wait_ready=True) as other:
+    with EsaClient.connect(local.address) as other:
         assert isinstance(other.transport, GrpcTransport)
         assert (step_pair(other) == step_pair(local)).all()
     assert repr(other) == f"EsaClient({local.address!r}, GrpcTransport())"
@@ -86,7 +86,7 @@ def test_no_grpc_path_imports_grpcio(local):
     code = (
         "import sys; sys.modules['grpc'] = None\n"
         "from esa_client import EsaClient, SessionConfig\n"
-        f"with EsaClient.connect({local.address!r}, wait_ready=True) as c:\n"
+        f"with EsaClient.connect({local.address!r}) as c:\n"
         "    c.create_session(SessionConfig(1, 0.05, 0.2, 10.0, 0.1)).close()\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
@@ -124,16 +124,39 @@ def test_tcp_and_the_auth_token(server_bin, serve_tcp, tmp_path):
             with EsaClient.in_process() as engine:
                 assert (step_pair(owner) == step_pair(engine)).all()
         for token in (None, "wrong"):
-            with EsaClient.connect(address, token=token) as stranger:
+            # Refused when connecting: a wrong token fails before any training starts.
+            with pytest.raises(Unauthenticated, match=f"at {address} refused this client"):
+                EsaClient.connect(address, token=token)
+            with EsaClient.connect(address, token=token, check=False) as stranger:
                 assert stranger.healthy()  # health needs no token
                 with pytest.raises(Unauthenticated) as info:
                     stranger.create_session(CONFIG)
                 assert info.value.code == StatusCode.UNAUTHENTICATED
 
 
+@pytest.mark.parametrize("address", ["127.0.0.1:1", "unix:/nonexistent/esa.sock"])
+def test_connect_fails_at_once_where_nothing_listens(address):
+    start = time.monotonic()
+    with pytest.raises(ServerUnavailable, match=f"no esa server answered at {address} within 2 s"):
+        EsaClient.connect(address, timeout=2)
+    assert time.monotonic() - start < 10
+
+
+def test_open_parses_where_the_sessions_live(local):
+    with EsaClient.open(local.address) as other:
+        assert isinstance(other.transport, GrpcTransport) and other.address == local.address
+    with EsaClient.open("in-process") as engine:
+        assert engine.address == "in-process"
+    for where in ("", "gpu", "sidecar"):
+        with pytest.raises(ValueError, match="expected 'in-process', 'spawn'"):
+            EsaClient.open(where)
+    with pytest.raises(ServerUnavailable, match="127.0.0.1:1"):
+        EsaClient.open("127.0.0.1:1")
+
+
 def test_a_dead_server_is_unavailable(server_bin, monkeypatch):
     monkeypatch.delenv("ESA_AUTH_TOKEN", raising=False)
-    with EsaClient.connect("unix:/nonexistent/esa.sock", timeout=2) as nobody:
+    with EsaClient.connect("unix:/nonexistent/esa.sock", timeout=2, check=False) as nobody:
         assert not nobody.healthy(timeout=0.2, wait_for_ready=True)
         with pytest.raises(ServerUnavailable) as info:
             nobody.create_session(CONFIG)

@@ -61,9 +61,7 @@ def run(batch, steps: int, paired: bool) -> list[np.ndarray]:
     for t in range(steps):
         actions = rng.normal(scale=0.8, size=(N, D))
         starts = rng.random(N) < 0.05
-        _, applied = batch.step(
-            actions, critic_at(t), starts, action_scales=0.3, paired=paired, want_probes=False
-        )
+        _, applied = batch.step(actions, critic_at(t), starts, action_scales=0.3, paired=paired)
         applied_seen.append(applied)
     batch.flush()
     return applied_seen

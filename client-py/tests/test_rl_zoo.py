@@ -1,5 +1,5 @@
 """RL Zoo3 with ESA (``python -m esa_client.rl_zoo``), ``esa=`` as a dict, and saved models that
-keep where the sessions lived (``esa_address``, ``esa_spawn``) out of the file."""
+keep where the sessions lived (``esa_client``) out of the file."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ pytest.importorskip("stable_baselines3")
 
 from esa_client import EsaConfig  # noqa: E402
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3  # noqa: E402
+from esa_client.transports.in_process import InProcessTransport  # noqa: E402
 
 
 def test_esa_dict_applies_over_the_family_default() -> None:
@@ -42,28 +43,23 @@ def test_a_bad_esa_dict_is_refused_like_esaconfig(esa: object, match: str) -> No
         ESASAC("MlpPolicy", "Pendulum-v1", esa=esa)  # type: ignore[arg-type]
 
 
-def test_saved_models_keep_no_address_or_spawn_arguments(tmp_path: Path) -> None:
-    model = ESASAC(
-        "MlpPolicy",
-        "Pendulum-v1",
-        esa={"amplitude": 0.2},
-        esa_address="unix:/tmp/esa-secret.sock",
-        esa_spawn={"extra_args": ["--auth-token-file", "/secret"]},
-    )
+def test_saved_models_keep_no_client(client, tmp_path: Path) -> None:
+    model = ESASAC("MlpPolicy", "Pendulum-v1", esa={"amplitude": 0.2}, esa_client=client.address)
     path = tmp_path / "model.zip"
     model.save(path)
+    model.esa_close()
     with zipfile.ZipFile(path) as archive:
         data = json.loads(archive.read("data"))
         raw = archive.read("data").decode()
-    assert "esa_address" not in data and "esa_spawn" not in data
-    assert "esa-secret" not in raw and "/secret" not in raw
+    assert "esa_client" not in data
+    assert client.address.removeprefix("unix:") not in raw
     assert "esa" in data  # the hyperparameters are kept
 
     loaded = ESASAC.load(path)
     assert loaded.esa == EsaConfig.off_policy(amplitude=0.2)
-    assert loaded.esa_address is None and loaded.esa_spawn == {}
-    moved = ESASAC.load(path, esa_address="127.0.0.1:50051")
-    assert moved.esa_address == "127.0.0.1:50051"
+    assert isinstance(loaded.esa_client.transport, InProcessTransport)
+    moved = ESASAC.load(path, esa_client=client)
+    assert moved.esa_client is client
 
 
 def test_rl_zoo_trains_an_esa_algorithm_from_yaml(tmp_path: Path) -> None:

@@ -21,8 +21,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import NormalActionNoise
 
-from esa_client import EsaClient, EsaConfig, SessionBatch
-from esa_client.common.runtime import DEFAULT_ENGINE, EsaRuntime, choose_engine
+from esa_client import EsaClient, EsaConfig, ServerUnavailable, SessionBatch
+from esa_client.common.runtime import EsaRuntime
 from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
 from esa_client.transports.grpc import AheadStepper, GrpcTransport
 from esa_client.transports.in_process import InProcessTransport
@@ -54,8 +54,7 @@ class RecordActions(gym.Wrapper):
 def esa_calls(monkeypatch):
     """Records the sampled actions sent to, and the applied actions returned by, the server.
 
-    A step sent ahead falls back to ``step`` (then ``probe_applied``) where the batch cannot
-    pipeline; those steps are recorded once, by ``probe_applied``.
+    A step sent ahead does not call ``probe_applied``: it is recorded by ``AheadStepper.step``.
     """
     calls = {"sampled": [], "applied": [], "scales": []}
     probe_applied = SessionBatch.probe_applied
@@ -71,10 +70,9 @@ def esa_calls(monkeypatch):
 
     def recording_ahead(self, batch, call):
         probes, applied = step_ahead(self, batch, call)
-        if probes is None:  # sent ahead: probe_applied did not see it
-            calls["sampled"].append(np.array(call.actions, dtype=np.float64))
-            calls["applied"].append(applied.copy())
-            calls["scales"].append(call.action_scales)
+        calls["sampled"].append(np.array(call.actions, dtype=np.float64))
+        calls["applied"].append(applied.copy())
+        calls["scales"].append(call.action_scales)
         return probes, applied
 
     monkeypatch.setattr(SessionBatch, "probe_applied", recording)
@@ -111,7 +109,7 @@ def test_esasac_pendulum(client, esa_calls, tmp_path):
         "MlpPolicy",
         env,
         esa=EsaConfig(learning_rate=0.2, gate=None),
-        esa_address=client.address,
+        esa_client=client,
         learning_starts=400,
         batch_size=128,
         policy_kwargs=dict(net_arch=[64, 64]),
@@ -135,7 +133,7 @@ def test_esasac_pendulum(client, esa_calls, tmp_path):
         assert columns[key] and np.all(np.isfinite(columns[key])), key
 
     model.save(tmp_path / "esasac.zip")
-    loaded = ESASAC.load(tmp_path / "esasac.zip", env=env, esa_address=client.address)
+    loaded = ESASAC.load(tmp_path / "esasac.zip", env=env, esa_client=client.address)
     assert loaded.esa == model.esa and loaded._esa is None
     obs = env.reset()
     np.testing.assert_array_equal(
@@ -165,7 +163,8 @@ class CheckStorage(BaseCallback):
         if len(self.calls["sampled"]) < n_steps:
             return  # ESA was not active during this rollout
         # ESAPPO talks to the server in Box units scaled to [-1, 1].
-        center, half_width = self.model._esa_scaling()
+        frame = self.model.esa_frame
+        center, half_width = frame.center, frame.half_width
         sampled = np.stack(self.calls["sampled"][-n_steps:]) * half_width + center
         applied = np.stack(self.calls["applied"][-n_steps:]) * half_width + center
         np.testing.assert_allclose(buffer.actions, applied, atol=1e-5)
@@ -185,7 +184,7 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
         "MlpPolicy",
         env,
         esa=EsaConfig(learning_rate=0.2, gate=None),
-        esa_engine="sidecar",  # a private server, whose lifetime this test follows
+        esa_client="spawn",  # a private server, whose lifetime this test follows
         n_steps=256,
         batch_size=256,
         n_epochs=4,
@@ -212,7 +211,7 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
 
     server = model._esa.client.server
     model.save(tmp_path / "esappo.zip")
-    loaded = ESAPPO.load(tmp_path / "esappo.zip", env=env)
+    loaded = ESAPPO.load(tmp_path / "esappo.zip", env=env, esa_client="spawn")
     assert loaded.esa == model.esa
     for a, b in zip(
         loaded.esa_head.state_dict().values(), model.esa_head.state_dict().values(), strict=True
@@ -220,9 +219,9 @@ def test_esappo_inverted_pendulum(server_bin, esa_calls, monkeypatch, tmp_path):
         assert th.equal(a, b)
     model.esa_close()
     assert not server.running() and not server.socket_path.exists()
-    loaded.learn(256 * N_ENVS)  # spawns a fresh server for the loaded model
+    loaded.learn(256 * N_ENVS)  # on the fresh server spawned for the loaded model
     loaded_server = loaded._esa.client.server
-    assert loaded_server.pid != server.pid
+    assert loaded_server.pid != server.pid and loaded_server.running()
     loaded.esa_close()
     assert not loaded_server.running()
 
@@ -242,7 +241,7 @@ def test_esappo_with_learning_rate_zero_is_plain_ppo(client, gate):
         return model
 
     plain = trained(PPO)
-    null = trained(ESAPPO, esa=EsaConfig(learning_rate=0.0, gate=gate), esa_address=client.address)
+    null = trained(ESAPPO, esa=EsaConfig(learning_rate=0.0, gate=gate), esa_client=client)
     assert null._esa is not None or gate is not None, "ESA ran (with v = 0)"
     # The same samples and random draws; the decoupled objective's ratio is taken against a
     # second forward pass over the rollout, which rounds differently from the rollout's own.
@@ -267,7 +266,7 @@ def test_esasac_with_learning_rate_zero_is_plain_sac(client, use_sde):
     null = trained(
         ESASAC,
         esa=EsaConfig(learning_rate=0.0, gate=None),
-        esa_address=client.address,
+        esa_client=client,
     )
     assert null._esa is not None
     assert th.equal(parameters(plain), parameters(null))
@@ -319,7 +318,7 @@ def test_share_features_extractor_false_trains(client):
         "MlpPolicy",
         make_vec_env("InvertedPendulum-v5", n_envs=2, seed=0),
         esa=UNGATED,
-        esa_address=client.address,
+        esa_client=client,
         n_steps=64,
         batch_size=64,
         n_epochs=1,
@@ -336,13 +335,14 @@ def test_runtime_rejects_a_non_positive_improvement_stride(every):
     # Checked before anything connects: no server, env or sessions are needed.
     with pytest.raises(ValueError, match=f"expected improvement_every >= 1, got {every}"):
         config = EsaConfig().session_config(1, 0.05)
-        EsaRuntime(EsaConfig(), config, 1, np.zeros(1), np.ones(1), improvement_every=every)
+        runtime_args = (config, 1, np.zeros(1), np.ones(1))
+        EsaRuntime(EsaConfig(), EsaClient.in_process(), *runtime_args, improvement_every=every)
 
 
 def test_a_zero_policy_std_keeps_the_action_instead_of_failing():
     """A squashed policy saturates (sigma = 0 in float32); ESA must not stop training then."""
     config = EsaConfig(gate=None)
-    runtime = EsaRuntime.on_client(
+    runtime = EsaRuntime(
         config,
         EsaClient.in_process(),
         config.session_config(2, 0.05, -np.ones(2), np.ones(2)),
@@ -377,12 +377,12 @@ class Pause(BaseCallback):
 
 
 def test_sessions_lost_to_the_ttl_are_restored_and_counted(server_bin, monkeypatch, tmp_path):
-    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+    server = EsaClient.spawn(server_bin, session_ttl=0.5)
     model = ESAPPO(
         "MlpPolicy",
         make_vec_env("InvertedPendulum-v5", n_envs=2, seed=0),
         esa=UNGATED,
-        esa_spawn={"session_ttl": 0.5},
+        esa_client=server,
         n_steps=64,
         batch_size=64,
         n_epochs=1,
@@ -393,22 +393,9 @@ def test_sessions_lost_to_the_ttl_are_restored_and_counted(server_bin, monkeypat
     model.learn(4 * 64 * 2, callback=Pause(1.0))
     restored = logged_columns(tmp_path)["esa/sessions_restored"]
     assert sum(restored) >= 2, "every rollout after a pause finds its sessions expired"
-    assert model._esa.client.sessions_restored == sum(restored)
+    assert server.sessions_restored == sum(restored)
     model.esa_close()
-
-
-def test_esa_spawn_arguments_are_checked_when_the_server_starts(server_bin, monkeypatch):
-    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
-    model = ESAPPO(
-        "MlpPolicy",
-        make_vec_env("InvertedPendulum-v5", n_envs=1, seed=0),
-        esa=UNGATED,
-        esa_spawn={"session_ttl": -1},
-        n_steps=64,
-        batch_size=64,
-    )
-    with pytest.raises(ValueError, match="session_ttl"):
-        model.learn(3 * 64)
+    server.close()
 
 
 def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
@@ -416,18 +403,17 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
     actions with the same seed."""
     monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
     runs = {}
-    for name, engine, spawn in (
-        ("inprocess", "inprocess", None),
-        ("sidecar", "sidecar", None),  # a spawned server's default client: gRPC
-        ("sidecar-zenoh", "sidecar", {"transport": "zenoh"}),
+    for name, where in (
+        ("inprocess", None),
+        ("sidecar", "spawn"),  # a spawned server's default client: gRPC
+        ("sidecar-zenoh", EsaClient.spawn(server_bin, transport="zenoh")),
     ):
         env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=4, wrapper_class=RecordActions)
         model = ESAPPO(
             "MlpPolicy",
             env,
             esa=UNGATED,
-            esa_engine=engine,
-            esa_spawn=spawn,
+            esa_client=where,
             n_steps=64,
             batch_size=64,
             n_epochs=2,
@@ -437,12 +423,14 @@ def test_both_engines_train_esappo_alike(server_bin, monkeypatch):
         model.learn(5 * 64 * 2)
         assert model._esa is not None and model._esa_active
         in_process = isinstance(model._esa.client.transport, InProcessTransport)
-        assert in_process == (engine == "inprocess")
+        assert in_process == (name == "inprocess")
         grpc = isinstance(model._esa.client.transport, GrpcTransport)
         assert grpc == (name == "sidecar")
         assert (model._esa.client.server is None) == in_process
         runs[name] = ([np.stack(e.actions) for e in env.envs], parameters(model))
         model.esa_close()
+        if isinstance(where, EsaClient):
+            where.close()
     local_actions, local_parameters = runs.pop("inprocess")
     assert len(local_actions[0]) == 5 * 64
     for server_actions, server_parameters in runs.values():
@@ -457,14 +445,14 @@ def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatc
     at probes computed here) give the same replay buffer and parameters with the same seed."""
     monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
     runs = []
-    for engine in ("inprocess", "sidecar"):
+    for engine in ("in-process", "spawn"):
         env = make_vec_env("Pendulum-v1", n_envs=2, seed=6)
         extra = {"action_noise": NormalActionNoise(np.zeros(1), 0.1 * np.ones(1))}
         model = cls(
             "MlpPolicy",
             env,
             esa=EsaConfig.off_policy(gate=None),
-            esa_engine=engine,
+            esa_client=engine,
             learning_starts=100,
             batch_size=32,
             policy_kwargs=dict(net_arch=[32]),
@@ -473,9 +461,7 @@ def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatc
         )
         model.learn(400)
         assert model._esa is not None
-        assert isinstance(model._esa.batch._stepper, AheadStepper) == (engine == "sidecar")
-        # A step sent ahead leaves no probes.
-        assert (model._esa.last_probes is None) == (engine == "sidecar")
+        assert isinstance(model._esa.batch._stepper, AheadStepper) == (engine == "spawn")
         runs.append((model.replay_buffer.actions.copy(), parameters(model)))
         model.esa_close()
     (local_actions, local_parameters), (sidecar_actions, sidecar_parameters) = runs
@@ -485,22 +471,37 @@ def test_both_engines_train_the_off_policy_drop_ins_alike(server_bin, monkeypatc
 
 def test_the_default_engine_is_in_process_unless_a_server_is_named():
     model = ESAPPO("MlpPolicy", "InvertedPendulum-v5", n_steps=64, batch_size=64)
-    assert model.esa_engine is None
-    assert DEFAULT_ENGINE == "inprocess"
-    assert choose_engine(None, None, None) == "inprocess"
-    assert choose_engine(None, "unix:/tmp/x.sock", None) == "sidecar"
-    assert choose_engine(None, None, {"session_ttl": 5}) == "sidecar"
-    assert choose_engine("sidecar", None, None) == "sidecar"
+    assert isinstance(model.esa_client.transport, InProcessTransport)
+    model.esa_close()
 
 
 @pytest.mark.parametrize(
-    "extra, match",
+    "where, match",
     [
-        (dict(esa_engine="gpu"), "esa_engine"),
-        (dict(esa_engine="inprocess", esa_address="127.0.0.1:1"), "esa_address"),
-        (dict(esa_engine="inprocess", esa_spawn={"session_ttl": 5}), "esa_spawn"),
+        (3, "expected an EsaClient, a string"),
+        ("gpu", "expected 'in-process', 'spawn'"),
+        ("inprocess", "expected 'in-process', 'spawn'"),
     ],
 )
-def test_a_bad_engine_choice_fails_at_construction(extra, match):
+def test_a_bad_esa_client_fails_at_construction(where, match):
     with pytest.raises(ValueError, match=match):
-        ESASAC("MlpPolicy", "Pendulum-v1", **extra)
+        ESASAC("MlpPolicy", "Pendulum-v1", esa_client=where)
+
+
+@pytest.mark.parametrize("cls", [ESAPPO, ESASAC, ESATD3])
+def test_an_address_where_nothing_listens_fails_at_construction(cls):
+    """Whatever the gate, the server is checked when the model is built, not hours later."""
+    start = time.monotonic()
+    with pytest.raises(
+        ServerUnavailable, match=r"no esa server answered at 127\.0\.0\.1:1 "
+    ) as info:
+        cls("MlpPolicy", "Pendulum-v1", esa_client="127.0.0.1:1")
+    assert time.monotonic() - start < 10.0
+    assert "esa_client=None" in info.value.message, "the message names a way out"
+
+
+def test_a_load_checks_the_server_it_is_given(tmp_path):
+    model = ESASAC("MlpPolicy", "Pendulum-v1", learning_starts=10)
+    model.save(tmp_path / "esasac.zip")
+    with pytest.raises(ServerUnavailable, match="127.0.0.1:1"):
+        ESASAC.load(tmp_path / "esasac.zip", esa_client="127.0.0.1:1")

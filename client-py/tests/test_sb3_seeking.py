@@ -55,7 +55,7 @@ def test_esa_and_its_controls_shift_within_the_trust_region_and_log_what_the_shi
     assert all(0.0 <= u <= 1.0 for u in columns["esa/undone_by_clip"])
     assert all(0.0 <= b <= 1.0 for b in columns["esa/at_bound"])
     # Within the trust region (the placebo and gradient shifts are as large as ESA's bound).
-    sizes = columns["esa/shift_over_sigma"]
+    sizes = columns["esa/shift_over_std"]
     assert sizes and all(0.0 < size <= 0.5 + 1e-6 for size in sizes)
 
 

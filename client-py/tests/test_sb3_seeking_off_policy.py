@@ -32,8 +32,6 @@ class Step:
         self.strength = strength
         self.executed = executed.copy()
         self.shift = shift.copy()
-        runtime = model._esa
-        self.probes = None if runtime is None else runtime.last_probes
 
 
 def recording(cls):

@@ -5,7 +5,7 @@ computed ahead), the applied actions it computes ahead (from the previous answer
 esa-core's own functions) are the bits the in-process engine's whole step returns, and so are
 the sessions' states; an error of a step surfaces at the next call with nothing of it applied;
 bad critic values are refused before anything is sent; a batch that cannot pipeline waits for
-its answers with the same bits; ``want_probes`` waits for the server's probes.
+its answers with the same bits; the probes computed ahead are the server's.
 """
 
 import numpy as np
@@ -286,21 +286,16 @@ def test_step_ahead_refuses_bad_configs_and_arrays():
 
 
 def test_probes_ahead_are_the_servers_probes(native):
-    batch = native.create_batch(CONFIG, N, use_stream=True)
-    engine = StepAhead([CONFIG.to_proto().SerializeToString()] * N)
-    shifts = np.zeros((N, 2))
+    ahead = native.create_batch(CONFIG, N, use_stream=True)
+    waiting = native.create_batch(CONFIG, N)  # unary calls: the probes come from the server
     for actions, scales, critic, starts in script(60, seed=9):
-        shifts = np.where(starts[:, None] | (batch.steps == 0)[:, None], 0.0, shifts)
-        steps = np.where(starts, 0, batch.steps).astype(np.uint64)
-        probes, applied = engine.probes(shifts, steps, actions, scales)
-        server_probes, server_applied = batch.step(
-            actions, critic, starts, action_scales=scales, want_probes=True
-        )
+        q = curved(critic)
+        probes, applied = ahead.step(actions, q, starts, action_scales=scales)
+        server_probes, server_applied = waiting.step(actions, q, starts, action_scales=scales)
         np.testing.assert_array_equal(probes, server_probes)
         np.testing.assert_array_equal(applied, server_applied)
-        batch.flush()
-        shifts = np.array([s.shift for s in batch.states()])
-    batch.close()
+    ahead.close()
+    waiting.close()
 
 
 def test_the_native_batch_needs_a_stream_and_a_step_sent(native):

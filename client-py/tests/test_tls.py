@@ -76,7 +76,9 @@ def test_a_client_trusting_the_ca_is_served(tls_server, use_stream):
     ids=["wrong-ca", "plaintext"],
 )
 def test_clients_that_cannot_speak_tls_with_it_get_the_clients_own_error(tls_server, tls):
-    with EsaClient.connect(tls_server, tls=tls, timeout=3.0) as client:
+    with pytest.raises(ServerUnavailable, match="over TLS, the CA and server name"):
+        EsaClient.connect(tls_server, tls=tls, timeout=3.0)
+    with EsaClient.connect(tls_server, tls=tls, timeout=3.0, check=False) as client:
         assert not client.healthy(timeout=2.0)
         with pytest.raises(ServerUnavailable) as info:
             client.create_session(CONFIG)
@@ -86,9 +88,8 @@ def test_clients_that_cannot_speak_tls_with_it_get_the_clients_own_error(tls_ser
 
 def test_a_wrong_server_name_is_refused(tls_server):
     wrong_name = TlsConfig(ca=PKI / "ca.pem", server_name="esa.example")
-    with EsaClient.connect(tls_server, tls=wrong_name, timeout=3.0) as client:
-        with pytest.raises(ServerUnavailable):
-            client.create_session(CONFIG)
+    with pytest.raises(ServerUnavailable):
+        EsaClient.connect(tls_server, tls=wrong_name, timeout=3.0)
 
 
 @pytest.mark.parametrize("use_stream", [False, True], ids=["unary", "stream"])
@@ -98,14 +99,12 @@ def test_mutual_tls_with_a_token_serves_the_trainer(mutual_server, use_stream):
 
 
 def test_mutual_tls_refuses_clients_without_the_certificate_or_token(mutual_server):
-    without_token = EsaClient.connect(mutual_server, tls=TRAINER, timeout=3.0)
-    with without_token, pytest.raises(Unauthenticated):
-        without_token.create_session(CONFIG)
+    with pytest.raises(Unauthenticated):
+        EsaClient.connect(mutual_server, tls=TRAINER, timeout=3.0)
     stranger = TlsConfig(ca=PKI / "ca.pem", cert=PKI / "stranger.pem", key=PKI / "stranger-key.pem")
     for tls in (TRUSTING, stranger):
-        with EsaClient.connect(mutual_server, tls=tls, token=TOKEN, timeout=3.0) as client:
-            with pytest.raises(ServerUnavailable):
-                client.create_session(CONFIG)
+        with pytest.raises(ServerUnavailable):
+            EsaClient.connect(mutual_server, tls=tls, token=TOKEN, timeout=3.0)
 
 
 def test_tls_settings_are_checked_when_the_client_is_made(tmp_path):

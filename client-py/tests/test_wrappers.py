@@ -6,7 +6,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from reference_law import ReferenceSession
 
-from esa_client import EsaClient, EsaConfig
+from esa_client import EsaClient, EsaConfig, ServerUnavailable
 from esa_client.wrappers import EsaActionWrapper
 
 
@@ -60,7 +60,7 @@ def test_wrapper_runs_in_process_by_default_and_starts_no_server():
     env.close()
 
 
-def test_wrapper_stops_the_server_it_was_given_to_own(server_bin, monkeypatch):
+def test_wrapper_leaves_a_client_it_was_given_running(server_bin, monkeypatch):
     monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
     env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn, client=EsaClient.spawn())
     server = env._sessions.client.server
@@ -71,3 +71,17 @@ def test_wrapper_stops_the_server_it_was_given_to_own(server_bin, monkeypatch):
     assert server.running()
     env._sessions.client.close()
     assert not server.running()
+
+
+def test_wrapper_opens_and_closes_the_server_a_string_names(server_bin, monkeypatch):
+    monkeypatch.setenv("ESA_SERVER_BIN", server_bin)
+    env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn, client="spawn")
+    server = env._sessions.client.server
+    assert server is not None and server.running()
+    env.close()
+    assert not server.running()
+
+
+def test_wrapper_fails_at_once_where_nothing_listens():
+    with pytest.raises(ServerUnavailable, match="127.0.0.1:1"):
+        EsaActionWrapper(gym.make("Pendulum-v1"), q_fn, client="127.0.0.1:1")

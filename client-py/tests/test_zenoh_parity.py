@@ -98,7 +98,7 @@ def test_a_session_moves_between_transports(zenoh_client, zenoh_grpc_client):
 
 def test_health_and_readiness(zenoh_client):
     assert zenoh_client.healthy()
-    zenoh_client.wait_ready(timeout=1.0)
+    zenoh_client.check(1.0)
     assert "esa/v1" in repr(zenoh_client)
 
 

@@ -117,7 +117,11 @@ class Curve(BaseCallback):
             value = evaluate(self.model, train_env, self.eval_env, self.episodes)  # type: ignore[arg-type]
             self.rows.append({"step": self.num_timesteps, "return_mean": value, "final": 0})
             minutes = (time.monotonic() - self.started) / 60
-            print(f"{self.label}: step {self.num_timesteps:>9,}  return {value:8.1f}  ({minutes:.1f} min)", flush=True)
+            print(
+                f"{self.label}: step {self.num_timesteps:>9,}  return {value:8.1f}  "
+                f"({minutes:.1f} min)",
+                flush=True,
+            )
         return True
 
 

@@ -13,11 +13,11 @@ import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, TypedDict, TypeVar, get_args
+from typing import TYPE_CHECKING, Literal, TypedDict, TypeVar, Union, get_args
 
 from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
-from .errors import EsaError, ServerUnavailable, StatusCode
+from .errors import EsaError, ServerUnavailable, SessionNotFound, StatusCode, Unauthenticated
 from .reconnect import DEFAULT_RECONNECT_TIMEOUT, Reconnect, check_reconnect_timeout
 from .session import Session, SessionBatch, restore_sessions
 from .sidecar import ServerProcess
@@ -34,6 +34,12 @@ TransportName = Literal["grpc", "zenoh"]
 _TRANSPORTS: tuple[str, ...] = get_args(TransportName)
 
 TOKEN_ENV = "ESA_AUTH_TOKEN"
+
+_ACCESS_PROBE_ID = "esa-client-access-check"
+"""A session id no trainer uses: looking it up proves that the server takes our token."""
+
+Where = Union["EsaClient", str, None]
+"""Where sessions live: a client, a string :meth:`EsaClient.open` parses, or None (in-process)."""
 
 _LOCATOR_LINE = "zenoh listening on "
 
@@ -214,7 +220,7 @@ class EsaClient:
         shards: int | None = None,
         prefix: str | None = None,
         zenoh_config: zenoh.Config | None = None,
-        wait_ready: bool | None = None,
+        check: bool = True,
         reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
     ) -> EsaClient:
         """A client of the running server(s) at ``address``, over ``transport``.
@@ -244,14 +250,17 @@ class EsaClient:
             prefix: Zenoh only: the servers' ``--zenoh-prefix`` (default ``esa/v1``).
             zenoh_config: Zenoh only: a complete Zenoh config instead of the peer config
                 built from ``address`` (e.g. client mode to a ``zenohd`` router).
-            wait_ready: Wait (up to ``timeout``) until every server answers before
-                returning. None: Zenoh waits, gRPC connects lazily on the first call.
+            check: Before returning, :meth:`check` that every server answers and takes
+                the token, within ``timeout``: a wrong address or token fails here, not
+                at the first step. False: nothing is sent until the first call (for a
+                server that starts later).
             reconnect_timeout: The client's :attr:`reconnect_timeout`.
 
         Raises:
             ValueError: A malformed argument, or one the transport does not take.
             OSError: If a token or TLS file cannot be read.
-            ServerUnavailable: ``wait_ready`` and no server answered in time.
+            ServerUnavailable: ``check`` and no server answered in time.
+            Unauthenticated: ``check`` and a server refused the token.
         """
         _check_transport(transport, shards=shards, prefix=prefix, zenoh_config=zenoh_config)
         reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
@@ -272,7 +281,6 @@ class EsaClient:
                 config=zenoh_config,
             )
             where = address if isinstance(address, str) else ",".join(address)
-            wait_ready = wait_ready is not False
         else:
             if not isinstance(address, str):
                 raise ValueError(
@@ -282,13 +290,87 @@ class EsaClient:
             where = address
         client = cls(opened, address=where, timeout=timeout)
         client.reconnect_timeout = reconnect_timeout
-        if wait_ready:
+        if check:
             try:
-                client.wait_ready(timeout)
+                client.check(timeout)
             except BaseException:
                 client.close()
                 raise
         return client
+
+    @classmethod
+    def open(cls, where: str) -> EsaClient:
+        """A client of the sessions that ``where`` names, with every option at its default.
+
+        The one parser of the strings that the drop-ins' ``esa_client`` and
+        :func:`resolve_client` take; build the client yourself for anything else (a token,
+        TLS, shards, a timeout).
+
+        Example::
+
+            EsaClient.open("127.0.0.1:50051")     # a running server, over gRPC
+            EsaClient.open("unix:/run/esa.sock")  # the same on a Unix socket
+            EsaClient.open("zenoh:tcp/10.0.0.5:7447")  # a server started with --zenoh
+            EsaClient.open("spawn")               # a private server of this process
+            EsaClient.open("in-process")          # esa-core in this process
+
+        Args:
+            where: ``"in-process"``, ``"spawn"``, ``"zenoh:<endpoint>"``, or a gRPC
+                address ``host:port`` / ``unix:/path``.
+
+        Raises:
+            ValueError: If ``where`` is none of these.
+            ServerUnavailable: If no server answers at the address (:meth:`check`).
+            Unauthenticated: If the server requires a token (give it with :meth:`connect`).
+        """
+        if not isinstance(where, str):
+            raise ValueError(f"expected a string naming where the sessions live, got {where!r}")
+        if where == "in-process":
+            return cls.in_process()
+        if where == "spawn":
+            return cls.spawn()
+        if where.startswith("zenoh:"):
+            return cls.connect(where.removeprefix("zenoh:"), transport="zenoh")
+        if where.startswith("unix:") or ":" in where:
+            return cls.connect(where)
+        raise ValueError(
+            "expected 'in-process', 'spawn', 'zenoh:<endpoint>', 'host:port' or "
+            f"'unix:/path', got {where!r}"
+        )
+
+    def check(self, timeout: float | None = None) -> None:
+        """Checks that every server behind this client answers and takes its token.
+
+        Health alone does not prove access (the server answers health checks without a
+        token), so the check also looks up a session id that no trainer uses.
+
+        Args:
+            timeout: Seconds to wait for the servers (default: the client's timeout).
+
+        Raises:
+            ServerUnavailable: No server answered in time (the message names the address
+                and the ways out).
+            Unauthenticated: A server refused this client's token.
+        """
+        bound = self.timeout if timeout is None else check_timeout(timeout)
+        if not self.healthy(timeout=bound, wait_for_ready=True):
+            raise ServerUnavailable(
+                f"no esa server answered at {self.address} within {bound:g} s: start one "
+                "there (esa-server --listen HOST:PORT), correct the address (or, over TLS, "
+                "the CA and server name), or keep the sessions in this process "
+                "(EsaClient.in_process(), or esa_client=None for a drop-in)",
+                StatusCode.UNAVAILABLE,
+            )
+        try:
+            self.transport.get_session(_ACCESS_PROBE_ID)
+        except SessionNotFound:
+            return
+        except Unauthenticated as err:
+            raise Unauthenticated(
+                f"esa server at {self.address} refused this client ({err.message}): pass "
+                f"its token as token= or token_file=, or set ${TOKEN_ENV}",
+                err.code,
+            ) from err
 
     @classmethod
     def spawn(
@@ -450,14 +532,6 @@ class EsaClient:
         bound = self.timeout if timeout is None else timeout
         return self.transport.healthy(bound, wait_for_ready=wait_for_ready)
 
-    def wait_ready(self, timeout: float = 10.0) -> None:
-        """Blocks until the server is healthy.
-
-        Raises:
-            ServerUnavailable: If it is not healthy within ``timeout`` seconds.
-        """
-        self._wait_healthy(timeout)
-
     def create_session(
         self, config: SessionConfig | esa_pb2.SessionConfig, session_id: str | None = None
     ) -> Session:
@@ -601,3 +675,27 @@ class EsaClient:
         """Shows the address, the transport and the servers this client owns."""
         owned = "".join(f", server pid {server.pid}" for server in self.servers)
         return f"EsaClient({self.address!r}, {self.transport!r}{owned})"
+
+
+def resolve_client(where: Where) -> tuple[EsaClient, bool]:
+    """The client that ``where`` names, and whether the caller opened it (and so closes it).
+
+    Args:
+        where: An :class:`EsaClient` (used as it is; it stays the caller's), a string
+            :meth:`EsaClient.open` parses, or None for ``EsaClient.in_process()``.
+
+    Raises:
+        ValueError: If ``where`` is none of these.
+        ServerUnavailable: If no server answers at a given address.
+        Unauthenticated: If the server there refuses the client.
+    """
+    if isinstance(where, EsaClient):
+        return where, False
+    if where is None:
+        return EsaClient.in_process(), True
+    if isinstance(where, str):
+        return EsaClient.open(where), True
+    raise ValueError(
+        f"expected an EsaClient, a string such as '127.0.0.1:50051' or 'spawn', or None "
+        f"(in-process), got {where!r}"
+    )

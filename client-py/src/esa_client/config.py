@@ -262,8 +262,9 @@ class EsaConfig:
             scale with sigma). None = no fade.
     """
 
-    # The shipped default: trial 21 of `default_search` (InvertedPendulum-v5, tuning seeds
-    # 100-107) to two significant digits; experiments/RESULTS.md says how it fares.
+    # The shipped default: the best setting `default_search` found on InvertedPendulum-v5
+    # (tuning seeds 100-107), to two significant digits; experiments/RESULTS.md says how it
+    # fares.
     amplitude: float | Sequence[float] = 0.29
     frequency: float | Sequence[float] | None = None
     nyquist_fraction: float = 0.48
@@ -378,8 +379,8 @@ class EsaConfig:
 
         ``EsaConfig()`` with a wider trust region: an off-policy learner pays no importance
         ratio for shifted data, and its twin Q critic is steadier than PPO's fitted head. The
-        bound is the pre-declared pick of the (former) ``ground_truth`` study on SAC (tuning
-        seeds 100-102, InvertedPendulum-v5 and Hopper-v5): the largest bound whose
+        bound is the pre-declared pick of the ``ground_truth`` study on SAC (tuning seeds
+        100-102, InvertedPendulum-v5 and Hopper-v5): the largest bound whose
         measured Monte-Carlo return gain is above 0 with 95 % confidence on both envs
         (``experiments/RESULTS.md``).
 

@@ -337,7 +337,6 @@ class SessionBatch:
         *,
         action_scales: npt.ArrayLike | None = None,
         paired: bool = False,
-        want_probes: bool = False,
     ) -> tuple[F64Array | None, F64Array]:
         """A whole step of Algorithm 1 (section 1b), in as few waits as the transport allows.
 
@@ -345,9 +344,9 @@ class SessionBatch:
         (and at the applied actions as ``q_references`` when ``paired``). The transport's
         :class:`~esa_client.transports.stepping.Stepper` decides how it runs, with the same
         bits everywhere: in-process a linear or quadratic critic is evaluated by the engine in
-        one call; on a gRPC StepStream the step is sent ahead of its answer (unless
-        ``want_probes``), which is read at the next call; elsewhere the probe waits for its
-        answer and the report rides with the next one.
+        one call; on a gRPC StepStream the step is sent ahead of its answer, which is read at
+        the next call; elsewhere the probe waits for its answer and the report rides with the
+        next one.
 
         An error of a step sent ahead surfaces one call late: the next call (or :meth:`flush`)
         raises it, and nothing of that step was applied on the server, although its actions
@@ -363,19 +362,18 @@ class SessionBatch:
             episode_starts: As for :meth:`probe_applied`.
             action_scales: As for :meth:`probe_applied`.
             paired: Report the critic at the applied actions as the references.
-            want_probes: Wait for this step's probes (for trainers that execute them), even
-                where the step could be sent ahead.
 
         Returns:
             ``(probes, applied)``, as :meth:`probe_applied` returns them; ``probes`` is None
-            for a step sent ahead (the server answers them one step later).
+            for a :class:`~esa_client.LinearCritic` on a StepStream (the server evaluates it
+            at probes it answers one step later).
 
         Raises:
             ValueError: The critic's values are not ``(N,)`` (``(2 N,)`` when ``paired``)
                 finite numbers, or a linear or quadratic critic's shapes or values are wrong
                 (nothing changed).
         """
-        call = StepCall(actions, critic, episode_starts, action_scales, paired, want_probes)
+        call = StepCall(actions, critic, episode_starts, action_scales, paired)
         return self._stepper.step(self, call)
 
     def _probe_request(

@@ -14,7 +14,7 @@ import gymnasium as gym
 import numpy as np
 import numpy.typing as npt
 
-from .client import EsaClient
+from .client import Where
 from .config import EsaConfig
 from .env_dt import env_dt
 from .wrappers import WrapperSessions
@@ -64,8 +64,9 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         env: A vector env with a ``Box`` single action space.
         q_fn: ``q_fn(obs_batch, actions_batch) -> (M,)``, called once per step.
         esa: ESA hyperparameters (default ``EsaConfig()``).
-        client: The client to create the sessions on; None = ``EsaClient.in_process()``
-            (esa-core in this process, no server), closed by ``close()``.
+        client: Where the sessions live, as for
+            :class:`~esa_client.wrappers.WrapperSessions`: a client (it stays yours), an
+            address string, or None: esa-core in this process (no server).
         action_scale: sigma (the policy's standard deviation if the learner has one): a
             scalar, one value per action dimension, ``(N, D)``, or ``f(obs_batch)``.
         dt: The envs' control period; None = ``esa.dt``, else read from the first sub-env
@@ -78,7 +79,7 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         q_fn: BatchQFunction,
         *,
         esa: EsaConfig | None = None,
-        client: EsaClient | None = None,
+        client: Where = None,
         action_scale: BatchActionScale | None = None,
         dt: float | None = None,
     ) -> None:

@@ -9,7 +9,7 @@ from typing import Any, SupportsFloat
 import gymnasium as gym
 import numpy as np
 
-from .client import EsaClient
+from .client import Where, resolve_client
 from .config import EsaConfig
 from .env_dt import env_dt
 from .errors import EsaError
@@ -29,8 +29,9 @@ class WrapperSessions:
         n_envs: How many envs, one session each.
         dt: The envs' control period.
         esa: ESA hyperparameters (None: ``EsaConfig()``).
-        client: The client to create the sessions on; None = ``EsaClient.in_process()``
-            (esa-core in this process, no server), closed by :meth:`close`.
+        client: Where the sessions live: a client (it stays the caller's), a string
+            :meth:`EsaClient.open` parses (an address; the wrapper closes that client), or
+            None: ``EsaClient.in_process()`` (esa-core in this process, no server).
 
     Raises:
         ValueError: If ``space`` is not a ``Box`` or an ESA setting does not fit the env.
@@ -42,7 +43,7 @@ class WrapperSessions:
         n_envs: int,
         dt: float,
         esa: EsaConfig | None,
-        client: EsaClient | None,
+        client: Where,
     ) -> None:
         """Creates the sessions (closing the client it made if that fails)."""
         if not isinstance(space, gym.spaces.Box):
@@ -53,8 +54,7 @@ class WrapperSessions:
         )
         self.space: gym.spaces.Box = space
         self.paired = esa.paired_response
-        self._owns_client = client is None
-        self.client: EsaClient = EsaClient.in_process() if client is None else client
+        self.client, self._owns_client = resolve_client(client)
         try:
             self.batch = self.client.create_batch(config, n_envs)
         except BaseException:
@@ -93,9 +93,9 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         q_fn: ``q_fn(observation, action) -> float``, evaluated once per step.
         esa: ESA hyperparameters (default ``EsaConfig()``); amplitudes are in the env's
             action units.
-        client: The client to create the session on (any of ``EsaClient.connect``,
-            ``.spawn``, ``.in_process``); None: esa-core in this process (no server is
-            started), closed by ``close()``.
+        client: Where the session lives, as for :class:`WrapperSessions`: a client (any of
+            ``EsaClient.connect``, ``.spawn``, ``.in_process``), an address string, or
+            None: esa-core in this process (no server is started).
         action_scale: sigma for the trust region and the normalized step (the policy's
             standard deviation if the learner has one): a scalar, one value per action
             dimension, or ``f(observation)``; None = 1 action unit.
@@ -107,7 +107,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         q_fn: QFunction,
         *,
         esa: EsaConfig | None = None,
-        client: EsaClient | None = None,
+        client: Where = None,
         action_scale: ActionScale | None = None,
     ) -> None:
         """Creates the ESA session for this env."""

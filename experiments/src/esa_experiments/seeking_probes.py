@@ -99,8 +99,9 @@ class PPOView(LearnerView):
     def __init__(self, model: ESAPPO) -> None:
         """Reads the Box scaling and the critic kind from the model."""
         self.model = model
-        self.center, self.half_width = model._esa_scaling()
-        self.box = model._esa_box()
+        frame = model.esa_frame
+        self.center, self.half_width = frame.center, frame.half_width
+        self.box = frame.box
 
     def _gaussian(self, obs: np.ndarray) -> th.distributions.Normal:
         obs_t = th.as_tensor(obs, dtype=th.float32).reshape(-1, *obs.shape[-1:])
@@ -127,7 +128,7 @@ class PPOView(LearnerView):
 
         m = self.model
         features = m._head_features(th.as_tensor(obs, dtype=th.float32)[None])
-        low, high = m._esa_env_bounds()
+        low, high = m.esa_frame.low, m.esa_frame.high
         if isinstance(m, LinearHead):
             # The linear head as ESAPPO probes it: at the unclipped sample.
             low, high = np.full_like(low, -np.inf), np.full_like(high, np.inf)

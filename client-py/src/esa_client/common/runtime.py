@@ -13,63 +13,14 @@ from .._native import StepStats
 from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
 from ..errors import EsaError, ServerUnavailable, SessionNotFound
-from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
 from ..transports.base import SMALLEST_SCALE, LinearCritic, QuadraticCritic
 
 _log = logging.getLogger("esa_client")
 
 OnUnavailable = Literal["raise", "skip"]
-"""What a learner does once the server stayed unreachable past ``reconnect_timeout``."""
+"""What a learner does once the server stayed unreachable past the client's reconnect time."""
 
 ON_UNAVAILABLE: tuple[OnUnavailable, ...] = get_args(OnUnavailable)
-
-Engine = Literal["inprocess", "sidecar"]
-"""Where the sessions of a learner live: this process's engine, or an esa-server."""
-
-ENGINES: tuple[Engine, ...] = get_args(Engine)
-
-DEFAULT_ENGINE: Engine = "inprocess"
-"""What ``ESAPPO`` / ``ESASAC`` use when given no server: the in-process engine, measured
-faster for a single-process trainer (the SB3 guide's "Engines")."""
-
-
-def choose_engine(
-    engine: Engine | None, address: str | None, spawn: dict[str, Any] | None
-) -> Engine:
-    """The engine a learner uses: ``engine``, else the described server, else the default.
-
-    Raises:
-        ValueError: If ``engine`` is unknown, or ``"inprocess"`` with a server address or
-            spawn arguments (which only a server can use).
-    """
-    if engine is None:
-        return "sidecar" if address is not None or spawn else DEFAULT_ENGINE
-    if engine not in ENGINES:
-        raise ValueError(f"expected esa_engine in {ENGINES}, got {engine!r}")
-    if engine == "inprocess" and (address is not None or spawn):
-        raise ValueError(
-            "expected no esa_address or esa_spawn with esa_engine='inprocess' (they describe "
-            f"a server), got esa_address={address!r}, esa_spawn={spawn!r}"
-        )
-    return engine
-
-
-def open_client(
-    engine: Engine,
-    address: str | None,
-    spawn: dict[str, Any] | None,
-    reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
-) -> EsaClient:
-    """A client of ``engine``: in-process, the server at ``address``, or a spawned one.
-
-    An address here is plaintext gRPC: a TLS (or Zenoh) client is made with
-    :meth:`EsaClient.connect` and given to :meth:`EsaRuntime.on_client`.
-    """
-    if engine == "inprocess":
-        return EsaClient.in_process()
-    if address is None:
-        return EsaClient.spawn(**{"reconnect_timeout": reconnect_timeout, **(spawn or {})})
-    return EsaClient.connect(address, reconnect_timeout=reconnect_timeout)
 
 
 def check_on_unavailable(on_unavailable: str) -> OnUnavailable:
@@ -94,7 +45,7 @@ class LoggerLike(Protocol):
 
 
 class EsaRuntime:
-    """Connection, sessions and statistics of one learner; never pickled with the model.
+    """The sessions and statistics of one learner, on a client it does not own.
 
     Each step is one :meth:`SessionBatch.step` of the envs' batch on a StepStream, with
     the section 1b law (CONTRACT.md) and the config's ``paired_response``.
@@ -102,113 +53,48 @@ class EsaRuntime:
     Sessions the server loses (a restart, a TTL expiry during a long pause) are recreated
     and restarted at the next step, and counted (``esa/sessions_restored``). A server that
     is down, restarting or stalled is waited for as the batch does (:class:`SessionBatch`)
-    for up to ``reconnect_timeout`` seconds; then ``on_unavailable`` decides: ``"raise"``
-    ends training with ``ServerUnavailable``, ``"skip"`` applies the sampled actions
-    unchanged (no ESA) until the next episode start of any env, where it tries the server
-    once again (steps without ESA are counted as ``esa/unavailable_steps``, one per env).
+    for up to the client's ``reconnect_timeout`` seconds; then ``on_unavailable`` decides:
+    ``"raise"`` ends training with ``ServerUnavailable``, ``"skip"`` applies the sampled
+    actions unchanged (no ESA) until the next episode start of any env, where it tries the
+    server once again (steps without ESA are counted as ``esa/unavailable_steps``, one per
+    env).
 
     Args:
         esa: The ESA hyperparameters.
+        client: Where the sessions live; the caller closes it (:meth:`close` closes only
+            the sessions).
         config: The sessions' config (``EsaConfig.session_config`` for the env).
         n_envs: How many sessions (one per env).
         clip_low: Bounds the environment clips to, for the clipped-action statistic.
         clip_high: See ``clip_low``.
-        address: Server address, or None to spawn a private server for this learner
-            (unless ``engine`` is ``"inprocess"``).
         improvement_every: Measure ``esa/improvement`` (the critic's Q at the applied
             minus at the sampled actions) on one step in this many. It costs a critic
             evaluation that training does not need, so it is sampled, not paid per step.
-        spawn: Arguments of :meth:`EsaClient.spawn` for a private server (``session_ttl``,
-            ``max_sessions``, ``max_session_memory``, ``extra_args``, ``transport``, ...).
-        engine: ``"inprocess"`` (this process's engine) or ``"sidecar"`` (an esa-server);
-            None chooses as :func:`choose_engine` does.
-        reconnect_timeout: Seconds to keep retrying an unreachable server (default 60).
         on_unavailable: ``"raise"`` (default) or ``"skip"``, see above.
-    """
 
-    on_unavailable: OnUnavailable
-    """``"raise"`` or ``"skip"``: what a step does once the server stayed unreachable."""
+    Raises:
+        ValueError: If ``improvement_every`` < 1 or ``on_unavailable`` is unknown.
+    """
 
     def __init__(
         self,
         esa: EsaConfig,
+        client: EsaClient,
         config: SessionConfig,
         n_envs: int,
         clip_low: np.ndarray,
         clip_high: np.ndarray,
         *,
-        address: str | None = None,
         improvement_every: int = 8,
-        spawn: dict[str, Any] | None = None,
-        engine: Engine | None = None,
-        reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
         on_unavailable: OnUnavailable = "raise",
     ) -> None:
-        """Opens the engine (or connects, or spawns the server); one session per env."""
+        """Creates the ``n_envs`` sessions on ``client``."""
         if improvement_every < 1:
             raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
-        skip = check_on_unavailable(on_unavailable)
-        reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
-        client = open_client(
-            choose_engine(engine, address, spawn), address, spawn, reconnect_timeout
-        )
-        self._attach(esa, client, config, n_envs, clip_low, clip_high, improvement_every)
-        self.on_unavailable = skip
-
-    @classmethod
-    def on_client(
-        cls,
-        esa: EsaConfig,
-        client: EsaClient,
-        config: SessionConfig,
-        n_envs: int,
-        clip_low: np.ndarray,
-        clip_high: np.ndarray,
-        *,
-        improvement_every: int = 8,
-        on_unavailable: OnUnavailable = "raise",
-    ) -> EsaRuntime:
-        """A runtime on a client opened elsewhere, for trainers without an SB3 VecEnv.
-
-        Args:
-            esa: The ESA hyperparameters.
-            client: The connection (gRPC or Zenoh); the runtime owns it from now on and
-                closes it, also when the sessions cannot be created.
-            config: The sessions' config.
-            n_envs: How many sessions (one per env).
-            clip_low: As for the constructor.
-            clip_high: As for the constructor.
-            improvement_every: As for the constructor.
-            on_unavailable: As for the constructor (the client's ``reconnect_timeout``
-                sets how long it waits first).
-        """
-        if improvement_every < 1 or on_unavailable not in ON_UNAVAILABLE:
-            client.close()
-            check_on_unavailable(on_unavailable)
-            raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
-        runtime = cls.__new__(cls)
-        runtime._attach(esa, client, config, n_envs, clip_low, clip_high, improvement_every)
-        runtime.on_unavailable = on_unavailable
-        return runtime
-
-    def _attach(
-        self,
-        esa: EsaConfig,
-        client: EsaClient,
-        config: SessionConfig,
-        n_envs: int,
-        clip_low: np.ndarray,
-        clip_high: np.ndarray,
-        improvement_every: int,
-    ) -> None:
-        """Creates the ``n_envs`` sessions on ``client``, which the runtime then owns."""
+        self.on_unavailable = check_on_unavailable(on_unavailable)
         self.esa = esa
         self.client = client
-        try:
-            self.batch = client.create_batch(config, n_envs, use_stream=True)
-        except BaseException:
-            client.close()
-            raise
+        self.batch = client.create_batch(config, n_envs, use_stream=True)
         self._stats = StepStats(
             [float(v) for v in clip_low.reshape(-1)], [float(v) for v in clip_high.reshape(-1)]
         )
@@ -216,7 +102,6 @@ class EsaRuntime:
         self._bounds = (config.vector("action_low"), config.vector("action_high"))
         self._improvement_every = improvement_every
         self._calls = 0
-        self.on_unavailable = "raise"
         # True while ESA is off after the server stayed unreachable (on_unavailable="skip").
         self._skipping = False
 
@@ -227,7 +112,6 @@ class EsaRuntime:
         q_fn: QFunction | LinearCritic | QuadraticCritic,
         policy_std: np.ndarray | None = None,
         *,
-        want_probes: bool = False,
         strength: float = 1.0,
     ) -> np.ndarray:
         """Runs Algorithm 1's step for all envs and returns the actions to apply.
@@ -239,8 +123,6 @@ class EsaRuntime:
                 takes it.
             policy_std: The policy's standard deviation, shape ``(N, D)``; sent as the
                 action scale when ``use_policy_std`` (else 1).
-            want_probes: Wait for the server's probes of this step (``last_probes``), for
-                trainers that execute the probe itself.
             strength: ESA's strength ``f`` in [0, 1] under a fade (:meth:`EsaConfig.strength`):
                 the action scale sent is ``f`` times the usual one, which scales the step and
                 the trust region; at 0 the samples are applied without a session step
@@ -262,8 +144,7 @@ class EsaRuntime:
             if strength <= 0.0:
                 return self._without_esa(a, "faded_steps")
             scale = strength * (np.ones_like(a) if scale is None else scale)
-        # probes is None for a step sent ahead (the server answers them one step later).
-        ran = self._attempt(
+        applied = self._attempt(
             episode_starts,
             lambda starts: self.batch.step(
                 a,
@@ -271,14 +152,10 @@ class EsaRuntime:
                 starts,
                 action_scales=scale,
                 paired=self.esa.paired_response,
-                want_probes=want_probes,
-            ),
+            )[1],
         )
-        if ran is None:
+        if applied is None:
             return self._without_esa(a, "unavailable_steps")
-        # Kept for trainers that execute the probe itself (exploration by the sinusoid); None
-        # after a step sent ahead, whose probes the server answers one step later.
-        self.last_probes, applied = ran
         n = len(a)
         self._stats.add_step(a, applied, policy_std)
         if self._calls % self._improvement_every == 0:
@@ -330,7 +207,6 @@ class EsaRuntime:
         """
         self._stats.add_count(why, len(sampled))
         applied: np.ndarray = np.asarray(np.clip(sampled, *self._bounds), dtype=np.float64)
-        self.last_probes = applied
         return applied
 
     def record(self, logger: LoggerLike) -> None:
@@ -340,8 +216,7 @@ class EsaRuntime:
         self._stats.reset()
 
     def close(self) -> None:
-        """Closes the sessions and the client (stopping a spawned server)."""
+        """Closes the sessions (the client stays open)."""
         # The sessions expire on their own if the server is already gone.
         with contextlib.suppress(EsaError):
             self.batch.close()
-        self.client.close()

@@ -80,6 +80,8 @@ def with_esa(
         ValueError: For another algorithm, the old API stack, a framework other than
             torch, a multi-agent setup, a custom RLModule or learner class that is not
             one of ours (or a subclass), or a bad setting.
+        ServerUnavailable: If the service's servers do not answer from this process.
+        Unauthenticated: If they refuse the token.
     """
     if esa is None:
         esa = EsaConfig.off_policy() if isinstance(config, SACConfig) else EsaConfig()
@@ -93,6 +95,8 @@ def with_esa(
     service = service if service is not None else EsaService()
     if not isinstance(service, EsaService):
         raise ValueError(f"expected service to be an EsaService, got {service!r}")
+    # Here, not on the runners: a wrong address or token fails before anything starts.
+    service.check()
     module_class: type[Any]
     default_module: type[Any]
     learner_class: type[Any]

@@ -44,6 +44,7 @@ import torch._dynamo  # noqa: F401  (imported for its side effect)
 from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core.columns import Columns
 
+from ..client import EsaClient
 from ..common.runtime import EsaRuntime
 from ..config import EsaConfig
 from ..env_dt import env_dt
@@ -136,6 +137,12 @@ class _Rows:
 
     def put(self, name: str, values: list[Any]) -> None:
         self.batch[name] = {key: [value] for key, value in zip(self.keys, values, strict=True)}
+
+
+def _close(runtime: EsaRuntime, client: EsaClient) -> None:
+    """Closes a runner's sessions, then its client (the runner opened it)."""
+    runtime.close()
+    client.close()
 
 
 class EsaModuleToEnv(ConnectorV2):
@@ -234,17 +241,22 @@ class EsaModuleToEnv(ConnectorV2):
         low, high = module.esa_space()
         clip_low, clip_high = module.esa_env_bounds()
         config = self.esa.session_config(module.esa_action_dim, dt, low, high)
-        runtime = EsaRuntime.on_client(
-            self.esa,
-            self.service.connect(),
-            config,
-            n_envs,
-            clip_low,
-            clip_high,
-            improvement_every=self.improvement_every,
-            on_unavailable=self.service.on_unavailable,
-        )
-        self._finalizer = weakref.finalize(self, runtime.close)
+        client = self.service.connect()
+        try:
+            runtime = EsaRuntime(
+                self.esa,
+                client,
+                config,
+                n_envs,
+                clip_low,
+                clip_high,
+                improvement_every=self.improvement_every,
+                on_unavailable=self.service.on_unavailable,
+            )
+        except BaseException:
+            client.close()
+            raise
+        self._finalizer = weakref.finalize(self, _close, runtime, client)
         self._runtime = runtime
         self._autoreset = np.zeros(n_envs, dtype=bool)
         return runtime

@@ -126,9 +126,8 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
 
     ``model_config["esa"]["probe_critic"]`` picks them as in ``ESASAC``: the online or the
     Polyak target twins, their minimum or mean (default ``target_mean``). Only those are
-    kept, and shipped to the env runners after every update (as
-    :meth:`get_non_inference_attributes` no longer lists them); the learner's module is
-    RLlib's, unchanged.
+    kept, and shipped to the env runners after every update (they are left out of
+    :meth:`get_non_inference_attributes`); the learner's module is RLlib's, unchanged.
     """
 
     def setup(self) -> None:

@@ -73,33 +73,53 @@ class EsaService:
         """True when each runner keeps its sessions in its own process."""
         return self.address is None and self.zenoh is None
 
-    def connect(self) -> EsaClient:
-        """A client of this service for the calling process (the runner closes it).
+    def connect(self, wait: float | None = None) -> EsaClient:
+        """A client of this service for the calling process, checked (the caller closes it).
+
+        Args:
+            wait: Seconds to wait for the servers to answer (default: ``startup_timeout``).
 
         Raises:
-            EsaError: If a server at ``address`` cannot be reached within ``startup_timeout``.
+            ServerUnavailable: If no server answers within ``wait`` seconds.
+            Unauthenticated: If a server refuses the token.
         """
+        if self.in_process:
+            return EsaClient.in_process()
         if self.zenoh is not None:
-            return EsaClient.connect(
+            client = EsaClient.connect(
                 self.zenoh,
                 transport="zenoh",
                 shards=self.shards,
                 prefix=self.zenoh_prefix,
                 timeout=self.timeout,
                 token_file=self.token_file,
+                check=False,
                 reconnect_timeout=self.reconnect_timeout,
             )
-        if self.address is None:
-            return EsaClient.in_process()
-        client = EsaClient.connect(
-            self.address,
-            timeout=self.timeout,
-            token_file=self.token_file,
-            reconnect_timeout=self.reconnect_timeout,
-        )
+        else:
+            assert self.address is not None  # not in-process
+            client = EsaClient.connect(
+                self.address,
+                timeout=self.timeout,
+                token_file=self.token_file,
+                check=False,
+                reconnect_timeout=self.reconnect_timeout,
+            )
         try:
-            client.wait_ready(self.startup_timeout)
+            client.check(self.startup_timeout if wait is None else wait)
         except BaseException:
             client.close()
             raise
         return client
+
+    def check(self) -> None:
+        """Checks from this process, within ``timeout``, that the servers answer.
+
+        And that they take the token; nothing is checked in-process.
+
+        Raises:
+            ServerUnavailable: If no server answers.
+            Unauthenticated: If a server refuses the token.
+        """
+        if not self.in_process:
+            self.connect(self.timeout).close()

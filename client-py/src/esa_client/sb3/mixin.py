@@ -10,17 +10,12 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
+from ..client import EsaClient, Where, resolve_client
+from ..common.action_frame import ActionFrame
 from ..common.controls import Control, RandomDirections, check_control, shift_report
-from ..common.runtime import (
-    Engine,
-    EsaRuntime,
-    OnUnavailable,
-    check_on_unavailable,
-    choose_engine,
-)
+from ..common.runtime import EsaRuntime, OnUnavailable, check_on_unavailable
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
-from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
 
 if TYPE_CHECKING:
     # The mixin is always combined with an SB3 algorithm (ESAPPO, ESASAC): checked as one.
@@ -39,17 +34,20 @@ def tile_obs(obs: th.Tensor | dict[str, th.Tensor], reps: int) -> th.Tensor | di
 class EsaMixin(_Algorithm):
     """Adds an ESA runtime to an SB3 algorithm; put it first in the bases.
 
-    The runtime (server connection and sessions) is created on the first rollout
-    from the current env, dropped on ``set_env`` and never saved: a loaded model
-    connects again (to ``esa_address``, or a newly spawned server) when it trains.
+    The client is opened (and its server checked) when the model is built or loaded, so a
+    wrong address fails at once, not when the gate first opens. The sessions are created
+    on the first rollout with ESA from the current env, closed on ``set_env`` and never
+    saved; neither is the client: a loaded model runs in-process unless given
+    ``esa_client`` again (``Model.load(path, env, esa_client=...)``).
     """
 
     esa: EsaConfig
-    esa_address: str | None
-    esa_engine: Engine | None
+    esa_client: EsaClient
     esa_control: Control | None
     _esa: EsaRuntime | None
     _esa_placebo: RandomDirections | None
+    _esa_owns_client = False
+    _esa_frame: ActionFrame | None = None
 
     def __init__(
         self,
@@ -57,15 +55,12 @@ class EsaMixin(_Algorithm):
         env: Any,
         *args: Any,
         esa: EsaConfig | Mapping[str, Any] | None = None,
-        esa_address: str | None = None,
-        esa_spawn: dict[str, Any] | None = None,
-        esa_engine: Engine | None = None,
-        esa_reconnect_timeout: float = DEFAULT_RECONNECT_TIMEOUT,
+        esa_client: Where = None,
         esa_on_unavailable: OnUnavailable = "raise",
         esa_control: Control | None = None,
         **kwargs: Any,
     ) -> None:
-        """Creates the SB3 model; the ESA sessions are created when training starts.
+        """Creates the SB3 model and opens the ESA client; sessions come with training.
 
         Args:
             policy: As for the SB3 algorithm.
@@ -75,23 +70,17 @@ class EsaMixin(_Algorithm):
                 (an RL Zoo yaml file's ``esa: {amplitude: 0.2}``) applied over the family's
                 default, checked like ``EsaConfig`` (``ValueError``); ``"preset": "paper"``
                 starts from ``EsaConfig.paper()`` instead. None: the family's default.
-            esa_address: An esa-server address (``host:port`` or ``unix:/path``), reached
-                over plaintext gRPC (a TLS or Zenoh client goes through
-                :meth:`EsaRuntime.on_client`); None: in-process, or a private server with
-                ``esa_engine="sidecar"``.
-            esa_spawn: Arguments of :meth:`EsaClient.spawn` for that private server, e.g.
-                ``{"session_ttl": 3600}`` when rollouts are far apart, or
-                ``{"transport": "zenoh"}``.
-            esa_engine: Where the sessions live: ``"inprocess"`` (esa-core in this process:
-                no server, nothing shared) or ``"sidecar"`` (an esa-server: ``esa_address``,
-                else a private one). None: the server that ``esa_address`` or ``esa_spawn``
-                describe, else ``"inprocess"`` (the SB3 guide's "Engines").
-            esa_reconnect_timeout: Seconds a rollout waits for an unreachable server
-                (restarting, stalled, connection lost), retrying with backoff, before
-                ``esa_on_unavailable`` applies.
+            esa_client: Where the sessions live. None: esa-core in this process (no
+                server, nothing shared). An :class:`~esa_client.EsaClient` (a server with
+                a token, TLS, Zenoh, a reconnect time: see ``EsaClient.connect`` and
+                ``.spawn``), which stays yours to close. Or a string that
+                :meth:`EsaClient.open <esa_client.EsaClient.open>` parses: a server's
+                ``"host:port"`` or ``"unix:/path"``, ``"zenoh:<endpoint>"``, or ``"spawn"``
+                for a private server of this model (the SB3 guide's "Engines").
             esa_on_unavailable: ``"raise"`` (end training with ``ServerUnavailable``) or
                 ``"skip"`` (no ESA until the next episode start; counted in the logger
-                as ``esa/unavailable_steps``).
+                as ``esa/unavailable_steps``), once the server stayed unreachable for the
+                client's ``reconnect_timeout``.
             esa_control: None (ESA), or a control that shares everything with ESA but what
                 it tests, to judge ESA on your task (:mod:`esa_client.common.controls`):
                 ``"placebo"`` (ESA's shift sizes, schedule and correlation in a random
@@ -101,29 +90,50 @@ class EsaMixin(_Algorithm):
             **kwargs: Any other argument of the SB3 algorithm.
 
         Raises:
-            ValueError: If the action space is not a Box, ``esa_control`` is unknown, or an
-                ESA setting does not fit the env (checked here, before any training: a
-                frequency past the Nyquist limit of the env's ``dt``, per-dimension vectors of
-                the wrong length).
+            ValueError: If the action space is not a Box, ``esa_client`` or
+                ``esa_control`` is unknown, or an ESA setting does not fit the env
+                (checked here, before any training: a frequency past the Nyquist limit of
+                the env's ``dt``, per-dimension vectors of the wrong length).
+            ServerUnavailable: If no server answers at ``esa_client``'s address.
+            Unauthenticated: If the server there refuses the client.
         """
         # Set before the SB3 constructor: it may set up the model, which can read them.
         self.esa = self._esa_config(esa)
-        self.esa_address = esa_address
-        self.esa_spawn = dict(esa_spawn or {})
-        choose_engine(esa_engine, esa_address, self.esa_spawn)  # a bad choice fails here
-        self.esa_engine = esa_engine
-        self.esa_reconnect_timeout = check_reconnect_timeout(esa_reconnect_timeout)
         self.esa_on_unavailable = check_on_unavailable(esa_on_unavailable)
         self.esa_control = check_control(esa_control)
         self._esa = None
         self._esa_placebo = None
-        super().__init__(policy, env, *args, **kwargs)
-        # Model.load(path) without an env constructs the model with none: no action space yet.
-        space = getattr(self, "action_space", None)
-        if space is not None and not isinstance(space, spaces.Box):
-            raise ValueError(f"expected a Box action space for ESA, got {space}")
-        if self.env is not None:
-            self._esa_session_config()
+        self._esa_open(esa_client)
+        try:
+            super().__init__(policy, env, *args, **kwargs)
+            # Model.load(path) without an env constructs the model with none: no action space.
+            space = getattr(self, "action_space", None)
+            if space is not None and not isinstance(space, spaces.Box):
+                raise ValueError(f"expected a Box action space for ESA, got {space}")
+            if self.env is not None:
+                self._esa_session_config()
+        except BaseException:
+            self.esa_close()
+            raise
+
+    def _esa_open(self, where: Where) -> None:
+        """Opens (and checks) the client ``where`` names; closes one this model opened before."""
+        client, owned = resolve_client(where)
+        if self._esa_owns_client and getattr(self, "esa_client", None) is not client:
+            self.esa_client.close()
+        self.esa_client, self._esa_owns_client = client, owned
+
+    @classmethod
+    def load(cls, path: Any, env: Any = None, *args: Any, **kwargs: Any) -> Any:
+        """Loads a model as SB3 does; ``esa_client=`` says where its sessions live.
+
+        Raises:
+            ServerUnavailable: If no server answers at ``esa_client``'s address.
+        """
+        where = kwargs.pop("esa_client", None)
+        model = super().load(path, env, *args, **kwargs)
+        model._esa_open(where)
+        return model
 
     @staticmethod
     def _default_esa() -> EsaConfig:
@@ -153,42 +163,35 @@ class EsaMixin(_Algorithm):
         base = EsaConfig.paper() if preset == "paper" else cls._default_esa()
         return dataclasses.replace(base, **values)  # __post_init__ checks every field
 
-    def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """Bounds of the action space ESA shifts in; None where it is unbounded."""
+    def _make_esa_frame(self, box: spaces.Box) -> ActionFrame:
+        """The units the family shifts ``box``'s actions in."""
         raise NotImplementedError
 
-    def _esa_box(self) -> spaces.Box:
-        """The action space, a Box (the constructor checked it)."""
-        space = self.action_space
-        assert isinstance(space, spaces.Box)
-        return space
-
-    def _esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds the env's actions are clipped to, in the space ESA works in."""
-        space = self._esa_box()
-        return space.low.reshape(-1), space.high.reshape(-1)
+    @property
+    def esa_frame(self) -> ActionFrame:
+        """The action space as ESA sees it, built once per model from its Box."""
+        if self._esa_frame is None:
+            space = self.action_space
+            assert isinstance(space, spaces.Box)  # checked by the constructor
+            self._esa_frame = self._make_esa_frame(space)
+        return self._esa_frame
 
     def _esa_session_config(self) -> SessionConfig:
-        low, high = self._esa_space()
-        dim = self._esa_env_bounds()[0].size
-        return self.esa.session_config(dim, env_dt(self.env, self.esa.dt), low, high)
+        frame = self.esa_frame
+        dt = env_dt(self.env, self.esa.dt)
+        return self.esa.session_config(frame.dim, dt, *frame.session_bounds())
 
     def _esa_runtime(self) -> EsaRuntime:
         if self._esa is None:
             assert self.env is not None, "ESA steps run in rollouts, which need an env"
-            clip_low, clip_high = self._esa_env_bounds()
             self._esa = EsaRuntime(
                 self.esa,
+                self.esa_client,
                 self._esa_session_config(),
                 self.env.num_envs,
-                clip_low,
-                clip_high,
-                address=self.esa_address,
-                spawn=self.esa_spawn,
-                engine=self.esa_engine,
-                # Models saved before these existed load without them.
-                reconnect_timeout=getattr(self, "esa_reconnect_timeout", DEFAULT_RECONNECT_TIMEOUT),
-                on_unavailable=getattr(self, "esa_on_unavailable", "raise"),
+                self.esa_frame.low,
+                self.esa_frame.high,
+                on_unavailable=self.esa_on_unavailable,
             )
         return self._esa
 
@@ -230,24 +233,31 @@ class EsaMixin(_Algorithm):
             self.logger.record_mean(f"esa/{key}", value)
         self.logger.record_mean("esa/strength", strength)
 
-    def esa_close(self) -> None:
-        """Closes the ESA sessions and stops a spawned server (also done on garbage collection)."""
+    def _esa_close_sessions(self) -> None:
         if self._esa is not None:
             self._esa.close()
             self._esa = None
         self._esa_placebo = None
 
+    def esa_close(self) -> None:
+        """Closes the ESA sessions, and the client if the model opened it.
+
+        A server the model spawned stops with its client.
+        """
+        self._esa_close_sessions()
+        if self._esa_owns_client:
+            self.esa_client.close()
+
     def set_env(self, env: Any, force_reset: bool = True) -> None:
         """Sets a new env; the ESA sessions are re-created for it on the next rollout."""
-        self.esa_close()
+        self._esa_close_sessions()
         super().set_env(env, force_reset)
 
     def _excluded_save_params(self) -> list[str]:
         # Where the sessions live belongs to the machine that trains, not to the model (a
-        # spawn's arguments may hold a token): a loaded model takes them as load kwargs,
-        # ``Model.load(path, env, esa_address=...)``, else runs in-process.
+        # client may hold a token): a loaded model takes it as a load argument.
         # The placebo's signs belong to one run on one VecEnv, like the sessions.
-        excluded = ["_esa", "_esa_placebo", "esa_address", "esa_spawn"]
+        excluded = ["_esa", "_esa_placebo", "esa_client", "_esa_owns_client", "_esa_frame"]
         return [*super()._excluded_save_params(), *excluded]
 
     def dump_logs(self, *args: Any, **kwargs: Any) -> None:

@@ -6,9 +6,16 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.noise import ActionNoise
 
-from ..common.controls import gradient_size, unit_gradient
+from ..common.action_frame import ActionFrame
+from ..common.controls import (
+    SHIFT_REPORT_EVERY,
+    gradient_shift_size,
+    gradient_size,
+    unit_gradient,
+)
 from ..common.quadratic_head import rank_correlation
 from ..config import EsaConfig
 from ..transports.base import SMALLEST_SCALE
@@ -19,10 +26,6 @@ if TYPE_CHECKING:
     from stable_baselines3.common.policies import ContinuousCritic
 else:
     _Algorithm = object
-
-SHIFT_REPORT_EVERY = 8
-"""Shifted steps per :func:`shift_report`: its numpy costs about an actor call, a few % of an
-off-policy step when run on every one."""
 
 
 class OffPolicyEsaMixin(EsaMixin, _Algorithm):
@@ -75,12 +78,8 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         """
         raise NotImplementedError
 
-    def _esa_space(self) -> tuple[np.ndarray, np.ndarray]:
-        dim = int(np.prod(self.action_space.shape or ()))
-        return -np.ones(dim), np.ones(dim)
-
-    def _esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._esa_space()
+    def _make_esa_frame(self, box: spaces.Box) -> ActionFrame:
+        return ActionFrame.squashed(box)
 
     def _probe_q(self, obs: Any, actions: th.Tensor) -> th.Tensor:
         """The probed critic at ``(obs, actions)``: the target twins' mean, ``(batch,)``."""
@@ -119,8 +118,8 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
             kappa = self.esa.trust_region
             if self.esa_control == "gradient":
                 kappa = gradient_size(1.0, kappa)
-            low, high = self._esa_env_bounds()
-            self._report_shift(sampled, shift, mu, sigma, low, high, kappa, strength)
+            frame = self.esa_frame
+            self._report_shift(sampled, shift, mu, sigma, frame.low, frame.high, kappa, strength)
         buffer_action = executed.reshape(buffer_action.shape).astype(buffer_action.dtype)
         return self.policy.unscale_action(buffer_action), buffer_action
 
@@ -189,8 +188,6 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         anchor: np.ndarray,
         sigma: np.ndarray,
         strength: float,
-        *,
-        want_probes: bool = False,
     ) -> np.ndarray:
         """Algorithm 1's step of every env's session at ``anchor``: the applied actions."""
         return self._esa_runtime().step(
@@ -198,7 +195,6 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
             self._episode_starts(),
             self._esa_q(obs),
             sigma,
-            want_probes=want_probes,
             strength=strength,
         )
 
@@ -220,7 +216,7 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         # autograd.grad, not backward: the critics' own .grad must not collect this.
         (grad,) = th.autograd.grad(self._probe_q(obs, actions).sum(), actions)
         unit = unit_gradient(grad.cpu().numpy().astype(np.float64) * sigma)
-        self.logger.record_mean("esa/shift_over_std", float(scale * np.abs(unit).mean()))
+        self.logger.record_mean("esa/shift_over_std", gradient_shift_size(scale, unit))
         shift: np.ndarray = scale * sigma * unit
         return shift
 

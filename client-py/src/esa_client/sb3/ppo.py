@@ -15,7 +15,13 @@ from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
 
-from ..common.controls import gradient_size, unit_gradient
+from ..common.action_frame import ActionFrame
+from ..common.controls import (
+    SHIFT_REPORT_EVERY,
+    gradient_shift_size,
+    gradient_size,
+    unit_gradient,
+)
 from ..common.quadratic_head import (
     CriticAtStep,
     QuadraticHead,
@@ -28,9 +34,6 @@ from ..config import EsaConfig
 from ..transports.base import SMALLEST_SCALE
 from .decoupled_ppo import DecoupledPPO
 from .mixin import EsaMixin
-
-REPORT_EVERY = 8
-"""One step in this many records what the shifts did (:func:`shift_report`)."""
 
 
 class ESAPPO(EsaMixin, DecoupledPPO):
@@ -79,9 +82,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
     """How many of the latest rollouts the head is fitted on."""
 
     esa_head: nn.Module
-    # Defaults until training (or a load) sets them; the scaling is read before _setup_model
-    # when a model is loaded with an env (its session config is checked).
-    _esa_scale: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+    # Defaults until training (or a load) sets them.
     _esa_head_fitted = False
     _esa_active = False
     _esa_steps = 0
@@ -121,33 +122,11 @@ class ESAPPO(EsaMixin, DecoupledPPO):
 
     def _excluded_save_params(self) -> list[str]:
         # The critic's data come again from the next rollouts, the scaling from the space.
-        return [*super()._excluded_save_params(), "_esa_head_data", "_esa_scale"]
+        return [*super()._excluded_save_params(), "_esa_head_data"]
 
-    def _esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+    def _make_esa_frame(self, box: spaces.Box) -> ActionFrame:
         # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
-        return None, None
-
-    def _esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._esa_scaled()[2:]
-
-    def _esa_scaling(self) -> tuple[np.ndarray, np.ndarray]:
-        """Center and half-width mapping the Box to [-1, 1] (0 and 1 where a side is open)."""
-        return self._esa_scaled()[:2]
-
-    def _esa_scaled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Center, half-width and the Box's bounds in ESA units, computed once per space."""
-        if self._esa_scale is None:
-            low, high = super()._esa_env_bounds()
-            bounded = np.isfinite(low) & np.isfinite(high)
-            center = np.where(bounded, (high + low) / 2, 0.0)
-            half_width = np.where(bounded, (high - low) / 2, 1.0)
-            self._esa_scale = (
-                center,
-                half_width,
-                (low - center) / half_width,
-                (high - center) / half_width,
-            )
-        return self._esa_scale
+        return ActionFrame.scaled(box)
 
     def _head_features(self, obs: th.Tensor) -> th.Tensor:
         """The observation as the critic sees it: preprocessed as SB3 does, flattened."""
@@ -168,7 +147,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
             mean, std = gaussian.mean.cpu().numpy(), gaussian.stddev.cpu().numpy()
             executed = self._esa_act(obs, sample, mean, std, strength)
             actions = th.from_numpy(executed).to(actions.device)
-        return actions.reshape((-1, *self._esa_box().shape)), values, log_prob
+        return actions.reshape((-1, *self.esa_frame.box.shape)), values, log_prob
 
     def _policy_forward(self, obs: th.Tensor) -> tuple[Distribution, th.Tensor]:
         """SB3's ``forward`` up to the sample, so that the sample draws what SB3's would."""
@@ -191,8 +170,9 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         shift = self._esa_shift(obs, sample, mean, std, starts, f)
         if self.esa_control == "placebo":
             shift = self._placebo(shift, starts)
-        if self._esa_steps % REPORT_EVERY == 0:
-            low, high = self._esa_box().low.reshape(-1), self._esa_box().high.reshape(-1)
+        if self._esa_steps % SHIFT_REPORT_EVERY == 0:
+            box = self.esa_frame.box
+            low, high = box.low.reshape(-1), box.high.reshape(-1)
             self._report_shift(sample, shift, mean, std, low, high, self.esa.trust_region, f)
         self._esa_steps += 1
         return self._execute(sample, shift, std)
@@ -212,8 +192,8 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         f: float,
     ) -> np.ndarray:
         """ESA's shift ``v(t)`` (or the gradient control's) in the Box's units, float64 (N, D)."""
-        center, half_width = self._esa_scaling()
-        low, high = self._esa_env_bounds()
+        frame = self.esa_frame
+        center, half_width, low, high = frame.center, frame.half_width, frame.low, frame.high
         units = np.maximum(std / half_width, SMALLEST_SCALE)
         critic = CriticAtStep(
             self.esa_head, self._head_features(obs), (mean - center) / half_width, units, low, high
@@ -221,7 +201,9 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         scaled = (sample - center) / half_width
         if self.esa_control == "gradient":
             size = gradient_size(f, self.esa.trust_region)
-            shift: np.ndarray = size * unit_gradient(critic.gradient(scaled)) * std
+            unit = unit_gradient(critic.gradient(scaled))
+            self.logger.record_mean("esa/shift_over_std", gradient_shift_size(size, unit))
+            shift: np.ndarray = size * unit * std
             return shift
         runtime = self._esa_runtime()
         applied = runtime.step(scaled, starts, self._closed_form(critic), units, strength=f)
@@ -259,7 +241,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
                 actions_t, values, log_probs = self._esa_policy_step(obs_tensor)  # type: ignore[arg-type]
             actions = actions_t.cpu().numpy()
             # PPO's Gaussian is unbounded: the env gets the sample clipped to its Box.
-            box = self._esa_box()
+            box = self.esa_frame.box
             clipped_actions = np.clip(actions, box.low, box.high)
             new_obs, rewards, dones, infos = env.step(clipped_actions)
             self.num_timesteps += env.num_envs

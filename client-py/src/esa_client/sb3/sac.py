@@ -45,7 +45,7 @@ class ESASAC(OffPolicyEsaMixin, SAC):
         env: As for SAC.
         *args: Further positional arguments of SAC.
         **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin` (``esa``,
-            default ``EsaConfig.off_policy()``; ``esa_engine``, ``esa_address``,
+            default ``EsaConfig.off_policy()``; ``esa_client``, ``esa_on_unavailable``,
             ``esa_control``, ...), and any other SAC argument.
 
     Raises:

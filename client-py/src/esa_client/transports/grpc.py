@@ -162,7 +162,7 @@ class _InFlight(NamedTuple):
 
 
 class AheadStepper(Stepper):
-    """A step sent ahead of its answer, unless the caller waits for its probes.
+    """A step sent ahead of its answer.
 
     The applied actions, and the probes for a critic evaluated here (the server evaluates a
     ``LinearCritic`` itself), are computed with esa-core's own function from the shifts
@@ -180,26 +180,24 @@ class AheadStepper(Stepper):
 
     def step(self, batch: SessionBatch, call: StepCall) -> tuple[F64Array | None, F64Array]:
         """The step sent ahead (see :meth:`~esa_client.SessionBatch.step`)."""
-        if call.want_probes:
-            return super().step(batch, call)
         critic, paired = call.critic, call.paired
         check_critic(critic, batch.n, batch.action_dim)
         batch.flush()
         request = batch._probe_request(call.actions, call.episode_starts, None, call.action_scales)
         steps_before, starts_before = batch._steps, batch._next_starts.copy()
         try:
-            applied = self._send(batch, request, critic, paired)
+            probes, applied = self._send(batch, request, critic, paired)
         except RetriableErrors:
             if batch._reconnect is None:
                 raise
-            request, applied = batch._reconnect.run(
+            request, (probes, applied) = batch._reconnect.run(
                 lambda _: batch._restart(
                     request, lambda restart: self._send(batch, restart, critic, paired)
                 )
             )
         self._in_flight = _InFlight(steps_before, starts_before, request)
         batch._sent(request)
-        return None, applied
+        return probes, applied
 
     def flush(self, batch: SessionBatch) -> None:
         """Reads the answer of the step in flight (raising its error), if there is one."""
@@ -215,8 +213,11 @@ class AheadStepper(Stepper):
 
     def _send(
         self, batch: SessionBatch, request: BatchProbe, critic: Critic, paired: bool
-    ) -> F64Array:
-        """Sends ``request``'s step, computed from the shifts in hand; returns its actions.
+    ) -> tuple[F64Array | None, F64Array]:
+        """Sends ``request``'s step, computed from the shifts in hand.
+
+        Returns the probes (None for a ``LinearCritic``, which the server evaluates) and the
+        actions to apply.
 
         The actions and scales (and a critic's values) are checked before anything is sent:
         an error there is this call's.
@@ -233,7 +234,7 @@ class AheadStepper(Stepper):
             with _engine_errors:
                 applied: F64Array = self._engine(shifts, request.actions, request.action_scales)
             self._ahead.send_step_linear(request, critic, paired)
-            return applied
+            return None, applied
         with _engine_errors:
             probes, applied = self._engine.probes(
                 shifts, request.steps, request.actions, request.action_scales
@@ -241,7 +242,7 @@ class AheadStepper(Stepper):
         points = np.concatenate([probes, applied]) if paired else probes
         q = check_array(critic(points), (len(points),), "critic values", finite=True)
         self._ahead.send_step(request, q[: batch.n], q[batch.n :] if paired else None)
-        return applied
+        return probes, applied
 
     def _receive(self, batch: SessionBatch) -> F64Array:
         """The shifts ``v(t + 1)`` of the step in flight, or its error.

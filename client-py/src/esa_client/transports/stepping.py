@@ -92,7 +92,6 @@ class StepCall(NamedTuple):
     episode_starts: npt.ArrayLike | None
     action_scales: npt.ArrayLike | None
     paired: bool
-    want_probes: bool
 
 
 class Stepper:

@@ -44,8 +44,22 @@ class MeanAnchor(_Base):
 class ExecutedProbe(_Base):
     """The env executes ESA's probe ``a_t + v(t) + K sin(w t)``.
 
-    With ``EsaConfig(learning_rate=0)``: exploration by the sinusoid alone.
+    With ``EsaConfig(learning_rate=0)``: exploration by the sinusoid alone. The probes are
+    the points the step evaluates the critic at first, so :meth:`_esa_q` records them.
     """
+
+    _esa_probes: list[np.ndarray]
+
+    def _esa_q(self, obs: Any) -> Any:
+        q_fn = super()._esa_q(obs)
+        self._esa_probes = []
+
+        def recording(actions: np.ndarray) -> np.ndarray:
+            if not self._esa_probes:
+                self._esa_probes.append(np.array(actions[: self.n_envs]))
+            return q_fn(actions)  # type: ignore[no-any-return]
+
+        return recording
 
     def _shifted(
         self,
@@ -55,9 +69,9 @@ class ExecutedProbe(_Base):
         sigma: np.ndarray,
         strength: float,
     ) -> tuple[np.ndarray, np.ndarray]:
-        applied = self._esa_step(obs, sampled, sigma, strength, want_probes=True)
-        probes = self._esa_runtime().last_probes
-        assert probes is not None  # the step waited for its probes
+        applied = self._esa_step(obs, sampled, sigma, strength)
+        # A faded (or skipped) step probes nothing: the env executes the applied action.
+        probes = self._esa_probes[0] if self._esa_probes else applied
         return np.clip(probes, -1.0, 1.0), applied - sampled
 
 

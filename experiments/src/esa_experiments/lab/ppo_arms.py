@@ -97,7 +97,10 @@ class LinearHead(_Base):
         assert isinstance(head, AdvantageHead)
         version = head.version()
         if self._esa_head_snapshot is None or self._esa_head_snapshot[0] != version:
-            self._esa_head_snapshot = (version, head.snapshot(*self._esa_scaling()))
+            self._esa_head_snapshot = (
+                version,
+                head.snapshot(self.esa_frame.center, self.esa_frame.half_width),
+            )
         return self._esa_head_snapshot[1]
 
     def _step_features(self, obs: th.Tensor) -> np.ndarray:
@@ -175,7 +178,7 @@ class TargetMode(_Base):
     ) -> bool:
         """ESAPPO's rollout, each step's shift in units of sigma kept as its target."""
         assert isinstance(rollout_buffer, EsaRolloutBuffer)
-        dim = self._esa_scaling()[0].size
+        dim = self.esa_frame.dim
         shape = (rollout_buffer.buffer_size, rollout_buffer.n_envs, dim)
         self._esa_targets = np.zeros(shape, dtype=np.float32)
         done: bool = super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
