@@ -23,13 +23,12 @@ use crate::errors::{status_error, StatusError};
 /// The `StatusError` of a failed call: esa-client's code, message and batch item.
 fn error_of(py: Python<'_>, error: esa_client::Error) -> PyErr {
     let message = error.message().to_string();
-    status_error(
-        py,
-        StatusError::new_err(message.clone()),
-        error.code() as i32,
-        message,
-        error.index(),
-    )
+    status_error::<StatusError>(py, error.code() as i32, message, error.index())
+}
+
+/// The `StatusError` of a call that fails on the client's side, for no batch item.
+fn failed(py: Python<'_>, code: Code, message: &str) -> PyErr {
+    status_error::<StatusError>(py, code as i32, message.into(), None)
 }
 
 /// Runs one call of `remote` without the GIL.
@@ -40,10 +39,6 @@ fn call<R: Send>(
 ) -> PyResult<R> {
     py.detach(|| rpc(remote))
         .map_err(|error| error_of(py, error))
-}
-
-fn closed() -> PyErr {
-    StatusError::new_err("the client is closed")
 }
 
 /// TLS trusting `ca` (else the Mozilla roots), presenting `cert` and `key` (mutual TLS) and
@@ -81,15 +76,10 @@ pub(crate) struct GrpcClient {
 
 impl GrpcClient {
     fn remote(&self, py: Python<'_>) -> PyResult<Arc<Remote>> {
-        self.remote.read().clone().ok_or_else(|| {
-            status_error(
-                py,
-                closed(),
-                Code::Unavailable as i32,
-                "the client is closed".into(),
-                None,
-            )
-        })
+        self.remote
+            .read()
+            .clone()
+            .ok_or_else(|| failed(py, Code::Unavailable, "the client is closed"))
     }
 }
 
@@ -346,11 +336,13 @@ impl GrpcBatch {
         q_values: &Bound<'_, PyAny>,
         q_references: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<pb::ReportBatchRequest> {
+        let steps = Values::<u64>::steps(steps)?.owned();
+        let (q_values, q_references) = critic_values(q_values, q_references)?;
         Ok(pb::ReportBatchRequest {
             session_ids: self.session_ids.clone(),
-            steps: Values::<u64>::steps(steps)?.owned(),
-            q_values: Values::<f64>::floats(q_values)?.owned(),
-            q_references: Values::<f64>::floats_or_empty(q_references)?.owned(),
+            steps,
+            q_values,
+            q_references,
         })
     }
 
@@ -423,6 +415,16 @@ impl GrpcBatch {
     }
 }
 
+/// The critic's values of a report, `q_values` and `q_references` (None: no references).
+fn critic_values(
+    q_values: &Bound<'_, PyAny>,
+    q_references: Option<&Bound<'_, PyAny>>,
+) -> PyResult<(Vec<f64>, Vec<f64>)> {
+    let q_values = Values::<f64>::floats(q_values)?;
+    let q_references = Values::<f64>::floats_or_empty(q_references)?;
+    Ok((q_values.owned(), q_references.owned()))
+}
+
 /// The stream in `slot`, opened first when there is none.
 async fn opened<'s>(
     remote: &Remote,
@@ -436,14 +438,7 @@ async fn opened<'s>(
 
 /// An answer of the other kind than the request's (a server bug, never expected).
 fn out_of_order(py: Python<'_>) -> PyErr {
-    let message = "a StepStream answer out of order";
-    status_error(
-        py,
-        StatusError::new_err(message),
-        Code::Internal as i32,
-        message.into(),
-        None,
-    )
+    failed(py, Code::Internal, "a StepStream answer out of order")
 }
 
 #[pymethods]
@@ -545,10 +540,12 @@ impl GrpcBatch {
         q_references: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<()> {
         self.stream_slot()?;
+        let probe = Some(self.probe_request(steps, actions, episode_starts, action_scales)?);
+        let (q_values, q_references) = critic_values(q_values, q_references)?;
         let request = pb::StepBatchRequest {
-            probe: Some(self.probe_request(steps, actions, episode_starts, action_scales)?),
-            q_values: Values::<f64>::floats(q_values)?.owned(),
-            q_references: Values::<f64>::floats_or_empty(q_references)?.owned(),
+            probe,
+            q_values,
+            q_references,
         };
         self.send_ahead(py, Step::Fused(request))
     }
@@ -560,13 +557,8 @@ impl GrpcBatch {
         let answer = {
             let mut ahead = self.ahead.lock();
             let Some(thread) = ahead.as_mut() else {
-                return Err(error_of(
-                    py,
-                    esa_client::Error::new(
-                        Code::FailedPrecondition,
-                        "no step was sent ahead on this batch",
-                    ),
-                ));
+                let message = "no step was sent ahead on this batch";
+                return Err(failed(py, Code::FailedPrecondition, message));
             };
             let answer = py.detach(|| thread.answer());
             if answer.as_ref().is_err_and(esa_client::Error::is_retryable) {
@@ -594,13 +586,8 @@ impl GrpcBatch {
     /// A FAILED_PRECONDITION when no step waits for its answer.
     fn resend_step(&self, py: Python<'_>) -> PyResult<()> {
         let Some(step) = self.sent_ahead.lock().clone() else {
-            return Err(error_of(
-                py,
-                esa_client::Error::new(
-                    Code::FailedPrecondition,
-                    "no step sent ahead on this batch waits for its answer",
-                ),
-            ));
+            let message = "no step sent ahead on this batch waits for its answer";
+            return Err(failed(py, Code::FailedPrecondition, message));
         };
         // Its answer, if the old stream still gave one, would be taken for the new step's.
         let stale = self.ahead.lock().take();

@@ -5,7 +5,7 @@
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
-use esa_core::batch;
+use esa_core::batch::{self, BatchError};
 use esa_core::fused_step::{self, StepCritic};
 use esa_core::{Session, SessionConfig};
 use esa_proto::convert::{new_session, session_snapshot};
@@ -70,6 +70,14 @@ impl Handle {
     pub fn values(&self) -> usize {
         self.values
     }
+}
+
+/// The arrays of a probe batch (ProbeBatchRequest's), concatenated over its items.
+pub struct ProbeInput<'a> {
+    pub steps: &'a [u64],
+    pub actions: &'a [f64],
+    pub starts: &'a [bool],
+    pub scales: &'a [f64],
 }
 
 /// What a probe batch returns: the probes and Algorithm 1's applied actions, concatenated, and the
@@ -183,17 +191,17 @@ impl Engine {
     }
 
     /// ProbeBatch over the sessions of `handle` (see `esa_core::batch::probe`); all-or-nothing.
-    pub fn probe(
-        &mut self,
-        handle: &Handle,
-        steps: &[u64],
-        actions: &[f64],
-        episode_starts: &[bool],
-        action_scales: &[f64],
-    ) -> Result<ProbeOutput, Error> {
-        batch::check_probe_lengths(handle.len(), steps.len(), episode_starts.len())?;
-        self.with_sessions(handle, |sessions| {
-            probe_sessions(sessions, steps, actions, episode_starts, action_scales)
+    pub fn probe(&mut self, handle: &Handle, input: &ProbeInput<'_>) -> Result<ProbeOutput, Error> {
+        self.probing(handle, input, |sessions, probes, applied| {
+            batch::probe(
+                sessions,
+                input.steps,
+                input.actions,
+                input.starts,
+                input.scales,
+                probes,
+                applied,
+            )
         })
     }
 
@@ -234,26 +242,36 @@ impl Engine {
     pub fn step_critic(
         &mut self,
         handle: &Handle,
-        steps: &[u64],
-        actions: &[f64],
-        episode_starts: &[bool],
-        action_scales: &[f64],
+        input: &ProbeInput<'_>,
         critic: &impl StepCritic,
     ) -> Result<ProbeOutput, Error> {
-        batch::check_probe_lengths(handle.len(), steps.len(), episode_starts.len())?;
-        self.with_sessions(handle, |sessions| {
-            let (mut probes, mut applied) = (Vec::new(), Vec::new());
+        self.probing(handle, input, |sessions, probes, applied| {
             fused_step::step(
                 sessions,
-                steps,
-                actions,
-                episode_starts,
-                action_scales,
+                input.steps,
+                input.actions,
+                input.starts,
+                input.scales,
                 critic,
-                &mut probes,
-                &mut applied,
+                probes,
+                applied,
                 |_, _| {},
-            )?;
+            )
+        })
+    }
+
+    /// Runs `run` (a probe's or a step's) on the sessions of `handle` after the checks of a probe
+    /// that need no session, collecting its probes and applied actions.
+    fn probing(
+        &mut self,
+        handle: &Handle,
+        input: &ProbeInput<'_>,
+        run: impl FnOnce(&mut [&mut Session], &mut Vec<f64>, &mut Vec<f64>) -> Result<(), BatchError>,
+    ) -> Result<ProbeOutput, Error> {
+        batch::check_probe_lengths(handle.len(), input.steps.len(), input.starts.len())?;
+        self.with_sessions(handle, |sessions| {
+            let (mut probes, mut applied) = (Vec::new(), Vec::new());
+            run(sessions, &mut probes, &mut applied)?;
             Ok(ProbeOutput {
                 probes,
                 applied,
@@ -312,31 +330,6 @@ impl Engine {
         entry.remember(key);
         Ok(taken)
     }
-}
-
-/// ProbeBatch over `sessions` (see `esa_core::batch::probe`); all-or-nothing.
-fn probe_sessions(
-    sessions: &mut [&mut Session],
-    steps: &[u64],
-    actions: &[f64],
-    episode_starts: &[bool],
-    action_scales: &[f64],
-) -> Result<ProbeOutput, Error> {
-    let (mut probes, mut applied) = (Vec::new(), Vec::new());
-    batch::probe(
-        sessions,
-        steps,
-        actions,
-        episode_starts,
-        action_scales,
-        &mut probes,
-        &mut applied,
-    )?;
-    Ok(ProbeOutput {
-        probes,
-        applied,
-        dim: shared_dim(sessions),
-    })
 }
 
 fn shared_dim(sessions: &[&mut Session]) -> Option<usize> {

@@ -68,19 +68,15 @@ impl Engine {
     }
 
     /// `engine::Engine::step_critic` for a critic over values the caller owns ([`Self::batch`]).
-    #[allow(clippy::too_many_arguments)] // the step's inputs and the critic
     fn step_critic(
         &self,
         py: Python<'_>,
         handle: &engine::Handle,
-        steps: &[u64],
-        actions: &[f64],
-        starts: &[bool],
-        scales: &[f64],
+        input: &engine::ProbeInput<'_>,
         critic: &(impl StepCritic + Sync),
     ) -> Result<engine::ProbeOutput, Error> {
         self.batch(py, handle, |engine| {
-            engine.step_critic(handle, steps, actions, starts, scales, critic)
+            engine.step_critic(handle, input, critic)
         })
     }
 }
@@ -258,16 +254,14 @@ impl Engine {
             None => Values::empty(),
         };
         let scales = Values::<f64>::floats_or_empty(action_scales)?;
+        let input = engine::ProbeInput {
+            steps: steps.as_slice(),
+            actions: actions.as_slice(),
+            starts: starts.as_slice(),
+            scales: scales.as_slice(),
+        };
         let output = self
-            .batch(py, handle, |engine| {
-                engine.probe(
-                    handle,
-                    steps.as_slice(),
-                    actions.as_slice(),
-                    starts.as_slice(),
-                    scales.as_slice(),
-                )
-            })
+            .batch(py, handle, |engine| engine.probe(handle, &input))
             .map_err(|err| engine_error(py, err))?;
         probe_tuple(py, output, handle.len())
     }
@@ -311,6 +305,12 @@ impl Engine {
         let tracked = tracked.as_slice_mut().map_err(|err| steps_error(&err))?;
         let carried = step_of_each(tracked, &starts)?;
         let scales = Values::<f64>::floats_or_empty(action_scales)?.owned();
+        let input = engine::ProbeInput {
+            steps: &carried,
+            actions: &actions,
+            starts: &starts,
+            scales: &scales,
+        };
         let gains = Values::<f64>::floats(gain)?.owned();
         let offsets = Values::<f64>::floats(offset)?.owned();
         let output = match curvature {
@@ -325,7 +325,7 @@ impl Engine {
                     offsets: &offsets,
                     paired,
                 };
-                self.step_critic(py, handle, &carried, &actions, &starts, &scales, &critic)
+                self.step_critic(py, handle, &input, &critic)
             }
             Some(curvature) => {
                 let curvatures = Values::<f64>::floats(curvature)?.owned();
@@ -339,7 +339,7 @@ impl Engine {
                     highs: &highs,
                     paired,
                 };
-                self.step_critic(py, handle, &carried, &actions, &starts, &scales, &critic)
+                self.step_critic(py, handle, &input, &critic)
             }
         }
         .map_err(|err| engine_error(py, err))?;

@@ -5,6 +5,7 @@
 use pyo3::create_exception;
 use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
+use pyo3::PyTypeInfo;
 
 create_exception!(
     esa_client._native,
@@ -24,19 +25,18 @@ create_exception!(
 
 /// The `EngineError` of a refused engine call: esa-store's code, message and item.
 pub(crate) fn engine_error(py: Python<'_>, err: esa_store::Error) -> PyErr {
-    let message = err.to_string();
-    let exc = EngineError::new_err(message.clone());
-    status_error(py, exc, err.code() as i32, message, err.item_index())
+    status_error::<EngineError>(py, err.code() as i32, err.to_string(), err.item_index())
 }
 
-/// `exc` with the attributes of a failed call: its gRPC `code` number, `message` and `index`.
-pub(crate) fn status_error(
+/// An exception `E` of `message` with the attributes of a failed call: its gRPC `code` number,
+/// `message` and `index`.
+pub(crate) fn status_error<E: PyTypeInfo>(
     py: Python<'_>,
-    exc: PyErr,
     code: i32,
     message: String,
     index: Option<usize>,
 ) -> PyErr {
+    let exc = PyErr::new::<E, _>(message.clone());
     let value = exc.value(py);
     let attributes = (|| -> PyResult<()> {
         value.setattr("code", code)?;
