@@ -1,7 +1,7 @@
 """Riding out a lost server: retries with capped exponential backoff and jitter.
 
 Repeating a call is safe by the contract's step numbers (CONTRACT.md section 2, "Retries are
-safe"); what a batch does between two attempts is :class:`~esa_client.SessionBatch`'s.
+safe"); what a batch does between two attempts is :class:`~esa_client.recovery.Recovery`'s.
 """
 
 from __future__ import annotations

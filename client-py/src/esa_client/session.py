@@ -10,16 +10,15 @@ episode-start probe reached the server but its answer was lost, repeating it end
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 from .config import SessionConfig
-from .errors import SessionNotFound, StatusCode, StepMismatch
+from .errors import SessionNotFound
 from .reconnect import Reconnect
+from .recovery import Recovery, StepLedger
 from .state import (
-    BoolArray,
     F64Array,
     I64Array,
     SessionProgress,
@@ -28,12 +27,10 @@ from .state import (
     check_array,
     check_indices,
 )
-from .transports.base import BatchProbe, BatchReport, Transport
+from .transports.base import BatchReport, Transport
 from .transports.stepping import Critic, StepCall
 
 __all__ = ["Session", "SessionBatch", "SessionProgress", "SessionState", "restore_sessions"]
-
-_Answer = TypeVar("_Answer")
 
 
 def restore_sessions(
@@ -245,13 +242,12 @@ class SessionBatch:
         self.n, self.action_dim = len(self.ids), self.configs[0].action_dim
         self._batch = transport.open_batch(self.ids, self.action_dim, use_stream=use_stream)
         self._on_restore = on_restore
-        self._steps: I64Array = np.zeros(self.n, dtype=np.int64)
-        self._next_starts = np.zeros(self.n, dtype=bool)
-        # A report sent with the next probe (``report(..., defer=True)``).
-        self._deferred: BatchReport | None = None
-        self._reconnect = reconnect
-        # The last probe sent: replayed into recreated sessions before a lone report.
-        self._last_probe: BatchProbe | None = None
+        self.ledger = StepLedger(self.n, self.action_dim)
+        """Where the sessions stand, as far as this client knows."""
+        self.recovery = Recovery(
+            transport, self.ids, self.configs, self._batch, self.ledger, reconnect, self.restore
+        )
+        """How the batch's calls ride out a lost server and lost sessions."""
         self._stepper = self._batch.stepper()
         self.sessions_restored = 0
         """How many sessions this batch recreated (by :meth:`restore` or a reconnect)."""
@@ -259,7 +255,7 @@ class SessionBatch:
     @property
     def steps(self) -> I64Array:
         """The step each session's next probe (or pending report) carries, shape ``(N,)``."""
-        return np.array(self._steps, dtype=np.int64)
+        return np.array(self.ledger.steps, dtype=np.int64)
 
     def probe(
         self,
@@ -306,28 +302,11 @@ class SessionBatch:
             ``clip(a_t + v(t))``, the shift before this step's report.
         """
         self._stepper.flush(self)
-        request = self._probe_request(actions, episode_starts, steps, action_scales)
-        deferred = self._deferred
-        if self._reconnect is None:
-            if deferred is None:
-                answer = self._batch.probe(request)
-            else:
-                answer = self._batch.report_then_probe(deferred, request)
-        else:
-            request, answer = self._reconnect.run(
-                lambda retrying: self._probe_attempt(deferred, request, retrying)
-            )
-        self._deferred = None
-        self._steps = request.steps
-        self._last_probe = request
-        self._next_starts[:] = False
+        request = self.ledger.probe_request(actions, episode_starts, steps, action_scales)
+        request, answer = self.recovery.probe(request)
+        self.ledger.deferred = None
+        self.ledger.probed(request)
         return answer
-
-    def _sent(self, request: BatchProbe) -> None:
-        """Counts a whole step (probe and report) of ``request`` as sent."""
-        self._steps = request.steps + 1
-        self._last_probe = request
-        self._next_starts[:] = False
 
     def step(
         self,
@@ -376,122 +355,6 @@ class SessionBatch:
         call = StepCall(actions, critic, episode_starts, action_scales, paired)
         return self._stepper.step(self, call)
 
-    def _probe_request(
-        self,
-        actions: npt.ArrayLike,
-        episode_starts: npt.ArrayLike | None,
-        steps: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-    ) -> BatchProbe:
-        """The checked probe of ``actions``, with the tracked steps unless ``steps`` is given."""
-        a, starts, scales = self._probe_inputs(actions, episode_starts, action_scales)
-        step = np.where(starts, 0, self._steps) if steps is None else np.array(steps, np.int64)
-        return BatchProbe(step, a, starts, scales)
-
-    def _probe_inputs(
-        self,
-        actions: npt.ArrayLike,
-        episode_starts: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-    ) -> tuple[F64Array, BoolArray, F64Array | None]:
-        """The checked actions, episode starts and action scales of a probe."""
-        shape = (self.n, self.action_dim)
-        a = check_array(actions, shape, "actions")
-        if episode_starts is None:
-            starts = self._next_starts.copy()
-        else:
-            starts = self._next_starts | check_array(
-                episode_starts, (self.n,), "episode_starts", dtype=bool
-            )
-        scales = None
-        if action_scales is not None:
-            scales = np.asarray(action_scales, np.float64)
-            if scales.shape != shape:  # a scalar or a row, for every session
-                scales = np.broadcast_to(scales, shape)
-        return a, starts, scales
-
-    def _probe_attempt(
-        self, deferred: BatchReport | None, request: BatchProbe, retrying: bool
-    ) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
-        """One attempt of a probe (with the deferred report); returns what it sent.
-
-        After a failure of the wire (``retrying``), the server may have applied the
-        report, the report and the probe, or nothing, and it may have lost the sessions
-        (a restart). The sessions' steps (``GetSession``) tell which: reports still
-        missing are sent on their own, an applied episode-start probe is not repeated
-        (that would count one more empty episode), and lost sessions are recreated and
-        start a new episode with this probe, so no update is ever applied twice.
-        """
-        if retrying:
-            try:
-                deferred, request = self._reconcile(deferred, request)
-            except SessionNotFound:
-                return self._restart(request, self._batch.probe)
-        try:
-            if deferred is None:
-                return request, self._batch.probe(request)
-            return request, self._batch.report_then_probe(deferred, request)
-        except SessionNotFound:
-            if not retrying:
-                raise
-            return self._restart(request, self._batch.probe)
-
-    def _reconcile(
-        self, deferred: BatchReport | None, request: BatchProbe
-    ) -> tuple[BatchReport | None, BatchProbe]:
-        """What is left to send of ``deferred`` and ``request`` after a broken exchange."""
-        states = [self._transport.get_session(i) for i in self.ids]
-        starts = request.episode_starts.copy()
-        for i, state in enumerate(states):
-            if starts[i] and state.step == 0 and state.probe_pending:
-                # This episode-start probe was applied (with the report before it, if
-                # any): replacing its pending probe ends no further episode. (With a
-                # report of step 0, the state cannot tell whether anything was applied;
-                # the probe then replaces the pending one and the report is dropped,
-                # which at most skips one update of the response's mean square.)
-                starts[i] = False
-                continue
-            if deferred is None:
-                continue
-            step = int(deferred.steps[i])
-            if state.step == step + 1:
-                continue  # the report was applied (and maybe the probe after it)
-            if state.step == step and state.probe_pending:
-                reference = None if deferred.q_references is None else deferred.q_references[i]
-                self._transport.report(
-                    self.ids[i],
-                    step,
-                    float(deferred.q_values[i]),
-                    None if reference is None else float(reference),
-                )
-                continue
-            raise StepMismatch(
-                f"session {self.ids[i]!r} is at step {state.step} (probe pending: "
-                f"{state.probe_pending}) after a broken exchange, expected step {step} or "
-                f"{step + 1}",
-                StatusCode.FAILED_PRECONDITION,
-                index=i,
-            )
-        request = request._replace(episode_starts=starts)
-        return None, request
-
-    def _restart(
-        self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
-    ) -> tuple[BatchProbe, _Answer]:
-        """Recreates lost sessions and sends ``request`` as every session's episode start.
-
-        ``send`` sends it (a probe, or a step sent ahead); returns what it sent and the answer.
-        """
-        self.restore()
-        restart = request._replace(
-            steps=np.zeros(self.n, dtype=np.int64),
-            episode_starts=np.ones(self.n, dtype=bool),
-        )
-        answer = send(restart)
-        self._next_starts[:] = False
-        self._last_probe = restart
-        return restart, answer
-
     def report(
         self,
         q_values: npt.ArrayLike,
@@ -526,19 +389,19 @@ class SessionBatch:
             references = np.array(check_array(q_references, (self.n,), "q_references"))
         if steps is not None:
             step = np.asarray(steps, np.int64)
-        elif self._deferred is not None:
+        elif self.ledger.deferred is not None:
             # A report of the same steps replaces the deferred one (e.g. after it failed).
-            step = self._deferred.steps
+            step = self.ledger.deferred.steps
         else:
-            step = self._steps
-        self._deferred = None
+            step = self.ledger.steps
+        self.ledger.deferred = None
         request = BatchReport(step, q, references)
         if defer:
-            self._deferred = request
-            self._steps = step + 1
+            self.ledger.deferred = request
+            self.ledger.steps = step + 1
             return None
-        sent, improved = self._send_report(request)
-        self._steps = sent.steps + 1
+        sent, improved = self.recovery.report(request)
+        self.ledger.steps = sent.steps + 1
         return improved
 
     def flush(self) -> None:
@@ -551,32 +414,10 @@ class SessionBatch:
                 stays pending).
         """
         self._stepper.flush(self)
-        if self._deferred is not None:
-            sent, _ = self._send_report(self._deferred)
-            self._deferred = None
-            self._steps = sent.steps + 1
-
-    def _send_report(self, request: BatchReport) -> tuple[BatchReport, F64Array]:
-        """Sends a report on its own (riding out a lost server); returns what it sent."""
-        if self._reconnect is None:
-            return request, self._batch.report(request)
-        return self._reconnect.run(lambda retrying: self._report_attempt(request, retrying))
-
-    def _report_attempt(self, request: BatchReport, retrying: bool) -> tuple[BatchReport, F64Array]:
-        """One attempt of a lone report.
-
-        Repeating an applied report returns its answer again and updates nothing
-        (CONTRACT.md section 2). Sessions lost meanwhile are recreated; the last probe is
-        replayed into them as an episode start, and the report answers it.
-        """
-        try:
-            return request, self._batch.report(request)
-        except SessionNotFound:
-            if not retrying or self._last_probe is None:
-                raise
-        probe, _ = self._restart(self._last_probe, self._batch.probe)
-        request = request._replace(steps=probe.steps)
-        return request, self._batch.report(request)
+        if self.ledger.deferred is not None:
+            sent, _ = self.recovery.report(self.ledger.deferred)
+            self.ledger.deferred = None
+            self.ledger.steps = sent.steps + 1
 
     def restore(self) -> int:
         """Recreates the sessions the server lost, and starts a new episode in every session.
@@ -591,15 +432,13 @@ class SessionBatch:
         Returns:
             How many sessions were recreated.
         """
-        self._deferred = None
         self._stepper.reset()
         progress = self._batch.progress()
         restored = restore_sessions(self._transport, self.ids, self.configs, progress)
         self.sessions_restored += restored
         if self._on_restore is not None:
             self._on_restore(restored)
-        self._steps[:] = 0
-        self._next_starts[:] = True
+        self.ledger.restarted()
         return restored
 
     def end_episode(self, indices: npt.ArrayLike | None = None) -> I64Array:
@@ -613,8 +452,8 @@ class SessionBatch:
         counts: list[int] = []
         for i in idx.tolist():
             counts.append(self._transport.end_episode(self.ids[i]))
-            self._steps[i] = 0
-            self._next_starts[i] = False
+            self.ledger.steps[i] = 0
+            self.ledger.starts_due[i] = False
         return np.array(counts, dtype=np.int64)
 
     def reset(self, indices: npt.ArrayLike | None = None) -> None:
@@ -622,7 +461,7 @@ class SessionBatch:
 
         This costs no round trip: the flag rides on the next :meth:`probe`.
         """
-        self._next_starts[check_indices(indices, self.n)] = True
+        self.ledger.starts_due[check_indices(indices, self.n)] = True
 
     def states(self) -> list[SessionState]:
         """Returns a snapshot of every session (after sending a deferred report)."""
@@ -634,7 +473,7 @@ class SessionBatch:
 
         A deferred report is dropped: it cannot change anything the caller still sees.
         """
-        self._deferred = None
+        self.ledger.deferred = None
         self._stepper.reset()
         self._batch.close()
         for session_id in self.ids:

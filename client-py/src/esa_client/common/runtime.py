@@ -12,7 +12,7 @@ import numpy as np
 from .._native import StepStats
 from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
-from ..errors import EsaError, ServerUnavailable, SessionNotFound
+from ..errors import EsaError, ServerUnavailable
 from ..transports.base import SMALLEST_SCALE, LinearCritic, QuadraticCritic
 
 _log = logging.getLogger("esa_client")
@@ -167,11 +167,11 @@ class EsaRuntime:
     def _attempt(
         self, episode_starts: np.ndarray, run: Callable[[np.ndarray | None], _Ran]
     ) -> _Ran | None:
-        """``run(episode_starts)``, riding out lost sessions and an unreachable server.
+        """``run(episode_starts)`` under ``on_unavailable``, counting recreated sessions.
 
-        Lost sessions are recreated and ``run(None)`` starts every episode anew (they are
-        flagged). Returns None while ESA is off (``on_unavailable="skip"``): the caller
-        applies the sampled actions.
+        The batch's recovery rides out a lost server and lost sessions; once it gives up,
+        ``"skip"`` returns None (the caller applies the sampled actions) until an episode
+        starts, where every session restarts on the server tried once more.
         """
         batch = self.batch
         restored = batch.sessions_restored
@@ -184,11 +184,7 @@ class EsaRuntime:
                 self._skipping = False
                 _log.warning("esa server at %s reachable again: ESA resumes", self.client.address)
                 return run(None)
-            try:
-                return run(episode_starts)
-            except SessionNotFound:
-                batch.restore()
-                return run(None)
+            return batch.recovery.rerun_lost(run, episode_starts)
         except ServerUnavailable as err:
             if self.on_unavailable == "raise":
                 raise

@@ -25,9 +25,8 @@ import numpy as np
 
 from .._native import EngineError, GrpcClient, StatusError, StepAhead
 from .._native import GrpcBatch as NativeBatch
-from ..errors import EsaError, SessionNotFound, TypedErrors
-from ..reconnect import RetriableErrors
-from ..state import BoolArray, F64Array, I64Array, SessionProgress, SessionState, check_array
+from ..errors import TypedErrors
+from ..state import BoolArray, F64Array, I64Array, SessionProgress, check_array
 from .base import BatchProbe, BatchReport, BatchTransport, LinearCritic, PipelinedBatch
 from .native_calls import NativeSessionCalls
 from .stepping import Critic, SessionBatch, StepCall, Stepper, check_critic
@@ -183,20 +182,14 @@ class AheadStepper(Stepper):
         critic, paired = call.critic, call.paired
         check_critic(critic, batch.n, batch.action_dim)
         batch.flush()
-        request = batch._probe_request(call.actions, call.episode_starts, None, call.action_scales)
-        steps_before, starts_before = batch._steps, batch._next_starts.copy()
-        try:
-            probes, applied = self._send(batch, request, critic, paired)
-        except RetriableErrors:
-            if batch._reconnect is None:
-                raise
-            request, (probes, applied) = batch._reconnect.run(
-                lambda _: batch._restart(
-                    request, lambda restart: self._send(batch, restart, critic, paired)
-                )
-            )
+        ledger = batch.ledger
+        request = ledger.probe_request(call.actions, call.episode_starts, None, call.action_scales)
+        steps_before, starts_before = ledger.steps, ledger.starts_due.copy()
+        request, (probes, applied) = batch.recovery.send_ahead(
+            request, lambda sent: self._send(batch, sent, critic, paired)
+        )
         self._in_flight = _InFlight(steps_before, starts_before, request)
-        batch._sent(request)
+        ledger.stepped(request)
         return probes, applied
 
     def flush(self, batch: SessionBatch) -> None:
@@ -247,81 +240,28 @@ class AheadStepper(Stepper):
     def _receive(self, batch: SessionBatch) -> F64Array:
         """The shifts ``v(t + 1)`` of the step in flight, or its error.
 
-        A refused step is undone here (its steps and episode starts are due again); after a
-        broken exchange a reconnect policy rides out the server's absence and continues where
-        the server is (:meth:`_resume`); without one every session restarts.
+        A refused step is undone (its steps and episode starts are due again); a broken
+        exchange is ridden out by the batch's recovery (without a reconnect policy every
+        session restarts).
         """
         assert self._in_flight is not None
         sent, self._in_flight = self._in_flight, None
-        try:
-            return self._ahead.receive_step()[2]
-        except RetriableErrors:
-            if batch._reconnect is None:
-                batch._next_starts[:] = True
-                batch._steps[:] = 0
-                raise
-        except EsaError:
-            batch._steps = sent.steps_before
-            batch._next_starts = sent.starts_before
-            raise
-        return batch._reconnect.run(lambda _: self._resume(batch, sent))  # restart hook
+        ledger = batch.ledger
 
-    def _resume(self, batch: SessionBatch, sent: _InFlight) -> F64Array:
-        """The shifts ``v(t + 1)`` of the step sent ahead whose answer the wire lost.
+        def undo() -> None:
+            ledger.steps, ledger.starts_due = sent.steps_before, sent.starts_before
 
-        The sessions' states tell whether the server applied the step (:func:`_step_applied`):
-        if it did, the shifts are theirs; if not, the same step goes again and its answer
-        gives them. When the server lost the sessions, or their states fit neither case,
-        every session restarts its episode (:meth:`~esa_client.SessionBatch.restore`) and the
-        shifts are 0. Errors of the wire propagate, for the reconnect policy to retry.
-        """
-        try:
-            states = batch.states()
-        except SessionNotFound:
-            states = []
-        applied = None
-        if states:
-            applied = _step_applied(states, sent, self._ahead.progress())
-        if applied:
-            return np.stack([state.shift for state in states])
-        if applied is False:
+        def resend() -> F64Array:
             self._ahead.resend_step()
-            try:
-                return self._ahead.receive_step()[2]
-            except RetriableErrors:
-                raise
-            except EsaError:
-                pass  # refused after all: the sessions restart below
-        batch.restore()
-        return np.zeros((batch.n, batch.action_dim))
+            return self._ahead.receive_step()[2]
 
-
-def _step_applied(
-    states: list[SessionState], sent: _InFlight, seen: list[SessionProgress] | None
-) -> bool | None:
-    """Whether the server applied the step ``sent`` ahead, from its sessions' states now.
-
-    Applied, each session is at the step after the one sent with no probe pending; not
-    applied, at its step before. The two coincide only for an episode start right after a
-    one-step episode: then the episode count tells them apart, against the count ``seen`` in
-    the answer before. None when the states fit neither, or do not agree (a step is applied
-    to all its sessions or to none).
-    """
-    verdicts: set[bool] = set()
-    for i, state in enumerate(states):
-        after, before = int(sent.request.steps[i]) + 1, int(sent.steps_before[i])
-        if state.probe_pending or state.step not in (after, before):
-            return None
-        if after != before:
-            verdicts.add(state.step == after)
-            continue
-        if seen is None:
-            return None
-        episodes = seen[i].episodes_completed
-        if state.episodes_completed not in (episodes, episodes + 1):
-            return None
-        verdicts.add(state.episodes_completed == episodes + 1)
-    return verdicts.pop() if len(verdicts) == 1 else None
+        return batch.recovery.receive_ahead(
+            lambda: self._ahead.receive_step()[2],
+            lambda: batch.recovery.resume_ahead(
+                sent.request, sent.steps_before, self._ahead.progress(), resend
+            ),
+            undo,
+        )
 
 
 class GrpcTransport(NativeSessionCalls):

@@ -92,15 +92,16 @@ class FusedStepper(Stepper):
         batch.flush()
         # In this process: no wire to ride out, so no reconnect around the call (nor a probe
         # to replay into recreated sessions), and the engine advances the steps itself.
-        inputs = batch._probe_inputs(call.actions, call.episode_starts, call.action_scales)
+        ledger = batch.ledger
+        inputs = ledger.probe_inputs(call.actions, call.episode_starts, call.action_scales)
         try:
-            answer = self._fused.step_closed_form(batch._steps, inputs, critic, call.paired)
+            answer = self._fused.step_closed_form(ledger.steps, inputs, critic, call.paired)
         except ValueError:
             # esa-core checks the critic itself, all or nothing; checking it here first too
             # would cost more than the step. A refusal is told in the words of every transport.
             check_critic(critic, batch.n, batch.action_dim)
             raise
-        batch._next_starts.fill(False)
+        ledger.starts_due.fill(False)
         return answer
 
 

@@ -2,22 +2,25 @@
 
 Each :class:`~esa_client.transports.base.BatchTransport` chooses its :class:`Stepper`
 (``FusedStepper`` in-process, ``AheadStepper`` on a gRPC StepStream), so a batch never
-asks which transport it holds. A stepper is the batch's own step kept beside the wires that
-choose it, so it reads and sets the batch's step counters (:class:`SessionBatch` here).
+asks which transport it holds. A stepper keeps the batch's public
+:class:`~esa_client.recovery.StepLedger` up to date and rides out failures through its
+:class:`~esa_client.recovery.Recovery`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple, Protocol, TypeVar
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from ..config import SessionConfig
-from ..reconnect import Reconnect
-from ..state import BoolArray, F64Array, I64Array, SessionState
-from .messages import BatchProbe, LinearCritic, QuadraticCritic
+from ..state import F64Array
+from .messages import LinearCritic, QuadraticCritic
+
+if TYPE_CHECKING:
+    from ..recovery import Recovery, StepLedger
 
 Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic | QuadraticCritic
 """What :meth:`~esa_client.SessionBatch.step` scores the probes with."""
@@ -25,19 +28,15 @@ Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic | QuadraticCritic
 CLOSED_FORM = (LinearCritic, QuadraticCritic)
 """The critics an in-process engine evaluates itself."""
 
-_Answer = TypeVar("_Answer")
-
 
 class SessionBatch(Protocol):
     """What a stepper uses of the :class:`~esa_client.SessionBatch` it steps."""
 
     n: int
     action_dim: int
-    ids: tuple[str, ...]
     configs: tuple[SessionConfig, ...]
-    _steps: I64Array
-    _next_starts: BoolArray
-    _reconnect: Reconnect | None
+    ledger: StepLedger
+    recovery: Recovery
 
     def probe_applied(
         self,
@@ -55,33 +54,6 @@ class SessionBatch(Protocol):
 
     def flush(self) -> None:
         """Reads a step in flight and sends a deferred report."""
-
-    def restore(self) -> int:
-        """Recreates lost sessions; every session starts a new episode."""
-
-    def states(self) -> list[SessionState]:
-        """Each session's state on its server."""
-
-    def _probe_request(
-        self,
-        actions: npt.ArrayLike,
-        episode_starts: npt.ArrayLike | None,
-        steps: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-    ) -> BatchProbe: ...
-
-    def _probe_inputs(
-        self,
-        actions: npt.ArrayLike,
-        episode_starts: npt.ArrayLike | None,
-        action_scales: npt.ArrayLike | None,
-    ) -> tuple[F64Array, BoolArray, F64Array | None]: ...
-
-    def _sent(self, request: BatchProbe) -> None: ...
-
-    def _restart(
-        self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
-    ) -> tuple[BatchProbe, _Answer]: ...
 
 
 class StepCall(NamedTuple):

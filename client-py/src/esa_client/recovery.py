@@ -1,0 +1,376 @@
+"""Riding out a lost server or lost sessions, in one place, for every batch and stepper.
+
+A :class:`~esa_client.SessionBatch` keeps a :class:`StepLedger`: where its sessions stand as
+far as the client knows. Every call that may fail on the wire goes through the batch's
+:class:`Recovery`, which repeats it under the client's :class:`~esa_client.reconnect.Reconnect`
+policy, asks the server where the sessions are after a broken exchange and sends only what
+it has not applied (CONTRACT.md section 2, "Retries are safe"), and recreates sessions the
+server lost, which then start a new episode. No update is ever applied twice.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from .config import SessionConfig
+from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch
+from .reconnect import Reconnect, RetriableErrors
+from .state import (
+    BoolArray,
+    F64Array,
+    I64Array,
+    SessionProgress,
+    SessionState,
+    check_array,
+)
+from .transports.base import BatchTransport, Transport
+from .transports.messages import BatchProbe, BatchReport
+
+__all__ = ["Recovery", "StepLedger", "step_applied"]
+
+_Answer = TypeVar("_Answer")
+
+
+class StepLedger:
+    """Where the N sessions of a batch stand, as far as the client knows.
+
+    Args:
+        n: How many sessions.
+        action_dim: Their action dimension D.
+
+    Attributes:
+        steps: The step each session's next probe (or pending report) carries, ``(N,)``.
+            An in-process engine advances this array itself.
+        starts_due: Sessions whose next probe starts a new episode, ``(N,)``.
+        deferred: A report held back to ride with the next probe, or None.
+        last_probe: The last probe sent, replayed into recreated sessions before a lone
+            report; None before the first.
+    """
+
+    def __init__(self, n: int, action_dim: int) -> None:
+        """A ledger of ``n`` sessions at step 0."""
+        self.n, self.action_dim = n, action_dim
+        self.steps: I64Array = np.zeros(n, dtype=np.int64)
+        self.starts_due: BoolArray = np.zeros(n, dtype=bool)
+        self.deferred: BatchReport | None = None
+        self.last_probe: BatchProbe | None = None
+
+    def probe_inputs(
+        self,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None,
+        action_scales: npt.ArrayLike | None,
+    ) -> tuple[F64Array, BoolArray, F64Array | None]:
+        """The checked actions, episode starts (with those due) and action scales of a probe."""
+        shape = (self.n, self.action_dim)
+        a = check_array(actions, shape, "actions")
+        if episode_starts is None:
+            starts = self.starts_due.copy()
+        else:
+            starts = self.starts_due | check_array(
+                episode_starts, (self.n,), "episode_starts", dtype=bool
+            )
+        scales = None
+        if action_scales is not None:
+            scales = np.asarray(action_scales, np.float64)
+            if scales.shape != shape:  # a scalar or a row, for every session
+                scales = np.broadcast_to(scales, shape)
+        return a, starts, scales
+
+    def probe_request(
+        self,
+        actions: npt.ArrayLike,
+        episode_starts: npt.ArrayLike | None,
+        steps: npt.ArrayLike | None,
+        action_scales: npt.ArrayLike | None,
+    ) -> BatchProbe:
+        """The checked probe of ``actions``, with the tracked steps unless ``steps`` is given."""
+        a, starts, scales = self.probe_inputs(actions, episode_starts, action_scales)
+        step = np.where(starts, 0, self.steps) if steps is None else np.array(steps, np.int64)
+        return BatchProbe(step, a, starts, scales)
+
+    def probed(self, request: BatchProbe) -> None:
+        """Counts ``request`` as probed: its reports are due next."""
+        self.steps = request.steps
+        self.last_probe = request
+        self.starts_due[:] = False
+
+    def stepped(self, request: BatchProbe) -> None:
+        """Counts a whole step (probe and report) of ``request`` as sent."""
+        self.steps = request.steps + 1
+        self.last_probe = request
+        self.starts_due[:] = False
+
+    def restarted(self) -> None:
+        """Every session starts a new episode at its next probe; a deferred report is gone."""
+        self.deferred = None
+        self.steps[:] = 0
+        self.starts_due[:] = True
+
+
+class Recovery:
+    """The one layer that rides out a lost server and recreates lost sessions.
+
+    Args:
+        transport: Where the sessions live.
+        ids: The batch's session ids.
+        configs: Their configs.
+        batch: The batch's round trips.
+        ledger: The batch's ledger, which the calls here keep up to date.
+        reconnect: How long and how often to repeat a call the wire failed; None raises
+            the wire's first error (and recreates nothing).
+        restore: Recreates the lost sessions and restarts every episode (the batch's
+            :meth:`~esa_client.SessionBatch.restore`, which also resets its stepper).
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        ids: Sequence[str],
+        configs: Sequence[SessionConfig],
+        batch: BatchTransport,
+        ledger: StepLedger,
+        reconnect: Reconnect | None,
+        restore: Callable[[], int],
+    ) -> None:
+        """Holds what the calls need."""
+        self._transport = transport
+        self._ids = tuple(ids)
+        self._configs = tuple(configs)
+        self._batch = batch
+        self._ledger = ledger
+        self.reconnect = reconnect
+        self._restore = restore
+
+    def probe(self, request: BatchProbe) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
+        """Sends the ledger's deferred report, if any, then ``request``; returns what was sent.
+
+        After a failure of the wire the server may have applied the report, the report and
+        the probe, or nothing, and it may have lost the sessions (a restart). The sessions'
+        steps tell which (:meth:`_reconcile`): reports still missing are sent on their own,
+        an applied episode-start probe is not repeated (that would count one more empty
+        episode), and lost sessions are recreated and start a new episode with this probe.
+        """
+        deferred = self._ledger.deferred
+        if self.reconnect is None:
+            return request, self._probe(deferred, request)
+        return self.reconnect.run(lambda retrying: self._probe_attempt(deferred, request, retrying))
+
+    def report(self, request: BatchReport) -> tuple[BatchReport, F64Array]:
+        """Sends a lone report; returns what was sent and the improved actions.
+
+        Repeating an applied report returns its answer again and updates nothing
+        (CONTRACT.md section 2). Sessions lost meanwhile are recreated; the last probe is
+        replayed into them as an episode start, and the report answers it.
+        """
+        if self.reconnect is None:
+            return request, self._batch.report(request)
+        return self.reconnect.run(lambda retrying: self._report_attempt(request, retrying))
+
+    def send_ahead(
+        self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
+    ) -> tuple[BatchProbe, _Answer]:
+        """``send(request)``, a step sent ahead of its answer; returns what was sent.
+
+        A step that could not be sent restarts every episode on the server as it is now.
+        """
+        try:
+            return request, send(request)
+        except RetriableErrors:
+            if self.reconnect is None:
+                raise
+            return self.reconnect.run(lambda _: self.restart(request, send))
+
+    def receive_ahead(
+        self,
+        receive: Callable[[], F64Array],
+        resume: Callable[[], F64Array],
+        undo: Callable[[], None],
+    ) -> F64Array:
+        """The answer of a step sent ahead (``receive()``), riding out a broken exchange.
+
+        Args:
+            receive: Reads the answer.
+            resume: Reads it after a broken exchange, once the server answers again
+                (:meth:`resume_ahead`); repeated under the reconnect policy.
+            undo: Puts the ledger back before the step, which the server refused.
+        """
+        try:
+            return receive()
+        except RetriableErrors:
+            if self.reconnect is None:
+                self._ledger.starts_due[:] = True
+                self._ledger.steps[:] = 0
+                raise
+        except EsaError:
+            undo()
+            raise
+        return self.reconnect.run(lambda _: resume())
+
+    def resume_ahead(
+        self,
+        sent: BatchProbe,
+        steps_before: I64Array,
+        seen: list[SessionProgress] | None,
+        resend: Callable[[], F64Array],
+    ) -> F64Array:
+        """The shifts ``v(t + 1)`` of the step ``sent`` ahead whose answer the wire lost.
+
+        The sessions' states tell whether the server applied the step (:func:`step_applied`):
+        if it did, the shifts are theirs; if not, ``resend()`` sends it again and returns
+        its answer's. When the server lost the sessions, or their states fit neither case,
+        every session restarts its episode and the shifts are 0. Errors of the wire
+        propagate, for the reconnect policy to retry.
+        """
+        try:
+            states = [self._transport.get_session(i) for i in self._ids]
+        except SessionNotFound:
+            states = []
+        applied = step_applied(states, sent, steps_before, seen) if states else None
+        if applied:
+            return np.stack([state.shift for state in states])
+        if applied is False:
+            try:
+                return resend()
+            except RetriableErrors:
+                raise
+            except EsaError:
+                pass  # refused after all: the sessions restart below
+        self._restore()
+        return np.zeros((self._ledger.n, self._ledger.action_dim))
+
+    def rerun_lost(
+        self, run: Callable[[BoolArray | None], _Answer], episode_starts: BoolArray
+    ) -> _Answer:
+        """``run(episode_starts)``, recreating sessions the server lost.
+
+        After a TTL expiry, or a crash the wire did not see, the lost sessions are recreated
+        and ``run(None)`` starts every episode anew.
+        """
+        try:
+            return run(episode_starts)
+        except SessionNotFound:
+            self._restore()
+            return run(None)
+
+    def restart(
+        self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
+    ) -> tuple[BatchProbe, _Answer]:
+        """Recreates lost sessions and sends ``request`` as every session's episode start.
+
+        ``send`` sends it (a probe, or a step sent ahead); returns what it sent and the answer.
+        """
+        self._restore()
+        restart = request._replace(
+            steps=np.zeros(self._ledger.n, dtype=np.int64),
+            episode_starts=np.ones(self._ledger.n, dtype=bool),
+        )
+        answer = send(restart)
+        self._ledger.starts_due[:] = False
+        self._ledger.last_probe = restart
+        return restart, answer
+
+    def _probe(
+        self, deferred: BatchReport | None, request: BatchProbe
+    ) -> tuple[F64Array, F64Array]:
+        if deferred is None:
+            return self._batch.probe(request)
+        return self._batch.report_then_probe(deferred, request)
+
+    def _probe_attempt(
+        self, deferred: BatchReport | None, request: BatchProbe, retrying: bool
+    ) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
+        if retrying:
+            try:
+                deferred, request = self._reconcile(deferred, request)
+            except SessionNotFound:
+                return self.restart(request, self._batch.probe)
+        try:
+            return request, self._probe(deferred, request)
+        except SessionNotFound:
+            if not retrying:
+                raise
+            return self.restart(request, self._batch.probe)
+
+    def _reconcile(
+        self, deferred: BatchReport | None, request: BatchProbe
+    ) -> tuple[BatchReport | None, BatchProbe]:
+        """What is left to send of ``deferred`` and ``request`` after a broken exchange."""
+        states = [self._transport.get_session(i) for i in self._ids]
+        starts = request.episode_starts.copy()
+        for i, state in enumerate(states):
+            if starts[i] and state.step == 0 and state.probe_pending:
+                # This episode-start probe was applied (with the report before it, if
+                # any): replacing its pending probe ends no further episode. (With a
+                # report of step 0, the state cannot tell whether anything was applied;
+                # the probe then replaces the pending one and the report is dropped,
+                # which at most skips one update of the response's mean square.)
+                starts[i] = False
+                continue
+            if deferred is None:
+                continue
+            step = int(deferred.steps[i])
+            if state.step == step + 1:
+                continue  # the report was applied (and maybe the probe after it)
+            if state.step == step and state.probe_pending:
+                reference = None if deferred.q_references is None else deferred.q_references[i]
+                self._transport.report(
+                    self._ids[i],
+                    step,
+                    float(deferred.q_values[i]),
+                    None if reference is None else float(reference),
+                )
+                continue
+            raise StepMismatch(
+                f"session {self._ids[i]!r} is at step {state.step} (probe pending: "
+                f"{state.probe_pending}) after a broken exchange, expected step {step} or "
+                f"{step + 1}",
+                StatusCode.FAILED_PRECONDITION,
+                index=i,
+            )
+        return None, request._replace(episode_starts=starts)
+
+    def _report_attempt(self, request: BatchReport, retrying: bool) -> tuple[BatchReport, F64Array]:
+        try:
+            return request, self._batch.report(request)
+        except SessionNotFound:
+            if not retrying or self._ledger.last_probe is None:
+                raise
+        probe, _ = self.restart(self._ledger.last_probe, self._batch.probe)
+        request = request._replace(steps=probe.steps)
+        return request, self._batch.report(request)
+
+
+def step_applied(
+    states: list[SessionState],
+    sent: BatchProbe,
+    steps_before: I64Array,
+    seen: list[SessionProgress] | None,
+) -> bool | None:
+    """Whether the server applied the step ``sent`` ahead, from its sessions' states now.
+
+    Applied, each session is at the step after the one sent with no probe pending; not
+    applied, at its step before (``steps_before``). The two coincide only for an episode
+    start right after a one-step episode: then the episode count tells them apart, against
+    the count ``seen`` in the answer before. None when the states fit neither, or do not
+    agree (a step is applied to all its sessions or to none).
+    """
+    verdicts: set[bool] = set()
+    for i, state in enumerate(states):
+        after, before = int(sent.steps[i]) + 1, int(steps_before[i])
+        if state.probe_pending or state.step not in (after, before):
+            return None
+        if after != before:
+            verdicts.add(state.step == after)
+            continue
+        if seen is None:
+            return None
+        episodes = seen[i].episodes_completed
+        if state.episodes_completed not in (episodes, episodes + 1):
+            return None
+        verdicts.add(state.episodes_completed == episodes + 1)
+    return verdicts.pop() if len(verdicts) == 1 else None
