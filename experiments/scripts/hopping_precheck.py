@@ -24,7 +24,10 @@ Rules, fixed and committed before the first run:
   evaluation on its last row), ``runs/s<seed>.json`` (settings, seconds, versions),
   ``README.md`` (the table and the verdict) and ``curves.png``.
 
-Usage (resumable: a seed whose files exist is skipped; a run writes only when it ends)::
+Usage (resumable: a seed whose files exist is skipped; a run cut short resumes from its last
+checkpoint, saved at every evaluation of the curve outside the work tree, in ``--checkpoints``.
+A resumed run continues the same model, normalization and schedule, but not the same random
+stream: its JSON records where it resumed)::
 
     python experiments/scripts/hopping_precheck.py             # the check: 3 seeds, 1M steps
     python experiments/scripts/hopping_precheck.py --seeds 1   # one seed (a process each)
@@ -37,6 +40,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -84,6 +88,8 @@ class Args:
     """Initial learning rate, annealed linearly to 0."""
     out: Path = RESULTS
     """Folder of the results."""
+    checkpoints: Path = Path.home() / ".cache" / "esa-experiments" / "hopping_precheck"
+    """Folder of the runs' checkpoints (model, normalization, curve so far)."""
 
 
 def make_env(env_id: str, seed: int) -> VecNormalize:
@@ -101,13 +107,22 @@ def evaluate(model: PPO, train_env: VecNormalize, eval_env: VecNormalize, episod
 
 
 class Curve(BaseCallback):
-    """Evaluates every ``every`` steps; prints one line per evaluation."""
+    """Evaluates every ``every`` steps, prints a line and saves a checkpoint each time."""
 
-    def __init__(self, eval_env: VecNormalize, every: int, episodes: int, label: str) -> None:
-        """Holds the evaluation env and schedule."""
+    def __init__(
+        self,
+        eval_env: VecNormalize,
+        every: int,
+        episodes: int,
+        label: str,
+        checkpoint: Path,
+        rows: list[dict[str, float]],
+    ) -> None:
+        """Holds the evaluation env and schedule, and the curve so far."""
         super().__init__()
         self.eval_env, self.every, self.episodes, self.label = eval_env, every, episodes, label
-        self.rows: list[dict[str, float]] = []
+        self.checkpoint = checkpoint
+        self.rows = rows
         self.started = time.monotonic()
 
     def _on_step(self) -> bool:
@@ -122,6 +137,10 @@ class Curve(BaseCallback):
                 f"({minutes:.1f} min)",
                 flush=True,
             )
+            self.checkpoint.mkdir(parents=True, exist_ok=True)
+            self.model.save(self.checkpoint / "model.zip")
+            train_env.save(str(self.checkpoint / "vecnormalize.pkl"))
+            (self.checkpoint / "curve.json").write_text(json.dumps(self.rows))
         return True
 
 
@@ -131,17 +150,23 @@ def run_seed(args: Args, seed: int) -> None:
     train_env = make_env(args.env, seed)
     eval_env = make_env(args.env, seed + 10_000)
     eval_env.training, eval_env.norm_reward = False, False
-    model = PPO(
-        "MlpPolicy",
-        train_env,
-        learning_rate=lambda remaining: args.learning_rate * remaining,
-        seed=seed,
-        device="cpu",
-    )
+    checkpoint = args.checkpoints / f"s{seed}"
+    schedule = {"learning_rate": lambda remaining: args.learning_rate * remaining}
+    rows: list[dict[str, float]] = []
+    resumed_at = None
+    if (checkpoint / "curve.json").exists():
+        train_env = VecNormalize.load(str(checkpoint / "vecnormalize.pkl"), train_env.venv)
+        model = PPO.load(checkpoint / "model.zip", train_env, device="cpu", custom_objects=schedule)
+        rows = json.loads((checkpoint / "curve.json").read_text())
+        resumed_at = model.num_timesteps
+        print(f"{args.env} s{seed}: resumed at step {resumed_at:,}", flush=True)
+    else:
+        model = PPO("MlpPolicy", train_env, seed=seed, device="cpu", **schedule)
     label = f"{args.env} s{seed}"
-    curve = Curve(eval_env, args.eval_every, args.eval_episodes, label)
+    curve = Curve(eval_env, args.eval_every, args.eval_episodes, label, checkpoint, rows)
     started = time.monotonic()
-    model.learn(args.steps, callback=curve)
+    # The schedule's progress is num_timesteps over the whole budget, resumed or not.
+    model.learn(args.steps - model.num_timesteps, callback=curve, reset_num_timesteps=False)
     final = evaluate(model, train_env, eval_env, args.final_episodes)
     seconds = time.monotonic() - started
     rows = [*curve.rows, {"step": model.num_timesteps, "return_mean": final, "final": 1}]
@@ -149,8 +174,9 @@ def run_seed(args: Args, seed: int) -> None:
     runs = args.out / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     meta = {
-        "args": {**asdict(args), "out": None, "seeds": [seed]},
+        "args": {**asdict(args), "out": None, "checkpoints": None, "seeds": [seed]},
         "seconds": round(seconds, 1),
+        "resumed_at": resumed_at,
         "final_evaluation": final,
         "host": platform.node(),
         "cpu_count": os.cpu_count(),
@@ -168,6 +194,7 @@ def run_seed(args: Args, seed: int) -> None:
         tmp = runs / f"s{seed}{suffix}.tmp"
         tmp.write_text(text)
         tmp.replace(runs / f"s{seed}{suffix}")
+    shutil.rmtree(checkpoint, ignore_errors=True)  # the run is done: nothing to resume
 
 
 def report(args: Args) -> None:
