@@ -27,7 +27,7 @@ from .state import (
     check_array,
     check_indices,
 )
-from .transports.base import BatchReport, Transport
+from .transports.base import BatchReport, SessionProbe, Transport
 from .transports.stepping import Critic, StepCall
 
 __all__ = ["Session", "SessionBatch", "SessionProgress", "SessionState", "restore_sessions"]
@@ -143,11 +143,13 @@ class Session:
         if step is None:
             step = 0 if episode_start else self._step
         answer = self._transport.probe(
-            self.id,
-            step,
-            np.asarray(action, dtype=np.float64).reshape(-1),
-            episode_start,
-            None if action_scale is None else np.ravel(np.asarray(action_scale, np.float64)),
+            SessionProbe(
+                self.id,
+                step,
+                np.asarray(action, dtype=np.float64).reshape(-1),
+                episode_start,
+                None if action_scale is None else np.ravel(np.asarray(action_scale, np.float64)),
+            )
         )
         self._step = step
         return answer

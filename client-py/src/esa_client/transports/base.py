@@ -27,7 +27,7 @@ import numpy as np
 
 from .._proto.esa.v1 import esa_pb2
 from ..state import F64Array, SessionProgress, SessionState
-from .messages import BatchProbe, BatchReport, LinearCritic, QuadraticCritic
+from .messages import BatchProbe, BatchReport, LinearCritic, QuadraticCritic, SessionProbe
 from .stepping import Stepper
 
 __all__ = [
@@ -38,6 +38,7 @@ __all__ = [
     "LinearCritic",
     "PipelinedBatch",
     "QuadraticCritic",
+    "SessionProbe",
     "Transport",
 ]
 
@@ -142,14 +143,7 @@ class Transport(Protocol):
     def end_episode(self, session_id: str) -> int:
         """Ends the session's episode; returns its completed-episode count."""
 
-    def probe(
-        self,
-        session_id: str,
-        step: int,
-        action: F64Array,
-        episode_start: bool,
-        action_scale: F64Array | None,
-    ) -> tuple[F64Array, F64Array]:
+    def probe(self, request: SessionProbe) -> tuple[F64Array, F64Array]:
         """``Probe`` of one session: returns the probe and the applied action, ``(D,)`` each."""
 
     def report(

@@ -9,6 +9,24 @@ import numpy as np
 from ..state import BoolArray, F64Array, I64Array
 
 
+class SessionProbe(NamedTuple):
+    """The probe of one step of one session (``Probe``).
+
+    Attributes:
+        session_id: The session.
+        step: Its step.
+        action: The sampled action, shape ``(D,)``.
+        episode_start: Whether this probe starts a new episode.
+        action_scale: sigma per dimension, shape ``(D,)``; None for all 1.
+    """
+
+    session_id: str
+    step: int
+    action: F64Array
+    episode_start: bool
+    action_scale: F64Array | None
+
+
 class BatchProbe(NamedTuple):
     """The probes of one step for the N sessions of a batch (``ProbeBatch``).
 

@@ -13,6 +13,7 @@ from .._native import Engine, GrpcClient
 from .._proto.esa.v1 import esa_pb2
 from ..errors import TypedErrors
 from ..state import F64Array, SessionState
+from .messages import SessionProbe
 
 
 class NativeSessionCalls:
@@ -57,17 +58,10 @@ class NativeSessionCalls:
         with self._typed_errors:
             return self._sessions.end_episode(session_id)
 
-    def probe(
-        self,
-        session_id: str,
-        step: int,
-        action: F64Array,
-        episode_start: bool,
-        action_scale: F64Array | None,
-    ) -> tuple[F64Array, F64Array]:
+    def probe(self, request: SessionProbe) -> tuple[F64Array, F64Array]:
         """``Probe`` of one session; returns the probe and the applied action."""
         with self._typed_errors:
-            return self._sessions.probe_one(session_id, step, action, episode_start, action_scale)
+            return self._sessions.probe_one(*request)
 
     def report(
         self, session_id: str, step: int, q_value: float, q_reference: float | None

@@ -38,7 +38,7 @@ from .._proto.esa.v1 import esa_pb2
 from ..errors import DeadlineExceeded, EsaError, ServerUnavailable, StatusCode, esa_error
 from ..sharding import shard_of, shard_prefix
 from ..state import F64Array, I64Array, SessionProgress, SessionState
-from .base import BatchProbe, BatchReport, BatchTransport
+from .base import BatchProbe, BatchReport, BatchTransport, SessionProbe
 
 DEFAULT_PREFIX = "esa/v1"
 
@@ -378,20 +378,14 @@ class ZenohTransport:
         request = esa_pb2.EndEpisodeRequest(session_id=session_id)
         return self._owner(session_id).end_episode(request).episodes_completed
 
-    def probe(
-        self,
-        session_id: str,
-        step: int,
-        action: F64Array,
-        episode_start: bool,
-        action_scale: F64Array | None,
-    ) -> tuple[F64Array, F64Array]:
+    def probe(self, probe: SessionProbe) -> tuple[F64Array, F64Array]:
         """``Probe``; returns the probe and the applied action."""
+        session_id, action_scale = probe.session_id, probe.action_scale
         request = esa_pb2.ProbeRequest(
             session_id=session_id,
-            step=step,
-            action=action.tolist(),
-            episode_start=episode_start,
+            step=probe.step,
+            action=probe.action.tolist(),
+            episode_start=probe.episode_start,
             action_scale=[] if action_scale is None else action_scale.tolist(),
         )
         response = self._owner(session_id).probe(request)
