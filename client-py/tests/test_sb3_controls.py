@@ -48,11 +48,10 @@ def test_esappo_gradient_shift_is_the_trust_region_along_the_head():
     obs = th.as_tensor(np.zeros((3, 4), dtype=np.float32))
     sample = np.zeros((3, 1), dtype=np.float32)
     mean, std = np.zeros((3, 1), dtype=np.float32), np.full((3, 1), 0.5, dtype=np.float32)
-    starts = np.zeros(3, dtype=bool)
-    shift = model._esa_shift(obs, sample, mean, std, starts, 1.0)
+    shift = model._gradient_shift(obs, sample, mean, std, 1.0)
     np.testing.assert_allclose(np.abs(shift), EsaConfig.ppo().trust_region * 0.5, rtol=1e-6)
     # Under a fade the control shrinks with ESA's strength.
-    faded = model._esa_shift(obs, sample, mean, std, starts, 0.25)
+    faded = model._gradient_shift(obs, sample, mean, std, 0.25)
     np.testing.assert_allclose(np.abs(faded), 0.25 * EsaConfig.ppo().trust_region * 0.5, rtol=1e-6)
 
 

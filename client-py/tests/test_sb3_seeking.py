@@ -220,11 +220,11 @@ def test_the_placebo_follows_a_new_env_with_another_number_of_envs(tmp_path):
     model = ppo(ESAPPO, esa=EsaConfig.ppo(gate=None), esa_control="placebo", rollouts=3)
     model.save(tmp_path / "model")
     model.set_env(make_vec_env("InvertedPendulum-v5", n_envs=2, seed=4))
-    assert model._esa_placebo is None  # its signs went with the sessions
+    assert model._esa_control_shift is None  # the placebo's signs went with the sessions
     env = make_vec_env("InvertedPendulum-v5", n_envs=3, seed=4)
     loaded = ESAPPO.load(tmp_path / "model", env=env)
     loaded.learn(3 * 128 * 3)
-    assert loaded._esa_placebo is not None and loaded._esa_placebo.signs.shape == (3, 1)
+    assert loaded._esa_control_shift.directions.signs.shape == (3, 1)
 
 
 class ObservationsOf(gym.Env):

@@ -1,6 +1,6 @@
 """ESASAC's and ESATD3's fade, placebo and shift report. Real SB3 models on real gymnasium
 envs, sessions on the in-process engine; a subclass records what each step's ``_shifted``
-saw and returned."""
+saw and returned, and ESA's shift under it."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ class Step:
 
 
 def recording(cls):
-    """``cls`` keeping every step's :class:`Step` and every placebo call's in and out."""
+    """``cls`` keeping every step's :class:`Step` and the sessions' shift at every step."""
 
     class Recording(cls):
         def _shifted(self, obs, sampled, mu, sigma, strength):
@@ -44,10 +44,10 @@ def recording(cls):
             self.__dict__.setdefault("steps", []).append(step)
             return executed, shift
 
-        def _placebo(self, shift, episode_starts):
-            out = super()._placebo(shift, episode_starts)
-            self.__dict__.setdefault("placebos", []).append((shift.copy(), out.copy()))
-            return out
+        def _esa_step(self, obs, anchor, sigma, strength):
+            applied = super()._esa_step(obs, anchor, sigma, strength)
+            self.__dict__.setdefault("esa_shifts", []).append(applied - anchor)
+            return applied
 
     return Recording
 
@@ -93,13 +93,13 @@ def test_the_placebo_keeps_esa_sizes_and_draws_signs_at_episode_starts():
     model = train(
         recording(ESATD3), "Reacher-v5", esa=EsaConfig.off_policy(gate=None), esa_control="placebo"
     )
-    assert len(model.placebos) == len(model.steps) == (STEPS - 100) // N_ENVS
+    assert len(model.esa_shifts) == len(model.steps) == (STEPS - 100) // N_ENVS
     # Per env and dimension, the placebo's sign in each episode (where ESA's shift is not 0).
     episode = np.zeros(N_ENVS, dtype=int)
     signs: dict[tuple[int, int, int], set[float]] = {}
-    for step, (esa_shift, placebo) in zip(model.steps, model.placebos, strict=True):
+    for step, esa_shift in zip(model.steps, model.esa_shifts, strict=True):
+        placebo = step.shift
         np.testing.assert_array_equal(np.abs(placebo), np.abs(esa_shift))
-        np.testing.assert_array_equal(step.shift, placebo)
         np.testing.assert_array_equal(step.executed, np.clip(step.sampled + placebo, -1, 1))
         episode += step.starts
         for env, dim in zip(*np.nonzero(placebo), strict=True):
@@ -157,15 +157,15 @@ def test_the_fade_scales_every_shift_to_zero_and_then_esa_steps_nothing(shift):
 
 def test_a_loaded_placebo_model_draws_signs_for_its_new_env(tmp_path):
     model = train(ESATD3, steps=160, esa=EsaConfig.off_policy(gate=None), esa_control="placebo")
-    assert model._esa_placebo is not None
+    assert model._esa_control_shift.directions is not None
     model.save(tmp_path / "model")
     env = make_vec_env("Pendulum-v1", n_envs=3, seed=6)
     # SB3 saves the noise vectorized for the old env count: a new one for the new env.
     noise = NormalActionNoise(np.zeros(1), 0.1 * np.ones(1))
     loaded = ESATD3.load(tmp_path / "model", env=env, action_noise=noise)
-    assert loaded.esa_control == "placebo" and loaded._esa_placebo is None
+    assert loaded.esa_control == "placebo" and loaded._esa_control_shift is None
     loaded.learn(30, reset_num_timesteps=False)
-    assert loaded._esa_placebo.signs.shape == (3, 1)
+    assert loaded._esa_control_shift.directions.signs.shape == (3, 1)
 
 
 @pytest.mark.parametrize("cls", [ESASAC, ESATD3])

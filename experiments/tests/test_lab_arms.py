@@ -171,7 +171,7 @@ def test_the_q_network_critic_shifts_within_the_trust_region():
     obs = th.as_tensor(model._last_obs)
     sample = np.zeros((2, 1), dtype=np.float32)
     std = np.full((2, 1), 0.4, dtype=np.float32)
-    shift = model._esa_shift(obs, sample, sample, std, np.zeros(2, bool), 1.0)
+    shift = model._session_shift(obs, sample, sample, std, np.zeros(2, bool), 1.0)
     assert np.all(np.abs(shift) <= 0.5 * std * (1 + 1e-9)) and np.any(shift != 0)
 
 

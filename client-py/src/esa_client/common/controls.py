@@ -2,14 +2,15 @@
 
 A gain of ESA over its baseline may come from the critic's direction, from the mere size
 and temporal correlation of the perturbation, or from more exploration. Two controls share
-everything with ESA but what they test (``esa_control`` of the drop-ins):
+everything with ESA but what they test (``esa_control`` of the drop-ins), each a subclass
+of :class:`EsaShift` that a drop-in builds (:func:`control_shift`) and calls each step:
 
-- ``"placebo"``: ESA's shift magnitudes per dimension, its schedule and its correlation over
-  time, with the direction drawn at random (:class:`RandomDirections`): tells direction
-  from mere perturbation;
-- ``"gradient"``: a step of the trust region's size along the critic's action gradient
-  (:func:`unit_gradient`, :func:`gradient_size`), no session: tells extremum seeking from
-  the analytic gradient the paper says it beats.
+- ``"placebo"`` (:class:`PlaceboShift`): ESA's shift magnitudes per dimension, its schedule
+  and its correlation over time, with the direction drawn at random
+  (:class:`RandomDirections`): tells direction from mere perturbation;
+- ``"gradient"`` (:class:`GradientShift`): a step of the trust region's size along the
+  critic's action gradient (:func:`unit_gradient`, :func:`gradient_size`), no session:
+  tells extremum seeking from the analytic gradient the paper says it beats.
 
 ``shift_report`` measures, on one step in ``SHIFT_REPORT_EVERY``, how much of a shift
 removes the policy's own exploration noise, how often it sits at the trust region, and how
@@ -19,6 +20,7 @@ statistic (``StepStats``), or the gradient control's own (:func:`gradient_shift_
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal, get_args
 
 import numpy as np
@@ -117,6 +119,77 @@ class RandomDirections:
             )
         if starts.any():
             self.signs[starts] = self._draw(int(starts.sum()), self.signs.shape[1])
+
+
+Acted = tuple[np.ndarray, np.ndarray]
+"""The env's actions and the shift on top of the policy's sample they come from, ``(N, D)``."""
+Session = Callable[[], Acted]
+Source = Callable[[], np.ndarray]
+Execute = Callable[[np.ndarray], np.ndarray]
+
+
+class EsaShift:
+    """ESA itself: the env executes the sessions' shift. The controls override :meth:`act`."""
+
+    def act(
+        self, session: Session, gradient: Source, execute: Execute, starts: np.ndarray
+    ) -> Acted:
+        """This step's actions; only the sources it needs are called.
+
+        Args:
+            session: Steps the sessions: the env's actions under ESA's shift as the drop-in
+                forms them (the off-policy ones execute the sessions' own), and the shift.
+            gradient: The gradient control's shift.
+            execute: The env's actions for a shift.
+            starts: True where an env starts an episode at this step, ``(N,)``.
+        """
+        return session()
+
+    def bound(self, trust_region: float | None) -> float | None:
+        """The shift's bound at full strength in units of sigma (None: no bound)."""
+        return trust_region
+
+
+class PlaceboShift(EsaShift):
+    """ESA's shift in :class:`RandomDirections` drawn for the first step's envs from ``seed``."""
+
+    def __init__(self, seed: int | None) -> None:
+        """No directions until the first step says how many envs there are."""
+        self.seed = seed
+        self.directions: RandomDirections | None = None
+
+    def act(
+        self, session: Session, gradient: Source, execute: Execute, starts: np.ndarray
+    ) -> Acted:
+        """ESA's shift in this episode's directions; it steps the sessions."""
+        _, shift = session()
+        if self.directions is None:
+            n_envs, action_dim = shift.shape
+            self.directions = RandomDirections(n_envs, action_dim, self.seed)
+        placebo = self.directions(shift, starts)
+        return execute(placebo), placebo
+
+
+class GradientShift(EsaShift):
+    """The trust region's step along the critic's action gradient; no session steps."""
+
+    def act(
+        self, session: Session, gradient: Source, execute: Execute, starts: np.ndarray
+    ) -> Acted:
+        """The gradient's shift."""
+        shift = gradient()
+        return execute(shift), shift
+
+    def bound(self, trust_region: float | None) -> float | None:
+        """``kappa``, 1 when unset: the gradient's step is never unbounded."""
+        return gradient_size(1.0, trust_region)
+
+
+def control_shift(control: Control | None, seed: int | None) -> EsaShift:
+    """The shift of ``esa_control`` ``control``; the placebo draws its directions from ``seed``."""
+    if control == "placebo":
+        return PlaceboShift(seed)
+    return GradientShift() if control == "gradient" else EsaShift()
 
 
 def shift_report(

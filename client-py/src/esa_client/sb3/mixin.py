@@ -1,4 +1,4 @@
-"""What the drop-ins share: arguments, the lazy ESA runtime, the placebo, logging, saving."""
+"""What the drop-ins share: arguments, the lazy ESA runtime and control, logging, saving."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from gymnasium import spaces
 
 from ..client import EsaClient, Where, resolve_client
 from ..common.action_frame import ActionFrame
-from ..common.controls import Control, RandomDirections, check_control, shift_report
+from ..common.controls import Control, EsaShift, check_control, control_shift, shift_report
 from ..common.runtime import EsaRuntime, OnUnavailable, check_on_unavailable
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
@@ -45,7 +45,7 @@ class EsaMixin(_Algorithm):
     esa_client: EsaClient
     esa_control: Control | None
     _esa: EsaRuntime | None
-    _esa_placebo: RandomDirections | None
+    _esa_control_shift: EsaShift | None
     _esa_owns_client = False
     _esa_frame: ActionFrame | None = None
 
@@ -102,7 +102,7 @@ class EsaMixin(_Algorithm):
         self.esa_on_unavailable = check_on_unavailable(esa_on_unavailable)
         self.esa_control = check_control(esa_control)
         self._esa = None
-        self._esa_placebo = None
+        self._esa_control_shift = None
         self._esa_open(esa_client)
         try:
             super().__init__(policy, env, *args, **kwargs)
@@ -202,16 +202,15 @@ class EsaMixin(_Algorithm):
         total = max(getattr(self, "_total_timesteps", 0), 1)
         return self.esa.strength(self.num_timesteps / total)
 
-    def _placebo(self, shift: np.ndarray, episode_starts: np.ndarray) -> np.ndarray:
-        """ESA's ``shift`` ``(N, D)`` in the placebo's random directions.
+    def _control_shift(self) -> EsaShift:
+        """ESA's shift or its control's (``esa_control``), which each step calls.
 
-        The directions live with the sessions: drawn anew for a new env, seeded from the
-        model's ``seed``.
+        Built with the sessions and dropped with them: the placebo's random directions are
+        drawn anew for a new env, seeded from the model's ``seed``.
         """
-        if self._esa_placebo is None:
-            n_envs, action_dim = shift.shape
-            self._esa_placebo = RandomDirections(n_envs, action_dim, self.seed)
-        return self._esa_placebo(shift, episode_starts)
+        if self._esa_control_shift is None:
+            self._esa_control_shift = control_shift(self.esa_control, self.seed)
+        return self._esa_control_shift
 
     def _report_shift(
         self,
@@ -237,7 +236,7 @@ class EsaMixin(_Algorithm):
         if self._esa is not None:
             self._esa.close()
             self._esa = None
-        self._esa_placebo = None
+        self._esa_control_shift = None
 
     def esa_close(self) -> None:
         """Closes the ESA sessions, and the client if the model opened it.
@@ -256,8 +255,8 @@ class EsaMixin(_Algorithm):
     def _excluded_save_params(self) -> list[str]:
         # Where the sessions live belongs to the machine that trains, not to the model (a
         # client may hold a token): a loaded model takes it as a load argument.
-        # The placebo's signs belong to one run on one VecEnv, like the sessions.
-        excluded = ["_esa", "_esa_placebo", "esa_client", "_esa_owns_client", "_esa_frame"]
+        # The control (the placebo's signs) belongs to one run on one VecEnv, like the sessions.
+        excluded = ["_esa", "_esa_control_shift", "esa_client", "_esa_owns_client", "_esa_frame"]
         return [*super()._excluded_save_params(), *excluded]
 
     def dump_logs(self, *args: Any, **kwargs: Any) -> None:

@@ -12,6 +12,7 @@ from stable_baselines3.common.noise import ActionNoise
 from ..common.action_frame import ActionFrame
 from ..common.controls import (
     SHIFT_REPORT_EVERY,
+    Acted,
     gradient_shift_size,
     gradient_size,
     unit_gradient,
@@ -115,9 +116,7 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         if strength > 0:
             self._esa_shifted_steps += 1
         if report:
-            kappa = self.esa.trust_region
-            if self.esa_control == "gradient":
-                kappa = gradient_size(1.0, kappa)
+            kappa = self._control_shift().bound(self.esa.trust_region)
             frame = self.esa_frame
             self._report_shift(sampled, shift, mu, sigma, frame.low, frame.high, kappa, strength)
         buffer_action = executed.reshape(buffer_action.shape).astype(buffer_action.dtype)
@@ -160,18 +159,24 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
             strength: ESA's strength under the fade, in [0, 1].
         """
         anchor = self._anchor(sampled, mu)
-        if self.esa_control == "gradient":
-            shift = self._gradient_shift(obs, anchor, sigma, strength)
-        else:
+
+        def execute(shift: np.ndarray) -> np.ndarray:
+            executed: np.ndarray = np.clip(sampled + shift, -1.0, 1.0)
+            return executed
+
+        def session() -> Acted:
             applied = self._esa_step(obs, anchor, sigma, strength)
-            if self.esa_control is None and anchor is sampled:
+            if anchor is sampled:
                 # The session's own action, not a_t + (applied - a_t): the same bits.
                 return applied, applied - sampled
-            shift = applied - anchor
-            if self.esa_control == "placebo":
-                shift = self._placebo(shift, self._episode_starts())
-        executed: np.ndarray = np.clip(sampled + shift, -1.0, 1.0)
-        return executed, shift
+            return execute(applied - anchor), applied - anchor
+
+        return self._control_shift().act(
+            session,
+            lambda: self._gradient_shift(obs, anchor, sigma, strength),
+            execute,
+            self._episode_starts(),
+        )
 
     def _anchor(self, sampled: np.ndarray, mu: np.ndarray) -> np.ndarray:
         """Where the shift is found: at the policy's sample ``a_t``."""

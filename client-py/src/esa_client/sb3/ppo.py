@@ -18,6 +18,7 @@ from torch import nn
 from ..common.action_frame import ActionFrame
 from ..common.controls import (
     SHIFT_REPORT_EVERY,
+    Acted,
     gradient_shift_size,
     gradient_size,
     unit_gradient,
@@ -136,30 +137,16 @@ class ESAPPO(EsaMixin, DecoupledPPO):
 
     def _esa_policy_step(self, obs: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """SB3's ``policy(obs)`` with ESA: ``(a_t + v(t), values, log pi(a_t))``."""
-        distribution, values = self._policy_forward(obs)
-        actions = distribution.get_actions()
-        log_prob = distribution.log_prob(actions)
+        actions, values, log_prob = self.policy(obs)
         strength = self._esa_strength() if self._esa_active else 0.0
         if strength > 0.0:
-            gaussian = _gaussian(distribution)
-            # SB3's Box distributions give the sample, mean and std flat, (N, D) each.
-            sample = actions.cpu().numpy()
+            # The distribution the policy just sampled from, its mean and std flat, (N, D).
+            gaussian = _gaussian(self.policy.action_dist)
+            sample = actions.reshape(len(actions), -1).cpu().numpy()
             mean, std = gaussian.mean.cpu().numpy(), gaussian.stddev.cpu().numpy()
             executed = self._esa_act(obs, sample, mean, std, strength)
-            actions = th.from_numpy(executed).to(actions.device)
-        return actions.reshape((-1, *self.esa_frame.box.shape)), values, log_prob
-
-    def _policy_forward(self, obs: th.Tensor) -> tuple[Distribution, th.Tensor]:
-        """SB3's ``forward`` up to the sample, so that the sample draws what SB3's would."""
-        policy = self.policy
-        features = policy.extract_features(obs)
-        if policy.share_features_extractor:
-            latent_pi, latent_vf = policy.mlp_extractor(features)
-        else:
-            pi_features, vf_features = features
-            latent_pi = policy.mlp_extractor.forward_actor(pi_features)
-            latent_vf = policy.mlp_extractor.forward_critic(vf_features)
-        return policy._get_action_dist_from_latent(latent_pi), policy.value_net(latent_vf)
+            actions = th.from_numpy(executed).to(actions.device).reshape(actions.shape)
+        return actions, values, log_prob
 
     def _esa_act(
         self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray, f: float
@@ -167,22 +154,44 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         """The env's actions ``a_t + v(t)``, float32 ``(N, D)``, at ESA's strength ``f``."""
         starts = self._last_episode_starts
         assert starts is not None  # set by SB3 before its rollouts
-        shift = self._esa_shift(obs, sample, mean, std, starts, f)
-        if self.esa_control == "placebo":
-            shift = self._placebo(shift, starts)
+
+        def session() -> Acted:
+            shift = self._session_shift(obs, sample, mean, std, starts, f)
+            return self._execute(sample, shift, std), shift
+
+        control = self._control_shift()
+        executed, shift = control.act(
+            session,
+            lambda: self._gradient_shift(obs, sample, mean, std, f),
+            lambda shift: self._execute(sample, shift, std),
+            starts,
+        )
         if self._esa_steps % SHIFT_REPORT_EVERY == 0:
             box = self.esa_frame.box
             low, high = box.low.reshape(-1), box.high.reshape(-1)
-            self._report_shift(sample, shift, mean, std, low, high, self.esa.trust_region, f)
+            kappa = control.bound(self.esa.trust_region)
+            self._report_shift(sample, shift, mean, std, low, high, kappa, f)
         self._esa_steps += 1
-        return self._execute(sample, shift, std)
+        return executed
 
     def _execute(self, sample: np.ndarray, shift: np.ndarray, std: np.ndarray) -> np.ndarray:
         """What the env executes and the buffer stores: ``a_t + v(t)``, summed in float64."""
         executed: np.ndarray = (sample.astype(np.float64) + shift).astype(sample.dtype)
         return executed
 
-    def _esa_shift(
+    def _critic_at_step(
+        self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray
+    ) -> tuple[CriticAtStep, np.ndarray]:
+        """The critic at this step's states over actions in ESA units, and the sample in them."""
+        frame = self.esa_frame
+        center, half_width, low, high = frame.center, frame.half_width, frame.low, frame.high
+        units = np.maximum(std / half_width, SMALLEST_SCALE)
+        critic = CriticAtStep(
+            self.esa_head, self._head_features(obs), (mean - center) / half_width, units, low, high
+        )
+        return critic, (sample - center) / half_width
+
+    def _session_shift(
         self,
         obs: th.Tensor,
         sample: np.ndarray,
@@ -191,23 +200,22 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         starts: np.ndarray,
         f: float,
     ) -> np.ndarray:
-        """ESA's shift ``v(t)`` (or the gradient control's) in the Box's units, float64 (N, D)."""
-        frame = self.esa_frame
-        center, half_width, low, high = frame.center, frame.half_width, frame.low, frame.high
-        units = np.maximum(std / half_width, SMALLEST_SCALE)
-        critic = CriticAtStep(
-            self.esa_head, self._head_features(obs), (mean - center) / half_width, units, low, high
-        )
-        scaled = (sample - center) / half_width
-        if self.esa_control == "gradient":
-            size = gradient_size(f, self.esa.trust_region)
-            unit = unit_gradient(critic.gradient(scaled))
-            self.logger.record_mean("esa/shift_over_std", gradient_shift_size(size, unit))
-            shift: np.ndarray = size * unit * std
-            return shift
+        """ESA's shift ``v(t)`` in the Box's units, float64 ``(N, D)``: the sessions step."""
+        critic, scaled = self._critic_at_step(obs, sample, mean, std)
         runtime = self._esa_runtime()
-        applied = runtime.step(scaled, starts, self._closed_form(critic), units, strength=f)
-        shift = (applied - scaled) * half_width
+        applied = runtime.step(scaled, starts, self._closed_form(critic), critic.std, strength=f)
+        shift: np.ndarray = (applied - scaled) * self.esa_frame.half_width
+        return shift
+
+    def _gradient_shift(
+        self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray, f: float
+    ) -> np.ndarray:
+        """The gradient control's shift ``f kappa sigma u`` in the Box's units, ``(N, D)``."""
+        critic, scaled = self._critic_at_step(obs, sample, mean, std)
+        size = gradient_size(f, self.esa.trust_region)
+        unit = unit_gradient(critic.gradient(scaled))
+        self.logger.record_mean("esa/shift_over_std", gradient_shift_size(size, unit))
+        shift: np.ndarray = size * unit * std
         return shift
 
     def _closed_form(self, critic: CriticAtStep) -> Any:

@@ -114,7 +114,7 @@ class LinearHead(_Base):
         features: np.ndarray = self._head_features(obs).cpu().numpy()
         return features
 
-    def _esa_shift(
+    def _session_shift(
         self,
         obs: th.Tensor,
         sample: np.ndarray,
@@ -124,15 +124,17 @@ class LinearHead(_Base):
         f: float,
     ) -> np.ndarray:
         head = self._esa_mlp()
-        features = self._step_features(obs)
-        if self.esa_control == "gradient":
-            size = gradient_size(f, self.esa.trust_region)
-            shift: np.ndarray = size * unit_gradient(head.weights(features)) * std
-            return shift
-        scaled, gain, offset, units = head.step_inputs(features, sample, mean, std)
+        scaled, gain, offset, units = head.step_inputs(self._step_features(obs), sample, mean, std)
         runtime = self._esa_runtime()
         applied = runtime.step(scaled, starts, LinearCritic(gain, offset), units, strength=f)
-        shift = head.shift(scaled, applied)
+        shift: np.ndarray = head.shift(scaled, applied)
+        return shift
+
+    def _gradient_shift(
+        self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray, f: float
+    ) -> np.ndarray:
+        weights = self._esa_mlp().weights(self._step_features(obs))
+        shift: np.ndarray = gradient_size(f, self.esa.trust_region) * unit_gradient(weights) * std
         return shift
 
 
