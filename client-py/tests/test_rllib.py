@@ -34,7 +34,7 @@ from ray.rllib.core.distribution.torch.torch_distribution import (  # noqa: E402
 )
 from ray.tune.registry import register_env  # noqa: E402
 
-from esa_client import EsaConfig  # noqa: E402
+from esa_client import EsaConfig, ServerUnavailable  # noqa: E402
 from esa_client.rllib import ESA_SHIFT, EsaModuleToEnv, EsaService, with_esa  # noqa: E402
 
 # The env creator below travels to the Ray workers by value (this module is not importable
@@ -165,8 +165,14 @@ def learner_state(algo):
     return state["learner"]["rl_module"][DEFAULT_MODULE_ID]
 
 
-def two_runner_run(config, iterations):
-    algo = with_esa(config, esa=UNGATED, record_shift=True).build_algo()
+def recording_shifts(config):
+    """``config`` whose EsaModuleToEnv also stores each step's shift (column ``esa_shift``)."""
+    config._module_to_env_connector.kwargs["record_shift"] = True
+    return config
+
+
+def two_runner_run(config, iterations, **esa):
+    algo = recording_shifts(with_esa(config, esa=UNGATED, **esa)).build_algo()
     try:
         results = [algo.train() for _ in range(iterations)]
         samples = algo.env_runner_group.foreach_env_runner(collect, local_env_runner=False)
@@ -306,26 +312,29 @@ def test_with_esa_refuses_what_it_cannot_do():
 
     with pytest.raises(ValueError, match="SACConfig or PPOConfig"):
         with_esa(DQNConfig())
-    with pytest.raises(ValueError, match="probe_critic"):
-        with_esa(SACConfig(), probe_critic="online_max")
-    with pytest.raises(ValueError, match="head_epochs"):
-        with_esa(PPOConfig(), head_epochs=0)
     with pytest.raises(ValueError, match="EsaConfig"):
         with_esa(PPOConfig(), esa={"amplitude": 0.1})
-    with pytest.raises(ValueError, match=r"expected EsaConfig\(fade=None\) with RLlib"):
-        with_esa(PPOConfig(), esa=EsaConfig.ppo())
-    config = with_esa(PPOConfig())
+    # ESAPPO's default fades ESA over half the budget: the budget is needed.
+    with pytest.raises(ValueError, match=r"expected budget= the env steps you will train for"):
+        with_esa(PPOConfig())
+    with pytest.raises(ValueError, match="expected budget a number of env steps"):
+        with_esa(PPOConfig(), budget=0)
+    with pytest.raises(ValueError, match="esa_control"):
+        with_esa(PPOConfig(), budget=1000, control="nothing")
+    with pytest.raises(ServerUnavailable, match="127.0.0.1:1"):
+        with_esa(SACConfig(), service=EsaService(address="127.0.0.1:1", timeout=1.0))
+    config = with_esa(PPOConfig(), budget=10_000)
     # Twice replaces the first connector instead of stacking two.
-    factory = with_esa(config)._module_to_env_connector
+    factory = with_esa(config, budget=10_000)._module_to_env_connector
     assert factory.previous is None
     assert json.dumps(config.rl_module_spec.model_config["esa"])  # plain data
 
 
 @pytest.mark.parametrize(
-    ("make", "default"), [(SACConfig, EsaConfig.off_policy()), (PPOConfig, EsaConfig())]
+    ("make", "default"), [(SACConfig, EsaConfig.off_policy()), (PPOConfig, EsaConfig.ppo())]
 )
 def test_with_esa_defaults_as_the_sb3_drop_ins(make, default):
-    config = with_esa(make())
+    config = with_esa(make(), budget=100_000)
     assert config._module_to_env_connector.kwargs["esa"] == default
     settings = config.rl_module_spec.model_config["esa"]["config"]
     assert settings == dataclasses.asdict(default)
@@ -340,3 +349,97 @@ def test_the_shared_esa_code_imports_without_stable_baselines3():
         "assert 'stable_baselines3' not in [m.split('.')[0] for m in sys.modules if sys.modules[m]]"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_ppo_fades_esa_over_the_budget(ray_session):
+    """EsaConfig.ppo()'s fade over ``budget``: ESA at full strength first, gone by half."""
+    esa = EsaConfig.ppo(gate=None)
+    algo = with_esa(ppo_config(runners=0), esa=esa, budget=800).build_algo()
+    try:
+        # 200 env steps an iteration: the head is fitted after the first; ESA acts from the
+        # second at strength 1 - 200 / 400, and is gone from the third on (400 sampled).
+        results = [algo.train()["env_runners"] for _ in range(3)]
+    finally:
+        algo.stop()
+    assert results[1]["esa/strength"] == pytest.approx(0.5)
+    assert results[1]["esa/mean_abs_shift"] > 0
+    assert results[2]["esa/strength"] == 0.0
+    assert results[2]["esa/faded_steps"] > 0
+
+
+@pytest.mark.parametrize("control", ["placebo", "gradient"])
+@pytest.mark.parametrize("make", [ppo_config, sac_config], ids=["ppo", "sac"])
+def test_the_controls_run_on_rllib(ray_session, make, control):
+    config = recording_shifts(with_esa(make(runners=0), esa=UNGATED, control=control))
+    algo = config.build_algo()
+    try:
+        for _ in range(3):
+            result = algo.train()
+        episodes = algo.env_runner.sample(num_timesteps=20, explore=True)
+        shift = np.concatenate(
+            [np.asarray(e.get_extra_model_outputs(ESA_SHIFT)) for e in episodes if len(e)]
+        )
+    finally:
+        algo.stop()
+    assert np.isfinite(result["env_runners"]["episode_return_mean"])
+    assert np.mean(np.abs(shift) > 0) > 0.5, "the control shifts the actions"
+
+
+def test_ppo_shifts_are_esappos_for_the_same_inputs():
+    """The same session inputs (head, observations, policy, samples, strength) give the same
+    actions, bit for bit, through RLlib's connector and through ``ESAPPO``."""
+    pytest.importorskip("stable_baselines3")
+    from ray.rllib.algorithms.ppo.ppo_catalog import PPOCatalog
+    from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+    from stable_baselines3.common.logger import Logger
+
+    from esa_client import EsaClient
+    from esa_client.common.runtime import EsaRuntime
+    from esa_client.rllib import EsaPPOTorchRLModule
+    from esa_client.sb3 import ESAPPO
+
+    esa = EsaConfig.ppo(gate=None)
+    model = ESAPPO("MlpPolicy", "Hopper-v5", esa=esa, n_steps=64, batch_size=64, seed=0)
+    model.set_logger(Logger(None, []))
+    env = model.get_env()
+    settings = {"config": dataclasses.asdict(esa), "budget": 1000, "normalize_actions": True}
+    module = RLModuleSpec(
+        module_class=EsaPPOTorchRLModule,
+        catalog_class=PPOCatalog,
+        observation_space=env.observation_space,
+        action_space=env.action_space,
+        model_config={"esa": settings},
+        inference_only=True,
+    ).build()
+    module.esa_head.load_state_dict(model.esa_head.state_dict())
+    frame = module.esa_frame
+    dt = env.get_attr("dt")[0]
+    runtime = EsaRuntime(
+        esa,
+        EsaClient.in_process(),
+        esa.session_config(frame.dim, dt, *frame.session_bounds()),
+        1,
+        frame.low,
+        frame.high,
+    )
+    connector = EsaModuleToEnv(esa=esa)
+    rng = np.random.default_rng(0)
+    moved = 0
+    for t in range(40):
+        obs = torch.as_tensor(rng.normal(size=(1, 11)), dtype=torch.float32)
+        mean = torch.as_tensor(rng.normal(scale=0.5, size=(1, 3)), dtype=torch.float32)
+        log_std = torch.as_tensor(rng.normal(-0.5, 0.2, size=(1, 3)), dtype=torch.float32)
+        sample = (mean + log_std.exp() * torch.randn(1, 3)).numpy()
+        starts = np.array([t % 15 == 0])
+        strength = 1.0 - t / 80
+        model._last_episode_starts = starts
+        mean_np, std_np = mean.numpy(), log_std.exp().numpy()
+        esappo = model._esa_act(obs, sample, mean_np, std_np, strength)
+        rllib = connector._step(
+            module, runtime, obs, torch.cat([mean, log_std], dim=1), sample, starts, strength
+        )
+        np.testing.assert_array_equal(rllib, esappo, err_msg=f"step {t}")
+        moved += bool(np.any(rllib != sample))
+    assert moved > 30, "ESA shifted the samples (v = 0 at each episode's first step)"
+    model.esa_close()
+    runtime.close()

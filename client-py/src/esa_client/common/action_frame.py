@@ -55,8 +55,20 @@ class ActionFrame:
     @classmethod
     def squashed(cls, box: spaces.Box) -> ActionFrame:
         """SB3's squashed [-1, 1] (the replay buffer's units), where the sessions are bounded."""
-        ones = np.ones(int(np.prod(box.shape or ())))
-        return cls(box, np.zeros_like(ones), ones, -ones, ones, True)
+        return cls.unit(box, bounded=True)
+
+    @classmethod
+    def unit(cls, box: spaces.Box, *, bounded: bool) -> ActionFrame:
+        """Actions already in [-1, 1] per dimension (SB3's squashed ones, RLlib's normalized).
+
+        Args:
+            box: The action space the actions are normalized from.
+            bounded: Whether the sessions clip to [-1, 1] (a squashed sample) or not (a
+                Gaussian sample, which the env clips).
+        """
+        # In the Box's dtype, as ``scaled`` gives them for a [-1, 1] Box: the same bits.
+        ones = np.ones(int(np.prod(box.shape or ())), dtype=box.dtype)
+        return cls(box, np.zeros_like(ones), ones, -ones, ones, bounded)
 
     @property
     def dim(self) -> int:

@@ -1,9 +1,10 @@
 """ESA for Ray RLlib (new API stack, torch): SAC and PPO, env runners on many nodes.
 
-One call adds ESA to a config: ``with_esa(SACConfig()..., esa=EsaConfig.off_policy())``
-(the RLlib guide, ``docs/guides/rllib.md``, has the whole example). Without ``esa=`` SAC gets
-ESASAC's default and PPO ``EsaConfig()``: RLlib's PPO has ESAPPO's quadratic head but neither
-its fade nor its decoupled objective. Every env copy of every EnvRunner gets its own session,
+One call adds ESA to a config: ``with_esa(PPOConfig()..., budget=1_000_000)`` (the RLlib
+guide, ``docs/guides/rllib.md``, has the whole example). RLlib then runs what the SB3
+drop-ins ship: PPO ``ESAPPO``'s method (``EsaConfig.ppo()``, its quadratic head, its
+decoupled objective, ESA faded over the first half of the budget), SAC ``ESASAC``'s. Every
+env copy of every EnvRunner gets its own session,
 kept in the runner's process by default (:class:`EsaService`), or on a shared or sharded
 server. Needs the ``rllib`` extra. Pieces: :func:`with_esa`, :class:`EsaService`,
 :class:`EsaModuleToEnv` (the module-to-env ConnectorV2), :class:`EsaSACTorchRLModule`,

@@ -45,11 +45,19 @@ from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core.columns import Columns
 
 from ..client import EsaClient
+from ..common.controls import (
+    Control,
+    check_control,
+    control_shift,
+    gradient_size,
+    unit_gradient,
+)
+from ..common.head_step import head_critic, head_shift, shifted
 from ..common.runtime import EsaRuntime
 from ..config import EsaConfig
 from ..env_dt import env_dt
 from ..errors import ServerUnavailable
-from .modules import ESA_OBS, EsaModuleMixin
+from .modules import ESA_OBS, EsaModuleMixin, EsaPPOTorchRLModule
 from .service import EsaService
 
 ESA_SHIFT = "esa_shift"
@@ -158,9 +166,12 @@ class EsaModuleToEnv(ConnectorV2):
 
     The sessions (one per env copy, on one StepStream) are created on the first step that
     needs them, so an EnvRunner without env (the local one of a remote setup) never
-    connects. Logged per EnvRunner (``env_runners/esa/...``): ``active``,
-    ``mean_abs_shift``, ``shift_over_std``, ``kl_per_dim``, ``clipped_fraction``,
-    ``improvement``, ``sessions_restored``, ``reconnects``.
+    connects. PPO modules step exactly as ``ESAPPO`` does (:mod:`esa_client.common.head_step`:
+    the same inputs give the same shifts), SAC modules as ``ESASAC`` (the target twins'
+    mean at the sample), both at the strength the learner's fade set. Logged per EnvRunner
+    (``env_runners/esa/...``): ``active``, ``strength``, ``mean_abs_shift``,
+    ``shift_over_std``, ``kl_per_dim``, ``clipped_fraction``, ``improvement``,
+    ``sessions_restored``, ``reconnects``.
 
     Args:
         input_observation_space: As for every ConnectorV2.
@@ -170,14 +181,15 @@ class EsaModuleToEnv(ConnectorV2):
         service: Where the sessions live (default: in this runner's process).
         dt: Seconds per env step when ``EsaConfig.dt`` is None (``with_esa`` reads it
             from the EnvRunner's env).
+        control: None (ESA), ``"placebo"`` or ``"gradient"``, as the drop-ins'
+            ``esa_control`` (:mod:`esa_client.common.controls`).
         record_shift: Also output column ``esa_shift`` (the shift applied, stored with the
             episode as an extra model output), for diagnostics and tests.
-        improvement_every: Measure ``esa/improvement`` on one step in this many.
         metrics_window: Window of the mean ESA statistics.
         **kwargs: Passed to ``ConnectorV2``.
 
     Raises:
-        ValueError: If ``esa`` is not an EsaConfig or ``improvement_every`` < 1.
+        ValueError: If ``esa`` is not an EsaConfig or ``control`` is unknown.
     """
 
     def __init__(
@@ -188,8 +200,8 @@ class EsaModuleToEnv(ConnectorV2):
         esa: EsaConfig,
         service: EsaService | None = None,
         dt: float | None = None,
+        control: Control | None = None,
         record_shift: bool = False,
-        improvement_every: int = 8,
         metrics_window: int = 1000,
         **kwargs: Any,
     ) -> None:
@@ -198,12 +210,12 @@ class EsaModuleToEnv(ConnectorV2):
         if not isinstance(esa, EsaConfig):
             raise ValueError(f"expected esa to be an EsaConfig, got {esa!r}")
         self.esa = esa
-        if improvement_every < 1:
-            raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
+        self.control = check_control(control)
+        # The placebo's directions belong to this runner's sessions: a new rule with them.
+        self._rule = control_shift(self.control, None)
         self.service = service if service is not None else EsaService()
         self.dt = dt
         self.record_shift = record_shift
-        self.improvement_every = improvement_every
         self.metrics_window = metrics_window
         self._runtime: EsaRuntime | None = None
         self._finalizer: weakref.finalize[Any, Any] | None = None
@@ -217,6 +229,7 @@ class EsaModuleToEnv(ConnectorV2):
         """Pickles (and deep-copies) the settings only: a copy opens its own sessions."""
         state = self.__dict__.copy()
         state.update(_runtime=None, _finalizer=None, _active=False)
+        state["_rule"] = control_shift(self.control, None)
         return state
 
     @property
@@ -229,6 +242,7 @@ class EsaModuleToEnv(ConnectorV2):
         if self._finalizer is not None:
             self._finalizer()
         self._runtime = self._finalizer = None
+        self._rule = control_shift(self.control, None)
         self._active = False
 
     def _open(self, module: EsaModuleMixin, n_envs: int) -> EsaRuntime:
@@ -238,9 +252,8 @@ class EsaModuleToEnv(ConnectorV2):
                 "expected the env to define dt or metadata['render_fps'], got neither; "
                 "set EsaConfig(dt=...) to the seconds per environment step"
             )
-        low, high = module.esa_space()
-        clip_low, clip_high = module.esa_env_bounds()
-        config = self.esa.session_config(module.esa_action_dim, dt, low, high)
+        frame = module.esa_frame
+        config = self.esa.session_config(frame.dim, dt, *frame.session_bounds())
         client = self.service.connect()
         try:
             runtime = EsaRuntime(
@@ -248,9 +261,8 @@ class EsaModuleToEnv(ConnectorV2):
                 client,
                 config,
                 n_envs,
-                clip_low,
-                clip_high,
-                improvement_every=self.improvement_every,
+                frame.low,
+                frame.high,
                 on_unavailable=self.service.on_unavailable,
             )
         except BaseException:
@@ -294,10 +306,10 @@ class EsaModuleToEnv(ConnectorV2):
         n = len(episodes)
         sampled_rows = [np.asarray(a) for a in rows.get(Columns.ACTIONS)]
         like = sampled_rows[0]
-        sampled = np.stack(sampled_rows).reshape(n, -1).astype(np.float64)
+        sample = np.stack(sampled_rows).reshape(n, -1)
         if not active:
             self._active = False
-            self._record_shift(rows, np.zeros_like(sampled), like)
+            self._record_shift(rows, np.zeros(sample.shape), like)
             return batch
         runtime = self._runtime if self._runtime is not None else self._open(module, n)
         if not self._active:
@@ -311,23 +323,16 @@ class EsaModuleToEnv(ConnectorV2):
         starts = autoreset | (fresh & ~self._autoreset)
         self._autoreset = autoreset
         device = next(iter(module.parameters())).device
+        strength = float(module.esa_strength.item())
+        if metrics is not None:
+            metrics.log_value("esa/strength", strength, reduce="mean", window=self.metrics_window)
         with torch.no_grad():
             obs = _to_tensor(_stack([obs_column[key][0] for key in rows.keys]), device)
             dist_inputs = torch.as_tensor(
                 np.stack(rows.get(Columns.ACTION_DIST_INPUTS)), device=device
             )
-            scale = module.esa_scale(dist_inputs).double().cpu().numpy()
-
-        def q_fn(points: np.ndarray) -> np.ndarray:
-            reps = len(points) // n
-            with torch.no_grad():
-                actions = torch.as_tensor(points, dtype=torch.float32, device=device)
-                q = module.esa_q(_tile(obs, reps), dist_inputs.repeat(reps, 1), actions)
-                values: np.ndarray = q.double().cpu().numpy()
-                return values
-
         try:
-            applied = runtime.step(sampled, starts, q_fn, scale)
+            executed = self._step(module, runtime, obs, dist_inputs, sample, starts, strength)
         except ServerUnavailable:
             # The server stayed away (on_unavailable="raise"): reconnect once more, e.g. to
             # a server restarted since.
@@ -336,13 +341,83 @@ class EsaModuleToEnv(ConnectorV2):
             if metrics is not None:
                 metrics.log_value("esa/reconnects", 1, reduce="sum")
             runtime = self._open(module, n)
-            applied = runtime.step(sampled, np.ones(n, dtype=bool), q_fn, scale)
+            every = np.ones(n, dtype=bool)
+            executed = self._step(module, runtime, obs, dist_inputs, sample, every, strength)
             self._active = True
         if metrics is not None:
             runtime.record(_Metrics(metrics, self.metrics_window))
-        rows.put(Columns.ACTIONS, [row.astype(like.dtype).reshape(like.shape) for row in applied])
-        self._record_shift(rows, applied - sampled, like)
+        rows.put(Columns.ACTIONS, [row.astype(like.dtype).reshape(like.shape) for row in executed])
+        self._record_shift(rows, executed.astype(np.float64) - sample, like)
         return batch
+
+    def _step(
+        self,
+        module: EsaModuleMixin,
+        runtime: EsaRuntime,
+        obs: Any,
+        dist_inputs: torch.Tensor,
+        sample: np.ndarray,
+        starts: np.ndarray,
+        strength: float,
+    ) -> np.ndarray:
+        """The env copies' actions under ESA (or its control), as the drop-in computes them.
+
+        PPO as ``ESAPPO`` (:mod:`esa_client.common.head_step`: the same inputs give the same
+        shifts); SAC as ``ESASAC``, in its squashed space: the session's action, or
+        ``clip(a_t + shift)`` for a control.
+        """
+        size = gradient_size(strength, self.esa.trust_region)
+        if isinstance(module, EsaPPOTorchRLModule):
+            frame = module.esa_frame
+            mean_t, log_std_t = dist_inputs.chunk(2, dim=-1)
+            mean, std = mean_t.cpu().numpy(), log_std_t.exp().cpu().numpy()
+            features = module.esa_features(obs)
+            critic, units = head_critic(module.esa_head, features, frame, mean, std)
+
+            def head_session() -> tuple[np.ndarray, np.ndarray]:
+                closed = critic.closed_form()
+                shift = head_shift(runtime, closed, units, frame, sample, starts, strength)
+                return shifted(sample, shift), shift
+
+            def head_gradient() -> np.ndarray:
+                scaled = (sample - frame.center) / frame.half_width
+                shift: np.ndarray = size * unit_gradient(critic.gradient(scaled)) * std
+                return shift
+
+            return self._rule.act(
+                head_session, head_gradient, lambda shift: shifted(sample, shift), starts
+            )[0]
+        n = len(sample)
+        sampled = sample.astype(np.float64)
+        with torch.no_grad():
+            scale = module.esa_scale(dist_inputs).double().cpu().numpy()
+
+        def q_fn(points: np.ndarray) -> np.ndarray:
+            reps = len(points) // n
+            with torch.no_grad():
+                actions = torch.as_tensor(points, dtype=torch.float32, device=dist_inputs.device)
+                q = module.esa_q(_tile(obs, reps), dist_inputs.repeat(reps, 1), actions)
+                values: np.ndarray = q.double().cpu().numpy()
+                return values
+
+        def critic_session() -> tuple[np.ndarray, np.ndarray]:
+            applied = runtime.step(sampled, starts, q_fn, scale, strength=strength)
+            return applied, applied - sampled
+
+        def critic_gradient() -> np.ndarray:
+            actions = torch.as_tensor(sampled, dtype=torch.float32).requires_grad_(True)
+            with torch.enable_grad():
+                q = module.esa_q(obs, dist_inputs, actions).sum()
+                (grad,) = torch.autograd.grad(q, actions)
+            unit = unit_gradient(grad.cpu().numpy().astype(np.float64) * scale)
+            shift: np.ndarray = size * scale * unit
+            return shift
+
+        def clipped(shift: np.ndarray) -> np.ndarray:
+            actions: np.ndarray = np.clip(sampled + shift, -1.0, 1.0)
+            return actions
+
+        return self._rule.act(critic_session, critic_gradient, clipped, starts)[0]
 
     def _record_shift(self, rows: _Rows, shift: np.ndarray, like: np.ndarray) -> None:
         """Writes column ``esa_shift`` (with ``record_shift``; zeros while ESA is off)."""

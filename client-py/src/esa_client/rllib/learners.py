@@ -1,6 +1,7 @@
-"""Learners that keep the ESA critic fitted and the gate set, on the learner side.
+"""Learners that keep the ESA critic fitted, the gate and the fade set, on the learner side.
 
-The head's weights and ``esa_active`` reach the env runners with the next weight sync.
+The head's weights, ``esa_active`` and ``esa_strength`` reach the env runners with the next
+weight sync. PPO's learner has ``ESAPPO``'s decoupled objective.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from ..common.quadratic_head import (
     normalized,
     rank_correlation,
 )
-from .modules import EsaPPOTorchRLModule, EsaSACTorchRLModule
+from ..config import EsaConfig
+from .modules import EsaModuleMixin, EsaPPOTorchRLModule, EsaSACTorchRLModule
 
 
 def _unwrapped(module: Any) -> Any:
@@ -37,16 +39,32 @@ def _gate(module: EsaPPOTorchRLModule | EsaSACTorchRLModule) -> float | None:
     return None if gate is None else float(gate)
 
 
+def _set_strength(module: EsaModuleMixin, timesteps: dict[str, Any]) -> None:
+    """ESA's strength under the fade at the env steps sampled so far, for the next samples.
+
+    The drop-ins fade over ``learn()``'s budget; here it is ``with_esa``'s ``budget``.
+    """
+    settings = module.esa_settings
+    budget = settings.get("budget")
+    sampled = float(timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0) or 0)
+    strength = EsaConfig(**settings["config"]).strength(sampled / budget if budget else 0.0)
+    with torch.no_grad():
+        module.esa_strength.fill_(strength)
+
+
 class EsaSACTorchLearner(SACTorchLearner):
     """SAC's learner, setting the ``esa_active`` of an ``EsaSACTorchRLModule``: ESASAC's gate.
 
-    Every ``gate_every`` sampled env steps it computes :func:`sac_critic_quality` on the
+    Every :attr:`gate_every` sampled env steps it computes :func:`sac_critic_quality` on the
     train batch being learned from. ESASAC computes it on the transitions collected since
     its last check; RLlib's replay buffer lives elsewhere, so here it is the replay sample
     of that update. With ``EsaConfig(gate=None)`` ESA turns on at the first update (when RLlib's
     ``num_steps_sampled_before_learning_starts`` have been sampled), as in ESASAC.
     Logged per module: ``esa/gate_correlation`` (at each check), ``esa/active``.
     """
+
+    gate_every = 1000
+    """Sampled env steps between two checks of the gate (``ESASAC.gate_every``)."""
 
     def build(self) -> None:
         """Builds RLlib's SAC learner and the gate's bookkeeping."""
@@ -66,9 +84,10 @@ class EsaSACTorchLearner(SACTorchLearner):
         super().before_gradient_based_update(timesteps=timesteps)
         now = float(timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0) or 0)
         for mid, module in self._esa_modules():
+            _set_strength(module, timesteps)
             if _gate(module) is None:
                 module.esa_active.fill_(1.0)
-            elif now - self._esa_checked_at.get(mid, 0.0) >= module.esa_settings["gate_every"]:
+            elif now - self._esa_checked_at.get(mid, 0.0) >= self.gate_every:
                 self._esa_due.add(mid)
                 self._esa_checked_at[mid] = now
 
@@ -99,10 +118,10 @@ def sac_critic_quality(module: EsaSACTorchRLModule, batch: dict[str, Any], gamma
     """
     with torch.no_grad():
         obs, nxt = batch[Columns.OBS], batch[Columns.NEXT_OBS]
-        which = module.esa_probe_critic
-        value = module.esa_critic(obs, module.esa_mean_action(obs), which)
-        value_next = module.esa_critic(nxt, module.esa_mean_action(nxt), which)
-        predicted = module.esa_critic(obs, batch[Columns.ACTIONS], which) - value
+        none = torch.empty(0)  # the probed critic needs no distribution inputs
+        value = module.esa_q(obs, none, module.esa_mean_action(obs))
+        value_next = module.esa_q(nxt, none, module.esa_mean_action(nxt))
+        predicted = module.esa_q(obs, none, batch[Columns.ACTIONS]) - value
         alive = 1.0 - batch[Columns.TERMINATEDS].float()
         discount = gamma ** batch["n_step"] if "n_step" in batch else gamma
         advantage = batch[Columns.REWARDS] + discount * alive * value_next - value
@@ -164,19 +183,38 @@ class _Head:
 
 
 class EsaPPOTorchLearner(PPOTorchLearner):
-    """PPO's learner, fitting :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule`'s head.
+    """PPO's learner with ``ESAPPO``'s objective, fitting its quadratic head.
+
+    The loss is PPO's with the decoupled objective (``DecoupledPPO``: Hilton, Cobbe and
+    Schulman, 2022): the ratio is taken against the proximal policy ``pi_old`` at the
+    executed action (the behaviour distribution stored with the samples) and weighted by
+    ``min(pi_old / b, weight_cap)``, ``b`` the density RLlib stored for the sample. Without
+    a shift ``pi_old = b`` and the loss is RLlib's PPO loss.
 
     Per update, after PPO's own: the gate (``esa/gate_correlation``: the head's rank
     correlation with the GAE advantages of the new rollout, before it is trained on it),
-    then :func:`esa_client.common.quadratic_head.fit_critic` on the last ``head_rollouts`` rollouts
-    (``head_epochs`` passes, minibatches of ``head_batch_size``, an Adam of its own at
-    ``head_learning_rate`` and a generator of its own; logged ``esa/head_loss``), then
-    ``esa_active``. The rollouts come from :class:`EsaRolloutRecorder`, after RLlib's GAE. With
-    ``EsaConfig(gate=None)`` ESA turns on after the first fit, as in ESAPPO.
+    then :func:`esa_client.common.quadratic_head.fit_critic` on the last ``head_rollouts``
+    rollouts (``head_epochs`` passes, minibatches of ``head_batch_size``, an Adam of its own
+    at ``head_learning_rate`` and a generator of its own; logged ``esa/head_loss``), then
+    ``esa_active`` and the fade's ``esa_strength``. The rollouts come from
+    :class:`EsaRolloutRecorder`, after RLlib's GAE. With ``EsaConfig(gate=None)`` ESA turns
+    on after the first fit, as in ESAPPO. The head's settings are ESAPPO's class attributes;
+    a subclass may change them.
 
     Supports one learner (``num_learners`` 0 or 1): with more, each would fit its own
     head on its shard, outside DDP.
     """
+
+    weight_cap = 2.0
+    """The cap on ``pi_old / b`` (``DecoupledPPO.weight_cap``)."""
+    head_learning_rate = 1e-3
+    """Adam learning rate of the head."""
+    head_epochs = 5
+    """Passes over its data each time the head is fitted."""
+    head_batch_size = 256
+    """Minibatch size of the head's fit."""
+    head_rollouts = 4
+    """How many of the latest rollouts the head is fitted on."""
 
     def build(self) -> None:
         """Builds RLlib's PPO learner and appends the rollout recorder after its GAE."""
@@ -207,9 +245,8 @@ class EsaPPOTorchLearner(PPOTorchLearner):
 
     def _head(self, module_id: Any, module: EsaPPOTorchRLModule) -> _Head:
         if module_id not in self._esa_heads:
-            settings = module.esa_settings
             self._esa_heads[module_id] = _Head(
-                torch.optim.Adam(module.esa_head.parameters(), lr=settings["head_learning_rate"]),
+                torch.optim.Adam(module.esa_head.parameters(), lr=self.head_learning_rate),
                 np.random.default_rng(self.config.seed),
             )
         return self._esa_heads[module_id]
@@ -221,18 +258,18 @@ class EsaPPOTorchLearner(PPOTorchLearner):
             rollout, advantages = self._esa_pending.pop(module_id)
             module = _unwrapped(self.module[module_id])
             head = self._head(module_id, module)
-            settings, gate = module.esa_settings, _gate(module)
+            gate = _gate(module)
             if head.fitted:
                 quality = critic_quality(module.esa_head, rollout, advantages)
                 self.metrics.log_value((module_id, "esa/gate_correlation"), quality, window=1)
                 head.active = gate is None or quality >= gate
-            head.rollouts = [*head.rollouts, rollout][-settings["head_rollouts"] :]
+            head.rollouts = [*head.rollouts, rollout][-self.head_rollouts :]
             loss = fit_critic(
                 module.esa_head,
                 head.optimizer,
                 head.rollouts,
-                epochs=settings["head_epochs"],
-                batch_size=settings["head_batch_size"],
+                epochs=self.head_epochs,
+                batch_size=self.head_batch_size,
                 rng=head.rng,
             )
             self.metrics.log_value((module_id, "esa/head_loss"), loss, window=1)
@@ -241,4 +278,34 @@ class EsaPPOTorchLearner(PPOTorchLearner):
             head.fitted = True
             with torch.no_grad():
                 module.esa_active.fill_(float(head.active))
+            _set_strength(module, timesteps)
             self.metrics.log_value((module_id, "esa/active"), float(head.active), window=1)
+
+    def compute_loss_for_module(
+        self, *, module_id: Any, config: Any, batch: dict[str, Any], fwd_out: dict[str, Any]
+    ) -> Any:
+        """RLlib's PPO loss with the decoupled objective for an ESA module.
+
+        ``min(A r, A clip(r))`` weighted by ``w > 0`` is ``min(w A r, w A clip(r))``, so RLlib's
+        own loss computes it from the batch with ``ACTION_LOGP = log pi_old(x)`` and the
+        advantages times ``w``.
+        """
+        module = _unwrapped(self.module[module_id])
+        if isinstance(module, EsaPPOTorchRLModule):
+            with torch.no_grad():
+                proximal = module.get_exploration_action_dist_cls().from_logits(
+                    batch[Columns.ACTION_DIST_INPUTS]
+                )
+                reference = proximal.logp(batch[Columns.ACTIONS])
+                weight = torch.exp(reference - batch[Columns.ACTION_LOGP]).clamp(
+                    max=self.weight_cap
+                )
+            advantages = batch[Postprocessing.ADVANTAGES] * weight
+            batch = {
+                **batch,
+                Columns.ACTION_LOGP: reference,
+                Postprocessing.ADVANTAGES: advantages,
+            }
+        return super().compute_loss_for_module(
+            module_id=module_id, config=config, batch=batch, fwd_out=fwd_out
+        )

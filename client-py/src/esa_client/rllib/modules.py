@@ -6,8 +6,10 @@ time, on the env runners, so :class:`EsaSACTorchRLModule` keeps the Q networks i
 and :class:`EsaPPOTorchRLModule` adds ``ESAPPO``'s quadratic head, and both ship them to
 the env runners with the weights the learner syncs after every update.
 
-Both carry ``esa_active``, a buffer the learner sets from ``EsaConfig.gate`` and that
-ships with the weights: the env runners' connector shifts actions only while it is 1.
+Both carry ``esa_active``, a buffer the learner sets from ``EsaConfig.gate``, and
+``esa_strength``, ESA's strength under ``EsaConfig.fade`` at the env steps sampled so far,
+which the learner sets too; both ship with the weights: the env runners' connector shifts
+actions only while ``esa_active`` is 1, by the strength shipped.
 Both add the observation batch they acted on to their exploration output (column
 ``esa_obs``), which :class:`~esa_client.rllib.connector.EsaModuleToEnv` removes before
 anything is stored. Extra networks are initialized on a forked torch generator, so that
@@ -33,12 +35,11 @@ from ray.rllib.core.learner.utils import make_target_network
 from ray.rllib.core.models.base import ENCODER_OUT
 from ray.rllib.utils.numpy import MAX_LOG_NN_OUTPUT, MIN_LOG_NN_OUTPUT
 
+from ..common.action_frame import ActionFrame
 from ..common.quadratic_head import QuadraticHead
 
 ESA_OBS = "esa_obs"
 """Exploration output column: the observations the module acted on (removed by the connector)."""
-
-PROBE_CRITICS: tuple[str, ...] = ("online_min", "online_mean", "target_min", "target_mean")
 
 
 def settings_of(module: Any) -> dict[str, Any]:
@@ -67,6 +68,7 @@ class EsaModuleMixin:
     """
 
     esa_active: torch.Tensor
+    esa_strength: torch.Tensor
     # RLModule's attributes (a gymnasium Space; a dict, as with_esa sets it).
     action_space: Any
     model_config: Any
@@ -86,6 +88,7 @@ class EsaModuleMixin:
         self.esa_action_dim = int(np.prod(_box(self.action_space).shape))
         # Off until the learner says otherwise (with gate=None: at its first update).
         self.register_buffer("esa_active", torch.zeros((), dtype=torch.float32))
+        self.register_buffer("esa_strength", torch.ones((), dtype=torch.float64))
         got: Any = self.get_exploration_action_dist_cls()  # type: ignore[attr-defined]
         if got is not distribution:
             raise ValueError(f"expected {name} for ESA, got {got.__name__}")
@@ -94,17 +97,10 @@ class EsaModuleMixin:
         """Whether the learner's gate lets ESA shift actions now."""
         return bool(self.esa_active.item() > 0.5)
 
-    def esa_space(self) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """Bounds of the sessions (ESA's clip), in action units; None = unbounded."""
+    @property
+    def esa_frame(self) -> ActionFrame:
+        """The action space as ESA sees it (the drop-ins' frame for the same family)."""
         raise NotImplementedError
-
-    def esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Where the env clips actions, in action units (for ``esa/clipped_fraction``)."""
-        dim = self.esa_action_dim
-        if self.esa_settings.get("normalize_actions", True):
-            return -np.ones(dim), np.ones(dim)
-        space = _box(self.action_space)
-        return space.low.reshape(-1).astype(np.float64), space.high.reshape(-1).astype(np.float64)
 
     def esa_scale(self, dist_inputs: torch.Tensor) -> torch.Tensor:
         """The policy's standard deviation in action units, shape ``(N, D)``."""
@@ -124,9 +120,8 @@ class EsaModuleMixin:
 class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
     """RLlib's default SAC module, keeping the probed Q networks in its env-runner copy.
 
-    ``model_config["esa"]["probe_critic"]`` picks them as in ``ESASAC``: the online or the
-    Polyak target twins, their minimum or mean (default ``target_mean``). Only those are
-    kept, and shipped to the env runners after every update (they are left out of
+    ESA probes the mean of the Polyak target twins, as ``ESASAC`` does. They are kept, and
+    shipped to the env runners after every update (they are left out of
     :meth:`get_non_inference_attributes`); the learner's module is RLlib's, unchanged.
     """
 
@@ -134,11 +129,6 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
         """Builds RLlib's SAC module, plus the probed Q networks when inference-only."""
         super().setup()
         self._setup_esa(TorchSquashedGaussian, "SAC's squashed Gaussian")
-        probe = self.esa_settings.get("probe_critic", "target_mean")
-        if probe not in PROBE_CRITICS:
-            raise ValueError(f"expected probe_critic in {PROBE_CRITICS}, got {probe!r}")
-        self.esa_probe_critic = probe
-        self.esa_probe_online = probe.startswith("online")
         if self.inference_only:
             # RLlib's setup skipped the Q networks here. They are overwritten by the
             # learner's weights before the first sample; built on a forked generator so
@@ -151,26 +141,20 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
                 if self.twin_q:
                     self.qf_twin_encoder = catalog.build_qf_encoder(framework=self.framework)
                     self.qf_twin = catalog.build_qf_head(framework=self.framework)
-                if not self.esa_probe_online:
-                    self.target_qf_encoder = make_target_network(self.qf_encoder)
-                    self.target_qf = make_target_network(self.qf)
-                    if self.twin_q:
-                        self.target_qf_twin_encoder = make_target_network(self.qf_twin_encoder)
-                        self.target_qf_twin = make_target_network(self.qf_twin)
+                self.target_qf_encoder = make_target_network(self.qf_encoder)
+                self.target_qf = make_target_network(self.qf)
+                if self.twin_q:
+                    self.target_qf_twin_encoder = make_target_network(self.qf_twin_encoder)
+                    self.target_qf_twin = make_target_network(self.qf_twin)
 
     def get_non_inference_attributes(self) -> list[str]:
-        """RLlib's list less the probed networks: those are kept and shipped."""
-        online = ["qf", "qf_encoder"] + (["qf_twin", "qf_twin_encoder"] if self.twin_q else [])
-        target = [f"target_{name}" for name in online]
-        return target if self.esa_probe_online else online
+        """RLlib's list less the probed target networks: those are kept and shipped."""
+        return ["qf", "qf_encoder"] + (["qf_twin", "qf_twin_encoder"] if self.twin_q else [])
 
-    def esa_space(self) -> tuple[np.ndarray, np.ndarray]:
-        """SAC's squashed space, [-1, 1]."""
-        return -np.ones(self.esa_action_dim), np.ones(self.esa_action_dim)
-
-    def esa_env_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """SAC's actions are in [-1, 1] whatever the env: its bounds are those."""
-        return self.esa_space()
+    @property
+    def esa_frame(self) -> ActionFrame:
+        """SAC's squashed [-1, 1], where the sessions clip: ESASAC's frame."""
+        return ActionFrame.squashed(_box(self.action_space))
 
     def esa_scale(self, dist_inputs: torch.Tensor) -> torch.Tensor:
         """``min((1 - tanh(mu)^2) std, 1)``: tanh's linearization at the mean, as ESASAC."""
@@ -179,10 +163,9 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
         squashed = torch.tanh(mean)
         return ((1.0 - squashed**2) * std).clamp(max=1.0)
 
-    def _esa_q_pair(self, obs: Any, actions: torch.Tensor, online: bool) -> torch.Tensor:
-        """Both Q networks (or the one) at ``(obs, actions)``, shape ``(B, 1 or 2)``."""
+    def esa_q(self, obs: Any, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The mean of the target twins (or the one target) at ``(obs, actions)``, ``(B,)``."""
         batch = {Columns.OBS: obs, Columns.ACTIONS: actions}
-        prefix = "" if online else "target_"
         names = ["qf", "qf_twin"] if self.twin_q else ["qf"]
         # RLlib's public Q methods (compute_q_values, forward_target) give the twins'
         # minimum only; its helper gives each. It returns a tensor (typed as a dict).
@@ -191,23 +174,13 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
                 torch.Tensor,
                 self._qf_forward_train_helper(
                     batch,
-                    getattr(self, f"{prefix}{name}_encoder"),
-                    getattr(self, f"{prefix}{name}"),
+                    getattr(self, f"target_{name}_encoder"),
+                    getattr(self, f"target_{name}"),
                 ),
             )
             for name in names
         ]
-        return torch.stack(q, dim=1)
-
-    def esa_q(self, obs: Any, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """The probed critic (``probe_critic``) at ``(obs, actions)``."""
-        return self.esa_critic(obs, actions, self.esa_probe_critic)
-
-    def esa_critic(self, obs: Any, actions: torch.Tensor, which: str) -> torch.Tensor:
-        """Q of ``which`` (one of :data:`PROBE_CRITICS`) at ``(obs, actions)``, shape ``(B,)``."""
-        online, reduce = which.split("_")
-        q = self._esa_q_pair(obs, actions, online == "online")
-        return q.min(dim=1).values if reduce == "min" else q.mean(dim=1)
+        return torch.stack(q, dim=1).mean(dim=1)
 
     def esa_mean_action(self, obs: Any) -> torch.Tensor:
         """The squashed policy's mean action ``tanh(mu(s))``."""
@@ -219,12 +192,15 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
     """RLlib's default PPO module plus ``ESAPPO``'s quadratic head of ``z``.
 
     ``z = (a - mu(s)) / sigma(s)`` in the module's action units; the head is
-    :class:`~esa_client.common.quadratic_head.QuadraticHead` on the flattened observation
-    (``model_config["esa"]["head_hidden"]`` units per layer). The head is not in PPO's
-    optimizer; :class:`~esa_client.rllib.learners.EsaPPOTorchLearner` fits it. It is not
-    among RLlib's non-inference attributes, so the env runners' copy keeps it and the
-    weight sync ships it.
+    :class:`~esa_client.common.quadratic_head.QuadraticHead` on the flattened observation,
+    ``ESAPPO``'s (:attr:`head_hidden` units per layer; a subclass may change it). The head is
+    not in PPO's optimizer; :class:`~esa_client.rllib.learners.EsaPPOTorchLearner` fits it.
+    It is not among RLlib's non-inference attributes, so the env runners' copy keeps it and
+    the weight sync ships it.
     """
+
+    head_hidden = 64
+    """Hidden units of each of the head's two layers (``ESAPPO.head_hidden``)."""
 
     def setup(self) -> None:
         """Builds RLlib's PPO module and the quadratic head."""
@@ -237,18 +213,24 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
         features = int(gym.spaces.flatdim(self.observation_space))
         # A forked generator: the head must not move PPO's random stream.
         with torch.random.fork_rng(devices=[]):
-            self.esa_head = QuadraticHead(
-                features, self.esa_action_dim, int(self.esa_settings.get("head_hidden", 64))
-            )
+            self.esa_head = QuadraticHead(features, self.esa_action_dim, self.head_hidden)
 
     @staticmethod
     def esa_features(obs: torch.Tensor) -> torch.Tensor:
         """The observation as the head sees it: flattened, float."""
         return obs.reshape(len(obs), -1).float()
 
-    def esa_space(self) -> tuple[None, None]:
-        """PPO's Gaussian is unbounded: RLlib stores its samples unclipped, as SB3 does."""
-        return None, None
+    @property
+    def esa_frame(self) -> ActionFrame:
+        """ESAPPO's frame: the Box scaled to [-1, 1], where the sessions are unbounded.
+
+        RLlib's normalized actions already are in [-1, 1]; it stores the Gaussian's samples
+        unclipped.
+        """
+        box = _box(self.action_space)
+        if self.esa_settings.get("normalize_actions", True):
+            return ActionFrame.unit(box, bounded=False)
+        return ActionFrame.scaled(box)
 
     def esa_scale(self, dist_inputs: torch.Tensor) -> torch.Tensor:
         """The Gaussian's standard deviation."""
@@ -258,10 +240,3 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
         """Policy-normalized actions ``(a - mu) / sigma``."""
         mean, log_std = dist_inputs.chunk(2, dim=-1)
         return (actions.reshape(len(actions), -1) - mean) / log_std.exp()
-
-    def esa_q(self, obs: Any, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """The quadratic head at ``(obs, actions)``."""
-        advantage: torch.Tensor = self.esa_head(
-            self.esa_features(obs), self.esa_z(dist_inputs, actions)
-        )
-        return advantage

@@ -23,6 +23,7 @@ from ..common.controls import (
     gradient_size,
     unit_gradient,
 )
+from ..common.head_step import head_critic, head_shift, shifted
 from ..common.quadratic_head import (
     CriticAtStep,
     QuadraticHead,
@@ -32,7 +33,6 @@ from ..common.quadratic_head import (
     normalized,
 )
 from ..config import EsaConfig
-from ..transports.base import SMALLEST_SCALE
 from .decoupled_ppo import DecoupledPPO
 from .mixin import EsaMixin
 
@@ -176,20 +176,15 @@ class ESAPPO(EsaMixin, DecoupledPPO):
 
     def _execute(self, sample: np.ndarray, shift: np.ndarray, std: np.ndarray) -> np.ndarray:
         """What the env executes and the buffer stores: ``a_t + v(t)``, summed in float64."""
-        executed: np.ndarray = (sample.astype(np.float64) + shift).astype(sample.dtype)
-        return executed
+        return shifted(sample, shift)
 
     def _critic_at_step(
         self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray
     ) -> tuple[CriticAtStep, np.ndarray]:
         """The critic at this step's states over actions in ESA units, and the sample in them."""
         frame = self.esa_frame
-        center, half_width, low, high = frame.center, frame.half_width, frame.low, frame.high
-        units = np.maximum(std / half_width, SMALLEST_SCALE)
-        critic = CriticAtStep(
-            self.esa_head, self._head_features(obs), (mean - center) / half_width, units, low, high
-        )
-        return critic, (sample - center) / half_width
+        critic, _ = head_critic(self.esa_head, self._head_features(obs), frame, mean, std)
+        return critic, (sample - frame.center) / frame.half_width
 
     def _session_shift(
         self,
@@ -201,11 +196,11 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         f: float,
     ) -> np.ndarray:
         """ESA's shift ``v(t)`` in the Box's units, float64 ``(N, D)``: the sessions step."""
-        critic, scaled = self._critic_at_step(obs, sample, mean, std)
-        runtime = self._esa_runtime()
-        applied = runtime.step(scaled, starts, self._closed_form(critic), critic.std, strength=f)
-        shift: np.ndarray = (applied - scaled) * self.esa_frame.half_width
-        return shift
+        critic, _ = self._critic_at_step(obs, sample, mean, std)
+        evaluated = self._closed_form(critic)
+        return head_shift(
+            self._esa_runtime(), evaluated, critic.std, self.esa_frame, sample, starts, f
+        )
 
     def _gradient_shift(
         self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray, f: float

@@ -1,0 +1,74 @@
+"""ESA's step on a quadratic head: the shift ``v(t)`` of a Gaussian policy's samples.
+
+One function for every trainer that ships PPO with ESA (``ESAPPO``, RLlib's PPO), so that
+the same inputs give the same shifts, bit for bit, whichever trainer asks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch as th
+from torch import nn
+
+from ..transports.base import SMALLEST_SCALE
+from ..transports.messages import LinearCritic, QuadraticCritic
+from .action_frame import ActionFrame
+from .quadratic_head import CriticAtStep
+from .runtime import EsaRuntime, QFunction
+
+
+def head_critic(
+    head: nn.Module, features: th.Tensor, frame: ActionFrame, mean: np.ndarray, std: np.ndarray
+) -> tuple[CriticAtStep, np.ndarray]:
+    """The head at one step's N states as a critic over actions in ESA units, and sigma there.
+
+    Args:
+        head: The quadratic head, a module of ``(features, z)``.
+        features: Its input at the N states, ``(N, F)``.
+        frame: The action space as ESA sees it.
+        mean: The policy's means in action units, ``(N, D)``.
+        std: The policy's standard deviations in action units, ``(N, D)``.
+
+    Returns:
+        The critic, and sigma in ESA units (floored at the smallest float32, which the
+        contract accepts), ``(N, D)``.
+    """
+    units = np.maximum(std / frame.half_width, SMALLEST_SCALE)
+    mean_units = (mean - frame.center) / frame.half_width
+    return CriticAtStep(head, features, mean_units, units, frame.low, frame.high), units
+
+
+def head_shift(
+    runtime: EsaRuntime,
+    critic: QFunction | LinearCritic | QuadraticCritic,
+    units: np.ndarray,
+    frame: ActionFrame,
+    sample: np.ndarray,
+    starts: np.ndarray,
+    strength: float,
+) -> np.ndarray:
+    """ESA's shift ``v(t)`` of the samples at strength ``f``, in action units, float64 ``(N, D)``.
+
+    One session step per env (Algorithm 1 with the bounded law of CONTRACT.md section 1b).
+
+    Args:
+        runtime: The sessions, one per env.
+        critic: What the sessions evaluate at the probes: the closed form of
+            :func:`head_critic`'s critic (``critic.closed_form()``, which the in-process
+            engine evaluates itself), or any critic over actions in ESA units.
+        units: :func:`head_critic`'s sigma in ESA units.
+        frame: The action space as ESA sees it.
+        sample: The policy's samples ``a_t`` in action units, ``(N, D)``.
+        starts: True where an env starts an episode, ``(N,)``.
+        strength: ESA's strength ``f`` under the fade.
+    """
+    scaled = (sample - frame.center) / frame.half_width
+    applied = runtime.step(scaled, starts, critic, units, strength=strength)
+    shift: np.ndarray = (applied - scaled) * frame.half_width
+    return shift
+
+
+def shifted(sample: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``a_t + v(t)`` in the sample's dtype, summed in float64: what the env gets (clipped)."""
+    summed: np.ndarray = (sample.astype(np.float64) + shift).astype(sample.dtype)
+    return summed
