@@ -224,7 +224,16 @@ def report(args: Args) -> None:
         meta = json.loads((args.out / "runs" / f"s{seed}.json").read_text())
         best = frame[frame.final == 0].return_mean.max()
         lines.append(f"| {seed} | {finals[seed]:,.0f} | {best:,.0f} | {meta['seconds'] / 60:.1f} |")
-    lines += ["", verdict, "", "![curves](curves.png)", ""]
+    lines += [
+        "",
+        verdict,
+        "",
+        "Minutes are each run's wall-clock; runs side by side share the host's cores, so they",
+        "are not timings. The host and versions are in each run's JSON.",
+        "",
+        "![curves](curves.png)",
+        "",
+    ]
     (args.out / "README.md").write_text("\n".join(lines))
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for seed, frame in frames.items():
