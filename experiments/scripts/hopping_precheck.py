@@ -47,6 +47,7 @@ from pathlib import Path
 
 import gymnasium as gym
 import matplotlib
+import mujoco
 import numpy as np
 import pandas as pd
 import stable_baselines3
@@ -183,6 +184,7 @@ def run_seed(args: Args, seed: int) -> None:
         "versions": {
             "stable_baselines3": stable_baselines3.__version__,
             "gymnasium": gym.__version__,
+            "mujoco": mujoco.__version__,
             "torch": th.__version__,
             "python": platform.python_version(),
         },
