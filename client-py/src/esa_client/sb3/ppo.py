@@ -197,8 +197,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
     ) -> np.ndarray:
         """ESA's shift ``v(t)`` in the Box's units, float64 ``(N, D)``: the sessions step."""
         critic, _ = self._critic_at_step(obs, sample, mean, std)
-        # The quadratic head's closed form, which the in-process engine evaluates itself.
-        evaluated = critic.closed_form()
+        evaluated = self._closed_form(critic)
         return head_shift(
             self._esa_runtime(), evaluated, critic.std, self.esa_frame, sample, starts, f
         )
@@ -213,6 +212,10 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         self.logger.record_mean("esa/shift_over_std", gradient_shift_size(size, unit))
         shift: np.ndarray = size * unit * std
         return shift
+
+    def _closed_form(self, critic: CriticAtStep) -> Any:
+        """The critic the engine evaluates at the probes: the quadratic head's closed form."""
+        return critic.closed_form()
 
     def collect_rollouts(
         self,

@@ -17,8 +17,7 @@ import numpy as np
 import torch as th
 import torch.nn.functional as F
 from esa_client.common.controls import gradient_size, unit_gradient
-from esa_client.common.head_step import head_shift
-from esa_client.common.quadratic_head import mlp
+from esa_client.common.quadratic_head import CriticAtStep, mlp
 from esa_client.sb3 import ESAPPO
 from esa_client.sb3.esa_buffer import EsaRolloutBuffer, EsaRolloutBufferSamples
 from esa_client.transports.base import LinearCritic
@@ -68,20 +67,8 @@ class QNetworkCritic(_Base):
     def _make_critic(self, features_dim: int, action_dim: int) -> nn.Module:
         return QNetwork(features_dim, action_dim, self.head_hidden)
 
-    def _session_shift(
-        self,
-        obs: th.Tensor,
-        sample: np.ndarray,
-        mean: np.ndarray,
-        std: np.ndarray,
-        starts: np.ndarray,
-        f: float,
-    ) -> np.ndarray:
-        # The network has no closed form: the sessions' critic is torch at the probes.
-        critic, _ = self._critic_at_step(obs, sample, mean, std)
-        return head_shift(
-            self._esa_runtime(), critic, critic.std, self.esa_frame, sample, starts, f
-        )
+    def _closed_form(self, critic: CriticAtStep) -> Any:
+        return critic
 
 
 class LinearHead(_Base):
