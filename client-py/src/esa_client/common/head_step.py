@@ -19,8 +19,8 @@ from .runtime import EsaRuntime, QFunction
 
 def head_critic(
     head: nn.Module, features: th.Tensor, frame: ActionFrame, mean: np.ndarray, std: np.ndarray
-) -> tuple[CriticAtStep, np.ndarray]:
-    """The head at one step's N states as a critic over actions in ESA units, and sigma there.
+) -> CriticAtStep:
+    """The head at one step's N states as a critic over actions in ESA units.
 
     Args:
         head: The quadratic head, a module of ``(features, z)``.
@@ -30,12 +30,12 @@ def head_critic(
         std: The policy's standard deviations in action units, ``(N, D)``.
 
     Returns:
-        The critic, and sigma in ESA units (floored at the smallest float32, which the
-        contract accepts), ``(N, D)``.
+        The critic; its ``std`` is sigma in ESA units, floored at the smallest float32
+        (the contract needs sigma > 0).
     """
     units = np.maximum(std / frame.half_width, SMALLEST_SCALE)
     mean_units = (mean - frame.center) / frame.half_width
-    return CriticAtStep(head, features, mean_units, units, frame.low, frame.high), units
+    return CriticAtStep(head, features, mean_units, units, frame.low, frame.high)
 
 
 def head_shift(
@@ -56,7 +56,7 @@ def head_shift(
         critic: What the sessions evaluate at the probes: the closed form of
             :func:`head_critic`'s critic (``critic.closed_form()``, which the in-process
             engine evaluates itself), or any critic over actions in ESA units.
-        units: :func:`head_critic`'s sigma in ESA units.
+        units: Sigma in ESA units (the ``std`` of :func:`head_critic`'s critic).
         frame: The action space as ESA sees it.
         sample: The policy's samples ``a_t`` in action units, ``(N, D)``.
         starts: True where an env starts an episode, ``(N,)``.

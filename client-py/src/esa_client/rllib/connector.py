@@ -372,11 +372,11 @@ class EsaModuleToEnv(ConnectorV2):
             mean_t, log_std_t = dist_inputs.chunk(2, dim=-1)
             mean, std = mean_t.cpu().numpy(), log_std_t.exp().cpu().numpy()
             features = module.esa_features(obs)
-            critic, units = head_critic(module.esa_head, features, frame, mean, std)
+            critic = head_critic(module.esa_head, features, frame, mean, std)
 
             def head_session() -> tuple[np.ndarray, np.ndarray]:
                 closed = critic.closed_form()
-                shift = head_shift(runtime, closed, units, frame, sample, starts, strength)
+                shift = head_shift(runtime, closed, critic.std, frame, sample, starts, strength)
                 return shifted(sample, shift), shift
 
             def head_gradient() -> np.ndarray:

@@ -183,7 +183,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
     ) -> tuple[CriticAtStep, np.ndarray]:
         """The critic at this step's states over actions in ESA units, and the sample in them."""
         frame = self.esa_frame
-        critic, _ = head_critic(self.esa_head, self._head_features(obs), frame, mean, std)
+        critic = head_critic(self.esa_head, self._head_features(obs), frame, mean, std)
         return critic, (sample - frame.center) / frame.half_width
 
     def _session_shift(
