@@ -1,20 +1,10 @@
 """The transport interface: what :class:`~esa_client.Session` and ``SessionBatch`` call.
 
-The client is split the way httpx splits its ``Client`` from its transports: sessions and
-batches are written once against :class:`Transport` and :class:`BatchTransport`, and each
-way of reaching the update law implements them:
-
-- the in-process engine of ``esa_client._native``, which takes numpy arrays directly
-  (:mod:`esa_client.transports.in_process`);
-- gRPC through the Rust client of ``esa_client._native``: TLS, token, health, one
-  ``StepStream`` per batch (:mod:`esa_client.transports.grpc`);
-- Zenoh queries to one server or N shards, extra ``esa-client[zenoh]``
-  (:mod:`esa_client.transports.zenoh`).
-
-The batch half (:class:`BatchTransport`) is array-based, not protobuf-based, so that an
-in-process implementation builds no messages; transports that send messages build them.
-Every failure a transport raises is an :class:`~esa_client.errors.EsaError` (built by
-:func:`~esa_client.errors.error_for`), with ``index`` set when one batch item caused it.
+As httpx splits its ``Client`` from its transports, sessions and batches are written once
+against :class:`Transport` and :class:`BatchTransport`, implemented in-process, over gRPC and
+over Zenoh. The batch half takes arrays, not messages, so that the in-process engine builds
+none. Every failure is an :class:`~esa_client.errors.EsaError`, with ``index`` set when one
+batch item caused it.
 """
 
 from __future__ import annotations
@@ -49,11 +39,8 @@ SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
 class BatchTransport(ABC):
     """The round trips of one batch of N sessions (all of one action dimension D).
 
-    Every call is all-or-nothing: on an error no session changed, and the error's
-    ``index`` names the failing item (its position in the batch) when one item caused it.
-    Subclasses implement :meth:`probe` and :meth:`report`; the pair of :meth:`report_then_probe`
-    goes in turn here (two round trips, and a failed report raises before the probe is
-    sent, so the probe changed nothing), for wires that have nothing to pipeline.
+    Every call is all-or-nothing. Subclasses implement :meth:`probe` and :meth:`report`;
+    :meth:`report_then_probe` sends them in turn here, so a failed report stops the probe.
     """
 
     @abstractmethod
@@ -67,29 +54,16 @@ class BatchTransport(ABC):
     def report_then_probe(
         self, report: BatchReport, probe: BatchProbe
     ) -> tuple[F64Array, F64Array]:
-        """The report of step t, then the probe of the next step.
-
-        Returns the probe's answer (the report's improved actions are not needed: its
-        caller applies the probe's actions). If the report fails, its error is raised and
-        the probe changed nothing.
-        """
+        """The report of step t, then the probe of the next step; returns the probe's answer."""
         self.report(report)
         return self.probe(probe)
 
     def stepper(self) -> Stepper:
-        """How :meth:`~esa_client.SessionBatch.step` runs on this batch: its round trips.
-
-        A transport with more to offer returns its own (a whole step in one engine call,
-        or a step sent ahead of its answer).
-        """
+        """How :meth:`~esa_client.SessionBatch.step` runs on this batch: its round trips."""
         return Stepper()
 
     def progress(self) -> list[SessionProgress] | None:
-        """Each session's progress in the last answer read, where the wire carries it.
-
-        None before an answer carried it, and for an in-process engine, which never loses a
-        session to recreate.
-        """
+        """Each session's progress in the last answer that carried it; None before (or never)."""
         return None
 
     def close(self) -> None:  # noqa: B027 (a default, not abstract: most hold nothing)
@@ -99,11 +73,9 @@ class BatchTransport(ABC):
 class PipelinedBatch(BatchTransport):
     """A :class:`BatchTransport` whose wire carries the report and the next probe at once.
 
-    The pair is sent in one go (one round trip), except when the probe starts a new
-    episode for every session: that probe would succeed even after its report failed,
-    leaving the report unrecoverable, so that pair goes in turn and a failed report stops
-    the probe (once per episode end, not per step). Subclasses implement
-    :meth:`_pipelined`.
+    The pair goes in one round trip, except when the probe starts a new episode for every
+    session: that probe would succeed even after its report failed, leaving the report
+    unrecoverable, so that pair goes in turn. Subclasses implement :meth:`_pipelined`.
     """
 
     @abstractmethod
@@ -154,13 +126,9 @@ class Transport(Protocol):
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool
     ) -> BatchTransport:
-        """The round trips of a batch of these (existing) sessions.
+        """The round trips of a batch of these (existing) sessions, ``action_dim`` each.
 
-        Args:
-            ids: The N session ids, in batch order.
-            action_dim: D, shared by the N sessions.
-            use_stream: Prefer one persistent stream (gRPC ``StepStream``) where the
-                transport has one; others ignore it or use their message equivalent.
+        ``use_stream`` asks for one persistent stream where the transport has one.
         """
 
     def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:

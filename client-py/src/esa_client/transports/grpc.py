@@ -1,16 +1,11 @@
 """The transport over gRPC, through the Rust client of ``esa_client._native``.
 
-``esa_client._native.GrpcClient`` is esa-client's tonic client on a private runtime that the
-calling thread drives itself, with the GIL released while a call waits: a round trip costs
-no thread hand-off and no Python-level message building (numpy arrays go straight into the
-request). It raises the :class:`~esa_client.errors.EsaError` subclass of the server's status
-code, with the failing item; it speaks TLS and mutual TLS (rustls, :class:`TlsConfig`), sends
-the auth token with every call and asks the server's health service whether it serves. A
-batch opened with ``use_stream`` sends its calls as messages of a ``StepStream`` of its own,
-and the pipelined pair (a deferred report and the next probe) as two messages before reading
-either answer: one round trip, about a third of the two unary calls' time on a Unix socket
-(BENCHMARKS.md's section 1b rows). A batch without a stream makes ``ProbeBatch`` /
-``ReportBatch`` calls.
+``GrpcClient`` is esa-client's tonic client on a private runtime that the calling thread
+drives itself, GIL released while a call waits: a round trip costs no thread hand-off and
+builds no Python messages. It speaks TLS (rustls, :class:`TlsConfig`) and sends the token. A
+batch opened with ``use_stream`` has a ``StepStream`` of its own, on which the pipelined pair
+(a deferred report and the next probe) takes one round trip, about a third of two unary
+calls' time on a Unix socket (BENCHMARKS.md, section 1b rows).
 """
 
 from __future__ import annotations
@@ -108,9 +103,7 @@ class GrpcBatch(BatchTransport):
 class GrpcStepBatch(GrpcBatch, PipelinedBatch):
     """A :class:`GrpcBatch` on a ``StepStream``, whose pair takes one round trip.
 
-    It also sends a whole step (for a linear critic, or with the critic's values) without
-    waiting for its answer (the wire's ``step_linear_batch`` and ``step_batch``, CONTRACT.md
-    section 1b, implementation note 8), for :class:`AheadStepper`.
+    It also sends whole steps ahead of their answers (CONTRACT.md section 1b, note 8).
     """
 
     def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
@@ -136,18 +129,13 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
     def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
         """The oldest unanswered step's ``(probes, applied, shifts)``, each ``(N, D)``.
 
-        Raises the step's error (nothing of it was applied), or the wire's (whether it was
-        applied is then unknown).
+        Raises the step's error (nothing of it applied) or the wire's (applied or not).
         """
         with _typed_errors:
             return self._batch.receive_step()
 
     def resend_step(self) -> None:
-        """Sends the step whose answer the wire lost again, on a new stream; returns at once.
-
-        For a step the server did not apply (its sessions are still where they were before
-        it): its answer is then read with :meth:`receive_step`.
-        """
+        """Sends a step the server did not apply again, on a new stream; returns at once."""
         with _typed_errors:
             self._batch.resend_step()
 
@@ -161,20 +149,18 @@ class _InFlight(NamedTuple):
 
 
 class AheadStepper(Stepper):
-    """A step sent ahead of its answer.
+    """A step sent ahead of its answer, which the next call reads.
 
-    The applied actions, and the probes for a critic evaluated here (the server evaluates a
-    ``LinearCritic`` itself), are computed with esa-core's own function from the shifts
-    ``v(t)`` of the previous step's answer (0 at an episode start); the step goes as one
-    message whose answer is read at the next call, overlapping the env's and learner's work.
+    The applied actions (and the probes, unless the server evaluates a ``LinearCritic``)
+    come from esa-core's own function of the shifts ``v(t)`` of the previous answer (0 at
+    an episode start), so the env's and learner's work overlaps the round trip.
     """
 
     def __init__(self, ahead: GrpcStepBatch) -> None:
         """Sends steps through ``ahead``."""
         self._ahead = ahead
         self._in_flight: _InFlight | None = None
-        # The shifts v(t) of the next step, from the last answer read.
-        self._shifts: F64Array | None = None
+        self._shifts: F64Array | None = None  # v(t) of the next step, from the last answer
         self._engine: StepAhead | None = None
 
     def step(self, batch: SessionBatch, call: StepCall) -> tuple[F64Array | None, F64Array]:
@@ -207,13 +193,9 @@ class AheadStepper(Stepper):
     def _send(
         self, batch: SessionBatch, request: BatchProbe, critic: Critic, paired: bool
     ) -> tuple[F64Array | None, F64Array]:
-        """Sends ``request``'s step, computed from the shifts in hand.
+        """Sends ``request``'s step; returns the probes (None: LinearCritic) and the applied.
 
-        Returns the probes (None for a ``LinearCritic``, which the server evaluates) and the
-        actions to apply.
-
-        The actions and scales (and a critic's values) are checked before anything is sent:
-        an error there is this call's.
+        Everything is checked before anything is sent: an error there is this call's.
         """
         if self._engine is None:
             self._engine = StepAhead([c.to_proto().SerializeToString() for c in batch.configs])
@@ -222,8 +204,7 @@ class AheadStepper(Stepper):
             shifts = np.zeros((batch.n, batch.action_dim))
         if request.episode_starts.any():
             shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
-        if isinstance(critic, LinearCritic):
-            # The server evaluates it (step_linear_batch).
+        if isinstance(critic, LinearCritic):  # the server evaluates it
             with _engine_errors:
                 applied: F64Array = self._engine(shifts, request.actions, request.action_scales)
             self._ahead.send_step_linear(request, critic, paired)
@@ -240,9 +221,8 @@ class AheadStepper(Stepper):
     def _receive(self, batch: SessionBatch) -> F64Array:
         """The shifts ``v(t + 1)`` of the step in flight, or its error.
 
-        A refused step is undone (its steps and episode starts are due again); a broken
-        exchange is ridden out by the batch's recovery (without a reconnect policy every
-        session restarts).
+        A refused step is undone (its steps and starts are due again); the batch's recovery
+        rides out a broken exchange.
         """
         assert self._in_flight is not None
         sent, self._in_flight = self._in_flight, None
@@ -274,7 +254,7 @@ class GrpcTransport(NativeSessionCalls):
         tls: Connect over TLS; None connects in plaintext.
 
     Attributes:
-        client: The Rust client (connecting lazily).
+        client: The Rust client (connecting on the first call).
         tls: The TLS settings, or None.
 
     Raises:
@@ -302,12 +282,7 @@ class GrpcTransport(NativeSessionCalls):
         return GrpcStepBatch(batch) if use_stream else GrpcBatch(batch)
 
     def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
-        """Asks the server's ``grpc.health.v1.Health`` service whether it is serving.
-
-        Args:
-            timeout: Deadline in seconds.
-            wait_for_ready: Retry (up to the deadline) while the server is not reachable yet.
-        """
+        """Asks the server's ``grpc.health.v1.Health`` service whether it is serving."""
         return self.client.healthy(timeout, wait_for_ready)
 
     def close(self) -> None:

@@ -1,9 +1,7 @@
 """The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.Engine``.
 
-The engine is esa-core in this process (:meth:`esa_client.EsaClient.in_process`); this
-transport hands it numpy arrays as they come (no messages are built for the round trips),
-runs a step of a closed-form critic in one engine call (:class:`FusedStepper`) and turns its
-``EngineError`` into the typed error of the server's status code.
+The engine is esa-core in this process: it takes numpy arrays as they come, and a step of a
+closed-form critic is one engine call (:class:`FusedStepper`).
 """
 
 from __future__ import annotations
@@ -58,11 +56,9 @@ class InProcessBatch(BatchTransport):
     ) -> tuple[F64Array, F64Array]:
         """ProbeBatch, then ReportBatch of ``critic`` at the (clipped) probes, in one engine call.
 
-        ``steps``, the tracked steps, advance in place when the step is applied; ``inputs`` are
-        the probe's actions, episode starts and scales; ``paired`` reports the critic at the
-        applied actions as the references. Returns the probes and the applied actions.
+        ``steps`` advance in place when the step is applied; ``inputs`` are the probe's
+        actions, episode starts and scales. Returns the probes and the applied actions.
         """
-        # Curvature and box; none for a linear critic.
         curved: tuple[F64Array | None, F64Array | None, F64Array | None] = (None, None, None)
         if isinstance(critic, QuadraticCritic):
             curved = (critic.curvature, critic.low, critic.high)
@@ -90,15 +86,14 @@ class FusedStepper(Stepper):
         if not isinstance(critic, CLOSED_FORM):
             return super().step(batch, call)
         batch.flush()
-        # In this process: no wire to ride out, so no reconnect around the call (nor a probe
-        # to replay into recreated sessions), and the engine advances the steps itself.
+        # No wire to ride out here, and the engine advances the steps itself.
         ledger = batch.ledger
         inputs = ledger.probe_inputs(call.actions, call.episode_starts, call.action_scales)
         try:
             answer = self._fused.step_closed_form(ledger.steps, inputs, critic, call.paired)
         except ValueError:
-            # esa-core checks the critic itself, all or nothing; checking it here first too
-            # would cost more than the step. A refusal is told in the words of every transport.
+            # esa-core checks the critic itself (checking first would cost more than the
+            # step); a refusal is then told in the words of every transport.
             check_critic(critic, batch.n, batch.action_dim)
             raise
         ledger.starts_due.fill(False)

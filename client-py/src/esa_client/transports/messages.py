@@ -60,8 +60,7 @@ class BatchReport(NamedTuple):
 class LinearCritic(NamedTuple):
     """A critic linear in the action at each session's state: ``Q_i(a) = gain_i . a + offset_i``.
 
-    A linear advantage head has this form; an in-process engine evaluates it itself
-    (:meth:`~esa_client.session.SessionBatch.step`).
+    An in-process engine evaluates it itself (:meth:`~esa_client.session.SessionBatch.step`).
 
     Attributes:
         gain: ``gain_i`` per session and dimension, shape ``(N, D)``.
@@ -83,9 +82,8 @@ class QuadraticCritic(NamedTuple):
 
     ``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`` with
     ``x = clip(a, low, high)``, the action the environment executes, and every
-    ``curvature_ij <= 0``. ESAPPO's quadratic head has this form; an in-process engine
-    evaluates it itself (:meth:`~esa_client.session.SessionBatch.step`), any other transport
-    here at the probes.
+    ``curvature_ij <= 0`` (ESAPPO's quadratic head). An in-process engine evaluates it
+    itself; other transports evaluate it here at the probes.
 
     Attributes:
         gain: ``gain_i`` per session and dimension, shape ``(N, D)``.

@@ -1,10 +1,8 @@
 """The session calls of the two transports over ``esa_client._native``.
 
-``Engine`` (esa-core in this process) and ``GrpcClient`` (esa-client's gRPC client) answer
-the same per-session calls with the same arguments: protobuf bytes for a config and a
-snapshot, numpy arrays for one session's step. :class:`NativeSessionCalls` forwards the
-:class:`~esa_client.transports.base.Transport` methods to either and re-raises its errors as the
-server's typed ones; the two transports add their batches and lifetimes.
+``Engine`` (esa-core in this process) and ``GrpcClient`` answer the same per-session calls
+with the same arguments, so one class forwards the
+:class:`~esa_client.transports.base.Transport` methods to either.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
 """How :meth:`~esa_client.SessionBatch.step` runs on each transport, with the same bits.
 
-Each :class:`~esa_client.transports.base.BatchTransport` chooses its :class:`Stepper`
-(``FusedStepper`` in-process, ``AheadStepper`` on a gRPC StepStream), so a batch never
-asks which transport it holds. A stepper keeps the batch's public
-:class:`~esa_client.recovery.StepLedger` up to date and rides out failures through its
-:class:`~esa_client.recovery.Recovery`.
+Each :class:`~esa_client.transports.base.BatchTransport` chooses its :class:`Stepper`, so a
+batch never asks which transport it holds.
 """
 
 from __future__ import annotations

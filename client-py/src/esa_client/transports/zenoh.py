@@ -1,23 +1,12 @@
 """The transport over Zenoh queries (CONTRACT.md section 3), to one server or N shards.
 
-Each RPC is a queryable at ``<prefix>/<RpcName>`` (default prefix ``esa/v1``): the query
-payload is the protobuf request, a reply is the protobuf response, and a reply error
-carries a ``StreamError`` (gRPC code number, message and failing batch item). A server
-started with ``--auth-token-file`` wants the token as each query's attachment.
-
-N servers started with ``--shard i/N`` serve ``<prefix>/shard/<i>/<RpcName>``, and a
-session lives on shard :func:`~esa_client.sharding.shard_of` of its id: a single-session
-call goes to its shard, and a batch is split into one part per shard, the parts sent
-concurrently and the answers merged back into batch order. Each part is all-or-nothing on
-its shard; if one shard fails, the others may have applied theirs, and repeating the whole
-call is safe because a server treats a repeated probe or report of the same step as a retry
-(CONTRACT.md). A shard's error names the failing item by its index in the whole batch.
-
-Exactly one server serves a key, so a query that gets two replies means another process
-answers for it too (a misconfigured deployment, or an impostor on an open network): the
-call fails with :class:`TwoServersAnswered` instead of trusting either answer. Queries go
-to every matching queryable, so an impostor cannot hide behind being nearer than the real
-server.
+Each RPC is a queryable at ``<prefix>/<RpcName>`` whose payloads are the protobuf request
+and response; a reply error carries a ``StreamError``, and the auth token goes as each
+query's attachment. Shard i of N serves ``<prefix>/shard/<i>/<RpcName>``: a batch is split
+per shard, the parts sent concurrently and merged back in batch order, each part
+all-or-nothing on its shard (repeating the whole call after an error is safe: the server
+takes a repeated step as a retry). A query answered twice means another process serves the
+key too, so neither answer is trusted (:class:`TwoServersAnswered`).
 """
 
 from __future__ import annotations
@@ -103,7 +92,15 @@ def peer_config(connect: Sequence[str], timeout: float) -> zenoh.Config:
 
 
 class ZenohRpc(Generic[Response]):
-    """One RPC of the contract as a Zenoh querier: ``rpc(request) -> response``."""
+    """One RPC of the contract as a Zenoh querier: ``rpc(request) -> response``.
+
+    Args:
+        session: The Zenoh session.
+        key: The RPC's key, e.g. ``esa/v1/Probe``.
+        response: The response message type.
+        timeout: Deadline of every query in seconds.
+        token: The server's auth token, sent as each query's attachment.
+    """
 
     def __init__(
         self,
@@ -113,15 +110,7 @@ class ZenohRpc(Generic[Response]):
         timeout: float,
         token: str | None = None,
     ) -> None:
-        """Declares the querier for ``key``; every query waits at most ``timeout`` seconds.
-
-        Args:
-            session: The Zenoh session.
-            key: The RPC's key, e.g. ``esa/v1/Probe``.
-            response: The response message type.
-            timeout: Deadline of every query in seconds.
-            token: The server's auth token, sent as each query's attachment.
-        """
+        """Declares the querier for ``key``."""
         self.key = key
         self._response = response
         self._timeout = timeout
@@ -169,8 +158,6 @@ class ZenohRpc(Generic[Response]):
             encoding=zenoh.Encoding.APPLICATION_PROTOBUF,
             attachment=self._token,
         )
-        # The query ends once every queryable of the key has answered: with one server,
-        # right after its reply.
         answers = list(replies)
         if len(answers) > 1:
             repliers = ", ".join(str(reply.replier_id) for reply in answers)
@@ -179,8 +166,7 @@ class ZenohRpc(Generic[Response]):
                 "another process serves this key, so no answer is trusted; check the "
                 "deployment's prefixes and access control (deploy/README.md)"
             )
-        if not answers:
-            # The query ended without a reply: the server went away while it was pending.
+        if not answers:  # the server went away while the query was pending
             raise self._unavailable()
         reply = answers[0]
         if reply.ok is not None:
@@ -267,8 +253,7 @@ class _Server:
 class ZenohTransport:
     """The :class:`~esa_client.transports.base.Transport` over Zenoh: one server or N shards.
 
-    Build it with :meth:`open` (what ``EsaClient.connect(..., transport="zenoh")`` does); it
-    owns its Zenoh session and closes it.
+    :meth:`open` builds it (as ``EsaClient.connect(..., transport="zenoh")`` does).
 
     Args:
         session: The Zenoh session; closed by :meth:`close`.
@@ -314,10 +299,10 @@ class ZenohTransport:
 
         Args:
             connect: The endpoint(s) of the servers or of a router, e.g. ``tcp/127.0.0.1:7447``.
-            prefix: The servers' ``--zenoh-prefix``.
-            timeout: Deadline in seconds of every query (and of connecting).
-            token: The servers' auth token.
-            shards: N shards, or None for one server.
+            prefix: As for the class.
+            timeout: As for the class; also the deadline of connecting.
+            token: As for the class.
+            shards: As for the class.
             config: A complete Zenoh config instead of :func:`peer_config` of ``connect``.
 
         Raises:
@@ -389,10 +374,7 @@ class ZenohTransport:
             action_scale=[] if action_scale is None else action_scale.tolist(),
         )
         response = self._owner(session_id).probe(request)
-        return (
-            np.array(response.probe, dtype=np.float64),
-            np.array(response.action, dtype=np.float64),
-        )
+        return _f64(response.probe), _f64(response.action)
 
     def report(
         self, session_id: str, step: int, q_value: float, q_reference: float | None
@@ -401,33 +383,24 @@ class ZenohTransport:
         request = esa_pb2.ReportRequest(session_id=session_id, step=step, q_value=q_value)
         if q_reference is not None:
             request.q_reference = q_reference
-        response = self._owner(session_id).report(request)
-        return np.array(response.action, dtype=np.float64)
+        return _f64(self._owner(session_id).report(request).action)
 
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool
     ) -> BatchTransport:
         """The batch's queries: to its one server, or split over the shards that own ``ids``.
 
-        ``use_stream`` changes nothing: a query already carries one message, so there is no
-        stream to keep open (the ``StepStream`` key answers one ``StepStreamRequest`` per
-        query, which would save nothing here).
+        ``use_stream`` changes nothing: a query is already one message.
         """
         owner = np.array([self.shard_of(i) for i in ids], dtype=np.int64)
         parts = {s: np.flatnonzero(owner == s) for s in np.unique(owner).tolist()}
         if len(parts) <= 1:
             return _ServerBatch(self._servers[next(iter(parts), 0)], ids, action_dim)
-        return _ShardedBatch(
-            {
-                s: (
-                    items,
-                    _ServerBatch(self._servers[s], [ids[i] for i in items.tolist()], action_dim),
-                )
-                for s, items in parts.items()
-            },
-            (len(ids), action_dim),
-            self._executor,
-        )
+        batches = {
+            s: (items, _ServerBatch(self._servers[s], [ids[i] for i in items.tolist()], action_dim))
+            for s, items in parts.items()
+        }
+        return _ShardedBatch(batches, (len(ids), action_dim), self._executor)
 
     def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
         """True if every server answers (each within ``timeout`` seconds)."""
@@ -467,7 +440,7 @@ class _ServerBatch(BatchTransport):
         )
 
     def _values(self, values: Sequence[float]) -> F64Array:
-        return np.array(values, dtype=np.float64).reshape(self._shape)
+        return _f64(values).reshape(self._shape)
 
     def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
         """Sends one ProbeBatch."""
@@ -556,6 +529,10 @@ class _ShardedBatch(BatchTransport):
             for item, progress in zip(items.tolist(), part, strict=True):
                 merged[item] = progress
         return [p for p in merged if p is not None]
+
+
+def _f64(values: Sequence[float]) -> F64Array:
+    return np.array(values, dtype=np.float64)
 
 
 def _part(request: _Request, items: I64Array) -> _Request:
