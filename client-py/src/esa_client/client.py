@@ -1,8 +1,4 @@
-"""``EsaClient``: the session API over a running server, a spawned one, or esa-core in-process.
-
-Each constructor builds the :class:`~esa_client.transports.base.Transport` it needs and wraps
-it in an :class:`EsaClient`, whose sessions and batches are written against that interface.
-"""
+"""``EsaClient``: the session API over a running server, a spawned one, or esa-core in-process."""
 
 from __future__ import annotations
 
@@ -13,14 +9,14 @@ import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, TypedDict, TypeVar, Union, get_args
+from typing import TYPE_CHECKING, Literal, TypeVar, Union, get_args
 
 from ._proto.esa.v1 import esa_pb2
 from .config import SessionConfig
 from .errors import EsaError, ServerUnavailable, SessionNotFound, StatusCode, Unauthenticated
 from .reconnect import DEFAULT_RECONNECT_TIMEOUT, Reconnect, check_reconnect_timeout
 from .session import Session, SessionBatch, restore_sessions
-from .sidecar import ServerProcess
+from .sidecar import ServerProcess, limit_args
 from .state import SessionProgress, SessionState, as_batch_configs
 from .transports.base import Transport
 from .transports.grpc import GrpcTransport, TlsConfig
@@ -56,7 +52,7 @@ def check_timeout(timeout: float) -> float:
 def resolve_token(token: str | None, token_file: str | os.PathLike[str] | None) -> str | None:
     """The auth token to send: ``token``, else ``token_file``'s content, else ``$ESA_AUTH_TOKEN``.
 
-    Surrounding whitespace is removed, as the server does with its ``--auth-token-file``.
+    Stripped of surrounding whitespace, as the server strips its ``--auth-token-file``.
 
     Raises:
         ValueError: If both are given, or the token found is empty.
@@ -92,64 +88,43 @@ def _grpc_transport(
     if address.startswith("unix:"):
         if len(address) <= len("unix:"):
             raise ValueError(f"expected 'unix:/path/to/socket', got {address!r}")
+        if tls is not None:
+            raise ValueError(
+                f"expected a host:port address with tls (the server serves TLS on TCP only), "
+                f"got {address!r}"
+            )
     else:
         host, sep, port = address.rpartition(":")
         if not sep or not host or not port.isdigit():
             raise ValueError(f"expected 'host:port' or 'unix:/path', got {address!r}")
-    if tls is not None and address.startswith("unix:"):
-        raise ValueError(
-            f"expected a host:port address with tls (the server serves TLS on TCP only), "
-            f"got {address!r}"
-        )
     return GrpcTransport(address, timeout, token, tls)
 
 
-class _Limits(TypedDict):
-    """The server limits every spawned process gets (``ServerProcess`` arguments)."""
-
-    session_ttl: float | None
-    max_sessions: int | None
-    max_session_memory: int | None
-
-
-def _spawn_zenoh_servers(
+def _start_zenoh(
     binary: str | os.PathLike[str] | None,
     args: Sequence[str],
     shards: int | None,
-    limits: _Limits,
+    servers: list[ServerProcess],
     startup_timeout: float,
-) -> tuple[list[ServerProcess], list[str]]:
-    """Starts ``esa-server --zenoh`` (``--shard i/N`` each with ``shards``) on loopback.
+) -> list[str]:
+    """Starts ``esa-server --zenoh`` (``--shard i/N`` each) into ``servers``; returns locators.
 
-    Zenoh listens on a loopback TCP port that every local user can reach, so the servers
-    require one fresh random token on every query (and gRPC call, on their private Unix
-    sockets). Returns the servers and the locators they announced.
+    A loopback port is open to every local user, so the servers require a fresh random token.
     """
     token = secrets.token_urlsafe(32)
-    parts: list[list[str]] = (
-        [[]] if shards is None else [["--shard", f"{i}/{shards}"] for i in range(shards)]
-    )
-    servers: list[ServerProcess] = []
     locators: list[str] = []
-    try:
-        for shard in parts:
-            server = ServerProcess(
-                binary, **limits, token=token, extra_args=["--zenoh", *shard, *args]
+    for i in range(shards or 1):
+        shard = [] if shards is None else ["--shard", f"{i}/{shards}"]
+        server = ServerProcess(binary, token=token, extra_args=["--zenoh", *shard, *args])
+        servers.append(server)
+        announced = server.announced(_LOCATOR_LINE, startup_timeout)
+        if not announced:
+            raise ServerUnavailable(
+                f"{server.binary} announced no Zenoh locator; its output:\n{server.output_tail()}",
+                StatusCode.UNAVAILABLE,
             )
-            servers.append(server)
-            announced = server.announced(_LOCATOR_LINE, startup_timeout)
-            if not announced:
-                raise ServerUnavailable(
-                    f"{server.binary} announced no Zenoh locator; its output:\n"
-                    f"{server.output_tail()}",
-                    StatusCode.UNAVAILABLE,
-                )
-            locators += announced
-    except BaseException:
-        for server in servers:
-            server.stop()
-        raise
-    return servers, locators
+        locators += announced
+    return locators
 
 
 class EsaClient:
@@ -166,26 +141,18 @@ class EsaClient:
             probe = session.probe([0.3], episode_start=True)
             action = session.report(q_value=critic(obs, probe))
 
-    The constructor wraps a :class:`~esa_client.transports.base.Transport` of your own (the
-    three constructors build theirs); the client owns it and closes it.
-
     Args:
-        transport: The transport; the client closes it.
+        transport: A :class:`~esa_client.transports.base.Transport`; the client closes it.
         address: Where the transport goes, for messages.
         timeout: The per-call deadline of the transport, in seconds.
 
     Attributes:
-        transport: The transport.
-        address: Where it goes.
-        timeout: The per-call deadline in seconds.
         servers: The server processes :meth:`spawn` started (``servers[i]`` serves shard
             i), stopped by :meth:`close`; empty otherwise.
         sessions_restored: How many sessions :meth:`restore_sessions` (or a batch's
             :meth:`~esa_client.SessionBatch.restore`) recreated.
-        reconnect_timeout: How long a batch keeps retrying when the server is unreachable
-            (down, restarting, stalled, or the connection or stream broke), in seconds,
-            before it raises ``ServerUnavailable``; 0 raises the first failure. Set by
-            ``connect``/``spawn`` (default 60).
+        reconnect_timeout: Seconds a batch keeps retrying an unreachable server before it
+            raises ``ServerUnavailable``; 0 raises the first failure (default 60).
     """
 
     def __init__(self, transport: Transport, *, address: str, timeout: float) -> None:
@@ -236,24 +203,19 @@ class EsaClient:
         Args:
             address: gRPC: ``host:port`` or ``unix:/path/to/socket``. Zenoh: the
                 endpoint(s) of the server or router, e.g. ``tcp/127.0.0.1:7447``.
-            transport: ``"grpc"`` (the Rust client of ``esa_client._native``: TLS, token,
-                health, one ``StepStream`` per batch with ``use_stream``) or ``"zenoh"``
-                (queries; extra ``esa-client[zenoh]``). The same sessions and calls either
-                way; a server serves both when started with ``--zenoh``.
+            transport: ``"grpc"`` or ``"zenoh"`` (extra ``esa-client[zenoh]``): the same
+                sessions and calls either way.
             timeout: Deadline in seconds for every call (and, over Zenoh, connecting).
             token: The servers' auth token (``--auth-token-file``), sent with every call.
             token_file: A file holding the token instead; with neither,
                 ``$ESA_AUTH_TOKEN`` if set.
             tls: gRPC over TLS (``"grpc"`` only), see :class:`~esa_client.TlsConfig`.
-            shards: Zenoh only: N servers started with ``--shard i/N``; sessions are
-                routed by :func:`esa_client.sharding.shard_of`.
+            shards: Zenoh only: N servers started with ``--shard i/N``.
             prefix: Zenoh only: the servers' ``--zenoh-prefix`` (default ``esa/v1``).
             zenoh_config: Zenoh only: a complete Zenoh config instead of the peer config
                 built from ``address`` (e.g. client mode to a ``zenohd`` router).
-            check: Before returning, :meth:`check` that every server answers and takes
-                the token, within ``timeout``: a wrong address or token fails here, not
-                at the first step. False: nothing is sent until the first call (for a
-                server that starts later).
+            check: Before returning, :meth:`check` the servers within ``timeout``, so that a
+                wrong address or token fails here; False sends nothing until the first call.
             reconnect_timeout: The client's :attr:`reconnect_timeout`.
 
         Raises:
@@ -302,9 +264,7 @@ class EsaClient:
     def open(cls, where: str) -> EsaClient:
         """A client of the sessions that ``where`` names, with every option at its default.
 
-        The one parser of the strings that the drop-ins' ``esa_client`` and
-        :func:`resolve_client` take; build the client yourself for anything else (a token,
-        TLS, shards, a timeout).
+        The one parser of the strings that the drop-ins' ``esa_client`` takes.
 
         Example::
 
@@ -341,15 +301,13 @@ class EsaClient:
     def check(self, timeout: float | None = None) -> None:
         """Checks that every server behind this client answers and takes its token.
 
-        Health alone does not prove access (the server answers health checks without a
-        token), so the check also looks up a session id that no trainer uses.
+        Health checks need no token, so this also looks up a session id no trainer uses.
 
         Args:
             timeout: Seconds to wait for the servers (default: the client's timeout).
 
         Raises:
-            ServerUnavailable: No server answered in time (the message names the address
-                and the ways out).
+            ServerUnavailable: No server answered in time.
             Unauthenticated: A server refused this client's token.
         """
         bound = self.timeout if timeout is None else check_timeout(timeout)
@@ -390,14 +348,9 @@ class EsaClient:
     ) -> EsaClient:
         """Starts a private esa-server and returns a client connected to it.
 
-        gRPC: the server listens on a Unix socket in a private directory. Zenoh: ``esa-server
-        --zenoh`` on loopback, N processes (``--shard i/N``) with ``shards=N``; each also serves
-        gRPC on a private socket (``client.servers[i].address``) and requires a fresh random
-        token (``client.servers[i].token``), since a loopback port is open to every local user.
-
-        The server is found by :func:`esa_client.sidecar.find_server_binary` and stopped by
-        :meth:`close` (or at interpreter exit at the latest); if this process dies first,
-        whatever the signal, the server stops by itself.
+        gRPC: on a Unix socket in a private directory. Zenoh: on loopback, N processes with
+        ``shards=N``, requiring a fresh random token (``client.servers[i].token``). The
+        servers stop with :meth:`close`, at interpreter exit, or when this process dies.
 
         Args:
             binary: Path of the esa-server executable; None searches for it.
@@ -424,26 +377,21 @@ class EsaClient:
         _check_transport(transport, shards=shards, prefix=prefix)
         reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
         timeout = check_timeout(timeout)
-        limits: _Limits = {
-            "session_ttl": session_ttl,
-            "max_sessions": max_sessions,
-            "max_session_memory": max_session_memory,
-        }
+        args = [*limit_args(session_ttl, max_sessions, max_session_memory), *extra_args]
         if transport == "zenoh":
             from .transports.zenoh import DEFAULT_PREFIX, ZenohTransport, check_prefix, check_shards
 
             check_shards(shards)
             zenoh_prefix = check_prefix(DEFAULT_PREFIX if prefix is None else prefix)
-            servers, locators = _spawn_zenoh_servers(
-                binary,
-                ["--zenoh-prefix", zenoh_prefix, *extra_args],
-                shards,
-                limits,
-                startup_timeout,
-            )
-
-            def open_transport() -> Transport:
-                return ZenohTransport.open(
+            args = ["--zenoh-prefix", zenoh_prefix, *args]
+        servers: list[ServerProcess] = []
+        client: EsaClient | None = None
+        # Whatever fails, no server started here outlives the error.
+        try:
+            if transport == "zenoh":
+                locators = _start_zenoh(binary, args, shards, servers, startup_timeout)
+                address = ",".join(locators)
+                opened: Transport = ZenohTransport.open(
                     locators,
                     prefix=zenoh_prefix,
                     timeout=timeout,
@@ -451,20 +399,11 @@ class EsaClient:
                     shards=shards,
                     config=None,
                 )
-
-            address = ",".join(locators)
-        else:
-            servers = [ServerProcess(binary, **limits, extra_args=extra_args)]
-            address = servers[0].address
-
-            def open_transport() -> Transport:
-                return _grpc_transport(address, timeout, None, None)
-
-        # If connecting or waiting fails, the servers stop before the error propagates, so
-        # no child process outlives a failed spawn.
-        client: EsaClient | None = None
-        try:
-            client = cls(open_transport(), address=address, timeout=timeout)
+            else:
+                servers.append(ServerProcess(binary, extra_args=args))
+                address = servers[0].address
+                opened = _grpc_transport(address, timeout, None, None)
+            client = cls(opened, address=address, timeout=timeout)
             client.servers = tuple(servers)
             client._wait_healthy(startup_timeout)
         except BaseException:
@@ -478,12 +417,7 @@ class EsaClient:
 
     @classmethod
     def in_process(cls, *, max_sessions: int | None = None) -> EsaClient:
-        """A client of the in-process engine: the same API, no server and no socket.
-
-        The engine (``esa_client._native``) is esa-core compiled into this package: the
-        server's update law, checks and typed errors, bit for bit, at a few microseconds
-        per batch round trip. Its sessions live in this process only; use :meth:`spawn`
-        or :meth:`connect` to share them across processes, machines or languages.
+        """A client of esa-core in this process: the same API and bits, no server and no socket.
 
         Args:
             max_sessions: Live-session limit; None = the server's default (100,000).
@@ -523,11 +457,7 @@ class EsaClient:
 
         Args:
             timeout: Deadline in seconds (default: the client's timeout).
-            wait_for_ready: Wait (up to the deadline) for the connection instead of
-                failing at once when the server is not reachable yet.
-
-        Returns:
-            True if the servers answer as serving; False if one is unreachable or not serving.
+            wait_for_ready: Wait (up to the deadline) for a server not reachable yet.
         """
         bound = self.timeout if timeout is None else timeout
         return self.transport.healthy(bound, wait_for_ready=wait_for_ready)
@@ -579,15 +509,12 @@ class EsaClient:
             configs: One config for all N sessions, or a sequence of N configs
                 (all with the same ``action_dim``).
             n: Number of sessions (required with a single config).
-            ids: Session ids; None = a random UUID per session (ids share nothing, so
-                one id tells nothing about the others).
+            ids: Session ids; None = a random UUID per session.
             use_stream: Carry probes and reports over one persistent gRPC ``StepStream``
-                instead of ``ProbeBatch`` / ``ReportBatch`` calls (in-process and Zenoh
-                batches have no stream to keep: one call is one message there).
+                (in-process and Zenoh batches have no stream to keep).
 
         Returns:
-            The batch. If creating one of the sessions fails, those already created
-            are closed before the error is raised.
+            The batch. If creating a session fails, those created are closed first.
         """
         per_session = as_batch_configs(configs, n)
         if ids is None:
@@ -620,18 +547,15 @@ class EsaClient:
     ) -> int:
         """Recreates, under the same ids and configs, those sessions the server no longer has.
 
-        A server stopped gracefully and started again with its ``--state-file`` keeps every
-        session; a session is lost when its server crashes (or restarts without the file) or
-        when it expires after ``--session-ttl`` idle seconds, and afterwards every call for
-        it raises ``SessionNotFound``. Call this then, and start a new episode (step 0,
-        ``episode_start=True``); :meth:`SessionBatch.restore` says what a recreated session
-        keeps. A snapshot (:meth:`Session.state`) has its ``progress``.
+        Call it when calls raise ``SessionNotFound`` (a crashed or restarted server, an
+        expired session), then start a new episode; :meth:`SessionBatch.restore` says what a
+        recreated session keeps.
 
         Args:
             ids: The session ids, e.g. ``batch.ids``.
             configs: One config for all, or one per id (e.g. ``batch.configs``).
-            progress: One per id, or None: the progress each recreated session resumes
-                (None for an item, or for all: a new session's, no episode completed).
+            progress: The progress each recreated session resumes (e.g. a snapshot's), one
+                per id; None (for an item or all): a new session's.
 
         Returns:
             How many sessions were recreated (also added to :attr:`sessions_restored`).
@@ -664,7 +588,7 @@ class EsaClient:
         self.close()
 
     def __copy__(self: _Client) -> _Client:
-        """Returns self: a client is a handle on one connection (and server), shared not copied."""
+        """Returns self: a client is a handle on one connection, shared not copied."""
         return self
 
     def __deepcopy__(self: _Client, memo: dict[int, object]) -> _Client:

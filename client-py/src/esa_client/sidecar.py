@@ -52,12 +52,10 @@ def _executable(path: Path) -> bool:
 def server_wheel_binary() -> Path | None:
     """The ``esa-server`` of the installed esa-server wheel (``esa-client[server]``), or None.
 
-    None also for an esa_client imported from a source checkout (an editable install), which
-    uses that checkout's own build instead, so that client and server come from one source.
+    None also for an esa_client imported from a source checkout, which uses its own build.
 
     Raises:
-        EsaError: If the wheel is installed but its executable is missing or not executable
-            (an installer that dropped the file mode), saying how to repair it.
+        EsaError: If the wheel's executable is missing or not executable, saying how to repair it.
     """
     if _is_checkout(_REPO_ROOT):
         return None
@@ -85,27 +83,11 @@ def find_server_binary(
 ) -> Path:
     """Locates the ``esa-server`` executable: the one lookup of the client, tests and tools.
 
-    Search order, first match wins:
-
-    1. ``binary``, if given;
-    2. the ``ESA_SERVER_BIN`` environment variable;
-    3. the installed esa-server wheel (:func:`server_wheel_binary`), which
-       ``pip install "esa-client[server]"`` brings at the client's own version;
-    4. a source checkout: ``checkout`` if given and a checkout, else the checkout this package
-       is imported from (an editable install). With ``build`` and ``cargo`` on ``PATH`` it runs
-       ``cargo build --release -p esa-server`` there and uses the result; otherwise it uses
-       that checkout's ``target/release/esa-server`` (under ``CARGO_TARGET_DIR`` if set) if it
-       has been built;
-    5. ``esa-server`` on ``PATH``.
-
-    Why this order: an explicit choice (1, 2) always wins, so ``make test`` and ``make demo``,
-    which export ``ESA_SERVER_BIN`` as the binary they just built, use that binary even where
-    the server wheel is installed. Without one, the server that belongs to the imported
-    esa_client is used: the server wheel its ``server`` extra pins for a wheel install (3),
-    the checkout's build for an editable install (4), so client and server come from the same
-    sources. ``PATH`` (5) is the last resort because a binary found there may be of another
-    version.
-    An ``ESA_SERVER_BIN`` (or ``binary``) that is not an executable is an error, never skipped.
+    First match wins (docs/install.md says why this order): ``binary``; ``$ESA_SERVER_BIN``;
+    the installed esa-server wheel (:func:`server_wheel_binary`); a source checkout's
+    release build (built first with ``build`` and cargo on ``PATH``; under
+    ``CARGO_TARGET_DIR`` if set); ``esa-server`` on ``PATH``. An explicit ``binary`` or
+    ``ESA_SERVER_BIN`` that is not executable is an error, never skipped.
 
     Args:
         binary: Path of the executable; None searches as above.
@@ -152,15 +134,29 @@ def find_server_binary(
     )
 
 
-def _limit_args(name: str, value: object, minimum: int, *, integral: bool) -> list[str]:
-    """``--name value`` for an optional server limit; none when ``value`` is None."""
-    if value is None:
-        return []
-    kind = numbers.Integral if integral else numbers.Real
-    if isinstance(value, bool) or not isinstance(value, kind) or not float(value) >= minimum:
-        what = "an integer" if integral else "a number"
-        raise ValueError(f"expected {name} to be {what} >= {minimum} or None, got {value!r}")
-    return [f"--{name.replace('_', '-')}", str(value)]
+def limit_args(
+    session_ttl: float | None, max_sessions: int | None, max_session_memory: int | None
+) -> list[str]:
+    """The server's flags of these limits (``EsaClient.spawn``'s); None leaves one out.
+
+    Raises:
+        ValueError: If a limit is not a number at least its minimum.
+    """
+    args: list[str] = []
+    limits: list[tuple[str, object, int, bool]] = [
+        ("session_ttl", session_ttl, 0, False),
+        ("max_sessions", max_sessions, 1, True),
+        ("max_session_memory", max_session_memory, 1, True),
+    ]
+    for name, value, minimum, integral in limits:
+        if value is None:
+            continue
+        kind = numbers.Integral if integral else numbers.Real
+        if isinstance(value, bool) or not isinstance(value, kind) or not float(value) >= minimum:
+            what = "an integer" if integral else "a number"
+            raise ValueError(f"expected {name} to be {what} >= {minimum} or None, got {value!r}")
+        args += [f"--{name.replace('_', '-')}", str(value)]
+    return args
 
 
 def _terminate(process: subprocess.Popen[bytes], workdir: Path, grace: float) -> None:
@@ -177,13 +173,10 @@ def _terminate(process: subprocess.Popen[bytes], workdir: Path, grace: float) ->
 class ServerProcess:
     """A running ``esa-server`` child process listening on a private Unix socket.
 
-    The socket (mode 0600) is in a fresh temporary directory, so no other user can reach it
-    and nothing is left behind: :meth:`stop` sends SIGTERM (then SIGKILL after a grace
-    period) and removes the directory, and a ``weakref.finalize`` hook does the same at
-    interpreter exit or garbage collection. If this process dies without running either
-    (SIGKILL, or a signal Python does not handle such as SIGTERM or SIGHUP), the server
-    notices that its parent is gone (``--parent-pid``), shuts down and removes the directory
-    itself (``--remove-dir-on-exit``).
+    The socket (mode 0600) is in a fresh temporary directory that :meth:`stop` (SIGTERM,
+    then SIGKILL) removes, as a ``weakref.finalize`` hook does at exit. If this process dies
+    without running either (e.g. on SIGKILL), the server notices (``--parent-pid``), shuts
+    down and removes the directory itself (``--remove-dir-on-exit``).
 
     Attributes:
         binary: The executable that was started.
@@ -196,9 +189,6 @@ class ServerProcess:
         self,
         binary: str | os.PathLike[str] | None = None,
         *,
-        session_ttl: float | None = None,
-        max_sessions: int | None = None,
-        max_session_memory: int | None = None,
         token: str | None = None,
         extra_args: Sequence[str] = (),
         stop_grace: float = 5.0,
@@ -207,24 +197,14 @@ class ServerProcess:
 
         Args:
             binary: Path of the executable; None searches for it.
-            session_ttl: ``--session-ttl`` in seconds (0 = never); None = the server's
-                default (600).
-            max_sessions: ``--max-sessions``; None = the server's default (100,000).
-            max_session_memory: ``--max-session-memory`` in bytes; None = the server's
-                default (half of the memory the process may use).
             token: An auth token the server will require (``--auth-token-file``, written
                 to a file only this user can read); None = no token.
-            extra_args: More command-line arguments, appended as given.
+            extra_args: More command-line arguments (e.g. :func:`limit_args`), as given.
             stop_grace: Seconds to wait after SIGTERM before SIGKILL.
 
         Raises:
-            ValueError: If a limit is not a number at least its minimum, or the token is empty.
+            ValueError: If the token is empty.
         """
-        limits = [
-            *_limit_args("session_ttl", session_ttl, 0, integral=False),
-            *_limit_args("max_sessions", max_sessions, 1, integral=True),
-            *_limit_args("max_session_memory", max_session_memory, 1, integral=True),
-        ]
         if token is not None and not token.strip():
             raise ValueError(f"expected a non-empty token or None, got {token!r}")
         self.binary = find_server_binary(binary)
@@ -242,7 +222,6 @@ class ServerProcess:
             str(os.getpid()),
             "--remove-dir-on-exit",
             str(self._workdir),
-            *limits,
         ]
         if token is not None:
             token_path = self._workdir / "token"
@@ -288,8 +267,7 @@ class ServerProcess:
     def announced(self, prefix: str, timeout: float) -> list[str]:
         """Waits for the ``listening on`` line; returns what follows ``prefix`` in earlier lines.
 
-        The server prints its ``zenoh listening on LOCATOR`` (and ``metrics on URL``)
-        lines before ``listening on ADDR``, so once that one is out all are.
+        The server prints its other announcements (``zenoh listening on``) before that one.
 
         Raises:
             ServerUnavailable: If the server exits or does not get there within ``timeout`` s.
