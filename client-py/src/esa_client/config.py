@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -83,10 +83,9 @@ _VECTORS = ("amplitude", "frequency", "learning_rate", "action_low", "action_hig
 class SessionConfig:
     """The configuration of one ESA session, mirroring ``esa.v1.SessionConfig`` field for field.
 
-    esa-core checks it where it is built, with the rules and words of every transport
-    (CONTRACT.md sections 1 and 1b), so a bad value fails early with a ``ValueError``
-    naming the field. Vector fields accept a scalar (broadcast to all ``action_dim``
-    dimensions) or one value per dimension; they are stored as tuples of floats, as given.
+    esa-core checks it when it is built (CONTRACT.md sections 1 and 1b): a bad value raises
+    ``ValueError`` naming the field. Vector fields take a scalar (broadcast to all
+    ``action_dim`` dimensions) or one value per dimension, stored as tuples of floats.
 
     Attributes:
         action_dim: Action dimension D, 1 <= D <= 4096.
@@ -102,9 +101,8 @@ class SessionConfig:
         shift_limit: Bound L on every element of the shift v; None = no clamp.
         lr_decay: Per-episode learning-rate decay in (0, 1]; None = 1.
         max_episodes: Episodes after which the session passes actions through; 0 = never.
-        normalize_response: Scale-free law (CONTRACT.md section 1b): the filtered response is
-            divided by its running RMS, clipped to ``response_clip`` and the step scaled by the
-            probe's action scale, so one learning rate fits every reward scale.
+        normalize_response: Scale-free law (CONTRACT.md section 1b): the filtered response
+            divided by its running RMS and clipped, the step scaled by the action scale.
         response_rms_rate: EMA rate of the response's mean square, in (0, 1]; None = 0.05.
         response_clip: Clip of the normalized response (finite, > 0); None = 3.
         shift_leak: Leak lambda in [0, 1): ``v <- (1 - lambda) v + step``; None = 0.
@@ -134,8 +132,7 @@ class SessionConfig:
         """Checks each field's type and stores vectors as tuples; esa-core checks the values.
 
         Raises:
-            ValueError: Naming the first bad field ("expected ..., got ..."), in esa-core's
-                words for a value the contract refuses (``check_config``).
+            ValueError: Naming the first bad field ("expected ..., got ...").
         """
         _check(_is_int(self.action_dim, 32), "action_dim an integer", self.action_dim)
         _check(_is_int(self.max_episodes, 64), "max_episodes an integer >= 0", self.max_episodes)
@@ -166,14 +163,12 @@ class SessionConfig:
 
     def to_proto(self) -> esa_pb2.SessionConfig:
         """Returns the ``esa.v1.SessionConfig`` message for this config."""
-        # Every field as stored (vectors as tuples); an unset optional scalar stays unset.
         values = {field.name: getattr(self, field.name) for field in fields(self)}
         return esa_pb2.SessionConfig(**{k: v for k, v in values.items() if v is not None})
 
     @classmethod
     def from_proto(cls, message: esa_pb2.SessionConfig) -> SessionConfig:
         """Builds (and validates) a config from an ``esa.v1.SessionConfig`` message."""
-        # Field name -> value, checked by __post_init__ like any constructor argument.
         values: dict[str, Any] = {}
         for field in fields(cls):
             value = getattr(message, field.name)
@@ -199,32 +194,24 @@ PPO_FADE = 0.5
 class EsaConfig:
     """ESA hyperparameters for a trainer, turned into a :class:`SessionConfig` per environment.
 
-    ``EsaConfig()`` is the bounded, scale-free law of CONTRACT.md section 1b (normalized
-    response, paired reference, trust region in units of the policy's standard deviation,
-    leak), one setting for every environment (the gymnasium wrappers' default). Each
-    drop-in starts from its family's preset of it: :meth:`ppo` (``ESAPPO``) and
-    :meth:`off_policy` (``ESASAC``, ``ESATD3``). :meth:`paper` is the paper's law
-    (section 1) with its settings. ``experiments/RESULTS.md`` says how each fares.
+    ``EsaConfig()`` is the bounded, scale-free law of CONTRACT.md section 1b, one setting for
+    every environment (the wrappers' default); the drop-ins start from :meth:`ppo` and
+    :meth:`off_policy`, and :meth:`paper` is the paper's law (section 1).
+    ``experiments/RESULTS.md`` says how each fares.
 
-    Every field is checked when the config is built (``ValueError`` naming the field);
-    the rules that need the environment (Nyquist for its ``dt``, one frequency per
-    action dimension) are checked when a trainer or wrapper is constructed.
-
-    On the paper's two update laws: Eq. 5 is ``v += alpha sin(w t) H[Q]``, Algorithm 1
-    writes ``v += alpha K sin(w t) H[Q]``. The service implements Eq. 5 (``alpha`` here is
-    Algorithm 1's ``alpha K``). Both apply ``a_t + v(t)`` to the environment (the shift
-    before this step's update), which is what the trainers here apply and store.
+    Fields are checked when the config is built (``ValueError`` naming the field), the
+    rules that need the environment (Nyquist for its ``dt``) when a trainer or wrapper is.
+    The service implements the paper's Eq. 5, ``v += alpha sin(w t) H[Q]`` (``alpha`` here
+    is Algorithm 1's ``alpha K``), and the trainers apply and store ``a_t + v(t)``.
 
     Attributes:
         amplitude: Perturbation amplitude K of the probe, in the units of the action space
             ESA works in (SAC: the squashed [-1, 1] space; PPO: the policy's action space).
             The probe only queries the critic; the environment gets ``a_t + v(t)``.
         frequency: Perturbation frequency w in rad/s. A scalar is spread over
-            ``[w / 2, w]`` across action dimensions so every dimension has its own
-            frequency (otherwise demodulation cannot tell the dimensions apart);
-            a sequence gives the per-dimension frequencies exactly. None (the default)
-            takes ``nyquist_fraction`` of the env's Nyquist frequency ``pi / dt``: the
-            probe then has the same period in steps on every env.
+            ``[w / 2, w]`` across action dimensions, so that demodulation tells them apart;
+            a sequence gives them exactly. None takes ``nyquist_fraction`` of ``pi / dt``:
+            the same period in steps on every env.
         nyquist_fraction: With ``frequency=None``, w as a fraction of ``pi / dt``, in (0, 1).
         learning_rate: ESA learning rate alpha (Eq. 5). With ``normalize_response`` it is
             in units of the action scale per step; without, it multiplies Q itself.
@@ -239,32 +226,23 @@ class EsaConfig:
         response_clip: Clip of the normalized response; None = 3.
         shift_leak: Leak lambda in [0, 1) of the shift per step; None = 0.
         trust_region: kappa: ``|v| <= kappa * sigma`` per dimension, sigma the action
-            scale the trainer sends (see ``use_policy_std``); None = no bound.
-        paired_response: Report ``Q(s, probe) - Q(s, a_t + v(t))`` (one more row in the
-            same critic batch) instead of ``Q(s, probe)``: removes the state's own change
-            of Q, which otherwise swamps the probe's.
-        use_policy_std: Send the policy's standard deviation as the action scale sigma
-            (else 1): the trust region and the normalized step then shrink as the policy
-            converges, so ESA fades out by itself.
-        gate: Minimum critic quality before ESA intervenes: the rank correlation between
-            the critic's ``Q(s, a) - Q(s, mu)`` and the algorithm's own advantage estimate
-            (ESAPPO: GAE on each rollout). None = ESA from the first step the critic exists.
-        dt: Seconds per environment step. None reads it from the environment
-            (``env.unwrapped.dt``, else ``1 / metadata["render_fps"]``); set it when the
-            environment has neither, or to override it.
-        fade: The paper's fading of ESA over training (its ablation on the decay of the ESA
-            learning rate): the fraction of the training budget, in (0, 1], over which ESA's
-            strength falls linearly from full to 0; after it the policy's samples are
-            applied unchanged. The trainer sends ``f * sigma`` as each probe's action scale
-            (CONTRACT.md section 1b, "Fading ESA over training"), which scales both the
-            normalized step and the trust region ``kappa sigma``, so the bound itself fades
-            from ``kappa`` to 0. Needs ``normalize_response`` (the section 1 step does not
-            scale with sigma). None = no fade.
+            scale the trainer sends; None = no bound.
+        paired_response: Report ``Q(s, probe) - Q(s, a_t + v(t))`` instead of
+            ``Q(s, probe)``, removing the state's own change of Q, which swamps the probe's.
+        use_policy_std: Send the policy's standard deviation as sigma (else 1), so that ESA
+            shrinks as the policy converges.
+        gate: Minimum rank correlation of the critic's ``Q(s, a) - Q(s, mu)`` with the
+            algorithm's own advantage estimate before ESA intervenes; None = from the start.
+        dt: Seconds per environment step; None reads the env's ``dt``, else
+            ``1 / metadata["render_fps"]``.
+        fade: The fraction of the training budget, in (0, 1], over which ESA's strength f
+            falls linearly to 0 (the paper's fading): the trainer sends ``f * sigma`` as the
+            action scale, which scales the normalized step and the trust region alike
+            (CONTRACT.md section 1b). Needs ``normalize_response``. None = no fade.
     """
 
-    # The shipped default: the best setting `default_search` found on InvertedPendulum-v5
-    # (tuning seeds 100-107), to two significant digits; experiments/RESULTS.md says how it
-    # fares.
+    # The best setting `default_search` found on InvertedPendulum-v5 (tuning seeds 100-107),
+    # to two significant digits.
     amplitude: float | Sequence[float] = 0.29
     frequency: float | Sequence[float] | None = None
     nyquist_fraction: float = 0.48
@@ -293,33 +271,18 @@ class EsaConfig:
         """
         for name in ("paired_response", "use_policy_std", "normalize_response"):
             _check(isinstance(getattr(self, name), bool), f"{name} a bool", getattr(self, name))
-        _check(
-            isinstance(self.nyquist_fraction, (int, float)) and 0 < self.nyquist_fraction < 1,
-            "nyquist_fraction in (0, 1)",
-            self.nyquist_fraction,
-        )
-        if self.gate is not None:
-            _check(
-                isinstance(self.gate, (int, float))
-                and not isinstance(self.gate, bool)
-                and -1 <= self.gate <= 1,
-                "gate a rank correlation in [-1, 1] (or None)",
-                self.gate,
-            )
-        if self.dt is not None:
-            _check(
-                isinstance(self.dt, (int, float)) and math.isfinite(self.dt) and self.dt > 0,
-                "dt finite and > 0 (or None: read from the env)",
-                self.dt,
-            )
+        nyquist = self.nyquist_fraction
+        _check(_is_real(nyquist) and 0 < nyquist < 1, "nyquist_fraction in (0, 1)", nyquist)
+        optional: list[tuple[str, Callable[[float], bool], str]] = [
+            ("gate", lambda x: -1 <= x <= 1, "a rank correlation in [-1, 1] (or None)"),
+            ("dt", lambda x: math.isfinite(x) and x > 0, "finite and > 0 (or None: from the env)"),
+            ("fade", lambda x: 0 < x <= 1, "a fraction of the training budget in (0, 1] (or None)"),
+        ]
+        for name, valid, expected in optional:
+            value = getattr(self, name)
+            if value is not None:
+                _check(_is_real(value) and valid(value), f"{name} {expected}", value)
         if self.fade is not None:
-            _check(
-                isinstance(self.fade, (int, float))
-                and not isinstance(self.fade, bool)
-                and 0 < self.fade <= 1,
-                "fade a fraction of the training budget in (0, 1] (or None)",
-                self.fade,
-            )
             _check(
                 self.normalize_response,
                 "normalize_response=True with fade (only the normalized step scales with "
@@ -336,13 +299,12 @@ class EsaConfig:
     def paper(cls, **overrides: Any) -> EsaConfig:
         """The paper's law and settings: Eq. 5 on the raw Q, K = 0.2, w = 10 pi, no bounds.
 
-        CONTRACT.md section 1 without any section 1b field: the step scales with Q's
-        magnitude and the shift is unbounded. alpha = 0.05 is ours (the paper gives none).
+        CONTRACT.md section 1 without any section 1b field; alpha = 0.05 is ours (the paper
+        gives none).
 
         Args:
             **overrides: Fields to change, e.g. ``amplitude=0.1``.
         """
-        # Checked by __post_init__ like any constructor argument.
         values: dict[str, Any] = dict(
             amplitude=0.2,
             frequency=10 * math.pi,
@@ -361,11 +323,8 @@ class EsaConfig:
     def ppo(cls, **overrides: Any) -> EsaConfig:
         """The shipped default of ``ESAPPO``: ``EsaConfig()`` bounded at 1 sigma, faded by half.
 
-        The setting the ``seeking`` study (E2) tested as ``ppo_esa`` against PPO, a placebo
-        and the gradient control on four envs: the trust region E1 picked for the quadratic
-        head (1 policy standard deviation) and ESA's strength falling linearly to 0 over
-        the first half of the budget of ``learn()``, so that the second half is PPO
-        (``experiments/RESULTS.md`` gives E2's verdicts).
+        The setting the ``seeking`` study (E2) tested as ``ppo_esa``: E1's trust region for
+        the quadratic head, and ESA gone by half of ``learn()``'s budget.
 
         Args:
             **overrides: Fields to change, e.g. ``fade=None`` for ESA through the whole budget.
@@ -377,12 +336,9 @@ class EsaConfig:
     def off_policy(cls, **overrides: Any) -> EsaConfig:
         """The shipped default of the off-policy drop-ins (``ESASAC``, ``ESATD3``).
 
-        ``EsaConfig()`` with a wider trust region: an off-policy learner pays no importance
-        ratio for shifted data, and its twin Q critic is steadier than PPO's fitted head. The
-        bound is the pre-declared pick of the ``ground_truth`` study on SAC (tuning seeds
-        100-102, InvertedPendulum-v5 and Hopper-v5): the largest bound whose
-        measured Monte-Carlo return gain is above 0 with 95 % confidence on both envs
-        (``experiments/RESULTS.md``).
+        ``EsaConfig()`` with a wider trust region (an off-policy learner pays no importance
+        ratio for shifted data): the ``ground_truth`` study's pick on SAC, the largest bound
+        whose Monte-Carlo return gain is above 0 with 95 % confidence on both its envs.
 
         Args:
             **overrides: Fields to change, e.g. ``trust_region=0.25``.
@@ -391,9 +347,7 @@ class EsaConfig:
         return cls(**values)
 
     def strength(self, elapsed: float) -> float:
-        """ESA's strength ``f`` in [0, 1] once ``elapsed`` of the training budget has passed.
-
-        ``1 - elapsed / fade`` clipped to [0, 1] (:attr:`fade`); always 1 without a fade.
+        """ESA's strength, ``1 - elapsed / fade`` clipped to [0, 1] (1 without a fade).
 
         Args:
             elapsed: The fraction of the budget done, e.g. ``num_timesteps / total``.
@@ -410,11 +364,7 @@ class EsaConfig:
                 if self.frequency is None
                 else float(np.asarray(self.frequency, dtype=np.float64))
             )
-            return (
-                tuple(float(x) for x in np.linspace(w, w / 2, action_dim))
-                if action_dim > 1
-                else (w,)
-            )
+            return tuple(float(x) for x in np.linspace(w, w / 2, action_dim))
         return tuple(float(x) for x in np.asarray(self.frequency, dtype=np.float64))
 
     def session_config(
@@ -432,29 +382,17 @@ class EsaConfig:
             action_low: Lower bounds of the action space ESA works in, or None.
             action_high: Upper bounds, or None.
 
-        Returns:
-            The session config.
-
         Raises:
             ValueError: If a hyperparameter is invalid for this action space and time step.
         """
         dt = self.dt if self.dt is not None else dt
+        # The session's fields that we have under the same name take our values.
+        ours = {f.name for f in fields(self)} - {"dt", "frequency"}
         return SessionConfig(
+            **{f.name: getattr(self, f.name) for f in fields(SessionConfig) if f.name in ours},
             action_dim=action_dim,
             dt=dt,
-            amplitude=self.amplitude,
             frequency=self.frequencies(action_dim, dt),
-            learning_rate=self.learning_rate,
-            highpass_cutoff=self.highpass_cutoff,
-            disable_highpass=self.disable_highpass,
             action_low=_finite_bound(action_low, -math.inf),
             action_high=_finite_bound(action_high, math.inf),
-            shift_limit=self.shift_limit,
-            lr_decay=self.lr_decay,
-            max_episodes=self.max_episodes,
-            normalize_response=self.normalize_response,
-            response_rms_rate=self.response_rms_rate,
-            response_clip=self.response_clip,
-            shift_leak=self.shift_leak,
-            trust_region=self.trust_region,
         )
