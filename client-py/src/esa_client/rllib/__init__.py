@@ -1,14 +1,9 @@
 """ESA for Ray RLlib (new API stack, torch): SAC and PPO, env runners on many nodes.
 
-One call adds ESA to a config: ``with_esa(PPOConfig()..., budget=1_000_000)`` (the RLlib
-guide, ``docs/guides/rllib.md``, has the whole example). RLlib then runs what the SB3
-drop-ins ship: PPO ``ESAPPO``'s method (``EsaConfig.ppo()``, its quadratic head, its
-decoupled objective, ESA faded over the first half of the budget), SAC ``ESASAC``'s. Every
-env copy of every EnvRunner gets its own session,
-kept in the runner's process by default (:class:`EsaService`), or on a shared or sharded
-server. Needs the ``rllib`` extra. Pieces: :func:`with_esa`, :class:`EsaService`,
-:class:`EsaModuleToEnv` (the module-to-env ConnectorV2), :class:`EsaSACTorchRLModule`,
-:class:`EsaPPOTorchRLModule`, :class:`EsaSACTorchLearner`, :class:`EsaPPOTorchLearner`.
+One call adds ESA to a config: ``with_esa(PPOConfig()..., budget=1_000_000)``; the RLlib
+guide (``docs/guides/rllib.md``) has the example. Every env copy of every EnvRunner gets its
+own session, in the runner's process by default (:class:`EsaService`). Needs the ``rllib``
+extra.
 """
 
 from __future__ import annotations
@@ -16,8 +11,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-# Ray is imported on first use of an RLlib piece, so that esa_client.rllib.service works
-# without it.
+# Ray is imported on first use of an RLlib piece: esa_client.rllib.service works without it.
 _EXPORTS = {
     "ESA_OBS": "modules",
     "ESA_SHIFT": "connector",

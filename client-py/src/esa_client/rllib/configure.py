@@ -46,33 +46,22 @@ def with_esa(
 ) -> Any:
     """Adds ESA to an RLlib ``SACConfig`` or ``PPOConfig`` (new API stack, torch); returns it.
 
-    RLlib then runs what the SB3 drop-ins ship: PPO gets ``ESAPPO``'s method (its
-    default ``EsaConfig.ppo()``, its quadratic head, its decoupled objective, ESA faded over
-    the first half of ``budget``), SAC ``ESASAC``'s (``EsaConfig.off_policy()``, the mean of
-    the target twins). It sets the RLModule (:class:`~esa_client.rllib.modules.EsaSACTorchRLModule`
-    / :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule`: RLlib's default module whose
-    env-runner copy keeps the critic ESA probes), the learner
-    (:class:`~esa_client.rllib.learners.EsaSACTorchLearner` /
-    :class:`~esa_client.rllib.learners.EsaPPOTorchLearner`: the gate, the fade, and PPO's
-    head and objective) and appends :class:`~esa_client.rllib.connector.EsaModuleToEnv` to
-    the module-to-env connectors (after yours). Call it after setting the environment,
-    model and ``normalize_actions``; change none of these three afterwards.
-
-    :mod:`esa_client.rllib` shows an example.
+    RLlib then runs what the SB3 drop-ins ``ESAPPO`` and ``ESASAC`` ship (the RLlib guide
+    says what): it sets the RLModule and the learner to ours and appends
+    :class:`~esa_client.rllib.connector.EsaModuleToEnv` to the module-to-env connectors.
+    Call it after setting the environment, model and ``normalize_actions``; change none of
+    them afterwards.
 
     Args:
         config: A ``SACConfig`` or ``PPOConfig`` (changed in place, like RLlib's own
             setters).
-        esa: The ESA hyperparameters, in the module's action units: with RLlib's default
-            ``normalize_actions=True``, the Box scaled to [-1, 1] (PPO) or SAC's squashed
-            [-1, 1], the units ESAPPO and ESASAC use. Default: the drop-in's,
-            ``EsaConfig.ppo()`` for PPO and ``EsaConfig.off_policy()`` for SAC.
-        service: Where the sessions live (default: in each runner's process). Checked
-            here: a server that does not answer fails now, not on the runners.
-        budget: The env steps you will train for (what ``algo.train()`` samples in all),
-            over which ``EsaConfig.fade`` is a fraction: needed with a fade.
-        control: None (ESA), ``"placebo"`` or ``"gradient"``: the drop-ins' ``esa_control``
-            (:mod:`esa_client.common.controls`), to judge ESA on your task.
+        esa: The ESA hyperparameters, in the module's action units (ESAPPO's and ESASAC's).
+            Default: ``EsaConfig.ppo()`` for PPO, ``EsaConfig.off_policy()`` for SAC.
+        service: Where the sessions live (default: in each runner's process); checked here.
+        budget: The env steps you will train for, over which ``EsaConfig.fade`` is a
+            fraction: needed with a fade.
+        control: None (ESA), ``"placebo"`` or ``"gradient"``: the drop-ins' ``esa_control``,
+            to judge ESA on your task.
 
     Returns:
         ``config``.
@@ -105,24 +94,13 @@ def with_esa(
     service = service if service is not None else EsaService()
     if not isinstance(service, EsaService):
         raise ValueError(f"expected service to be an EsaService, got {service!r}")
-    module_class: type[Any]
-    default_module: type[Any]
-    learner_class: type[Any]
-    default_learner: type[Any]
-    if is_sac:
-        module_class, default_module = EsaSACTorchRLModule, DefaultSACTorchRLModule
-        learner_class, default_learner = EsaSACTorchLearner, SACTorchLearner
-    else:
-        module_class, default_module = EsaPPOTorchRLModule, DefaultPPOTorchRLModule
-        learner_class, default_learner = EsaPPOTorchLearner, PPOTorchLearner
     if not (config.enable_rl_module_and_learner and config.enable_env_runner_and_connector_v2):
         raise ValueError("expected RLlib's new API stack (RLModule, Learner, ConnectorV2)")
     if config.framework_str != "torch":
         raise ValueError(f"expected framework 'torch', got {config.framework_str!r}")
     if config.is_multi_agent:
         raise ValueError("expected a single-agent config: ESA for RLlib is single-agent")
-    # Here, not on the runners: a wrong address or token fails before anything starts.
-    service.check()
+    service.check()  # a wrong address or token fails here, not on the runners
     # Plain data: the module reads it on every node, from model_config.
     settings = {
         "config": dataclasses.asdict(esa),
@@ -131,7 +109,12 @@ def with_esa(
     }
 
     spec = config.rl_module_spec
-    module = _ours(spec.module_class, default_module, module_class, "RLModule")
+    if is_sac:
+        module = _ours(spec.module_class, DefaultSACTorchRLModule, EsaSACTorchRLModule, "RLModule")
+        learner = _ours(config.learner_class, SACTorchLearner, EsaSACTorchLearner, "learner")
+    else:
+        module = _ours(spec.module_class, DefaultPPOTorchRLModule, EsaPPOTorchRLModule, "RLModule")
+        learner = _ours(config.learner_class, PPOTorchLearner, EsaPPOTorchLearner, "learner")
     # A spec's model_config may be a dict or a DefaultModelConfig dataclass: keep either.
     given = spec.model_config
     model_config: dict[str, Any] = {}
@@ -146,9 +129,7 @@ def with_esa(
             model_config={**model_config, "esa": settings},
         )
     )
-    config.learners(
-        learner_class=_ours(config.learner_class, default_learner, learner_class, "learner")
-    )
+    config.learners(learner_class=learner)
     previous = getattr(config, "_module_to_env_connector", None)
     if isinstance(previous, ConnectorFactory):
         previous = previous.previous  # calling with_esa twice replaces the first

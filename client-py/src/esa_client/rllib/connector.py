@@ -1,31 +1,14 @@
 """``EsaModuleToEnv``: the module-to-env ConnectorV2 piece that applies ESA on an EnvRunner.
 
-RLlib's module-to-env pipeline turns the RLModule's output into the actions sent to the
-vectorized env: ``GetActions`` samples ``a_t`` (and its log-probability), the batch is
-converted to numpy and split per env copy, then the user's pieces run, then
-``NormalizeAndClipActions`` unsquashes or clips a copy for the env. This piece sits in
-the user slot, so every action it writes is both what the env executes (after RLlib's
-unsquash/clip) and what the episode stores for training.
+It sits in the user slot of RLlib's module-to-env pipeline, after ``GetActions`` and before
+``NormalizeAndClipActions``, so the action it writes is both what the env executes and what
+the episode stores. PPO stores ``a_t + v(t)`` unclipped with ``action_logp`` left at
+``log pi_old(a_t)``, the exact behaviour log-probability of the shifted action (``v(t)``
+does not depend on ``a_t``); SAC stores it clipped to its squashed [-1, 1].
 
-Each step, for the N env copies of the EnvRunner (one ESA session each), it runs the SB3
-drop-ins' ESA step (:class:`esa_client.common.runtime.EsaRuntime`, the same code) with the
-policy's samples and standard deviations and the module's critic, and the action becomes
-``a_t + v(t)``:
-
-- PPO: stored unclipped with RLlib's ``action_logp`` left at ``log pi_old(a_t)``, the
-  exact behaviour log-probability of the shifted action (``v(t)`` does not depend on
-  ``a_t``), so PPO's ratio is a correct importance ratio, as in ESAPPO;
-- SAC: clipped to SAC's squashed [-1, 1] and stored in the replay buffer, as in ESASAC
-  (``action_logp``, which RLlib's SAC does not train on, stays ``log pi(a_t)``).
-
-Episodes map to the sessions' episodes. RLlib's vector envs reset a finished env on the
-*next* ``step`` call (gymnasium's next-step autoreset) and discard that step's action.
-That step starts the new session episode: its probe is at phase 0, where the probe
-equals the applied action and the update moves nothing, so the episode's first real
-action is the session's step 1. Starting it there, and not again one step later, keeps
-the session's episode count (``lr_decay``, ``max_episodes``) equal to the env's.
-An EnvRunner that is recreated builds a new connector, hence new sessions; for a server
-that stays unreachable see ``EsaService``'s ``on_unavailable``.
+RLlib's vector envs reset a finished env on the next ``step`` and discard that step's
+action; that step starts the new session episode (its probe, at phase 0, moves nothing),
+which keeps the session's episode count equal to the env's.
 """
 
 from __future__ import annotations
@@ -38,8 +21,8 @@ from typing import Any
 import numpy as np
 import torch
 
-# torch._dynamo is loaded before any gRPC channel exists (as in esa_client.sb3): the
-# learner of a local EnvRunner steps its optimizer while the connector's StepStream is open.
+# Loaded before any gRPC channel exists (as in esa_client.sb3): a local EnvRunner's learner
+# steps its optimizer while the connector's StepStream is open.
 import torch._dynamo  # noqa: F401  (imported for its side effect)
 from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core.columns import Columns
@@ -107,10 +90,9 @@ def _tile(value: Any, reps: int) -> Any:
 class _Rows:
     """The per-env-copy items of the unbatched columns, row r being env copy r.
 
-    After RLlib's ``UnBatchToIndividualItems`` a single-agent column maps ``(eps_id,)``
-    to a one-item list, in the order of ``shared_data["memorized_map_structure"]``: the
-    env copies' order. An env copy that RLlib autoresets on this step appears under the
-    id of its finished episode (the batch was built before the new episode existed).
+    A single-agent column maps ``(eps_id,)`` to a one-item list, in the env copies' order
+    (``shared_data["memorized_map_structure"]``); a copy autoreset on this step appears
+    under its finished episode's id.
     """
 
     def __init__(
@@ -156,35 +138,22 @@ def _close(runtime: EsaRuntime, client: EsaClient) -> None:
 class EsaModuleToEnv(ConnectorV2):
     """Module-to-env piece: Algorithm 1's action ``a_t + v(t)`` for every env copy.
 
-    :func:`~esa_client.rllib.with_esa` adds it to ``config.env_runners(
-    module_to_env_connector=...)`` after any pieces of yours; it needs the module to be
-    :class:`~esa_client.rllib.modules.EsaSACTorchRLModule` or
-    :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule`. It acts only when exploring
-    (``explore=True``, i.e. training rollouts) and while the module's ``esa_active`` is
-    set (the learner's gate); otherwise the actions pass through untouched, and the
-    sessions start new episodes when ESA acts again.
-
-    The sessions (one per env copy, on one StepStream) are created on the first step that
-    needs them, so an EnvRunner without env (the local one of a remote setup) never
-    connects. PPO modules step exactly as ``ESAPPO`` does (:mod:`esa_client.common.head_step`:
-    the same inputs give the same shifts), SAC modules as ``ESASAC`` (the target twins'
-    mean at the sample), both at the strength the learner's fade set. Logged per EnvRunner
-    (``env_runners/esa/...``): ``active``, ``strength``, ``mean_abs_shift``,
-    ``shift_over_std``, ``kl_per_dim``, ``clipped_fraction``, ``improvement``,
-    ``sessions_restored``, ``reconnects``.
+    It acts only when exploring and while the module's ``esa_active`` (the learner's gate)
+    is set; otherwise the actions pass through, and the sessions start new episodes when ESA
+    acts again. The sessions (one per env copy) are created on the first step that needs
+    them, so an EnvRunner without env never connects. PPO modules step as ``ESAPPO`` does,
+    SAC modules as ``ESASAC``, at the strength the learner's fade set. Logged under
+    ``env_runners/esa/``: ``active``, ``strength``, the runtime's statistics, ``reconnects``.
 
     Args:
         input_observation_space: As for every ConnectorV2.
         input_action_space: As for every ConnectorV2.
-        esa: The ESA hyperparameters (:func:`~esa_client.rllib.with_esa` passes its own or
-            the algorithm's default).
+        esa: The ESA hyperparameters.
         service: Where the sessions live (default: in this runner's process).
-        dt: Seconds per env step when ``EsaConfig.dt`` is None (``with_esa`` reads it
-            from the EnvRunner's env).
+        dt: Seconds per env step when ``EsaConfig.dt`` is None.
         control: None (ESA), ``"placebo"`` or ``"gradient"``, as the drop-ins'
-            ``esa_control`` (:mod:`esa_client.common.controls`).
-        record_shift: Also output column ``esa_shift`` (the shift applied, stored with the
-            episode as an extra model output), for diagnostics and tests.
+            ``esa_control``.
+        record_shift: Also output column ``esa_shift``, the shift applied, for diagnostics.
         metrics_window: Window of the mean ESA statistics.
         **kwargs: Passed to ``ConnectorV2``.
 
@@ -360,12 +329,7 @@ class EsaModuleToEnv(ConnectorV2):
         starts: np.ndarray,
         strength: float,
     ) -> np.ndarray:
-        """The env copies' actions under ESA (or its control), as the drop-in computes them.
-
-        PPO as ``ESAPPO`` (:mod:`esa_client.common.head_step`: the same inputs give the same
-        shifts); SAC as ``ESASAC``, in its squashed space: the session's action, or
-        ``clip(a_t + shift)`` for a control.
-        """
+        """The env copies' actions under ESA (or its control), as the drop-in computes them."""
         size = gradient_size(strength, self.esa.trust_region)
         if isinstance(module, EsaPPOTorchRLModule):
             frame = module.esa_frame

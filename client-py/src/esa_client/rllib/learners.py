@@ -1,7 +1,6 @@
-"""Learners that keep the ESA critic fitted, the gate and the fade set, on the learner side.
+"""Learners that keep the ESA critic fitted and set the gate and the fade.
 
-The head's weights, ``esa_active`` and ``esa_strength`` reach the env runners with the next
-weight sync. PPO's learner has ``ESAPPO``'s decoupled objective.
+What they set reaches the env runners with the next weight sync.
 """
 
 from __future__ import annotations
@@ -56,11 +55,9 @@ class EsaSACTorchLearner(SACTorchLearner):
     """SAC's learner, setting the ``esa_active`` of an ``EsaSACTorchRLModule``: ESASAC's gate.
 
     Every :attr:`gate_every` sampled env steps it computes :func:`sac_critic_quality` on the
-    train batch being learned from. ESASAC computes it on the transitions collected since
-    its last check; RLlib's replay buffer lives elsewhere, so here it is the replay sample
-    of that update. With ``EsaConfig(gate=None)`` ESA turns on at the first update (when RLlib's
-    ``num_steps_sampled_before_learning_starts`` have been sampled), as in ESASAC.
-    Logged per module: ``esa/gate_correlation`` (at each check), ``esa/active``.
+    update's replay sample (RLlib's replay buffer lives elsewhere). With
+    ``EsaConfig(gate=None)`` ESA turns on at the first update. Logged per module:
+    ``esa/gate_correlation``, ``esa/active``.
     """
 
     gate_every = 1000
@@ -131,10 +128,8 @@ def sac_critic_quality(module: EsaSACTorchRLModule, batch: dict[str, Any], gamma
 class EsaRolloutRecorder(ConnectorV2):
     """Learner connector piece (after GAE): keeps what the quadratic head learns from.
 
-    For every :class:`~esa_client.rllib.modules.EsaPPOTorchRLModule` in the batch, puts
-    ``(Rollout(features, z, normalized advantages), advantages)`` of the loss-masked rows
-    into ``pending[module_id]``, with ``z = (x - mu_old) / sigma_old`` from the behaviour
-    distribution inputs stored with the episodes; the batch itself is left as it is.
+    For every ESA PPO module in the batch, puts ``(Rollout(features, z, normalized
+    advantages), advantages)`` of the loss-masked rows into ``pending[module_id]``.
     """
 
     def __init__(self, pending: dict[Any, Any], **kwargs: Any) -> None:
@@ -185,24 +180,15 @@ class _Head:
 class EsaPPOTorchLearner(PPOTorchLearner):
     """PPO's learner with ``ESAPPO``'s objective, fitting its quadratic head.
 
-    The loss is PPO's with the decoupled objective (``DecoupledPPO``: Hilton, Cobbe and
-    Schulman, 2022): the ratio is taken against the proximal policy ``pi_old`` at the
-    executed action (the behaviour distribution stored with the samples) and weighted by
-    ``min(pi_old / b, weight_cap)``, ``b`` the density RLlib stored for the sample. Without
-    a shift ``pi_old = b`` and the loss is RLlib's PPO loss.
+    The loss is PPO's with the decoupled objective (``DecoupledPPO``): the ratio against the
+    proximal policy ``pi_old`` at the executed action, weighted by
+    ``min(pi_old / b, weight_cap)``, ``b`` the density RLlib stored; without a shift it is
+    RLlib's PPO loss. After each update: the gate (``esa/gate_correlation``, on the new
+    rollout before the head learns it), the head's fit on the last :attr:`head_rollouts`
+    (``esa/head_loss``), then ``esa_active`` and ``esa_strength``.
 
-    Per update, after PPO's own: the gate (``esa/gate_correlation``: the head's rank
-    correlation with the GAE advantages of the new rollout, before it is trained on it),
-    then :func:`esa_client.common.quadratic_head.fit_critic` on the last ``head_rollouts``
-    rollouts (``head_epochs`` passes, minibatches of ``head_batch_size``, an Adam of its own
-    at ``head_learning_rate`` and a generator of its own; logged ``esa/head_loss``), then
-    ``esa_active`` and the fade's ``esa_strength``. The rollouts come from
-    :class:`EsaRolloutRecorder`, after RLlib's GAE. With ``EsaConfig(gate=None)`` ESA turns
-    on after the first fit, as in ESAPPO. The head's settings are ESAPPO's class attributes;
-    a subclass may change them.
-
-    Supports one learner (``num_learners`` 0 or 1): with more, each would fit its own
-    head on its shard, outside DDP.
+    One learner only (``num_learners`` 0 or 1): with more, each would fit its own head on
+    its shard, outside DDP.
     """
 
     weight_cap = 2.0
@@ -286,9 +272,8 @@ class EsaPPOTorchLearner(PPOTorchLearner):
     ) -> Any:
         """RLlib's PPO loss with the decoupled objective for an ESA module.
 
-        ``min(A r, A clip(r))`` weighted by ``w > 0`` is ``min(w A r, w A clip(r))``, so RLlib's
-        own loss computes it from the batch with ``ACTION_LOGP = log pi_old(x)`` and the
-        advantages times ``w``.
+        ``w min(A r, A clip(r))`` is ``min(w A r, w A clip(r))`` for ``w > 0``: RLlib's loss
+        of a batch with ``ACTION_LOGP = log pi_old(x)`` and the advantages times ``w``.
         """
         module = _unwrapped(self.module[module_id])
         if isinstance(module, EsaPPOTorchRLModule):

@@ -1,19 +1,10 @@
 """RLModules whose env-runner copies keep the critic ESA probes.
 
-RLlib builds the RLModule of every EnvRunner ``inference_only``: SAC's Q networks are
-dropped there, and PPO has no action-value network at all. ESA probes a critic at action
-time, on the env runners, so :class:`EsaSACTorchRLModule` keeps the Q networks it probes
-and :class:`EsaPPOTorchRLModule` adds ``ESAPPO``'s quadratic head, and both ship them to
-the env runners with the weights the learner syncs after every update.
-
-Both carry ``esa_active``, a buffer the learner sets from ``EsaConfig.gate``, and
-``esa_strength``, ESA's strength under ``EsaConfig.fade`` at the env steps sampled so far,
-which the learner sets too; both ship with the weights: the env runners' connector shifts
-actions only while ``esa_active`` is 1, by the strength shipped.
-Both add the observation batch they acted on to their exploration output (column
-``esa_obs``), which :class:`~esa_client.rllib.connector.EsaModuleToEnv` removes before
-anything is stored. Extra networks are initialized on a forked torch generator, so that
-the random stream of the env runners and the learner is plain RLlib's.
+RLlib builds every EnvRunner's module ``inference_only``, without SAC's Q networks (and PPO
+has no action-value network), but ESA probes a critic on the env runners: these modules
+keep SAC's and add ``ESAPPO``'s quadratic head, shipped with every weight sync, as are the
+buffers ``esa_active`` (the learner's gate) and ``esa_strength`` (its fade). Extra networks
+are initialized on a forked torch generator, so that the random streams stay RLlib's.
 """
 
 from __future__ import annotations
@@ -62,19 +53,16 @@ def _box(space: gym.Space[Any]) -> gym.spaces.Box:
 class EsaModuleMixin:
     """What :class:`~esa_client.rllib.connector.EsaModuleToEnv` asks of a module.
 
-    Actions are in the module's own units (what its distribution samples and what RLlib
-    stores); with RLlib's default ``normalize_actions=True`` that is the Box scaled to
-    [-1, 1], the units ESAPPO and ESASAC work in.
+    Actions are in the module's own units: with ``normalize_actions=True``, the Box scaled
+    to [-1, 1], as in ESAPPO and ESASAC.
     """
 
     esa_active: torch.Tensor
     esa_strength: torch.Tensor
-    # RLModule's attributes (a gymnasium Space; a dict, as with_esa sets it).
     action_space: Any
     model_config: Any
 
-    if TYPE_CHECKING:
-        # The mixin is always combined with an RLlib TorchRLModule, an nn.Module.
+    if TYPE_CHECKING:  # always combined with an RLlib TorchRLModule, an nn.Module
 
         def register_buffer(self, name: str, tensor: torch.Tensor | None) -> None:
             """``nn.Module.register_buffer``."""
@@ -120,9 +108,7 @@ class EsaModuleMixin:
 class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
     """RLlib's default SAC module, keeping the probed Q networks in its env-runner copy.
 
-    ESA probes the mean of the Polyak target twins, as ``ESASAC`` does. They are kept, and
-    shipped to the env runners after every update (they are left out of
-    :meth:`get_non_inference_attributes`); the learner's module is RLlib's, unchanged.
+    ESA probes the mean of the Polyak target twins, as ``ESASAC`` does.
     """
 
     def setup(self) -> None:
@@ -130,9 +116,7 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
         super().setup()
         self._setup_esa(TorchSquashedGaussian, "SAC's squashed Gaussian")
         if self.inference_only:
-            # RLlib's setup skipped the Q networks here. They are overwritten by the
-            # learner's weights before the first sample; built on a forked generator so
-            # that the env runner's random stream stays plain RLlib's.
+            # RLlib's setup skipped them; the learner's weights overwrite them at the first sync.
             catalog = self.catalog
             assert catalog is not None  # RLlib's default SAC module always has one
             with torch.random.fork_rng(devices=[]):
@@ -189,14 +173,11 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
 
 
 class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
-    """RLlib's default PPO module plus ``ESAPPO``'s quadratic head of ``z``.
+    """RLlib's default PPO module plus ``ESAPPO``'s quadratic head of ``z = (a - mu) / sigma``.
 
-    ``z = (a - mu(s)) / sigma(s)`` in the module's action units; the head is
-    :class:`~esa_client.common.quadratic_head.QuadraticHead` on the flattened observation,
-    ``ESAPPO``'s (:attr:`head_hidden` units per layer; a subclass may change it). The head is
-    not in PPO's optimizer; :class:`~esa_client.rllib.learners.EsaPPOTorchLearner` fits it.
-    It is not among RLlib's non-inference attributes, so the env runners' copy keeps it and
-    the weight sync ships it.
+    The head (:class:`~esa_client.common.quadratic_head.QuadraticHead` on the flattened
+    observation) is not in PPO's optimizer: :class:`~esa_client.rllib.learners.EsaPPOTorchLearner`
+    fits it.
     """
 
     head_hidden = 64
@@ -222,11 +203,7 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
 
     @property
     def esa_frame(self) -> ActionFrame:
-        """ESAPPO's frame: the Box scaled to [-1, 1], where the sessions are unbounded.
-
-        RLlib's normalized actions already are in [-1, 1]; it stores the Gaussian's samples
-        unclipped.
-        """
+        """ESAPPO's frame: the Box scaled to [-1, 1], where the sessions are unbounded."""
         box = _box(self.action_space)
         if self.esa_settings.get("normalize_actions", True):
             return ActionFrame.unit(box, bounded=False)

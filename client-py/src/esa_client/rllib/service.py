@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, cast
 
 from ..client import EsaClient
 from ..common.runtime import OnUnavailable, check_on_unavailable
@@ -15,9 +16,8 @@ class EsaService:
     """Where the EnvRunners' sessions live (the ``service`` of :func:`~esa_client.rllib.with_esa`).
 
     With no address and no Zenoh locator, each EnvRunner keeps its sessions in its own
-    process (esa-core, ``EsaClient.in_process()``): nothing is started, and nothing outlives
-    the runner. Servers given by ``address`` or ``zenoh`` are started by you (``esa-server``,
-    or the Kubernetes manifests of ``deploy/``, whose README shows sharding).
+    process (``EsaClient.in_process()``); servers given by ``address`` or ``zenoh`` are yours
+    to start (``esa-server``, or the manifests of ``deploy/``).
 
     Args:
         address: A running server over gRPC, ``host:port`` or ``unix:/path``, reachable
@@ -34,10 +34,9 @@ class EsaService:
         reconnect_timeout: Seconds a runner's batch keeps retrying a lost server before
             ``on_unavailable`` applies.
         on_unavailable: ``"raise"`` (default): the runner's step raises
-            ``ServerUnavailable`` after one more reconnection, and the runner fails as for
-            any error of its env; ``"skip"``: its envs execute the sampled actions without
-            ESA until an episode of one of them starts, where the server is tried again
-            (counted as ``env_runners/esa/unavailable_steps``).
+            ``ServerUnavailable`` after one more reconnection; ``"skip"``: its envs execute
+            the sampled actions until an episode starts, where the server is tried again
+            (``env_runners/esa/unavailable_steps``).
     """
 
     address: str | None = None
@@ -85,26 +84,17 @@ class EsaService:
         """
         if self.in_process:
             return EsaClient.in_process()
+        zenoh: dict[str, Any] = {}
         if self.zenoh is not None:
-            client = EsaClient.connect(
-                self.zenoh,
-                transport="zenoh",
-                shards=self.shards,
-                prefix=self.zenoh_prefix,
-                timeout=self.timeout,
-                token_file=self.token_file,
-                check=False,
-                reconnect_timeout=self.reconnect_timeout,
-            )
-        else:
-            assert self.address is not None  # not in-process
-            client = EsaClient.connect(
-                self.address,
-                timeout=self.timeout,
-                token_file=self.token_file,
-                check=False,
-                reconnect_timeout=self.reconnect_timeout,
-            )
+            zenoh = {"transport": "zenoh", "shards": self.shards, "prefix": self.zenoh_prefix}
+        client = EsaClient.connect(
+            self.zenoh if self.zenoh is not None else cast(str, self.address),
+            timeout=self.timeout,
+            token_file=self.token_file,
+            check=False,
+            reconnect_timeout=self.reconnect_timeout,
+            **zenoh,
+        )
         try:
             client.check(self.startup_timeout if wait is None else wait)
         except BaseException:
@@ -113,9 +103,7 @@ class EsaService:
         return client
 
     def check(self) -> None:
-        """Checks from this process, within ``timeout``, that the servers answer.
-
-        And that they take the token; nothing is checked in-process.
+        """Checks from this process, within ``timeout``, that the servers answer and take the token.
 
         Raises:
             ServerUnavailable: If no server answers.
