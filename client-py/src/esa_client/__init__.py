@@ -10,12 +10,10 @@ Quick start::
         probes = batch.probe(actions, episode_starts)       # (4, 1)
         improved = batch.report(critic(observations, probes))  # (4, 1)
 
-One class, three ways to build it: ``EsaClient.connect(address)`` for a running server
-(``transport="zenoh"`` over Zenoh, extra ``esa-client[zenoh]``, ``shards=N`` for N of
-them), ``EsaClient.spawn(...)`` for a private one, ``EsaClient.in_process()`` for esa-core
-in this process; the transports are in :mod:`esa_client.transports`. Stable-baselines3
-drop-ins live in :mod:`esa_client.sb3`, RLlib's in :mod:`esa_client.rllib`, gymnasium
-wrappers in :mod:`esa_client.wrappers` and :mod:`esa_client.vector_wrapper`.
+``EsaClient.connect(address)`` reaches a running server, ``EsaClient.spawn()`` a private one
+and ``EsaClient.in_process()`` esa-core in this process. Stable-baselines3 drop-ins live in
+:mod:`esa_client.sb3`, RLlib's in :mod:`esa_client.rllib`, gymnasium wrappers in
+:mod:`esa_client.wrappers` and :mod:`esa_client.vector_wrapper`.
 """
 
 from importlib import metadata as _metadata

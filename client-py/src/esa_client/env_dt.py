@@ -6,11 +6,7 @@ from typing import Any
 
 
 def _first(env: Any, name: str) -> Any:
-    """Reads attribute ``name`` through wrappers, or from env 0 of a vector env.
-
-    A gymnasium env reads it through its wrappers; an SB3 ``VecEnv`` and a gymnasium vector
-    env (whose ``get_attr`` takes no indices) from their first env.
-    """
+    """Reads attribute ``name`` through wrappers, or from env 0 of a vector env (None if none)."""
     try:
         if hasattr(env, "num_envs"):
             # A gymnasium vector wrapper has no get_attr: its unwrapped vector env has.
@@ -25,11 +21,7 @@ def _first(env: Any, name: str) -> Any:
 
 
 def env_dt(env: Any, override: float | None = None) -> float:
-    """Returns seconds per environment step.
-
-    Order: ``override`` if given; else the environment's ``dt`` attribute (MuJoCo
-    envs define it as ``frame_skip * model.opt.timestep``, classic-control ones as a
-    constant); else ``1 / metadata["render_fps"]``.
+    """Returns seconds per environment step: ``override``, else ``dt``, else ``1 / render_fps``.
 
     Args:
         env: A gymnasium environment (possibly wrapped), a gymnasium vector env or an SB3

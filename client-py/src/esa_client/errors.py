@@ -1,8 +1,7 @@
 """Typed exceptions for everything the esa server (or the connection to it) can report.
 
-Every transport builds them through :func:`error_for`, from the code and failing item as
-data (a ``StreamError``, or the extension's errors through :class:`TypedErrors`), never read
-from a message.
+Every transport builds them with :func:`error_for` from the code and failing item as data,
+never read from a message.
 """
 
 from __future__ import annotations
@@ -17,9 +16,7 @@ from ._proto.esa.v1 import esa_pb2
 class StatusCode(enum.IntEnum):
     """The status codes of the esa contract: gRPC's canonical codes, names and numbers.
 
-    The client's own enum, so that no transport's errors need grpcio: an in-process or
-    Zenoh error carries the same code as a gRPC one. ``int(code)`` is the number sent on
-    the wire (``StreamError.code``).
+    The client's own, so that no transport needs grpcio; ``int(code)`` is the wire's number.
     """
 
     OK = 0
@@ -97,17 +94,15 @@ class StepMismatch(EsaError):
 class ResourceExhausted(EsaError):
     """A server limit is reached (``RESOURCE_EXHAUSTED``).
 
-    The message names the limit: live sessions (``--max-sessions``), session memory
-    (``--max-session-memory``), the size of one request (``--max-message-bytes``) or the
-    request memory of all calls in flight (``--max-request-memory``).
+    The message names the limit (``--max-sessions``, ``--max-session-memory``,
+    ``--max-message-bytes`` or ``--max-request-memory``).
     """
 
 
 class Unauthenticated(EsaError, PermissionError):
     """The server requires an auth token and none, or another one, was sent (``UNAUTHENTICATED``).
 
-    Give the client the server's token: ``EsaClient.connect(..., token=...)``,
-    ``token_file=...`` or the ``ESA_AUTH_TOKEN`` environment variable.
+    Give it as ``EsaClient.connect(..., token=...)``, ``token_file=...`` or ``$ESA_AUTH_TOKEN``.
     """
 
 
@@ -139,8 +134,7 @@ def error_for(code: StatusCode | int, message: str, index: int | None = None) ->
     """The typed exception for a failure, whichever transport reported it.
 
     Args:
-        code: The status code, or its number (as ``StreamError.code``, grpcio's status
-            and the in-process engine's errors carry it).
+        code: The status code, or its number.
         message: What went wrong; empty gives the code's name.
         index: The failing batch item, or None.
 
@@ -152,15 +146,7 @@ def error_for(code: StatusCode | int, message: str, index: int | None = None) ->
 
 
 def esa_error(source: esa_pb2.StreamError) -> EsaError:
-    """Maps a ``StreamError`` message to the matching :class:`EsaError` subclass.
-
-    Args:
-        source: A ``StreamError`` (status code number, message and failing item), as
-            ``StepStream`` answers in-band and Zenoh replies carry.
-
-    Returns:
-        The typed exception, ready to raise; unknown codes give a plain :class:`EsaError`.
-    """
+    """The typed exception of a ``StreamError`` (as a ``StepStream`` or a Zenoh reply carries)."""
     index = source.item.index if source.HasField("item") else None
     return error_for(source.code, source.message, index)
 
@@ -176,12 +162,11 @@ class StatusLike(Protocol):
 class TypedErrors:
     """A context that re-raises ``esa_client._native``'s errors as the server's typed ones.
 
-    A class rather than ``contextlib.contextmanager``: it runs on every round trip, and a
-    generator-based context costs about as much as the in-process engine's own call.
+    A class, not ``contextlib.contextmanager``: it runs on every round trip, and a generator
+    context costs about as much as the in-process engine's own call.
 
     Args:
-        native: The extension's exception class whose instances to translate (their
-            ``code``, ``message`` and ``index`` go to :func:`error_for`).
+        native: The extension's exception class whose instances to translate.
     """
 
     def __init__(self, native: type[Exception]) -> None:

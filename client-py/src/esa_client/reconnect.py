@@ -37,19 +37,16 @@ def check_reconnect_timeout(timeout: float) -> float:
 class Reconnect:
     """How long, and how often, to repeat a call that the wire failed.
 
-    A call failing with :data:`RetriableErrors` is repeated after a pause that doubles from
-    ``initial_backoff`` up to ``max_backoff``, each pause drawn between half and all of it
-    so that many trainers do not reconnect in lockstep.
+    The pause doubles from ``initial_backoff`` up to ``max_backoff``, each drawn between half
+    and all of it so that many trainers do not reconnect in lockstep.
 
     Args:
         address: The server(s), for the message of the final error.
-        timeout: Seconds from the first failure after which the last error is raised
-            (as ``ServerUnavailable`` naming the address and the time waited); 0 raises
-            the first error at once.
+        timeout: Seconds from the first failure after which ``ServerUnavailable`` is
+            raised; 0 raises the first error at once.
         initial_backoff: The first pause, in seconds.
         max_backoff: The cap of the doubling pause, in seconds.
-        closed: True once retrying is pointless (the client was closed): the error is
-            then raised at once.
+        closed: True once retrying is pointless (the client was closed).
     """
 
     address: str
@@ -67,14 +64,13 @@ class Reconnect:
         """Returns ``attempt(retrying)``, repeated while the wire fails, up to the deadline.
 
         Args:
-            attempt: The call; its argument is False the first time and True on every
-                repetition (after a failure of the wire: the state of the sessions is
-                then unknown, and the attempt may first look at it).
+            attempt: The call; its argument is True on a repetition, when the state of the
+                sessions is unknown and the attempt may first look at it.
             sleep: How to pause (tests replace it).
 
         Raises:
-            ServerUnavailable: Still failing after ``timeout`` seconds (the message names
-                the address and how long it waited; the last error is its cause).
+            ServerUnavailable: Still failing after ``timeout`` seconds (the last error is
+                its cause).
             EsaError: Any other error of ``attempt``, at once.
         """
         start = time.monotonic()

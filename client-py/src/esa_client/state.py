@@ -1,8 +1,6 @@
 """What every session implementation shares: the state snapshot and the argument checks.
 
-:class:`SessionState` is what a transport's ``get_session`` returns; the checks turn
-caller arguments into the arrays a transport takes, with the same messages everywhere
-(``esa_client.session`` over any transport, and the tests' numpy reference of the law).
+The checks turn caller arguments into a transport's arrays with the same messages everywhere.
 """
 
 from __future__ import annotations
@@ -31,10 +29,8 @@ BoolArray = npt.NDArray[np.bool_]
 class SessionProgress:
     """What a session keeps across episodes besides its config (``esa.v1.SessionProgress``).
 
-    The episode count (and with it the progress of ``lr_decay`` and ``max_episodes``) and the
-    response normalization's running mean square. Batch answers carry it for every session; a
-    session the server lost is recreated with the progress the client last saw
-    (:meth:`esa_client.EsaClient.restore_sessions`).
+    Batch answers carry it for every session; a session the server lost is recreated with
+    the progress the client last saw (:meth:`esa_client.EsaClient.restore_sessions`).
 
     Attributes:
         episodes_completed: Number of completed episodes e.
@@ -70,8 +66,7 @@ class SessionProgress:
 
         Args:
             episodes: ``episodes_completed``, one per session.
-            mean_squares: ``response_mean_squares``: one per session, -1 where m is unset, or
-                empty when no session normalizes.
+            mean_squares: ``response_mean_squares``: one per session (-1: unset), or none.
         """
         counts = np.asarray(episodes, dtype=np.uint64).tolist()
         values = np.asarray(mean_squares, dtype=np.float64).tolist()
@@ -156,18 +151,11 @@ def check_array(
     finite: bool = False,
     error: Callable[[str], Exception] = ValueError,
 ) -> npt.NDArray[Any]:
-    """Returns ``values`` as a ``dtype`` array, checking its shape (and finiteness).
-
-    Args:
-        values: A batch argument, e.g. the actions.
-        shape: The shape it must have.
-        name: The argument's name, for the message.
-        dtype: The array's dtype.
-        finite: Also require every value to be finite.
-        error: Builds the exception from the message (``ValueError`` by default).
+    """Returns ``values`` as a ``dtype`` array named ``name``, checking its shape (and finiteness).
 
     Raises:
-        Exception: Built by ``error``, if the shape is wrong or a value is not finite.
+        Exception: Built by ``error`` from the message, if the shape is wrong or a value is
+            not finite.
     """
     out = np.asarray(values, dtype=dtype)
     if out.shape != shape:

@@ -1,8 +1,7 @@
 """``EsaVectorWrapper``: ESA for a gymnasium vector env, one batched critic call per step.
 
-The wrapper wraps the ``VectorEnv`` itself, not its sub-envs: the critic and the ESA sessions
-stay in the trainer's process, so it is safe with ``AsyncVectorEnv`` (whose sub-envs live in
-worker processes that never see the critic) as with ``SyncVectorEnv``.
+It wraps the ``VectorEnv`` itself, so the critic and the sessions stay in the trainer's
+process, safe with ``AsyncVectorEnv`` as with ``SyncVectorEnv``.
 """
 
 from __future__ import annotations
@@ -22,8 +21,7 @@ from .wrappers import WrapperSessions
 BatchQFunction = Callable[[Any, np.ndarray], npt.ArrayLike]
 """``q_fn(obs_batch, actions_batch) -> (M,)``: the critic at M state-action pairs at once.
 
-``obs_batch`` holds M observations (the vector env's batched observation, stacked twice when
-the response is paired), ``actions_batch`` has shape ``(M, *single_action_shape)``.
+``obs_batch`` is the batched observation (twice, stacked, when the response is paired).
 """
 
 BatchActionScale = float | np.ndarray | Callable[[Any], npt.ArrayLike]
@@ -43,17 +41,11 @@ def _stack_obs(obs: Any) -> Any:
 class EsaVectorWrapper(gym.vector.VectorWrapper):
     """Improves the actions of all N envs of a vector env with ESA, one critic call per step.
 
-    Each ``step(actions)`` probes the N sessions in one batch, evaluates
-    ``q_fn(obs_batch, actions_batch)`` once (at the N probes, and with ``paired_response``
-    at the N applied actions as well: 2N rows in one call), reports (with the next step's
-    probe: :meth:`~esa_client.session.SessionBatch.step`, one round trip a step), and steps
-    the vector env with Algorithm 1's actions ``a_t + v(t)``, returned as
-    ``info["esa_action"]`` (shape ``(N, *single_action_shape)``) so that a learner stores what
-    the envs executed.
-
-    Episodes follow the vector env's autoreset mode: an env that ends starts a new ESA
-    episode with its next real action (in ``NEXT_STEP`` mode, the step after the reset step,
-    whose action the env ignores).
+    Each ``step(actions)`` evaluates ``q_fn`` once (at the N probes, and with
+    ``paired_response`` at the N applied actions too), and steps the envs with Algorithm 1's
+    actions ``a_t + v(t)``, also ``info["esa_action"]`` for the learner to store. An env
+    that ends starts a new ESA episode with its next real action (under ``NEXT_STEP``
+    autoreset, the step after the reset step, whose action the env ignores).
 
     Example::
 
@@ -64,13 +56,10 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         env: A vector env with a ``Box`` single action space.
         q_fn: ``q_fn(obs_batch, actions_batch) -> (M,)``, called once per step.
         esa: ESA hyperparameters (default ``EsaConfig()``).
-        client: Where the sessions live, as for
-            :class:`~esa_client.wrappers.WrapperSessions`: a client (it stays yours), an
-            address string, or None: esa-core in this process (no server).
-        action_scale: sigma (the policy's standard deviation if the learner has one): a
+        client: Where the sessions live, as for :class:`~esa_client.wrappers.WrapperSessions`.
+        action_scale: sigma, the policy's standard deviation if the learner has one: a
             scalar, one value per action dimension, ``(N, D)``, or ``f(obs_batch)``.
-        dt: The envs' control period; None = ``esa.dt``, else read from the first sub-env
-            (:func:`~esa_client.env_dt.env_dt`: its ``dt``, else ``1 / render_fps``).
+        dt: The envs' control period; None = ``esa.dt``, else the first sub-env's.
     """
 
     def __init__(

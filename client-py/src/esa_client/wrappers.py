@@ -30,8 +30,8 @@ class WrapperSessions:
         dt: The envs' control period.
         esa: ESA hyperparameters (None: ``EsaConfig()``).
         client: Where the sessions live: a client (it stays the caller's), a string
-            :meth:`EsaClient.open` parses (an address; the wrapper closes that client), or
-            None: ``EsaClient.in_process()`` (esa-core in this process, no server).
+            :meth:`EsaClient.open` parses (the wrapper closes that client), or None:
+            ``EsaClient.in_process()``.
 
     Raises:
         ValueError: If ``space`` is not a ``Box`` or an ESA setting does not fit the env.
@@ -75,14 +75,10 @@ class WrapperSessions:
 class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     """Improves every action the agent takes with ESA before the env sees it.
 
-    For each ``step(action)``: the action is probed around, ``q_fn(obs, probe)``
-    scores the probe at the current observation (and, with ``paired_response``, the
-    applied action too), and the wrapped env executes Algorithm 1's action
-    ``a_t + v(t)``. ``info["esa_action"]`` holds that applied action, so a learner can
-    store it, as the paper does. Each ``reset`` starts a new ESA episode.
-
-    The session is a one-env :class:`~esa_client.SessionBatch`, which rides out a server
-    that restarts or stalls.
+    For each ``step(action)``, ``q_fn(obs, probe)`` scores the probe (and, with
+    ``paired_response``, the applied action), and the env executes Algorithm 1's action
+    ``a_t + v(t)``, also ``info["esa_action"]`` for the learner to store. Each ``reset``
+    starts a new ESA episode.
 
     Example::
 
@@ -91,14 +87,10 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     Args:
         env: A gymnasium env with a ``Box`` action space.
         q_fn: ``q_fn(observation, action) -> float``, evaluated once per step.
-        esa: ESA hyperparameters (default ``EsaConfig()``); amplitudes are in the env's
-            action units.
-        client: Where the session lives, as for :class:`WrapperSessions`: a client (any of
-            ``EsaClient.connect``, ``.spawn``, ``.in_process``), an address string, or
-            None: esa-core in this process (no server is started).
-        action_scale: sigma for the trust region and the normalized step (the policy's
-            standard deviation if the learner has one): a scalar, one value per action
-            dimension, or ``f(observation)``; None = 1 action unit.
+        esa: ESA hyperparameters (default ``EsaConfig()``), in the env's action units.
+        client: Where the session lives, as for :class:`WrapperSessions`.
+        action_scale: sigma, the policy's standard deviation if the learner has one: a
+            scalar, one value per action dimension, or ``f(observation)``; None = 1.
     """
 
     def __init__(
@@ -111,7 +103,6 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         action_scale: ActionScale | None = None,
     ) -> None:
         """Creates the ESA session for this env."""
-        # Recorded so that gymnasium can re-create the wrapper from the env spec.
         gym.utils.RecordConstructorArgs.__init__(
             self, q_fn=q_fn, esa=esa, client=client, action_scale=action_scale
         )
