@@ -16,7 +16,7 @@ export MUJOCO_GL ?= egl
 PY_PACKAGES := client-py experiments tests
 PY_LINT := $(PY_PACKAGES) server-py bench deploy/container tools/docs
 # rllib: Ray RLlib, so that make test also runs the RLlib tests (client-py/tests/test_rllib*.py).
-PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,zoo,dev,docs]" -e "experiments[dev]"
+PY_EXTRAS := -e "client-py[sb3,zenoh,rllib,zoo,compare,dev,docs]" -e "experiments[dev]"
 
 .PHONY: help setup build venv demo test test-rust test-python test-node lint buf fmt bench soak clean
 

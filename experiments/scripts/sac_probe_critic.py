@@ -22,13 +22,13 @@ import numpy as np
 import pandas as pd
 import torch as th
 import tyro
+from esa_client.compare.tables import to_markdown
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
 
 from esa_experiments.configs import algorithm_hyperparams
 from esa_experiments.lab.off_policy_arms import PROBE_CRITICS
 from esa_experiments.runs import EXPERIMENTS_DIR, atomic_write_text
-from esa_experiments.tables import to_markdown
 
 
 @dataclass

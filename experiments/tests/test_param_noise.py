@@ -4,13 +4,13 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from esa_client.compare.evaluation import noise_free
 
 from esa_experiments.param_noise import (
     AdaptiveParamNoise,
     PPOParamNoise,
     SACParamNoise,
     action_distance,
-    noise_free,
 )
 
 

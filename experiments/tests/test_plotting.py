@@ -2,10 +2,9 @@
 
 import numpy as np
 import pandas as pd
+from esa_client.compare.plotting import Panel, iqm_band, learning_curves
+from esa_client.compare.reliability import iqm_curve
 from matplotlib.figure import Figure
-
-from esa_experiments.plotting import Panel, _band, learning_curves
-from esa_experiments.reliability import iqm_curve
 
 
 def runs(returns_by_seed):
@@ -22,7 +21,7 @@ def test_band_draws_the_iqm_and_its_ci_on_the_steps_every_seed_reached():
     # The last seed stopped one evaluation early: the curve ends where all four have a value.
     frame = runs([[0.0, 10.0, 50.0], [0.0, 20.0, 60.0], [0.0, 30.0, 70.0], [0.0, 900.0]])
     ax = Figure().subplots()
-    _band(ax, frame, "step", "return_mean", "PPO")
+    iqm_band(ax, frame, "step", "return_mean", "PPO")
     line = ax.lines[0]
     np.testing.assert_array_equal(line.get_xdata(), [0, 1000])
     np.testing.assert_allclose(line.get_ydata(), [0.0, 25.0])

@@ -2,10 +2,15 @@
 
 import numpy as np
 import pytest
+from esa_client.compare.reliability import (
+    REPS,
+    SEED,
+    iqm_curve,
+    probability_of_improvement,
+    verdict,
+)
 from rliable import library as rly
 from rliable import metrics
-
-from esa_experiments.reliability import REPS, SEED, iqm_curve, probability_of_improvement, verdict
 
 
 @pytest.mark.parametrize(

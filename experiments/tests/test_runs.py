@@ -78,14 +78,16 @@ def test_store_lifecycle(tmp_path):
 
 
 def test_run_finished_meanwhile_by_another_runner_is_not_run_again(tmp_path):
-    from esa_experiments.execution import run_one
+    from esa_client.compare.execution import run_one
+
+    from esa_experiments.studies import StudyJob
 
     store = RunStore("s", "smoke", tmp_path)
     store.write(spec(), result())
-    outcome = run_one(spec(), tmp_path)
+    outcome = run_one(spec(), StudyJob(tmp_path))
     assert outcome.skipped and outcome.error is None
     # A run not done yet is run (and fails here: there is no study "s").
-    other = run_one(spec(seed=1), tmp_path)
+    other = run_one(spec(seed=1), StudyJob(tmp_path))
     assert not other.skipped and "s" in (other.error or "")
 
 

@@ -3,10 +3,10 @@
 import numpy as np
 import pandas as pd
 import pytest
+from esa_client.compare.tables import summary, to_markdown
 
 from esa_experiments.reporting import budget_table, update_results, write_verdicts
 from esa_experiments.runs import RunStore
-from esa_experiments.tables import summary, to_markdown
 from esa_experiments.training import StepBudget
 
 

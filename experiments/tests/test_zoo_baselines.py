@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from esa_client.compare.training import FrozenNormalization
 from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
@@ -18,7 +19,7 @@ from esa_experiments.configs import algorithm_hyperparams
 from esa_experiments.runs import RunStore
 from esa_experiments.studies import seeking, zoo_baselines
 from esa_experiments.tasks import get_task
-from esa_experiments.training import FrozenNormalization, rl_spec
+from esa_experiments.training import rl_spec
 
 CLASSES = {"ppo": PPO, "sac": SAC, "td3": TD3}
 ZOO_CASES = [(arm, env) for arm, entries in ZOO_ENTRIES.items() for env in entries]

@@ -22,7 +22,7 @@ from rich.console import Console
 from tyro.conf import Positional, arg, subcommand
 
 from esa_experiments.runs import BUDGETS, EXPERIMENTS_DIR, RunStore, parse_seeds
-from esa_experiments.studies import STUDY_NAMES, Study, load_study
+from esa_experiments.studies import STUDY_NAMES, Study, StudyJob, load_study
 
 
 class CliError(Exception):
@@ -121,7 +121,7 @@ def _list(root: Path, console: Console) -> None:
 
 
 def _run(options: Run, root: Path, console: Console) -> int:
-    from esa_experiments.execution import execute
+    from esa_client.compare.execution import execute
 
     study = _study(options)
     try:
@@ -145,7 +145,7 @@ def _run(options: Run, root: Path, console: Console) -> int:
         for spec in pending:
             console.print(f"  would run {spec.label} ({spec.config['total_steps']} steps)")
         return 0
-    outcomes = execute(pending, options.jobs, root, console)
+    outcomes = execute(pending, options.jobs, StudyJob(root, (study.NAME,)), console)
     failed = [o for o in outcomes if o.error]
     for outcome in failed:
         console.print(f"[red]FAILED[/] {outcome.spec.label}\n{outcome.error}")

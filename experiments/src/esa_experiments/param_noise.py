@@ -35,7 +35,8 @@ Implementation choices (the paper leaves them open for PPO and SAC):
   adapted every ``adaptation_interval`` steps on a replay batch (50 as in
   OpenAI baselines).
 
-Evaluation must use the unperturbed policy: use :func:`noise_free` around it.
+Evaluation must use the unperturbed policy: use
+:func:`esa_client.compare.evaluation.noise_free` around it.
 """
 
 from __future__ import annotations
@@ -49,7 +50,6 @@ from typing import Any, cast
 import numpy as np
 import torch as th
 from stable_baselines3 import PPO, SAC
-from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import Logger
@@ -149,17 +149,6 @@ def _shifted(
         with th.no_grad():
             for name, p in parameters.items():
                 p.sub_(eps[name], alpha=sign)
-
-
-@contextlib.contextmanager
-def noise_free(model: BaseAlgorithm) -> Iterator[None]:
-    """Runs the body with ``model``'s unperturbed policy (for evaluation).
-
-    Models without parameter noise are left untouched.
-    """
-    suspend = getattr(model, "unperturbed", None)
-    with suspend() if suspend is not None else contextlib.nullcontext():
-        yield
 
 
 class PPOParamNoise(PPO):

@@ -14,11 +14,11 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import pandas as pd
+from esa_client.compare.plotting import Panel, learning_curves
+from esa_client.compare.tables import exploration_stats, summary, to_markdown
 
 from esa_experiments.algorithms import BASELINE_OF, LABELS
-from esa_experiments.plotting import Panel, learning_curves
 from esa_experiments.runs import RunStore, atomic_write_text
-from esa_experiments.tables import exploration_stats, summary, to_markdown
 from esa_experiments.tasks import TASKS
 from esa_experiments.training import StepBudget
 

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from esa_client.compare.tables import per_seed
 
 from esa_experiments.runs import EXPERIMENTS_DIR, RunSpec, RunStore
-from esa_experiments.tables import per_seed
 
 
 @dataclass(frozen=True)

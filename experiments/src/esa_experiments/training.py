@@ -5,12 +5,8 @@ Shared by every RL study. A run's
 ``eval_episodes``, ``hyperparams``), so the run is reproducible from its sidecar.
 
 A run whose hyperparameters say ``normalize`` (RL Zoo3's ``normalize: true``, the
-``ppo_zoo`` arm of study ``zoo_baselines``) trains on a ``VecNormalize`` of its envs
-(observations and rewards, discounted with the run's ``gamma``, SB3's defaults otherwise:
-what the zoo does). Its evaluation sees the observations normalized with the training
-statistics as they are at that moment, never updated by evaluation
-(:class:`FrozenNormalization`), and the env's own rewards: its returns are the env's, like
-every other run's.
+``ppo_zoo`` arm of study ``zoo_baselines``) trains on a ``VecNormalize`` of its envs, and
+is evaluated as :mod:`esa_client.compare.training` says (the code ``esa-compare`` runs).
 """
 
 from __future__ import annotations
@@ -20,14 +16,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-import gymnasium as gym
-import numpy as np
+from esa_client.compare import training as compare_training
+from esa_client.compare.evaluation import EvalSettings, ProgressFn
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from esa_experiments.algorithms import build_model, get_method, resolve_hyperparams
-from esa_experiments.evaluation import EvalSettings, ProgressFn, train_and_evaluate
 from esa_experiments.runs import RunResult, RunSpec
 from esa_experiments.tasks import get_task
 
@@ -115,31 +108,6 @@ def rl_spec(
     return RunSpec(study, env, variant or method, seed, budget_name, config)
 
 
-class FrozenNormalization(gym.ObservationWrapper[np.ndarray, np.ndarray, np.ndarray]):
-    """The evaluation env of a normalized run: observations as its policy sees them in training.
-
-    Each observation is normalized with ``stats``' running mean and variance as they are when
-    it comes (``VecNormalize.normalize_obs``, which updates nothing); rewards pass unchanged.
-    RL Zoo3 evaluates the same way (a copy of the training statistics, not trained, rewards
-    not normalized).
-
-    Args:
-        env: the evaluation env.
-        stats: the training envs' ``VecNormalize``.
-    """
-
-    def __init__(self, env: gym.Env[np.ndarray, np.ndarray], stats: VecNormalize) -> None:
-        """Wraps ``env``."""
-        super().__init__(env)
-        self.stats = stats
-
-    def observation(self, observation: np.ndarray) -> np.ndarray:
-        """The observation normalized with the training statistics of now."""
-        normalized = self.stats.normalize_obs(observation)
-        assert isinstance(normalized, np.ndarray)
-        return normalized
-
-
 @contextlib.contextmanager
 def trained(spec: RunSpec, progress: ProgressFn) -> Iterator[tuple[RunResult, BaseAlgorithm]]:
     """Trains the run's model and yields its result and the trained model.
@@ -148,35 +116,23 @@ def trained(spec: RunSpec, progress: ProgressFn) -> Iterator[tuple[RunResult, Ba
     ESA and parameter-noise statistics, losses) as the extra table ``log``, and
     the mean of each ``esa/`` and ``param_noise/`` statistic in the sidecar.
 
-    Everything (envs, ESA server) is closed when the block exits. With ``normalize`` the
-    envs are normalized (see the module docstring).
+    Everything (envs, ESA server) is closed when the block exits
+    (:func:`esa_client.compare.training.trained`).
     """
     config = spec.config
     hyperparams = config["hyperparams"]
-    task = get_task(spec.env)
-    env: VecEnv = make_vec_env(task.make, n_envs=hyperparams.get("n_envs", 1), seed=spec.seed)
-    eval_env: gym.Env[Any, Any] = task.make()
-    if hyperparams.get("normalize"):
-        stats = VecNormalize(env, gamma=hyperparams["gamma"])
-        env, eval_env = stats, FrozenNormalization(eval_env, stats)
-    model: BaseAlgorithm | None = None
-    try:
-        model = build_model(config["method"], env, spec.seed, config["hyperparams"])
-        settings = EvalSettings(every=config["eval_every"], episodes=config["eval_episodes"])
-        frame, log = train_and_evaluate(
-            model, config["total_steps"], eval_env, settings, spec.seed, progress
-        )
-        means = {
-            f"mean {key}": float(log[key].mean())
-            for key in log.columns
-            if key.startswith(("esa/", "param_noise/")) or key == "train/approx_kl"
-        }
-        yield RunResult(frame, means, {"log": log}), model
-    finally:
-        if model is not None and hasattr(model, "esa_close"):
-            model.esa_close()
-        env.close()
-        eval_env.close()
+    with compare_training.trained(
+        get_task(spec.env).make,
+        lambda env: build_model(config["method"], env, spec.seed, hyperparams),
+        seed=spec.seed,
+        n_envs=hyperparams.get("n_envs", 1),
+        normalize={} if hyperparams.get("normalize") else None,
+        gamma=hyperparams.get("gamma", 0.99),
+        total_steps=config["total_steps"],
+        settings=EvalSettings(every=config["eval_every"], episodes=config["eval_episodes"]),
+        progress=progress,
+    ) as trained_run:
+        yield trained_run
 
 
 def run_training(spec: RunSpec, progress: ProgressFn) -> RunResult:

@@ -14,8 +14,9 @@ ESA overhead ratio). On a shared machine the CPU time is the steadier one.
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,8 +26,6 @@ import pandas as pd
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import KVWriter, Logger
-
-from esa_experiments.param_noise import noise_free
 
 ProgressFn = Callable[[int], None]
 """Called with the number of environment steps done so far."""
@@ -54,6 +53,18 @@ class EvalSettings:
                 "expected every >= 1 and episodes >= 1, "
                 f"got every={self.every}, episodes={self.episodes}"
             )
+
+
+@contextlib.contextmanager
+def noise_free(model: BaseAlgorithm) -> Iterator[None]:
+    """Runs the body with ``model``'s unperturbed policy (for evaluation).
+
+    A model that perturbs its policy's parameters to explore has an ``unperturbed()``
+    context manager that suspends the perturbation; any other model is left untouched.
+    """
+    suspend = getattr(model, "unperturbed", None)
+    with suspend() if suspend is not None else contextlib.nullcontext():
+        yield
 
 
 def run_episodes(

@@ -3,9 +3,12 @@
 Workers are ``spawn``-ed processes (fresh interpreters: no forked torch or
 gRPC state) limited to one torch/BLAS thread each, so ``--jobs N`` uses N
 cores. Each worker trains one run at a time and writes its results itself
-(atomically, see :mod:`esa_experiments.runs`), so an interrupted session
+(atomically, see :mod:`esa_client.compare.runs`), so an interrupted session
 loses only the runs in flight. Progress comes back through a queue, at most a
 few messages per second per job.
+
+What a run is comes from a :class:`Job`: ``esa-compare``'s trains one arm on the user's
+env, the experiments' studies' look the run up in its study.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing.context import SpawnContext
 from multiprocessing.managers import SyncManager
-from pathlib import Path
+from typing import Protocol
 
 from rich.console import Console
 from rich.progress import (
@@ -37,11 +40,30 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from esa_experiments.evaluation import ProgressFn
-from esa_experiments.runs import RunSpec, RunStore
+from esa_client.compare.evaluation import ProgressFn
+from esa_client.compare.runs import RunFolder, RunResult, RunSpec
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 _REPORT_INTERVAL = 0.5  # seconds between two progress messages of one job
+
+
+class Job(Protocol):
+    """What the workers do with a run; pickled into spawned workers, so module-level state.
+
+    ``uses_server`` in a spec's config asks for the esa-server binary to be pinned first.
+    """
+
+    def folder(self, spec: RunSpec) -> RunFolder:
+        """Where the run's results go."""
+        ...
+
+    def prepare(self) -> None:
+        """Imports the run code, once per worker, when the worker starts."""
+        ...
+
+    def run(self, spec: RunSpec, progress: ProgressFn) -> RunResult:
+        """Trains and evaluates the run."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -69,39 +91,28 @@ def pin_server_binary() -> str:
     itself (possibly running ``cargo build``, and possibly getting a different
     build midway through a study); resolving it here (building at most once)
     keeps all runs of a session on one binary. The lookup is the client's
-    (:func:`esa_client.sidecar.find_server_binary`: ``ESA_SERVER_BIN``, the
-    ``esa-server`` wheel, then a checkout's build), with this
-    repository as the checkout when experiments runs from one.
+    (:func:`esa_client.sidecar.find_server_binary`).
     """
     from esa_client.sidecar import BINARY_ENV, find_server_binary
 
-    path = str(find_server_binary(checkout=Path(__file__).resolve().parents[3]))
+    path = str(find_server_binary())
     os.environ[BINARY_ENV] = path
     return path
 
 
-def _init_worker(studies: list[str]) -> None:
+def _init_worker(job: Job) -> None:
+    """Pins torch to one thread and imports the run code when the worker starts.
+
+    The run code's imports are otherwise lazy, so a runner going for hours would load code
+    from the working tree as it is at each worker's first run of a kind, and a file caught
+    half-edited would fail runs at 0 s. Imported here, a worker runs the code of its start
+    throughout.
+    """
     import torch
 
     torch.set_num_threads(1)
     _die_with_runner()
-    _import_run_code(studies)
-
-
-def _import_run_code(studies: list[str]) -> None:
-    """Imports the trainers and the runs' studies when the worker starts, not at its first run.
-
-    Their imports are otherwise lazy, so a runner going for hours would load code from the
-    working tree as it is at each worker's first run of a kind, and a file caught
-    half-edited would fail runs at 0 s. Imported here, a worker runs the code of its start
-    throughout.
-    """
-    import esa_client.sb3  # noqa: F401
-
-    from esa_experiments.studies import load_study
-
-    for name in studies:
-        load_study(name)
+    job.prepare()
 
 
 def _die_with_runner() -> None:
@@ -144,40 +155,38 @@ def _throttled(messages: Messages, job: int) -> ProgressFn:
     return report
 
 
-def run_one(spec: RunSpec, base: Path | None, progress: ProgressFn | None = None) -> Outcome:
+def run_one(spec: RunSpec, job: Job, progress: ProgressFn | None = None) -> Outcome:
     """Runs one run in this process and writes its results; never raises for run errors."""
-    from esa_experiments.studies import load_study
-
     start = time.perf_counter()
-    store = RunStore(spec.study, spec.budget, base)
+    folder = job.folder(spec)
     # Runners may share a results folder (a second machine, a second job list): the list of
     # pending runs was made at start, so look again before minutes of work.
-    if store.status(spec) == "done":
+    if folder.status(spec) == "done":
         return Outcome(spec, 0.0, skipped=True)
     try:
-        result = load_study(spec.study).run(spec, progress or (lambda _: None))
+        result = job.run(spec, progress or (lambda _: None))
         result.meta["seconds"] = time.perf_counter() - start
         if spec.config.get("uses_server"):
             result.meta["esa_server_bin"] = os.environ.get("ESA_SERVER_BIN")
-        store.write(spec, result)
+        folder.write(spec, result)
     except Exception:  # one failed run must not stop the others
         return Outcome(spec, time.perf_counter() - start, traceback.format_exc())
     return Outcome(spec, time.perf_counter() - start)
 
 
-def _worker(spec: RunSpec, base: Path | None, messages: Messages, job: int) -> Outcome:
-    return run_one(spec, base, _throttled(messages, job))
+def _worker(spec: RunSpec, job: Job, messages: Messages, index: int) -> Outcome:
+    return run_one(spec, job, _throttled(messages, index))
 
 
 def execute(
-    specs: list[RunSpec], jobs: int, base: Path | None = None, console: Console | None = None
+    specs: list[RunSpec], jobs: int, job: Job, console: Console | None = None
 ) -> list[Outcome]:
     """Runs ``specs`` on ``jobs`` worker processes, showing one bar per running job.
 
     Args:
         specs: the runs to do (already filtered to the pending ones).
         jobs: number of worker processes (>= 1).
-        base: folder holding the results folders (default: ``experiments/``).
+        job: what a run is and where its results go.
         console: where to draw the progress display.
 
     Returns:
@@ -207,7 +216,7 @@ def execute(
             jobs,
             mp_context=ctx,
             initializer=_init_worker,
-            initargs=(sorted({spec.study for spec in specs}),),
+            initargs=(job,),
         ) as pool,
     ):
         messages = manager.Queue()
@@ -216,17 +225,17 @@ def execute(
         finished: set[int] = set()
         futures: dict[Future[Outcome], int] = {}
         try:
-            for job, spec in enumerate(specs):
-                futures[pool.submit(_worker, spec, base, messages, job)] = job
+            for index, spec in enumerate(specs):
+                futures[pool.submit(_worker, spec, job, messages, index)] = index
             while futures:
                 _drain(messages, progress, bars, finished, specs)
                 for future in [f for f in futures if f.done()]:
-                    job = futures.pop(future)
-                    finished.add(job)
+                    index = futures.pop(future)
+                    finished.add(index)
                     outcome = future.result()
                     outcomes.append(outcome)
-                    if job in bars:
-                        progress.remove_task(bars.pop(job))
+                    if index in bars:
+                        progress.remove_task(bars.pop(index))
                     progress.advance(overall)
                     status = (
                         "[red]FAILED"
@@ -306,3 +315,67 @@ def _drain(
         if job not in bars:
             bars[job] = progress.add_task(specs[job].label, total=specs[job].config["total_steps"])
         progress.update(bars[job], completed=done)
+
+
+def _ray_run(spec: RunSpec, job: Job) -> RunResult:
+    """One run as a Ray task: trained on whichever node Ray chose, written by the driver."""
+    import torch
+
+    torch.set_num_threads(1)
+    job.prepare()
+    start = time.perf_counter()
+    result = job.run(spec, lambda _: None)
+    result.meta["seconds"] = time.perf_counter() - start
+    return result
+
+
+def execute_on_ray(
+    specs: list[RunSpec], address: str, job: Job, console: Console | None = None
+) -> list[Outcome]:
+    """Runs ``specs`` as Ray tasks (one CPU each) on the cluster at ``address``.
+
+    The tasks return their results and this process writes them, so the results folder
+    only needs to exist here. A task whose node is lost is retried by Ray; Ctrl-C cancels
+    the tasks in flight and writes nothing of theirs.
+
+    Args:
+        specs: the runs to do (already filtered to the pending ones).
+        address: the cluster's address (``ray.init``'s: ``auto``, ``ray://host:10001``,
+            or ``local`` for a Ray instance of this machine).
+        job: what a run is and where its results go.
+        console: where to draw the progress display.
+    """
+    import ray
+
+    console = console or Console()
+    ray.init(address=None if address == "local" else address, log_to_driver=False)
+    remote = ray.remote(num_cpus=1, max_retries=3)(_ray_run)
+    console.print(f"Ray: {ray.cluster_resources().get('CPU', 0):.0f} CPUs at {address}")
+    started = time.perf_counter()
+    refs = {remote.remote(spec, job): spec for spec in specs}
+    outcomes: list[Outcome] = []
+    columns = (BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    with _interrupt_on_term(), Progress(*columns, console=console) as progress:
+        overall = progress.add_task("runs", total=len(specs))
+        pending = list(refs)
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1, timeout=1.0)
+                for ref in done:
+                    spec = refs[ref]
+                    seconds = time.perf_counter() - started
+                    try:
+                        result = ray.get(ref)
+                        job.folder(spec).write(spec, result)
+                        outcome = Outcome(spec, float(result.meta["seconds"]))
+                    except Exception:  # one failed run must not stop the others
+                        outcome = Outcome(spec, seconds, traceback.format_exc())
+                    outcomes.append(outcome)
+                    progress.advance(overall)
+                    status = "[red]FAILED" if outcome.error else "[green]done"
+                    progress.console.print(f"{status}[/] {spec.label} ({outcome.seconds:.0f}s)")
+        except KeyboardInterrupt:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise
+    return outcomes

@@ -12,7 +12,7 @@ import pandas as pd
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from esa_experiments.reliability import iqm_curve
+from esa_client.compare.reliability import iqm_curve
 
 STATISTIC = "IQM, 95% bootstrap CI"
 """What every curve and band of these figures shows (legend title)."""
@@ -38,7 +38,7 @@ def _by_seed(runs: pd.DataFrame, x: str, y: str) -> pd.DataFrame:
     return runs.pivot(index="seed", columns=x, values=y).dropna(axis="columns")
 
 
-def _band(ax: Axes, runs: pd.DataFrame, x: str, y: str, label: str, **style: Any) -> object:
+def iqm_band(ax: Axes, runs: pd.DataFrame, x: str, y: str, label: str, **style: Any) -> object:
     """Draws the IQM of ``y`` over seeds with its 95 % bootstrap CI band; returns its colour."""
     curves = _by_seed(runs, x, y)
     iqm, low, high = iqm_curve(curves.to_numpy(float))
@@ -82,7 +82,7 @@ def learning_curves(
                 continue
             seeds = runs.seed.nunique()
             label = f"{labels.get(method, method)} (n={seeds})"
-            line = _band(ax, runs, "step", "return_mean", label)
+            line = iqm_band(ax, runs, "step", "return_mean", label)
             if per_seed:
                 for _, run in runs.groupby("seed"):
                     run = run.sort_values("step")
@@ -96,30 +96,5 @@ def learning_curves(
         ax.set_visible(False)
     if suptitle:
         fig.suptitle(suptitle)
-    fig.savefig(path, dpi=120)
-    return path
-
-
-def example1_figure(frame: pd.DataFrame, labels: dict[str, str], path: Path) -> Path:
-    """The two panels of the paper's Figure 2: J vs time, static and time-varying (IQM, CI)."""
-    fig = Figure(figsize=(12, 4.2), layout="constrained")
-    axes = fig.subplots(1, 2)
-    titles = {"static": "(a) static J(u)", "timevarying": "(b) time-varying J(u, t)"}
-    for ax, env in zip(axes, titles, strict=True):
-        for method, label in labels.items():
-            runs = frame[(frame.env == env) & (frame.method == method)]
-            if runs.empty:
-                continue
-            _band(ax, runs, "t", "J", label)
-            if method == "esc":
-                _band(
-                    ax, runs, "t", "J_probe", "ESC probe u(t)", linestyle=":", color="C0", alpha=0.6
-                )
-        ax.set_yscale("log")
-        ax.set_title(titles[env])
-        ax.set_xlabel("t [s]")
-        ax.set_ylabel("J, IQM over seeds")
-        ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7, title=STATISTIC, title_fontsize=7)
     fig.savefig(path, dpi=120)
     return path

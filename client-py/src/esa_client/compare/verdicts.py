@@ -22,8 +22,8 @@ from rliable import library as rly
 from rliable import metrics
 from scipy.stats import mannwhitneyu
 
-from esa_experiments.reliability import REPS, SEED, probability_of_improvement, verdict
-from esa_experiments.tables import per_seed
+from esa_client.compare.reliability import REPS, SEED, probability_of_improvement, verdict
+from esa_client.compare.tables import per_seed
 
 ALPHA = 0.05
 

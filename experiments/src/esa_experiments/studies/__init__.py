@@ -17,10 +17,13 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
 from types import ModuleType
 from typing import Any, Protocol
 
-from esa_experiments.evaluation import ProgressFn
+from esa_client.compare.evaluation import ProgressFn
+
 from esa_experiments.runs import RunResult, RunSpec, RunStore
 
 STUDY_NAMES = (
@@ -61,3 +64,31 @@ def load_study(name: str) -> Study:
         raise ValueError(f"expected a study in {list(STUDY_NAMES)}, got {name!r}")
     module: ModuleType = importlib.import_module(f"{__name__}.{name}")
     return module
+
+
+@dataclass(frozen=True)
+class StudyJob:
+    """The runner's :class:`~esa_client.compare.execution.Job` for the studies' runs.
+
+    Attributes:
+        base: folder holding the results folders (default: ``experiments/``).
+        studies: the studies whose code the workers import when they start.
+    """
+
+    base: Path | None = None
+    studies: tuple[str, ...] = field(default=())
+
+    def folder(self, spec: RunSpec) -> RunStore:
+        """The study's results folder under the run's budget."""
+        return RunStore(spec.study, spec.budget, self.base)
+
+    def prepare(self) -> None:
+        """Imports the trainers and the studies' code."""
+        import esa_client.sb3  # noqa: F401
+
+        for name in self.studies:
+            load_study(name)
+
+    def run(self, spec: RunSpec, progress: ProgressFn) -> RunResult:
+        """The run's study trains and evaluates it."""
+        return load_study(spec.study).run(spec, progress)

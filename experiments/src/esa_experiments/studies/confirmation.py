@@ -37,19 +37,19 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import pandas as pd
-
-from esa_experiments.algorithms import BASELINE_OF, GRADIENT_CONTROL_OF, LABELS
-from esa_experiments.plotting import Panel
-from esa_experiments.reporting import budget_table, rl_section
-from esa_experiments.runs import RunSpec, RunStore, atomic_write_text
-from esa_experiments.tables import to_markdown
-from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
-from esa_experiments.verdicts import (
+from esa_client.compare.plotting import Panel
+from esa_client.compare.tables import to_markdown
+from esa_client.compare.verdicts import (
     Comparison,
     aggregate_table,
     diagnostics_table,
     verdict_table,
 )
+
+from esa_experiments.algorithms import BASELINE_OF, GRADIENT_CONTROL_OF, LABELS
+from esa_experiments.reporting import budget_table, rl_section
+from esa_experiments.runs import RunSpec, RunStore, atomic_write_text
+from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
 
 NAME = "confirmation"
 DESCRIPTION = "20 seeds: each family's ESA default vs its baseline and its gradient control"

@@ -28,12 +28,14 @@ one, so PG follows GD in expectation and its lag is pure sampling noise.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from esa_client.compare.evaluation import ProgressFn
+from esa_client.compare.plotting import STATISTIC, iqm_band
+from matplotlib.figure import Figure
 
-from esa_experiments.evaluation import ProgressFn
-from esa_experiments.plotting import example1_figure
 from esa_experiments.runs import RunResult, RunSpec, RunStore
 
 NAME = "example1"
@@ -214,3 +216,28 @@ def report(store: RunStore, args: Args) -> str:
         f"J at the estimate (ESC: (2,2)+v; PG: the Gaussian mean; GD: the iterate), "
         f"mean ± standard error over {seeds} seed(s):\n\n{table}\n"
     )
+
+
+def example1_figure(frame: pd.DataFrame, labels: dict[str, str], path: Path) -> Path:
+    """The two panels of the paper's Figure 2: J vs time, static and time-varying (IQM, CI)."""
+    fig = Figure(figsize=(12, 4.2), layout="constrained")
+    axes = fig.subplots(1, 2)
+    titles = {"static": "(a) static J(u)", "timevarying": "(b) time-varying J(u, t)"}
+    for ax, env in zip(axes, titles, strict=True):
+        for method, label in labels.items():
+            runs = frame[(frame.env == env) & (frame.method == method)]
+            if runs.empty:
+                continue
+            iqm_band(ax, runs, "t", "J", label)
+            if method == "esc":
+                iqm_band(
+                    ax, runs, "t", "J_probe", "ESC probe u(t)", linestyle=":", color="C0", alpha=0.6
+                )
+        ax.set_yscale("log")
+        ax.set_title(titles[env])
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("J, IQM over seeds")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7, title=STATISTIC, title_fontsize=7)
+    fig.savefig(path, dpi=120)
+    return path

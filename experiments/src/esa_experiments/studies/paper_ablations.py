@@ -30,7 +30,7 @@ Rules, fixed and committed before the first run:
 * **Seeds** 0-4 for every arm (the paper's 5), all run, none dropped, no optional stopping.
 * **Metric** E2's: primary, the AUC over the first third of the budget; secondary, the
   whole-curve AUC.
-* **Tests** E2's (:func:`esa_experiments.verdicts.verdict_table`): each variant against the
+* **Tests** E2's (:func:`esa_client.compare.verdicts.verdict_table`): each variant against the
   default, Holm within each panel (4, 3 and 5 tests) for each metric, better / worse at a
   corrected p < 0.05. With 5 seeds a rejection needs near-complete separation (P(X > Y) of
   0.96 or more): the ablation finds large effects only.
@@ -50,16 +50,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import pandas as pd
+from esa_client.compare.plotting import Panel
+from esa_client.compare.tables import to_markdown
+from esa_client.compare.verdicts import Comparison, compact_table, verdict_table
 
 from esa_experiments.algorithms import LABELS as METHOD_LABELS
-from esa_experiments.plotting import Panel
 from esa_experiments.reporting import budget_table, rl_section, verdicts_markdown, write_verdicts
 from esa_experiments.reuse import Reuse, load_runs, provenance_table, to_run
 from esa_experiments.runs import RunSpec, RunStore
 from esa_experiments.studies import paper_figures, seeking
-from esa_experiments.tables import to_markdown
 from esa_experiments.training import StepBudget, rl_spec, run_training
-from esa_experiments.verdicts import Comparison, compact_table, verdict_table
 
 NAME = "paper_ablations"
 DESCRIPTION = "Figure 6: the ESAPPO default's amplitude, frequency and decay on InvertedPendulum-v5"

@@ -46,7 +46,7 @@ Rules, fixed and committed before the first run:
   runs are seed-major, so a study cut short compares every arm on the seeds it finished.
 * **Metric** E2's: primary, the area under the evaluation curve over the first third of the
   budget (normalized by its span); secondary, the whole-curve AUC.
-* **Tests** E2's (:func:`esa_experiments.verdicts.verdict_table`): per env, ``P(X > Y)``
+* **Tests** E2's (:func:`esa_client.compare.verdicts.verdict_table`): per env, ``P(X > Y)``
   with its bootstrap CI and the two-sided Mann-Whitney U test, for ``ppo_esa`` against
   ``ppo`` and ``ppo_paramnoise``, and ``sac_esa`` against ``sac``, ``sac_paramnoise`` and
   ``ddpg_ou``; PPO's budget differs from the off-policy one, so PPO and DDPG are not
@@ -76,19 +76,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
+from esa_client.compare.evaluation import EVAL_SEED_OFFSET, ProgressFn
+from esa_client.compare.plotting import Panel
+from esa_client.compare.reliability import probability_of_improvement
+from esa_client.compare.tables import to_markdown
+from esa_client.compare.verdicts import Comparison, compact_table, verdict_table
 from scipy.stats import mannwhitneyu
 
 from esa_experiments.algorithms import LABELS
 from esa_experiments.envs.quadrotor_rollout import TrackedEpisode, record_episode
 from esa_experiments.envs.trajectory_plot import plot_tracking
-from esa_experiments.evaluation import EVAL_SEED_OFFSET, ProgressFn
-from esa_experiments.plotting import Panel
-from esa_experiments.reliability import probability_of_improvement
 from esa_experiments.reporting import budget_table, rl_section, verdicts_markdown, write_verdicts
 from esa_experiments.reuse import Reuse, load_runs, provenance_table, rerun_table, to_run
 from esa_experiments.runs import RunResult, RunSpec, RunStore, parse_seeds
 from esa_experiments.studies import seeking
-from esa_experiments.tables import to_markdown
 from esa_experiments.tasks import get_task
 from esa_experiments.training import (
     SMOKE_BUDGET,
@@ -97,7 +98,6 @@ from esa_experiments.training import (
     run_training,
     trained,
 )
-from esa_experiments.verdicts import Comparison, compact_table, verdict_table
 
 NAME = "paper_figures"
 DESCRIPTION = "Figures 5 and 4: shipped ESAPPO/ESASAC vs PPO, SAC, param noise, DDPG+OU (5 seeds)"

@@ -57,13 +57,13 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import pandas as pd
+from esa_client.compare.plotting import Panel
+from esa_client.compare.verdicts import Comparison, verdict_table
 
-from esa_experiments.plotting import Panel
 from esa_experiments.reporting import budget_table, rl_section, write_verdicts
 from esa_experiments.runs import RunSpec, RunStore
 from esa_experiments.studies import seeking
 from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
-from esa_experiments.verdicts import Comparison, verdict_table
 
 NAME = "paper_regime"
 DESCRIPTION = "ESA vs a tuned PPO (RL Zoo3) at 1M steps on Hopper-v5, with a placebo"

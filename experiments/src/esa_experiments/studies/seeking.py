@@ -60,13 +60,13 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
+from esa_client.compare.plotting import Panel
+from esa_client.compare.verdicts import Comparison, compact_table, verdict_table
 
 from esa_experiments.algorithms import LABELS, seeking_methods
-from esa_experiments.plotting import Panel
 from esa_experiments.reporting import budget_table, rl_section, verdicts_markdown, write_verdicts
 from esa_experiments.runs import EXPERIMENTS_DIR, RunSpec, RunStore
 from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
-from esa_experiments.verdicts import Comparison, compact_table, verdict_table
 
 NAME = "seeking"
 DESCRIPTION = "E2: E1's candidates vs baseline, placebo, gradient, mean shift, matched noise"

@@ -47,9 +47,10 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import pandas as pd
+from esa_client.compare.evaluation import ProgressFn
+from esa_client.compare.tables import to_markdown
 from matplotlib.figure import Figure
 
-from esa_experiments.evaluation import ProgressFn
 from esa_experiments.runs import RunResult, RunSpec, RunStore, atomic_write_text
 from esa_experiments.seeking_probes import (
     KAPPAS,
@@ -60,7 +61,6 @@ from esa_experiments.seeking_probes import (
     branch_returns,
     capture,
 )
-from esa_experiments.tables import to_markdown
 from esa_experiments.tasks import get_task
 from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec
 

@@ -66,16 +66,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
+from esa_client.compare.plotting import Panel, learning_curves
+from esa_client.compare.tables import summary, to_markdown
+from esa_client.compare.verdicts import auc_by_seed
 
 from esa_experiments.algorithms import LABELS
-from esa_experiments.plotting import Panel, learning_curves
 from esa_experiments.reporting import budget_table
 from esa_experiments.runs import RunSpec, RunStore, atomic_write_text
 from esa_experiments.studies import seeking
-from esa_experiments.tables import summary, to_markdown
 from esa_experiments.tasks import TASKS
 from esa_experiments.training import SMOKE_BUDGET, StepBudget, rl_spec, run_training
-from esa_experiments.verdicts import auc_by_seed
 
 NAME = "zoo_baselines"
 DESCRIPTION = "E3: E2's baseline settings vs RL Zoo3 2.9.2's tuned settings (3 seeds)"
