@@ -275,8 +275,7 @@ class EsaClient:
             EsaClient.open("in-process")          # esa-core in this process
 
         Args:
-            where: ``"in-process"``, ``"spawn"``, ``"zenoh:<endpoint>"``, or a gRPC
-                address ``host:port`` / ``unix:/path``.
+            where: ``"in-process"``, ``"spawn"``, ``"zenoh:<endpoint>"`` or a gRPC address.
 
         Raises:
             ValueError: If ``where`` is none of these.

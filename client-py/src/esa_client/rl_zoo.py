@@ -1,11 +1,8 @@
 """RL Baselines3 Zoo with ESA: ``esappo``, ``esasac`` and ``esatd3`` as RL Zoo algorithms.
 
 RL Zoo picks its algorithm from ``rl_zoo3.utils.ALGOS`` while it parses the command line, so
-the drop-ins are registered there first (:func:`register`) and the Zoo's own ``train`` /
-``enjoy`` run unchanged: ``python -m esa_client.rl_zoo train --algo esappo --env
-Pendulum-v1``. Without ``-conf`` an algorithm takes the Zoo's tuned hyperparameters of its
-base; in a yaml file ``esa:`` is a dict of ``EsaConfig`` fields. The Zoo guide
-(``docs/guides/zoo.md``) has examples. Needs the ``zoo`` extra.
+the drop-ins are registered there first and the Zoo's own ``train`` / ``enjoy`` run unchanged:
+``python -m esa_client.rl_zoo train --algo esappo --env Pendulum-v1`` (``docs/guides/zoo.md``).
 """
 
 from __future__ import annotations

@@ -193,10 +193,10 @@ class ServerProcess:
         extra_args: Sequence[str] = (),
         stop_grace: float = 5.0,
     ) -> None:
-        """Starts the server (see :func:`find_server_binary` for ``binary``).
+        """Starts the server.
 
         Args:
-            binary: Path of the executable; None searches for it.
+            binary: Path of the executable; None searches for it (:func:`find_server_binary`).
             token: An auth token the server will require (``--auth-token-file``, written
                 to a file only this user can read); None = no token.
             extra_args: More command-line arguments (e.g. :func:`limit_args`), as given.

@@ -146,10 +146,9 @@ class ZenohRpc(Generic[Response]):
         """Sends ``request`` and returns the decoded response.
 
         Raises:
-            EsaError: The server's error as its typed exception; ``ServerUnavailable``
-                when no server serves the key (before the query, or by its deadline);
-                ``DeadlineExceeded`` when a server that still serves it did not answer in
-                time; :class:`TwoServersAnswered` when more than one peer answered.
+            EsaError: The server's error as its typed exception; ``ServerUnavailable`` when
+                no server serves the key; ``DeadlineExceeded`` when one serves it but did not
+                answer in time; :class:`TwoServersAnswered` when more than one peer answered.
         """
         if not self.matched:
             raise self._unavailable()
@@ -173,8 +172,8 @@ class ZenohRpc(Generic[Response]):
             return self._decode(self._response, reply.ok.payload.to_bytes())
         error = self._error(reply.err)
         if isinstance(error, DeadlineExceeded) and not self.matched:
-            # The server went away while the query waited: each querier learns of it on its
-            # own, so a query can leave on a route that is already dead. Say what happened.
+            # The server went away while the query waited (each querier learns of it on its
+            # own, so a query can leave on a dead route): say so.
             raise self._unavailable() from None
         raise error
 
@@ -542,11 +541,9 @@ def _part(request: _Request, items: I64Array) -> _Request:
 
 
 def _renumbered(err: EsaError, items: I64Array, shard: int) -> EsaError:
-    """The shard's error about its item k, as the error about item ``items[k]`` of the batch.
+    """The shard's error about its item k (``err.index``), as the error about ``items[k]``.
 
-    The index comes from the error's data (``err.index``); the message, which the server
-    starts with ``item k: `` for that same k, gets the batch's number instead, and the
-    shard is named at the end.
+    The message's ``item k: `` prefix gets the batch's number, and the shard is named at the end.
     """
     message, index = err.message, None
     if err.index is not None and 0 <= err.index < len(items):
