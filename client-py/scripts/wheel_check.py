@@ -11,7 +11,10 @@
    pasted and ``wheel_user_check.py client`` (in-process, and the missing server's error);
 4. installs the ``server`` extra from the built server wheel into the same venv and runs
    ``wheel_user_check.py server`` (the server wheel spawned, and the drop-ins on it);
-5. prints the wheels' sizes and how long each step took.
+5. installs the ``compare`` extra and runs ``esa-compare`` on MountainCarContinuous-v0, an
+   env no test or study of ours uses: it must write the curves and the verdict, and the
+   same command again must do nothing;
+6. prints the wheels' sizes and how long each step took.
 
 The install step downloads torch and stable-baselines3 (about 1 GB to several GB with
 torch's CUDA libraries), so this check is not part of ``make test``.
@@ -122,6 +125,28 @@ def du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file() and not f.is_symlink())
 
 
+COMPARE_ARGS = [
+    "--env", "MountainCarContinuous-v0", "--algo", "ppo", "--hyperparams", "default",
+    "--seeds", "2", "--steps", "2048", "--eval-every", "1024", "--eval-episodes", "1",
+    "--out", "compare", "--jobs", "2",
+]  # fmt: skip
+"""A tiny comparison on an env that no test or study of ours uses."""
+
+
+def compare_check(venv: Path, work: Path, env: dict[str, str]) -> float:
+    """Runs ``esa-compare`` twice: the first writes the verdict, the second does nothing."""
+    command = [str(venv / "bin" / "esa-compare"), *COMPARE_ARGS]
+    seconds = run(command, cwd=work, env=env)
+    folder = work / "compare"
+    for name in ("learning_curves.png", "verdicts.md", "RESULTS.md", "provenance.json"):
+        if not (folder / name).is_file():
+            raise SystemExit(f"esa-compare wrote no {name} in {folder}")
+    again = subprocess.run(command, cwd=work, env=env, check=True, capture_output=True, text=True)
+    if "Nothing to do" not in again.stdout:
+        raise SystemExit(f"expected the second esa-compare to do nothing, got:\n{again.stdout}")
+    return seconds
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--no-build", action="store_true", help="check dist/'s newest wheels")
@@ -162,6 +187,10 @@ def main() -> None:
             command = [python, "-I", str(script), stage, str(REPO_ROOT), str(out)]
             seconds[f"user script ({stage})"] = run(command, cwd=work, env=env)
             user[stage] = json.loads(out.read_text())
+        seconds["pip install esa-client[compare]"] = run(
+            [*pip, f"{client}[compare]"], cwd=work, env=env
+        )
+        seconds["esa-compare"] = compare_check(venv, work, env)
     finally:
         if args.keep:
             print(f"kept {tmp}")
