@@ -7,6 +7,7 @@ The baseline is the plain SB3 algorithm; ``esa`` is its drop-in with the shipped
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,18 +25,23 @@ from esa_client.compare.training import env_factory, trained
 _CONTROL = {"baseline": None, "esa": None, "placebo": "placebo", "gradient": "gradient"}
 
 
-def _classes(algo: str) -> tuple[type[BaseAlgorithm], type[BaseAlgorithm]]:
+def _classes(algo: str) -> tuple[Callable[..., BaseAlgorithm], Callable[..., BaseAlgorithm]]:
     """The plain SB3 class and its ESA drop-in."""
     from stable_baselines3 import PPO, SAC, TD3
 
     from esa_client.sb3 import ESAPPO, ESASAC, ESATD3
 
-    return {"ppo": (PPO, ESAPPO), "sac": (SAC, ESASAC), "td3": (TD3, ESATD3)}[algo]
+    classes: dict[str, tuple[Callable[..., BaseAlgorithm], Callable[..., BaseAlgorithm]]] = {
+        "ppo": (PPO, ESAPPO),
+        "sac": (SAC, ESASAC),
+        "td3": (TD3, ESATD3),
+    }
+    return classes[algo]
 
 
 def _action_noise(spec: dict[str, Any], env: VecEnv) -> Any:
     """The zoo's ``noise_type``/``noise_std`` as SB3 action noise for the env's actions."""
-    dim = int(np.prod(env.action_space.shape))
+    dim = int(np.prod(env.action_space.shape or (1,)))
     mean, sigma = np.zeros(dim), float(spec["std"]) * np.ones(dim)
     if spec["type"] == "normal":
         return NormalActionNoise(mean, sigma)
