@@ -3,7 +3,8 @@
 Reads ``bench/results/``: ``run.json`` (host, load and commands), ``core.json`` (the core pair
 bench's criterion medians, copied out of ``target/criterion`` by ``--snapshot-core``),
 ``server.json`` (esa-bench), ``python.json`` and ``section_1b.json`` (client_latency.py),
-``training.json`` (training_overhead.py) and ``sizes.json`` (artifact_sizes.py). A part the
+``training.json`` (training_overhead.py), ``rllib_scaling.json`` (rllib_scaling.py) and
+``sizes.json`` (artifact_sizes.py). A part the
 run lacks is missing from the page, and its targets read "not measured".
 
 Usage::
@@ -15,6 +16,7 @@ Usage::
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,6 +136,7 @@ class Run:
     section_1b: dict | None
     training: dict | None
     sizes: dict | None
+    rllib_scaling: dict | None = None
 
     def rows(self, part: str, key: str = "rows") -> list[dict]:
         """The rows of one part (none where it did not run)."""
@@ -591,6 +594,297 @@ def training_section(run: Run) -> list[str]:
     ]
 
 
+# ESA's budget on RLlib's sampled env steps/s (plain's rate over ESA's): with the sessions in
+# each runner, and through servers (one shared server; Zenoh shards held to the same).
+RLLIB_LIMITS = {"in-runner": 1.10, "shared": 1.20, "zenoh": 1.20}
+RLLIB_SETUPS = ("plain", "in-runner", "shared", "zenoh")
+RLLIB_CONFIGS = (None, "default", "ungated")
+HEADROOM = 0.5
+"""Spare capacity the shards formula keeps: an iteration's mean rate understates the rate of
+its sampling phase (PPO's runners all sample, then all wait for the learner)."""
+CLUSTER_SIZES = (1, 8, 64, 1000)
+
+
+def shards_needed(runners: int, rate: float, capacity: float, headroom: float = HEADROOM) -> int:
+    """Servers (shards) that N runners need: ``ceil(N * r * (1 + headroom) / C)``, at least 1.
+
+    Args:
+        runners: N, the env runners of the cluster.
+        rate: r, the session-steps per second one runner asks of the service.
+        capacity: C, the session-steps per second one server serves at saturation.
+        headroom: The share of C kept spare.
+    """
+    if rate < 0 or capacity <= 0 or runners < 1:
+        raise ValueError(f"expected N >= 1, r >= 0 and C > 0, got {runners}, {rate}, {capacity}")
+    return max(1, math.ceil(runners * rate * (1 + headroom) / capacity))
+
+
+def rllib_rows(data: dict) -> list[dict]:
+    """The RLlib scaling rows, one per (algo, runners, setup, ESA config), over repeats.
+
+    ``env_steps_per_s`` and the rest are medians over the repeats; ``ratio`` is the median of
+    the per-repeat ratios plain rate / this row's rate (> 1: ESA slower).
+    """
+    rows = data["rows"]
+    keys = sorted(
+        {(r["algo"], r["runners"], r["setup"], r["esa"]) for r in rows},
+        key=lambda k: (k[0], k[1], RLLIB_SETUPS.index(k[2]), RLLIB_CONFIGS.index(k[3])),
+    )
+    out = []
+    for algo, runners, setup, esa in keys:
+        mine = [
+            r
+            for r in rows
+            if (r["algo"], r["runners"], r["setup"], r["esa"]) == (algo, runners, setup, esa)
+        ]
+
+        def median(key: str, of: list[dict] = mine) -> float | None:
+            values = [r[key] for r in of if r.get(key) is not None]
+            return float(np.median(values)) if values else None
+
+        ratios = []
+        for r in mine:
+            plain = find(rows, algo=algo, runners=runners, setup="plain", repeat=r["repeat"])
+            if plain and setup != "plain":
+                ratios.append(plain["env_steps_per_s"] / r["env_steps_per_s"])
+        out.append(
+            {
+                "algo": algo,
+                "runners": runners,
+                "setup": setup,
+                "esa": esa or "-",
+                "repeats": len(mine),
+                "env_steps_per_s": median("env_steps_per_s"),
+                "ratio": float(np.median(ratios)) if ratios else None,
+                "limit": RLLIB_LIMITS.get(setup),
+                "esa_active": median("esa_active"),
+                "session_steps_per_s": median("session_steps_per_s"),
+                "server_requests_per_s": median("server_requests_per_s"),
+                "load": median("loadavg_1m_before"),
+            }
+        )
+    return out
+
+
+def rllib_verdict(row: dict) -> str:
+    """PASS or MISS of a row's ratio against its setup's budget ("-" for plain)."""
+    if row["ratio"] is None or row["limit"] is None:
+        return "-"
+    return "PASS" if row["ratio"] <= row["limit"] else "MISS"
+
+
+def capacity(run: Run, socket: str, batch: int) -> dict | None:
+    """esa-bench's throughput row over ``socket`` at ``batch`` sessions per message."""
+    return find(run.rows("server", "throughput"), socket=socket, api="stream", batch=batch)
+
+
+def per_runner_rate(rows: list[dict], algo: str) -> tuple[float, dict] | None:
+    """r: the session-steps/s one runner asks, from the shared server's 1-runner row.
+
+    The config whose ESA acted most (ungated before default) wins; without a shared row, the
+    in-runner one's.
+    """
+    for setup in ("shared", "in-runner"):
+        candidates = [
+            r
+            for r in rows
+            if r["algo"] == algo
+            and r["runners"] == 1
+            and r["setup"] == setup
+            and r["session_steps_per_s"]
+        ]
+        if candidates:
+            best = max(candidates, key=lambda r: r["esa_active"] or 0.0)
+            return best["session_steps_per_s"], best
+    return None
+
+
+def rllib_section(run: Run) -> list[str]:
+    """RLlib scaling: the rows, one server's saturation and the shards a cluster needs."""
+    data = run.rllib_scaling or {}
+    args, hosts = data["args"], data["host_start"]
+    rows = rllib_rows(data)
+    cores = hosts["cores"]
+    most = max((r["runners"] for r in rows), default=0)
+    lines = [
+        "## RLlib scaling",
+        "",
+        f"`bench/python/rllib_scaling.py`: RLlib's PPO and SAC (new API stack, torch) on "
+        f"{data['env']} with N env runners of one env each (`num_cpus_per_env_runner=1`, Ray "
+        f"given N CPUs), the learner in the driver. Setups: `plain` = RLlib alone; `in-runner` "
+        "= `with_esa`'s default, each runner keeps its sessions in its own process; `shared` = "
+        "one esa-server over TCP on loopback (`EsaService(address=...)`); `zenoh` = "
+        f"{data['shards']} esa-server shards over Zenoh (`EsaService(zenoh=..., shards="
+        f"{data['shards']})`). ESA configs: `default` = what `with_esa` ships "
+        "(`EsaConfig.ppo()`, `EsaConfig.off_policy()`, `budget=1,000,000`), whose gate keeps ESA "
+        "off while the critic is poor, as it is on a run this short; `ungated` = the same with "
+        "`gate=None` (PPO also `fade=None`): ESA acts on every step, its cost while it acts and "
+        f"the load a server sees. A row: {args['warmup']} untimed iteration(s), then env steps "
+        f"sampled (`num_env_steps_sampled_lifetime`) over the wall-clock of {args['iterations']} "
+        "timed `train()` iterations (sampling and learning: what a user sees); PPO "
+        f"`train_batch_size_per_learner={args['ppo_batch']}`, `num_epochs={args['ppo_epochs']}`, "
+        f"minibatches of 250; SAC `min_sample_timesteps_per_iteration={args['sac_steps']}`, "
+        f"learning from {args['sac_learning_starts']} steps, "
+        f"`rollout_fragment_length={args.get('sac_fragment', 'auto')}`: a training step samples "
+        "that many env steps per runner, then makes one gradient update (RLlib's `auto`, 1, "
+        "gives a few env steps/s here, too few to time ESA's per-step work); otherwise RLlib's "
+        f"defaults. `shared` and `zenoh` run the {args.get('server_configs', 'ungated')} config "
+        "only: with the default's gate "
+        "closed no runner opens a session, and they would time the in-runner default again. "
+        "The setups of one (algo, N) run "
+        f"back to back, {args['repeats']} time(s), in reverse order every other repeat; a "
+        "figure is the median over repeats. `ratio` = plain's env steps/s over the row's "
+        "(> 1: ESA slower), against 1.10x in the runners and 1.20x through servers (the Zenoh "
+        "shards held to the server's budget). `active` = share of steps ESA acted on "
+        "(`env_runners/esa/active`); `asked` = session-steps/s the runners asked of their "
+        "service (env steps x active: one session per runner); `server req/s` = the shared "
+        "server's `esa_requests_total` over the timed window (one fused StepStream message "
+        "per session-step). A row whose ESA was not active prices only the gate's check.",
+        "",
+        f"Host during this part: {cores} cores, {fmt(hosts['ram_gib'])} GiB; load average "
+        f"(1, 5, 15 min) {', '.join(f'{x:.2f}' for x in hosts['loadavg'])} at its start, "
+        f"{', '.join(f'{x:.2f}' for x in data['host_end']['loadavg'])} at its end, "
+        f"{data['wall_s'] / 60:.0f} min in all.",
+    ]
+    # N runners, the learner, and the server(s) each want a core.
+    if most + 2 > cores:
+        lines += [
+            "",
+            f"**CPU-bound rows.** This host has {cores} cores. A row of N runners wants N + 1 "
+            "(the runners and the learner), N + 2 or more with a server: every row with "
+            f"{max(cores, 1)} runners or more is oversubscribed, and so is every `shared` and "
+            "`zenoh` row"
+            + (f" with more than {cores - 2} runner(s)" if cores > 2 else "")
+            + ". There the runners, the learner "
+            "and the server(s) take turns on the same cores, so env steps/s is set by CPU, not "
+            "by ESA's latency or the server's capacity, and a ratio measures how much CPU "
+            "ESA's work (and a server's) takes from the runners: CPU contention, not the cost "
+            "a runner with a core of its own would pay. The rows of 4 and 8 runners and the "
+            "saturation check belong on a host with at least N + 2 cores (10 for 8 runners), or "
+            "a cluster with the server on a node of its own; here, read the 1-runner rows, "
+            "where the server's few hundred requests a second take little of a core.",
+        ]
+    lines += [
+        "",
+        table(
+            rows,
+            [col("algo"), col("runners"), col("setup"), col("esa", "ESA config")]
+            + [col("env_steps_per_s", "env steps/s", 0)]
+            + [("ratio", lambda r: "-" if r["ratio"] is None else f"{r['ratio']:.2f}x")]
+            + [("target", lambda r: "-" if r["limit"] is None else f"<= {r['limit']:.2f}x")]
+            + [("", rllib_verdict), col("esa_active", "active", 2)]
+            + [col("session_steps_per_s", "asked session-steps/s", 0)]
+            + [col("server_requests_per_s", "server req/s", 0), col("load", "load 1m", 1)],
+        ),
+    ]
+    lines += rllib_saturation(run, rows)
+    return lines
+
+
+def rllib_saturation(run: Run, rows: list[dict]) -> list[str]:
+    """Where one server saturates, and the shards formula worked to 1,000 runners."""
+    tcp, zenoh = capacity(run, "tcp", 1), capacity(run, "zenoh", 1)
+    lines = ["", "### Where one server saturates, and how many shards N runners need", ""]
+    if not tcp:
+        return lines + ["Not worked: the run has no esa-bench throughput rows (Server section)."]
+    c_tcp = tcp["session_steps_per_s"]
+    c_zenoh = zenoh["session_steps_per_s"] if zenoh else None
+    lines += [
+        "C = one server's capacity, from the esa-bench throughput rows of this run (Server "
+        "section) at one session per message, as a runner of one env sends them: "
+        f"tcp/stream batch 1 = **{fmt(c_tcp, 0)} session-steps/s** ({tcp['concurrency']} "
+        "clients)"
+        + (f"; one Zenoh shard, zenoh/stream batch 1 = **{fmt(c_zenoh, 0)}**" if c_zenoh else "")
+        + ". Those rows count a probe + report pair (two round trips) per session-step where a "
+        "runner sends one fused message, and ran with the load generator on the server's "
+        "cores: C is a lower bound. A runner with more envs sends them in one message, and "
+        "the batch-64 rows serve some 40x more session-steps/s. r = session-steps/s one runner "
+        "asks, from the 1-runner `shared` row (its ESA config with the most active steps). "
+        f"shards(N) = ceil(N x r x (1 + {HEADROOM:g}) / C), {HEADROOM:.0%} headroom since an "
+        "iteration's mean rate understates its sampling phase's.",
+        "",
+    ]
+    measured, worked, checks = [], [], []
+    for algo in sorted({r["algo"] for r in rows}):
+        found = per_runner_rate(rows, algo)
+        if found is None:
+            continue
+        rate, base = found
+        for r in rows:
+            if r["algo"] != algo or r["setup"] != "shared" or r["esa"] != base["esa"]:
+                continue
+            demand = r["runners"] * rate
+            served = r["session_steps_per_s"] or 0.0
+            measured.append(
+                {
+                    "algo": algo,
+                    "runners": r["runners"],
+                    "ESA config": r["esa"],
+                    "asked": demand,
+                    "served": served,
+                    "served / asked": f"{served / demand:.2f}",
+                    "of C": f"{served / c_tcp:.1%}",
+                    "shards(N)": shards_needed(r["runners"], rate, c_tcp),
+                    "ratio": "-" if r["ratio"] is None else f"{r['ratio']:.2f}x",
+                }
+            )
+        for n in CLUSTER_SIZES:
+            worked.append(
+                {
+                    "algo": algo,
+                    "N": f"{n:,}",
+                    "r": rate,
+                    "N x r": n * rate,
+                    "tcp servers": shards_needed(n, rate, c_tcp),
+                    "zenoh shards": shards_needed(n, rate, c_zenoh) if c_zenoh else "-",
+                }
+            )
+        saturates = c_tcp / (rate * (1 + HEADROOM))
+        checks.append(
+            f"{algo}: r = {fmt(rate, 0)} session-steps/s per runner ({base['esa']}, "
+            f"active {base['esa_active'] or 0:.2f}), so one TCP server holds "
+            f"{math.floor(saturates):,} runners with the headroom "
+            f"({math.floor(c_tcp / rate):,} at saturation)"
+            + (
+                f", one Zenoh shard {math.floor(c_zenoh / (rate * (1 + HEADROOM))):,}"
+                if c_zenoh
+                else ""
+            )
+            + "."
+        )
+    if not measured:
+        return lines + ["Not worked: the run has no `shared` rows with ESA active."]
+    lines += [
+        "Measured: the shared server's rows. `asked` = N x r, what N runners at the 1-runner "
+        "rate would ask; `served` = what the server served (the row's asked session-steps/s); "
+        "`of C` = served over C.",
+        "",
+        table(
+            measured,
+            [col("algo"), col("runners"), col("ESA config"), col("asked", digits=0)]
+            + [col("served", digits=0), col("served / asked"), col("of C")]
+            + [col("shards(N)"), col("ratio")],
+        ),
+        "",
+        "The formula worked from these r and C:",
+        "",
+        table(
+            worked,
+            [col("algo"), col("N"), col("r", digits=0), col("N x r", digits=0)]
+            + [col("tcp servers"), col("zenoh shards")],
+        ),
+        "",
+        *[f"- {line}" for line in checks],
+        "- Check against the measured rows: where shards(N) is 1, one server should serve what "
+        "the runners ask (served / asked near 1) and the `shared` ratio should stay within "
+        "1.20x. served / asked falling below 1 with `of C` far under 100 % is the runners "
+        "slowing (on this host, CPU contention: fewer env steps, so fewer session-steps asked), "
+        "not the server saturating; a server at saturation serves near C however many runners "
+        "ask.",
+    ]
+    return lines
+
+
 @dataclass
 class Args:
     """Writes BENCHMARKS.md and the latency plot from the results of one bench run."""
@@ -611,7 +905,7 @@ def main(args: Args) -> None:
             json.dumps({"unit": "ns per pair (criterion median)", "medians": medians}, indent=2)
         )
         return
-    parts = ("run", "core", "server", "python", "section_1b", "training", "sizes")
+    parts = ("run", "core", "server", "python", "section_1b", "training", "sizes", "rllib_scaling")
     run = Run(*(load(args.results / f"{part}.json") for part in parts))
     plot(run, args.results / PLOT)
     host = run.run or {}
@@ -642,6 +936,7 @@ def main(args: Args) -> None:
         (run.python, python_section),
         (run.training, training_section),
         (run.section_1b, section_1b_section),
+        (run.rllib_scaling, rllib_section),
     ]
     for data, section in sections:
         if data:

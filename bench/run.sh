@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The whole benchmark run behind `make bench`: core criterion bench, the Rust load
 # generator (each row beside a bare tonic echo), the Python client bench (beside a bare
-# grpcio echo), the training-overhead bench, then bench/report.py writes BENCHMARKS.md and
-# bench/results/latency_vs_batch.png. Everything stays on loopback.
+# grpcio echo), the training-overhead bench, the RLlib scaling bench (PPO and SAC, 1 to 8 env
+# runners, with ESA in each runner, on one server and on Zenoh shards), then bench/report.py
+# writes BENCHMARKS.md and bench/results/latency_vs_batch.png. Everything stays on loopback.
 #
 # Usage: bench/run.sh [--quick]
 #   --quick: short windows for a smoke test; the results still go to bench/results/,
@@ -30,11 +31,13 @@ if $QUICK; then
   BENCH_ARGS=(--warmup 0.1 --window 0.3 --rss-sessions 20000)
   PY_ARGS=(--warmup 0.1 --window 0.3)
   TRAIN_ARGS=(--ppo-steps 4096 --sac-steps 1600 --sac-learning-starts 400 --repeats 1 --ppo-repeats 1)
+  RLLIB_ARGS=(--quick)
 else
   CRITERION_ARGS=(--warm-up-time 2 --measurement-time 4)
   BENCH_ARGS=()
   PY_ARGS=()
   TRAIN_ARGS=()
+  RLLIB_ARGS=()
 fi
 
 mkdir -p "$RESULTS"
@@ -65,6 +68,9 @@ run target/release/esa-bench --server "$ESA_SERVER_BIN" --json "$RESULTS/server.
 run "$PY" bench/python/client_latency.py --out "$RESULTS/python.json" \
   --section-1b-out "$RESULTS/section_1b.json" "${PY_ARGS[@]}"
 run "$PY" bench/python/training_overhead.py --out "$RESULTS/training.json" "${TRAIN_ARGS[@]}"
+# Up to 8 env runners (--max-runners caps it); on a host with fewer cores the rows with many
+# runners are CPU-bound, and BENCHMARKS.md says so.
+run "$PY" bench/python/rllib_scaling.py --out "$RESULTS/rllib_scaling.json" "${RLLIB_ARGS[@]}"
 # The wheel and the binaries as the last builds left them (`make wheel` builds the wheel).
 run "$PY" bench/python/artifact_sizes.py --out "$RESULTS/sizes.json"
 
