@@ -72,7 +72,9 @@ class QuadraticHead(nn.Module):
         hidden = th.tanh(F.linear(features, first.weight, first.bias))
         hidden = th.tanh(F.linear(hidden, second.weight, second.bias))
         raw = F.linear(hidden, third.weight, third.bias)
-        return raw[:, : self.action_dim], -F.softplus(raw[:, self.action_dim :])
+        # narrow is the slice that indexing makes, without indexing's parsing of its key.
+        dim = self.action_dim
+        return raw.narrow(1, 0, dim), -F.softplus(raw.narrow(1, dim, dim))
 
     def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
         """A for policy-normalized actions ``z``, shape ``(batch,)``."""
@@ -218,11 +220,13 @@ class CriticAtStep:
         The gradient control's direction in units of sigma; 0 in a dimension past the Box,
         where the executed action does not move with the sample.
         """
-        # Rollouts run under no_grad; autograd.grad, not backward, so that the critic's own
-        # .grad does not collect this.
-        with th.enable_grad():
-            z = th.as_tensor(self.z(actions), dtype=self.features.dtype).requires_grad_(True)
-            (grad,) = th.autograd.grad(self.critic(self.features, z).sum(), z)
+        # Rollouts run under no_grad or inference_mode; autograd.grad, not backward, so that
+        # the critic's own .grad does not collect this. Features made in inference mode
+        # cannot be saved for the backward pass: a copy outside it can.
+        with th.inference_mode(False), th.enable_grad():
+            features = self.features.clone() if self.features.is_inference() else self.features
+            z = th.as_tensor(self.z(actions), dtype=features.dtype).requires_grad_(True)
+            (grad,) = th.autograd.grad(self.critic(features, z).sum(), z)
         inside = (actions >= self.low) & (actions <= self.high)
         result: np.ndarray = grad.cpu().numpy().astype(np.float64) * inside
         return result

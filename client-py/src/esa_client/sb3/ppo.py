@@ -178,13 +178,9 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         """What the env executes and the buffer stores: ``a_t + v(t)``, summed in float64."""
         return shifted(sample, shift)
 
-    def _critic_at_step(
-        self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray
-    ) -> tuple[CriticAtStep, np.ndarray]:
-        """The critic at this step's states over actions in ESA units, and the sample in them."""
-        frame = self.esa_frame
-        critic = head_critic(self.esa_head, self._head_features(obs), frame, mean, std)
-        return critic, (sample - frame.center) / frame.half_width
+    def _critic_at_step(self, obs: th.Tensor, mean: np.ndarray, std: np.ndarray) -> CriticAtStep:
+        """The critic at this step's states over actions in ESA units."""
+        return head_critic(self.esa_head, self._head_features(obs), self.esa_frame, mean, std)
 
     def _session_shift(
         self,
@@ -196,7 +192,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         f: float,
     ) -> np.ndarray:
         """ESA's shift ``v(t)`` in the Box's units, float64 ``(N, D)``: the sessions step."""
-        critic, _ = self._critic_at_step(obs, sample, mean, std)
+        critic = self._critic_at_step(obs, mean, std)
         evaluated = self._closed_form(critic)
         return head_shift(
             self._esa_runtime(), evaluated, critic.std, self.esa_frame, sample, starts, f
@@ -206,9 +202,10 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray, f: float
     ) -> np.ndarray:
         """The gradient control's shift ``f kappa sigma u`` in the Box's units, ``(N, D)``."""
-        critic, scaled = self._critic_at_step(obs, sample, mean, std)
+        critic = self._critic_at_step(obs, mean, std)
+        frame = self.esa_frame
         size = gradient_size(f, self.esa.trust_region)
-        unit = unit_gradient(critic.gradient(scaled))
+        unit = unit_gradient(critic.gradient((sample - frame.center) / frame.half_width))
         self.logger.record_mean("esa/shift_over_std", gradient_shift_size(size, unit))
         shift: np.ndarray = size * unit * std
         return shift
@@ -239,7 +236,10 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         while n_steps < n_rollout_steps:
             if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
                 self.policy.reset_noise(env.num_envs)
-            with th.no_grad():
+            # inference_mode, not no_grad: torch keeps no version counters or view records for
+            # the step's tensors, a few microseconds of every op of the policy's and the
+            # critic's forward passes; nothing of a step is differentiated later.
+            with th.inference_mode():
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
                 actions_t, values, log_probs = self._esa_policy_step(obs_tensor)  # type: ignore[arg-type]
             actions = actions_t.cpu().numpy()
@@ -261,7 +261,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
                     and infos[idx].get("TimeLimit.truncated", False)
                 ):
                     terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
-                    with th.no_grad():
+                    with th.inference_mode():
                         terminal_value = self.policy.predict_values(terminal_obs)[0]
                     rewards[idx] += self.gamma * terminal_value
             rollout_buffer.add(
@@ -274,7 +274,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
             )
             self._last_obs = new_obs  # type: ignore[assignment]
             self._last_episode_starts = dones
-        with th.no_grad():
+        with th.inference_mode():
             values = self.policy.predict_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
         rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
         callback.update_locals(locals())
