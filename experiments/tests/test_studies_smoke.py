@@ -1,7 +1,8 @@
 """Every study's smoke budget, end to end through the real esa-server.
 
 Runs ``python -m esa_experiments run STUDY --budget smoke --seeds 0 --jobs 2``
-and ``plot STUDY`` into a temporary root, then checks that every run's CSV,
+(``--jobs 1`` for ``rllib_ppo``: each worker starts a local Ray instance; skipped without
+Ray) and ``plot STUDY`` into a temporary root, then checks that every run's CSV,
 the figures and the tables exist and are sane, and that a second ``run`` is a
 no-op (resumability).
 """
@@ -39,7 +40,7 @@ def root(tmp_path_factory):
     return tmp_path_factory.mktemp("experiments")
 
 
-def check_rl_run(frame: pd.DataFrame, total_steps: int) -> None:
+def check_rl_run(frame: pd.DataFrame, total_steps: int, extra: tuple[str, ...] = ()) -> None:
     assert list(frame.columns) == [
         "step",
         "return_mean",
@@ -52,6 +53,7 @@ def check_rl_run(frame: pd.DataFrame, total_steps: int) -> None:
         "train_crashes",
         "train_return_sum",
         "train_length_sum",
+        *extra,
     ]
     assert frame.step.iloc[0] == 0 and frame.step.iloc[-1] == total_steps
     # Training episodes are counted cumulatively; a crash is one of them.
@@ -91,10 +93,28 @@ def check_example1_run(frame: pd.DataFrame, total_steps: int, env: str, method: 
     assert frame.J.iloc[-100:].mean() < 0.1 * frame.J.iloc[0], method
 
 
+def check_rllib_run(frame: pd.DataFrame, config: dict) -> None:
+    """The RLlib study's evaluation table: E2's columns and the env steps RLlib sampled."""
+    check_rl_run(frame, config["total_steps"], extra=("env_steps",))
+    # Evaluated where the sampled steps reached each point: RLlib's env runner counts at
+    # most n_envs - 1 steps more per train batch (an env's autoreset step is not counted).
+    n_envs = config["hyperparams"]["num_envs_per_env_runner"]
+    batches = config["total_steps"] // (n_envs * config["hyperparams"]["rollout_fragment_length"])
+    assert (frame.env_steps >= frame.step).all()
+    assert (frame.env_steps - frame.step <= (n_envs - 1) * batches).all()
+    assert (frame.train_length_sum <= frame.env_steps).all()
+
+
 @pytest.mark.parametrize("name", STUDY_NAMES)
 def test_smoke_budget(name, root, capsys):
+    jobs = "2"
+    if name == "rllib_ppo":
+        pytest.importorskip("ray.rllib")
+        jobs = "1"
     assert (
-        main(["--root", str(root), "run", name, "--budget", "smoke", "--seeds", "0", "--jobs", "2"])
+        main(
+            ["--root", str(root), "run", name, "--budget", "smoke", "--seeds", "0", "--jobs", jobs]
+        )
         == 0
     )
     study = load_study(name)
@@ -107,6 +127,8 @@ def test_smoke_budget(name, root, capsys):
             check_example1_run(frame, spec.config["total_steps"], spec.env, spec.method)
         elif name == "seeking_offline":
             check_seeking_offline_run(frame, spec.config, spec.method)
+        elif name == "rllib_ppo":
+            check_rllib_run(frame, spec.config)
         else:
             check_rl_run(frame, spec.config["total_steps"])
 
@@ -145,3 +167,31 @@ def test_paper_figures_smoke_flights(root):
     assert np.isfinite(
         flights[["x", "y", "z", "target_x", "target_y", "target_z"]].to_numpy()
     ).all()
+
+
+def test_rllib_ppo_runs_e2s_ppo_settings():
+    """The RLlib study's settings, written out in its module, are E2's ``[ppo]`` per env."""
+    from esa_experiments.algorithms import resolve_hyperparams
+    from esa_experiments.studies import rllib_ppo
+
+    for env in rllib_ppo.ENVS:
+        e2, rllib = resolve_hyperparams("ppo", env, None), rllib_ppo.settings(env)
+        assert (rllib["num_envs_per_env_runner"], rllib["rollout_fragment_length"]) == (
+            e2["n_envs"],
+            e2["n_steps"],
+        )
+        pairs = {
+            "minibatch_size": "batch_size",
+            "num_epochs": "n_epochs",
+            "lr": "learning_rate",
+            "gamma": "gamma",
+            "lambda_": "gae_lambda",
+            "clip_param": "clip_range",
+            "entropy_coeff": "ent_coef",
+            "fcnet_hiddens": "net_arch",
+        }
+        assert {ours: rllib[ours] for ours in pairs} == {
+            ours: e2[theirs] for ours, theirs in pairs.items()
+        }
+        budget = rllib_ppo.BUDGETS["full"].budgets[env]
+        assert budget.on_policy % (e2["n_envs"] * e2["n_steps"]) == 0  # whole train batches

@@ -35,6 +35,7 @@ STUDY_NAMES = (
     "paper_regime",
     "paper_figures",
     "paper_ablations",
+    "rllib_ppo",
 )
 """The live studies. Superseded ones left the tree (their code is in the history, their
 committed results and provenance stay under ``results/``; RESULTS.md names both)."""
