@@ -12,6 +12,7 @@ where RLlib is deterministic).
 import dataclasses
 import json
 import os
+import pickle
 import subprocess
 import sys
 
@@ -388,6 +389,24 @@ def test_the_controls_run_on_rllib(ray_session, make, control):
         assert np.all(shift[sample > 1.001] == 0) and np.all(shift[sample < 0.999] != 0)
     else:
         assert np.mean(np.abs(shift) > 0) > 0.5, "the control shifts the actions"
+
+
+def test_the_placebos_directions_follow_the_runners_seed():
+    """RLlib's EnvRunner seeds numpy with config.seed + its index before building the
+    connector: the placebo's directions repeat for the same seed and differ for another."""
+    from esa_client.rllib.connector import EsaModuleToEnv
+
+    def seed_after(global_seed: int) -> int | None:
+        np.random.seed(global_seed)
+        piece = EsaModuleToEnv(esa=UNGATED, control="placebo")
+        copy = pickle.loads(pickle.dumps(piece))
+        assert copy._rule.seed == piece._rule.seed  # a copy keeps the runner's directions
+        piece.close()
+        assert piece._rule.seed == copy._rule.seed  # a reopened runner too
+        return piece._rule.seed
+
+    assert seed_after(3) == seed_after(3) != seed_after(4)
+    assert EsaModuleToEnv(esa=UNGATED)._rule.__class__.__name__ == "EsaShift"
 
 
 def test_ppo_shifts_are_esappos_for_the_same_inputs():

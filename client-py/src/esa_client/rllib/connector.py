@@ -181,7 +181,11 @@ class EsaModuleToEnv(ConnectorV2):
         self.esa = esa
         self.control = check_control(control)
         # The placebo's directions belong to this runner's sessions: a new rule with them.
-        self._rule = control_shift(self.control, None)
+        # Their seed comes from numpy's global generator, which the EnvRunner seeded with
+        # config.seed plus its worker index before building this piece: with
+        # debugging(seed=...) the directions repeat run to run and differ between runners.
+        self._seed = int(np.random.randint(2**31 - 1)) if self.control == "placebo" else None
+        self._rule = control_shift(self.control, self._seed)
         self.service = service if service is not None else EsaService()
         self.dt = dt
         self.record_shift = record_shift
@@ -198,7 +202,7 @@ class EsaModuleToEnv(ConnectorV2):
         """Pickles (and deep-copies) the settings only: a copy opens its own sessions."""
         state = self.__dict__.copy()
         state.update(_runtime=None, _finalizer=None, _active=False)
-        state["_rule"] = control_shift(self.control, None)
+        state["_rule"] = control_shift(self.control, self._seed)
         return state
 
     @property
@@ -211,7 +215,7 @@ class EsaModuleToEnv(ConnectorV2):
         if self._finalizer is not None:
             self._finalizer()
         self._runtime = self._finalizer = None
-        self._rule = control_shift(self.control, None)
+        self._rule = control_shift(self.control, self._seed)
         self._active = False
 
     def _open(self, module: EsaModuleMixin, n_envs: int) -> EsaRuntime:

@@ -40,13 +40,10 @@ Rules, fixed and committed before the first run:
   global and torch's generators on the EnvRunner and in the learner (the minibatch
   shuffling, the networks' initialization, the ESA module's head built on a forked torch
   generator), the envs' first reset, and the ESA head's fitting generator
-  (``default_rng(s)`` in ``EsaPPOTorchLearner``). It does **not** seed the placebo's
-  sign vectors: ``EsaModuleToEnv`` builds its rule with ``control_shift(control, None)``,
-  whose ``RandomDirections`` draws from ``numpy.random.default_rng(None)`` (fresh OS
-  entropy), not from Ray's seed; the SB3 drop-in seeds them from the model's seed. So a
-  placebo run is not reproducible bit for bit (its directions are still independent of
-  the critic, which is what the control needs). The other two arms are: a second smoke
-  run of ``rllib_ppo_esa`` gave the same evaluations.
+  (``default_rng(s)`` in ``EsaPPOTorchLearner``), and the placebo's sign vectors:
+  ``EsaModuleToEnv`` draws their seed from numpy's global generator, which the EnvRunner
+  seeded with ``s`` plus its worker index before building it (the SB3 drop-in seeds them
+  from the model's seed). A second smoke run of each arm must give the same evaluations.
 * **Evaluation** as E2's (``esa_client.compare.evaluation.run_episodes``): the current
   RLModule's deterministic action (the mean of its Gaussian, clipped to the Box; no ESA:
   ESA is exploration only) on a separate env whose episode ``i`` is reset with seed
