@@ -209,9 +209,14 @@ class CriticAtStep:
             w_t, u_t = self.critic.coefficients(self.features)
         w = w_t.cpu().numpy().astype(np.float64)
         u = u_t.cpu().numpy().astype(np.float64)
-        curvature = u / (self.std * self.std)
-        gain = w / self.std - 2.0 * curvature * self.mean
-        offset = (curvature * self.mean * self.mean - w * self.mean / self.std - u).sum(axis=1)
+        # An op of a float32 and a float64 array widens the float32 one first, at a few times
+        # the cost of an op of one dtype: widened once here, the same values. sigma^2 is
+        # taken in sigma's own dtype, then widened.
+        square = (self.std * self.std).astype(np.float64)
+        mean, std = self.mean.astype(np.float64), self.std.astype(np.float64)
+        curvature = u / square
+        gain = w / std - 2.0 * curvature * mean
+        offset = (curvature * mean * mean - w * mean / std - u).sum(axis=1)
         return QuadraticCritic(gain, curvature, offset, self.low, self.high)
 
     def gradient(self, actions: np.ndarray) -> np.ndarray:
