@@ -94,8 +94,10 @@ fmt: venv ## apply rustfmt and ruff format
 	$(CARGO) fmt --all
 	$(VENV)/bin/ruff format $(PY_LINT)
 
-bench: setup ## run every benchmark (core, server, Python client, training) -> BENCHMARKS.md
-	PY=$(PY) CARGO=$(CARGO) bash bench/run.sh
+# ONLY=part,...: re-run those parts (core, server, python, training, rllib_scaling, sizes) and
+# keep the others' results; MAX_RUNNERS=N caps the RLlib bench's env runners (bench/run.sh).
+bench: setup ## run the benchmarks -> BENCHMARKS.md (ONLY=training,rllib_scaling: those parts; MAX_RUNNERS=N)
+	PY=$(PY) CARGO=$(CARGO) bash bench/run.sh $(if $(ONLY),--only $(ONLY)) $(if $(MAX_RUNNERS),--max-runners $(MAX_RUNNERS))
 
 soak: setup ## a few minutes of load with floods and faults, then the long fuzz run -> tests/soak/RESULTS.md
 	PY=$(PY) CARGO=$(CARGO) bash tests/soak/run.sh

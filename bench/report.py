@@ -1,6 +1,8 @@
-"""Writes BENCHMARKS.md and the latency-vs-batch PNG from the results of one ``bench/run.sh``.
+"""Writes BENCHMARKS.md and the latency-vs-batch PNG from the results of ``bench/run.sh``.
 
-Reads ``bench/results/``: ``run.json`` (host, load and commands), ``core.json`` (the core pair
+Reads ``bench/results/``: ``run.json`` (per part: when, at which commit, on which host, under
+which load and with which commands it ran; ``run.sh --only`` re-runs some parts and keeps the
+others' results and records), ``core.json (the core pair
 bench's criterion medians, copied out of ``target/criterion`` by ``--snapshot-core``),
 ``server.json`` (esa-bench), ``python.json`` and ``section_1b.json`` (client_latency.py),
 ``training.json`` (training_overhead.py), ``rllib_scaling.json`` (rllib_scaling.py) and
@@ -42,6 +44,16 @@ OFF_POLICY_LIMIT = 1.10
 # Priced for comparison, not held to a budget: ESA on at every step (what it costs while it
 # acts) and the placebo (what judging ESA on a task costs).
 REFERENCE_ROWS = ("ESAPPO ungated [", "ESAPPO placebo [")
+# The parts of a run (bench/run.sh's names, its result files' stems) -> the ``Run`` fields of
+# their results.
+PARTS = {
+    "core": ("core",),
+    "server": ("server",),
+    "python": ("python", "section_1b"),
+    "training": ("training",),
+    "rllib_scaling": ("rllib_scaling",),
+    "sizes": ("sizes",),
+}
 # training_overhead.py's timers of the ESA agents' time.
 BUCKETS = {"round_trips": "round trips", "esa_step": "ESA step", "critic_fit": "critic fit"}
 
@@ -161,6 +173,28 @@ class Run:
             ("tonic echo p50 us", lambda r: fmt(self.tonic_echo(r))),
             ("p50 / tonic echo", self.over_echo),
         ]
+
+    def record(self, part: str) -> tuple[dict, bool] | None:
+        """The run.json record of a part, and whether it is the part's own.
+
+        run.json is ``{"parts": {part: record}, "whole_run": record}``; a part without a
+        record of its own has the whole run's (and an older run.json, one record for the
+        whole run, is that record).
+        """
+        data = self.run or {}
+        parts, whole = (data["parts"], data.get("whole_run")) if "parts" in data else ({}, data)
+        if part in parts:
+            return parts[part], True
+        return (whole, False) if whole else None
+
+    def measured(self) -> list[tuple[str, dict, bool]]:
+        """(part, record, own) of each part whose results are here and that has a record."""
+        out = []
+        for part, fields in PARTS.items():
+            found = self.record(part)
+            if found and any(getattr(self, field) for field in fields):
+                out.append((part, *found))
+        return out
 
     def core_ns(self, law: str, clock: str, dim: int) -> float | None:
         """The core pair's median ns."""
@@ -337,18 +371,90 @@ def plot(run: Run, path: Path) -> None:
     plt.close(fig)
 
 
+HOST_KEYS = ("cpu_model", "cores", "ram_gib", "kernel")
+
+
+def host_text(record: dict) -> str:
+    """The host of a run.json record."""
+    return (
+        f"{record.get('cpu_model')}, {record.get('cores')} cores, "
+        f"{fmt(record.get('ram_gib'))} GiB RAM ({record.get('kernel')})"
+    )
+
+
+def when(record: dict) -> str:
+    """A record's start and end, the end's date left out where it is the start's."""
+    start, end = (record.get(k) or "?" for k in ("started", "finished"))
+    start_day, _, start_time = start.partition("T")
+    end_day, _, end_time = end.partition("T")
+    if start_time and end_time and start_day == end_day:
+        return f"{start_day} {start_time.rstrip('Z')} to {end_time.rstrip('Z')}"
+    return f"{start} to {end}"
+
+
+def provenance_lines(runs: Run) -> list[str]:
+    """The header's host(s), and when, at which commit and under which load each part ran."""
+    measured = runs.measured()
+    if not measured:
+        return ["**Run:** no record of the run (`bench/results/run.json`)."]
+    hosts = list(dict.fromkeys(host_text(record) for _, record, _ in measured))
+    rows = []
+    for part, record, own in measured:
+        load = record.get("loadavg") or {}
+        notes = [] if own else ["whole run"]
+        if record.get("quick"):
+            notes.append("**quick**")
+        row = {
+            "part": f"`{part}`",
+            "measured": when(record) + (f" ({', '.join(notes)})" if notes else ""),
+            "commit": f"`{record.get('commit')}`",
+            "load mean/max": f"{fmt(load.get('mean'), 2)} / {fmt(load.get('max'), 2)}",
+        }
+        rows.append(row | {"host": host_text(record)})
+    columns = [col(k) for k in ("part", "measured", "commit", "load mean/max")]
+    lines = []
+    if len(hosts) == 1:
+        lines += [f"**Host:** {hosts[0]}.", ""]
+    else:
+        lines += ["**Hosts:** the parts ran on different hosts (column `host`).", ""]
+        columns.append(col("host"))
+    lines += [
+        "**Runs:** each part as measured (UTC), the commit it ran at and the load average "
+        "(1 min) sampled during it; `bench/run.sh --only PARTS` re-runs some parts and keeps "
+        "the others' results. `whole run` = the part has no record of its own: the times and "
+        "load are those of the whole `make bench` run it was part of (Machine and run, below).",
+        "",
+        table(rows, columns),
+    ]
+    return lines
+
+
 def machine_section(runs: Run) -> list[str]:
-    """The run's load, CPU time and idle states, and its commands."""
-    run = runs.run or {}
+    """Per record (one per part, or the whole run's): load, CPU time, idle states, commands."""
+    groups: dict[int, tuple[dict, list[str], bool]] = {}
+    for part, record, own in runs.measured():
+        groups.setdefault(id(record), (record, [], own))[1].append(part)
+    lines = ["## Machine and run"]
+    for record, parts, own in groups.values():
+        names = ", ".join(f"`{p}`" for p in parts)
+        heading = f"{names}: " + ("" if own else "the whole run, ")
+        lines += ["", f"### {heading}{when(record)} (UTC), commit `{record.get('commit')}`"]
+        lines += record_lines(record)
+    return lines
+
+
+def record_lines(run: dict) -> list[str]:
+    """One record's load, CPU time and idle states, and its commands."""
     load, share, idle = run["loadavg"], run["cpu_time_percent"], run["cpuidle"]
     lines = [
-        "## Machine and run",
         "",
-        f"- Load average (1 min) sampled every {run['load_interval_s']} s during the run: "
+        f"- Host: {host_text(run)}"
+        + (" (a `--quick` run: not figures of record)" if run.get("quick") else ""),
+        f"- Load average (1 min) sampled every {run['load_interval_s']} s during it: "
         f"min {load['min']:.2f}, mean {load['mean']:.2f}, max {load['max']:.2f} "
         f"({load['samples']} samples); at start `{run['loadavg_start']}`, "
         f"at end `{run['loadavg_end']}`",
-        f"- CPU time of all cores over the run (`/proc/stat`): "
+        f"- CPU time of all cores over it (`/proc/stat`): "
         f"{100 - share['idle'] - share['iowait']:.0f} % busy, including {share['steal']:.1f} % "
         "steal (time the hypervisor gave other guests while this one wanted to run); user "
         f"{share['user']:.0f} %, system {share['system']:.0f} %, idle {share['idle']:.0f} %",
@@ -908,17 +1014,14 @@ def main(args: Args) -> None:
     parts = ("run", "core", "server", "python", "section_1b", "training", "sizes", "rllib_scaling")
     run = Run(*(load(args.results / f"{part}.json") for part in parts))
     plot(run, args.results / PLOT)
-    host = run.run or {}
     lines = [
         "# Benchmarks",
         "",
-        "One `make bench` run (`bench/run.sh`), written by `bench/report.py` from its results "
+        "`make bench` (`bench/run.sh`), written by `bench/report.py` from its results "
         "in `bench/results/`; do not edit by hand. The performance targets first, then every "
         "measurement.",
         "",
-        f"**Host:** {host.get('cpu_model')}, {host.get('cores')} cores, "
-        f"{fmt(host.get('ram_gib'))} GiB RAM ({host.get('kernel')}). **Run:** "
-        f"{host.get('started')} to {host.get('finished')} (UTC) at commit `{host.get('commit')}`.",
+        *provenance_lines(run),
         "",
         "## Targets",
         "",
