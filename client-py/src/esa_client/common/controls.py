@@ -1,21 +1,9 @@
-"""The controls a user judges ESA with, the same for every drop-in, and what a shift did.
+"""ESA's controls (``esa_control``), the same for every drop-in, and what a shift did.
 
-A gain of ESA over its baseline may come from the critic's direction, from the mere size
-and temporal correlation of the perturbation, or from more exploration. Two controls share
-everything with ESA but what they test (``esa_control`` of the drop-ins), each a subclass
-of :class:`EsaShift` that a drop-in builds (:func:`control_shift`) and calls each step:
-
-- ``"placebo"`` (:class:`PlaceboShift`): ESA's shift magnitudes per dimension, its schedule
-  and its correlation over time, with the direction drawn at random
-  (:class:`RandomDirections`): tells direction from mere perturbation;
-- ``"gradient"`` (:class:`GradientShift`): a step of the trust region's size along the
-  critic's action gradient (:func:`unit_gradient`, :func:`gradient_size`), no session:
-  tells extremum seeking from the analytic gradient the paper says it beats.
-
-``shift_report`` measures, on one step in ``SHIFT_REPORT_EVERY``, how much of a shift
-removes the policy's own exploration noise, how often it sits at the trust region, and how
-often the env's clip undoes it. The shift's size (``esa/shift_over_std``) is the runtime's
-statistic (``StepStats``), or the gradient control's own (:func:`gradient_shift_size`).
+``"placebo"`` (:class:`PlaceboShift`) keeps ESA's shift sizes, schedule and correlation in
+random directions; ``"gradient"`` (:class:`GradientShift`) steps the trust region's size
+along the critic's action gradient, with no session (the SB3 guide's "Defaults and
+controls"). A drop-in builds one (:func:`control_shift`) and calls it each step.
 """
 
 from __future__ import annotations
@@ -30,26 +18,18 @@ Control = Literal["placebo", "gradient"]
 CONTROLS: tuple[Control, ...] = get_args(Control)
 
 SHIFT_REPORT_EVERY = 8
-"""Shifted steps per :func:`shift_report`: its numpy costs about an actor call, a few % of a
-step when run on every one."""
+"""Shifted steps per :func:`shift_report`: on every step its numpy would cost a few %."""
 
 
 def check_control(control: str | None) -> Control | None:
-    """Returns ``control`` if it is None, ``"placebo"`` or ``"gradient"``.
-
-    Raises:
-        ValueError: For anything else.
-    """
+    """Returns ``control`` if it is None, ``"placebo"`` or ``"gradient"``, else ValueError."""
     if control is not None and control not in CONTROLS:
         raise ValueError(f"expected esa_control None or one of {CONTROLS}, got {control!r}")
     return control
 
 
 def gradient_size(strength: float, trust_region: float | None) -> float:
-    """The gradient control's step in units of sigma: ``f kappa``, kappa 1 when unset.
-
-    As large as ESA's faded bound allows at every point of training.
-    """
+    """The gradient control's step in units of sigma: ``f kappa`` (kappa 1 when unset)."""
     return strength * (trust_region if trust_region is not None else 1.0)
 
 
@@ -66,11 +46,10 @@ def unit_gradient(gradient: np.ndarray) -> np.ndarray:
 
 
 class RandomDirections:
-    """The placebo's shift: ESA's ``|v|`` per dimension with a random sign vector.
+    """The placebo's shift: ESA's ``|v|`` per dimension times a random sign vector.
 
-    Each env draws a sign vector (each element +-1 with probability 1/2) at every episode
-    start and keeps it through the episode, so the placebo's shift has ESA's magnitude,
-    schedule and temporal correlation, but a direction that knows nothing of the critic.
+    Each env draws its signs (+-1, probability 1/2 each) at every episode start and keeps
+    them through the episode.
 
     Args:
         n_envs: The number of envs N.
@@ -93,16 +72,7 @@ class RandomDirections:
         return signs
 
     def __call__(self, shift: np.ndarray, episode_starts: np.ndarray) -> np.ndarray:
-        """The placebo's shift for ESA's ``shift`` ``(N, D)`` at this step.
-
-        Args:
-            shift: ESA's shift ``v(t)`` per env and dimension.
-            episode_starts: True where an env starts an episode at this step: its signs are
-                drawn anew.
-
-        Returns:
-            ``|shift| * signs``, float64 ``(N, D)``.
-        """
+        """``|shift| * signs``, float64 ``(N, D)``, after :meth:`start` of ``episode_starts``."""
         shift = np.asarray(shift, dtype=np.float64)
         if shift.shape != self.signs.shape:
             raise ValueError(f"expected a shift of shape {self.signs.shape}, got {shift.shape}")
@@ -126,6 +96,8 @@ Acted = tuple[np.ndarray, np.ndarray]
 Session = Callable[[], Acted]
 Source = Callable[[], np.ndarray]
 Execute = Callable[[np.ndarray], np.ndarray]
+Arrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""What :func:`shift_report` reads of a step: ``(sampled, shift, mean, std, low, high)``."""
 
 
 class EsaShift:
@@ -134,11 +106,10 @@ class EsaShift:
     def act(
         self, session: Session, gradient: Source, execute: Execute, starts: np.ndarray
     ) -> Acted:
-        """This step's actions; only the sources it needs are called.
+        """This step's actions and shift; only the sources it needs are called.
 
         Args:
-            session: Steps the sessions: the env's actions under ESA's shift as the drop-in
-                forms them (the off-policy ones execute the sessions' own), and the shift.
+            session: Steps the sessions: the env's actions under ESA's shift, and the shift.
             gradient: The gradient control's shift.
             execute: The env's actions for a shift.
             starts: True where an env starts an episode at this step, ``(N,)``.
@@ -203,23 +174,15 @@ def shift_report(
 ) -> dict[str, float]:
     """What one step's shifts did, averaged over envs (and dimensions where per dimension).
 
-    All arrays are ``(N, D)`` in one unit (ESA's), ``low``/``high`` ``(D,)``.
-
-    Args:
-        sampled: The policy's samples ``a_t``.
-        shift: The shift ``v`` applied on top of them.
-        mean: The policy's mean ``mu``.
-        std: The policy's standard deviation sigma.
-        low: The env's lower bounds (it clips the executed action to them).
-        high: The env's upper bounds.
-        bound: The trust region kappa in units of sigma (None: no bound).
+    ``sampled`` (``a_t``), ``shift`` (``v``), ``mean`` (``mu``) and ``std`` (sigma) are
+    ``(N, D)`` in ESA's units; ``low``/``high`` ``(D,)`` are the env's clip; ``bound`` is
+    kappa in units of sigma (None: no bound).
 
     Returns:
-        ``noise_cosine``: the mean cosine between ``v`` and ``mu - a_t`` over the envs whose
-        shift is non-zero (1: the shift only pulls the sample back to the mean);
-        ``at_bound``: the share of shifted elements within 1 % of ``kappa sigma``;
-        ``undone_by_clip``: the share of shifted elements the env's clip turns into no change
-        of the executed action.
+        ``noise_cosine``: the mean ``cos(v, mu - a_t)`` over the envs with a shift (1: it
+        only pulls the sample back to the mean); ``at_bound``: the share of shifted
+        elements within 1 % of ``kappa sigma``; ``undone_by_clip``: the share the env's clip
+        turns into no change.
     """
     noise = mean - sampled
     norms = np.linalg.norm(shift, axis=1) * np.linalg.norm(noise, axis=1)

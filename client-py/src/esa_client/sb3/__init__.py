@@ -12,9 +12,8 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-# torch loads torch._dynamo (and triton's native libraries) lazily at the first optimizer
-# step; doing that while gRPC's threads serve an open StepStream segfaulted in our SB3
-# tests, so it is loaded here, before any channel exists.
+# torch loads torch._dynamo (and triton) lazily at the first optimizer step; doing that while
+# gRPC's threads serve a StepStream segfaulted in our tests, so it is loaded before any channel.
 import torch._dynamo  # noqa: F401  (imported for its side effect)
 
 from ..config import EsaConfig
@@ -28,12 +27,7 @@ _DROP_INS = {"ESAPPO": "ppo", "ESASAC": "sac", "ESATD3": "td3"}
 
 
 def __getattr__(name: str) -> Any:
-    """Imports a drop-in on first use.
-
-    So ``esa_client.sb3`` (and ``EsaConfig`` from it) imports without stable-baselines3
-    installed; the framework-neutral runtime and quadratic head live in
-    :mod:`esa_client.common`.
-    """
+    """Imports a drop-in on first use, so this module imports without stable-baselines3."""
     if name not in _DROP_INS:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     return getattr(importlib.import_module(f"{__name__}.{_DROP_INS[name]}"), name)

@@ -1,13 +1,9 @@
 """``DecoupledPPO``: PPO whose clipped objective is decoupled from the behaviour policy.
 
-PPO takes its ratio against the density ``b`` of the policy that sampled each action. When
-the executed action is not the policy's own sample (ESA shifts it), ``b`` is that sample's
-density translated, and a shift of a sizeable fraction of sigma makes the ratio fight the
-clip. The decoupled objective of Hilton, Cobbe and Schulman (2022, "Batch size-invariance
-for policy optimization") clips the ratio around the proximal policy ``pi_old`` (the policy
-that collected the rollout) at the executed action and weights it by
-``min(pi_old(x) / b(x), weight_cap)``: an importance-weighted PPO step. Without a shift
-``pi_old = b`` and it is PPO's objective, to float rounding.
+With a shifted action, the ratio against its behaviour density ``b`` fights PPO's clip. The
+decoupled objective (Hilton, Cobbe and Schulman 2022, "Batch size-invariance for policy
+optimization") clips the ratio around the proximal policy ``pi_old`` (the one that collected
+the rollout) at the executed action and weights it by ``min(pi_old / b, weight_cap)``.
 """
 
 from __future__ import annotations
@@ -70,11 +66,7 @@ class DecoupledPPO(PPO):
     def _policy_ratio(
         self, samples: EsaRolloutBufferSamples, log_prob: th.Tensor
     ) -> tuple[th.Tensor, th.Tensor | float]:
-        """``(log of the reference density, weight)`` of the clipped objective.
-
-        The decoupled objective's reference is the proximal policy ``pi_old`` at the
-        executed action, weighted by ``pi_old / b`` (capped); PPO's is ``b`` itself.
-        """
+        """``(log of the reference density, weight)``: ``pi_old`` and its capped ``pi_old / b``."""
         reference = samples.extras["proximal_log_prob"].flatten()
         weight = th.exp(reference - samples.old_log_prob).clamp(max=self.weight_cap)
         return reference, weight

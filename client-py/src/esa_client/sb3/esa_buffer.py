@@ -26,10 +26,8 @@ class EsaRolloutBufferSamples(NamedTuple):
 class EsaRolloutBuffer(RolloutBuffer):
     """A ``RolloutBuffer`` that also holds ``extras``: arrays shaped ``(n_steps, n_envs, ...)``.
 
-    ESAPPO keeps there what its policy update needs per sample beyond PPO's fields: the
-    target mode's shift, the decoupled objective's proximal log-probability, the collecting
-    policy's mean and std. They are flattened with the buffer's own fields and indexed
-    with the same minibatch indices, so no random draw of PPO's changes.
+    What ESAPPO's update needs per sample beyond PPO's fields (e.g. the proximal
+    log-probability), indexed with the same minibatches, so no random draw of PPO's changes.
     """
 
     extras: dict[str, np.ndarray]

@@ -6,19 +6,24 @@ import dataclasses
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import torch as th
 from gymnasium import spaces
 
 from ..client import EsaClient, Where, resolve_client
 from ..common.action_frame import ActionFrame
-from ..common.controls import Control, EsaShift, check_control, control_shift, shift_report
+from ..common.controls import (
+    Arrays,
+    Control,
+    EsaShift,
+    check_control,
+    control_shift,
+    shift_report,
+)
 from ..common.runtime import EsaRuntime, OnUnavailable, check_on_unavailable
 from ..config import EsaConfig, SessionConfig
 from ..env_dt import env_dt
 
-if TYPE_CHECKING:
-    # The mixin is always combined with an SB3 algorithm (ESAPPO, ESASAC): checked as one.
+if TYPE_CHECKING:  # the mixin is always combined with an SB3 algorithm: checked as one
     from stable_baselines3.common.base_class import BaseAlgorithm as _Algorithm
 else:
     _Algorithm = object
@@ -34,11 +39,9 @@ def tile_obs(obs: th.Tensor | dict[str, th.Tensor], reps: int) -> th.Tensor | di
 class EsaMixin(_Algorithm):
     """Adds an ESA runtime to an SB3 algorithm; put it first in the bases.
 
-    The client is opened (and its server checked) when the model is built or loaded, so a
-    wrong address fails at once, not when the gate first opens. The sessions are created
-    on the first rollout with ESA from the current env, closed on ``set_env`` and never
-    saved; neither is the client: a loaded model runs in-process unless given
-    ``esa_client`` again (``Model.load(path, env, esa_client=...)``).
+    The client is opened (and its server checked) when the model is built or loaded; the
+    sessions are created on the first rollout with ESA, closed on ``set_env``; neither is
+    saved (the SB3 guide's "Engines").
     """
 
     esa: EsaConfig
@@ -70,23 +73,19 @@ class EsaMixin(_Algorithm):
                 (an RL Zoo yaml file's ``esa: {amplitude: 0.2}``) applied over the family's
                 default, checked like ``EsaConfig`` (``ValueError``); ``"preset": "paper"``
                 starts from ``EsaConfig.paper()`` instead. None: the family's default.
-            esa_client: Where the sessions live. None: esa-core in this process (no
-                server, nothing shared). An :class:`~esa_client.EsaClient` (a server with
-                a token, TLS, Zenoh, a reconnect time: see ``EsaClient.connect`` and
-                ``.spawn``), which stays yours to close. Or a string that
-                :meth:`EsaClient.open <esa_client.EsaClient.open>` parses: a server's
-                ``"host:port"`` or ``"unix:/path"``, ``"zenoh:<endpoint>"``, or ``"spawn"``
-                for a private server of this model (the SB3 guide's "Engines").
+            esa_client: Where the sessions live. None: esa-core in this process. An
+                :class:`~esa_client.EsaClient`, which stays yours to close. Or a string that
+                :meth:`EsaClient.open <esa_client.EsaClient.open>` parses (``"host:port"``,
+                ``"unix:/path"``, ``"zenoh:<endpoint>"``, ``"spawn"``; the SB3 guide's
+                "Engines").
             esa_on_unavailable: ``"raise"`` (end training with ``ServerUnavailable``) or
                 ``"skip"`` (no ESA until the next episode start; counted in the logger
                 as ``esa/unavailable_steps``), once the server stayed unreachable for the
                 client's ``reconnect_timeout``.
-            esa_control: None (ESA), or a control that shares everything with ESA but what
-                it tests, to judge ESA on your task (:mod:`esa_client.common.controls`):
-                ``"placebo"`` (ESA's shift sizes, schedule and correlation in a random
-                direction per env and episode, seeded from ``seed``) or ``"gradient"`` (a
-                step of the trust region's size along the critic's action gradient; no
-                session).
+            esa_control: None (ESA), or a control to judge ESA on your task
+                (:mod:`esa_client.common.controls`): ``"placebo"`` (ESA's shift sizes in a
+                random direction per env and episode, seeded from ``seed``) or
+                ``"gradient"`` (the trust region's step along the critic's action gradient).
             **kwargs: Any other argument of the SB3 algorithm.
 
         Raises:
@@ -106,7 +105,7 @@ class EsaMixin(_Algorithm):
         self._esa_open(esa_client)
         try:
             super().__init__(policy, env, *args, **kwargs)
-            # Model.load(path) without an env constructs the model with none: no action space.
+            # Model.load(path) without an env builds a model with no action space.
             space = getattr(self, "action_space", None)
             if space is not None and not isinstance(space, spaces.Box):
                 raise ValueError(f"expected a Box action space for ESA, got {space}")
@@ -196,39 +195,24 @@ class EsaMixin(_Algorithm):
         return self._esa
 
     def _esa_strength(self) -> float:
-        """ESA's strength under the config's fade at this point of ``learn()``'s budget."""
-        # SB3 sets _total_timesteps to where the current learn() ends, counted like
-        # num_timesteps (a learn() that keeps the count fades over the whole count).
+        """ESA's strength under the config's fade at this point of ``learn()``'s budget.
+
+        SB3's ``_total_timesteps`` is where this ``learn()`` ends, counted like ``num_timesteps``.
+        """
         total = max(getattr(self, "_total_timesteps", 0), 1)
         return self.esa.strength(self.num_timesteps / total)
 
     def _control_shift(self) -> EsaShift:
-        """ESA's shift or its control's (``esa_control``), which each step calls.
-
-        Built with the sessions and dropped with them: the placebo's random directions are
-        drawn anew for a new env, seeded from the model's ``seed``.
-        """
+        """ESA's shift or its control's, built and dropped with the sessions (new placebo signs)."""
         if self._esa_control_shift is None:
             self._esa_control_shift = control_shift(self.esa_control, self.seed)
         return self._esa_control_shift
 
-    def _report_shift(
-        self,
-        sampled: np.ndarray,
-        shift: np.ndarray,
-        mean: np.ndarray,
-        std: np.ndarray,
-        low: np.ndarray,
-        high: np.ndarray,
-        kappa: float | None,
-        strength: float,
-    ) -> None:
-        """Averages :func:`shift_report` of one step, and ESA's strength, into the logger.
-
-        ``std`` is the unfaded action scale and ``kappa`` the trust region (None: no bound).
-        """
+    def _report_shift(self, strength: float, arrays: Arrays) -> None:
+        """Averages :func:`shift_report` of one step (``std`` unfaded), and ESA's strength."""
+        kappa = self._control_shift().bound(self.esa.trust_region)
         bound = None if kappa is None else strength * kappa
-        for key, value in shift_report(sampled, shift, mean, std, low, high, bound).items():
+        for key, value in shift_report(*arrays, bound=bound).items():
             self.logger.record_mean(f"esa/{key}", value)
         self.logger.record_mean("esa/strength", strength)
 
@@ -239,10 +223,7 @@ class EsaMixin(_Algorithm):
         self._esa_control_shift = None
 
     def esa_close(self) -> None:
-        """Closes the ESA sessions, and the client if the model opened it.
-
-        A server the model spawned stops with its client.
-        """
+        """Closes the ESA sessions, and the client if the model opened it (a spawned server too)."""
         self._esa_close_sessions()
         if self._esa_owns_client:
             self.esa_client.close()
@@ -253,9 +234,8 @@ class EsaMixin(_Algorithm):
         super().set_env(env, force_reset)
 
     def _excluded_save_params(self) -> list[str]:
-        # Where the sessions live belongs to the machine that trains, not to the model (a
-        # client may hold a token): a loaded model takes it as a load argument.
-        # The control (the placebo's signs) belongs to one run on one VecEnv, like the sessions.
+        # The client belongs to the machine that trains (it may hold a token); the control
+        # (the placebo's signs) to one run on one VecEnv, like the sessions.
         excluded = ["_esa", "_esa_control_shift", "esa_client", "_esa_owns_client", "_esa_frame"]
         return [*super()._excluded_save_params(), *excluded]
 

@@ -35,20 +35,8 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
     Works in the squashed action space [-1, 1] (the replay buffer's). ESA probes the mean of
     the Polyak target twins (steadier than the online ones, which the actor chases).
     Subclasses say where the policy's action is and how wide it is
-    (:meth:`_policy_mean_and_std`).
-
-    The controls (``esa_control``, :mod:`esa_client.common.controls`) share everything but
-    the shift: ``"gradient"`` is :meth:`_gradient_shift` (autograd, no session);
-    ``"placebo"`` runs ESA's sessions, and the env executes ``clip(a_t + |v| s)`` with a
-    random sign vector ``s`` per env and episode. Under ``EsaConfig.fade`` every shift is
-    scaled by the same strength ``f``; from ``f = 0`` on the env executes ``a_t`` and no
-    session steps.
-
-    On one in ``SHIFT_REPORT_EVERY`` of the steps a shift is applied on,
-    :func:`~esa_client.common.controls.shift_report` of it is averaged into the logger:
-    ``esa/noise_cosine`` (``cos(v, mu - a_t)``), ``esa/at_bound`` (the share of elements
-    at the faded bound ``f kappa sigma``) and ``esa/undone_by_clip`` (the share the box's
-    clip turns into no change).
+    (:meth:`_policy_mean_and_std`). From fade strength ``f = 0`` on the env executes
+    ``a_t`` and no session steps.
     """
 
     critic: ContinuousCritic
@@ -72,11 +60,7 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         raise NotImplementedError
 
     def _policy_sample(self, obs: Any) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
-        """What SB3's ``predict(deterministic=False)`` samples, with the mean and sigma.
-
-        All three come from one actor call, each ``(batch, D)``: the sample as the policy's
-        ``_predict`` returns it (the same random draws), and :meth:`_policy_mean_and_std`.
-        """
+        """One actor call's sample as SB3's ``_predict`` draws it, and the mean and sigma."""
         raise NotImplementedError
 
     def _make_esa_frame(self, box: spaces.Box) -> ActionFrame:
@@ -116,9 +100,8 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         if strength > 0:
             self._esa_shifted_steps += 1
         if report:
-            kappa = self._control_shift().bound(self.esa.trust_region)
             frame = self.esa_frame
-            self._report_shift(sampled, shift, mu, sigma, frame.low, frame.high, kappa, strength)
+            self._report_shift(strength, (sampled, shift, mu, sigma, frame.low, frame.high))
         buffer_action = executed.reshape(buffer_action.shape).astype(buffer_action.dtype)
         return self.policy.unscale_action(buffer_action), buffer_action
 
@@ -127,11 +110,8 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
     ) -> tuple[np.ndarray, th.Tensor, th.Tensor]:
         """SB3's exploratory action in [-1, 1] (its buffer action), the mean and sigma.
 
-        The steps of ``OffPolicyAlgorithm._sample_action`` after the warm-up, with the
-        policy called once (:meth:`_policy_sample`) instead of once for SB3's sample and
-        again for ESA's mean and sigma: a per-step cost of the off-policy drop-ins. The
-        sample goes through ``predict``'s unscaling and ``_sample_action``'s rescaling, so
-        that its bits are SB3's.
+        ``OffPolicyAlgorithm._sample_action`` after the warm-up, with one actor call for all
+        three; the sample is unscaled and rescaled as SB3's, so that its bits are SB3's.
         """
         with th.no_grad():
             actions, mean, std = self._policy_sample(obs)
@@ -142,22 +122,9 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         return scaled, mean, std
 
     def _shifted(
-        self,
-        obs: Any,
-        sampled: np.ndarray,
-        mu: np.ndarray,
-        sigma: np.ndarray,
-        strength: float,
+        self, obs: Any, sampled: np.ndarray, mu: np.ndarray, sigma: np.ndarray, strength: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The env's actions and the shift on top of ``a_t`` they come from, each ``(N, D)``.
-
-        Args:
-            obs: The current observations, as the policy takes them.
-            sampled: The policy's samples ``a_t`` (with TD3's noise) in [-1, 1].
-            mu: The policy's action without its noise.
-            sigma: The action scale.
-            strength: ESA's strength under the fade, in [0, 1].
-        """
+        """The env's actions and the shift on ``sampled`` (``a_t``, with TD3's noise), (N, D)."""
         anchor = self._anchor(sampled, mu)
 
         def execute(shift: np.ndarray) -> np.ndarray:
@@ -188,19 +155,11 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         return self._last_episode_starts
 
     def _esa_step(
-        self,
-        obs: Any,
-        anchor: np.ndarray,
-        sigma: np.ndarray,
-        strength: float,
+        self, obs: Any, anchor: np.ndarray, sigma: np.ndarray, strength: float
     ) -> np.ndarray:
         """Algorithm 1's step of every env's session at ``anchor``: the applied actions."""
         return self._esa_runtime().step(
-            anchor,
-            self._episode_starts(),
-            self._esa_q(obs),
-            sigma,
-            strength=strength,
+            anchor, self._episode_starts(), self._esa_q(obs), sigma, strength=strength
         )
 
     def _gradient_shift(
@@ -208,11 +167,7 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
     ) -> np.ndarray:
         """``f kappa sigma u``: the gradient control's shift, ``u`` the unit gradient at ``anchor``.
 
-        Args:
-            obs: The current observations, as the policy takes them.
-            anchor: Where the critic's action gradient is taken, ``(N, D)`` in [-1, 1].
-            sigma: The action scale, ``(N, D)``.
-            strength: ESA's strength ``f`` under the fade; at 0 no gradient is computed.
+        At strength ``f`` 0 no gradient is computed.
         """
         if strength <= 0:
             return np.zeros(anchor.shape)
@@ -289,5 +244,5 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         infos: list[dict[str, Any]],
     ) -> None:
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
-        # Off-policy SB3 does not track episode starts; ESA needs them to reset the sessions.
+        # Off-policy SB3 does not track episode starts; ESA's sessions need them.
         self._last_episode_starts = np.asarray(dones, dtype=bool).copy()

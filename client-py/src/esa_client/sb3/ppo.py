@@ -40,19 +40,11 @@ from .mixin import EsaMixin
 class ESAPPO(EsaMixin, DecoupledPPO):
     """PPO with Extremum-Seeking Action selection; a drop-in for ``stable_baselines3.PPO``.
 
-    Each rollout step is Algorithm 1 of the paper with the bounded law of CONTRACT.md
-    section 1b: the policy samples ``a_t``, ESA probes a head quadratic in the action
-    (:mod:`esa_client.common.quadratic_head`, fitted on the GAE advantages of the last
-    ``head_rollouts`` rollouts) and the env executes ``a_t + v(t)``; the shift converges to
-    the head's maximum, bounded by ``trust_region`` policy standard deviations. ESA acts
-    while the head passes ``EsaConfig.gate`` and fades over ``learn()``'s budget
-    (``EsaConfig.fade``: the default's is half of it). The rollout stores the executed
-    action, unclipped, with ``log pi_old(a_t)``, its exact behaviour log-probability, and
-    the update is PPO's with the decoupled objective (Hilton, Cobbe and Schulman, 2022): the
-    ratio is clipped around ``pi_old`` at the executed action and weighted by
-    ``min(pi_old / b, weight_cap)``. With ``EsaConfig(learning_rate=0)`` it trains as PPO,
-    to float rounding. ``squash_output`` policies and Dict observations are refused (flatten
-    those with gymnasium's ``FlattenObservation``); ``predict`` is PPO's.
+    ESA probes a head quadratic in the action (:mod:`esa_client.common.quadratic_head`,
+    fitted on the GAE advantages of the last ``head_rollouts`` rollouts); the rollout stores
+    the executed ``a_t + v(t)``, unclipped, and the update is :class:`DecoupledPPO`'s (the
+    SB3 guide says what each step does). ``squash_output`` policies and Dict observations
+    are refused; ``predict`` is PPO's.
 
     Example::
 
@@ -83,7 +75,6 @@ class ESAPPO(EsaMixin, DecoupledPPO):
     """How many of the latest rollouts the head is fitted on."""
 
     esa_head: nn.Module
-    # Defaults until training (or a load) sets them.
     _esa_head_fitted = False
     _esa_active = False
     _esa_steps = 0
@@ -101,11 +92,9 @@ class ESAPPO(EsaMixin, DecoupledPPO):
             )
         features_dim = spaces.flatdim(self.observation_space)
         action_dim = int(np.prod(self.action_space.shape or ()))
-        # A forked generator: building the critic must not move PPO's random stream.
-        with th.random.fork_rng(devices=[]):
+        with th.random.fork_rng(devices=[]):  # building it must not move PPO's random stream
             self.esa_head = self._make_critic(features_dim, action_dim)
         self.esa_head.to(self.device)
-        # fused: Adam's update of all tensors in one kernel (torch >= 2.4, CPU and CUDA).
         fused = self.device.type in ("cpu", "cuda") or None
         self.esa_head_optimizer = th.optim.Adam(
             self.esa_head.parameters(), lr=self.head_learning_rate, fused=fused
@@ -121,12 +110,10 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "esa_head", "esa_head_optimizer"], variables
 
-    def _excluded_save_params(self) -> list[str]:
-        # The critic's data come again from the next rollouts, the scaling from the space.
+    def _excluded_save_params(self) -> list[str]:  # the next rollouts bring new data
         return [*super()._excluded_save_params(), "_esa_head_data"]
 
     def _make_esa_frame(self, box: spaces.Box) -> ActionFrame:
-        # PPO stores its Gaussian samples unclipped; ESA shifts them in that space too.
         return ActionFrame.scaled(box)
 
     def _head_features(self, obs: th.Tensor) -> th.Tensor:
@@ -140,7 +127,6 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         actions, values, log_prob = self.policy(obs)
         strength = self._esa_strength() if self._esa_active else 0.0
         if strength > 0.0:
-            # The distribution the policy just sampled from, its mean and std flat, (N, D).
             gaussian = _gaussian(self.policy.action_dist)
             sample = actions.reshape(len(actions), -1).cpu().numpy()
             mean, std = gaussian.mean.cpu().numpy(), gaussian.stddev.cpu().numpy()
@@ -159,8 +145,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
             shift = self._session_shift(obs, sample, mean, std, starts, f)
             return self._execute(sample, shift, std), shift
 
-        control = self._control_shift()
-        executed, shift = control.act(
+        executed, shift = self._control_shift().act(
             session,
             lambda: self._gradient_shift(obs, sample, mean, std, f),
             lambda shift: self._execute(sample, shift, std),
@@ -169,8 +154,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         if self._esa_steps % SHIFT_REPORT_EVERY == 0:
             box = self.esa_frame.box
             low, high = box.low.reshape(-1), box.high.reshape(-1)
-            kappa = control.bound(self.esa.trust_region)
-            self._report_shift(sample, shift, mean, std, low, high, kappa, f)
+            self._report_shift(f, (sample, shift, mean, std, low, high))
         self._esa_steps += 1
         return executed
 
@@ -221,11 +205,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         rollout_buffer: RolloutBuffer,
         n_rollout_steps: int,
     ) -> bool:
-        """SB3's ``OnPolicyAlgorithm.collect_rollouts`` with ESA's step in the policy's place.
-
-        The env gets ``clip(a_t + v(t))``; the buffer stores ``a_t + v(t)`` unclipped with
-        ``log pi(a_t)``.
-        """
+        """SB3's ``OnPolicyAlgorithm.collect_rollouts`` with ESA's step in the policy's place."""
         assert self._last_obs is not None, "No previous observation was provided"
         self.policy.set_training_mode(False)
         n_steps = 0
@@ -236,14 +216,12 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         while n_steps < n_rollout_steps:
             if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
                 self.policy.reset_noise(env.num_envs)
-            # inference_mode, not no_grad: torch keeps no version counters or view records for
-            # the step's tensors, a few microseconds of every op of the policy's and the
-            # critic's forward passes; nothing of a step is differentiated later.
+            # inference_mode, not no_grad: no version counters or view records, a few
+            # microseconds of every op; nothing of a step is differentiated later.
             with th.inference_mode():
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)  # type: ignore[arg-type]
                 actions_t, values, log_probs = self._esa_policy_step(obs_tensor)  # type: ignore[arg-type]
             actions = actions_t.cpu().numpy()
-            # PPO's Gaussian is unbounded: the env gets the sample clipped to its Box.
             box = self.esa_frame.box
             clipped_actions = np.clip(actions, box.low, box.high)
             new_obs, rewards, dones, infos = env.step(clipped_actions)
@@ -253,7 +231,6 @@ class ESAPPO(EsaMixin, DecoupledPPO):
                 return False
             self._update_info_buffer(infos, dones)
             n_steps += 1
-            # A truncated episode bootstraps with the value of its last observation.
             for idx, done in enumerate(dones):
                 if (
                     done
@@ -282,11 +259,9 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         return True
 
     def train(self) -> None:
-        """The gate on the new rollout, PPO's update, then the critic's fit.
+        """The gate on the new rollout, PPO's update, then the critic's fit (on its own generator).
 
-        The update has the decoupled objective; the critic's fit draws from generators of its
-        own, so PPO's random draws are SB3's. Once the fade is over, nothing of this
-        ``learn()`` probes the critic again, so it is neither scored nor fitted.
+        Once the fade is over nothing probes the critic again: it is neither scored nor fitted.
         """
         probed_again = self._esa_strength() > 0.0
         if probed_again:
@@ -333,9 +308,5 @@ class ESAPPO(EsaMixin, DecoupledPPO):
 
 
 def _gaussian(distribution: Distribution) -> th.distributions.Normal:
-    """The torch Normal of a Box policy's action distribution.
-
-    A Box policy without squashing (checked in ``_setup_model``) has a DiagGaussian or a gSDE
-    distribution, both a ``Normal`` underneath; SB3 types the attribute for every kind.
-    """
+    """The torch Normal under a non-squashing Box policy's DiagGaussian or gSDE distribution."""
     return cast(th.distributions.Normal, distribution.distribution)

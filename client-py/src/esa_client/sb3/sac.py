@@ -15,25 +15,12 @@ __all__ = ["ESASAC"]
 class ESASAC(OffPolicyEsaMixin, SAC):
     """SAC with Extremum-Seeking Action selection; a drop-in for ``stable_baselines3.SAC``.
 
-    Each step, for every env of the VecEnv (one ESA session each), the action SAC
-    samples is probed with a sinusoidal perturbation, a critic scores the probes and the
-    env executes ``a_t + v(t)`` (Algorithm 1), which is also what the replay buffer
-    stores. ESA works in SAC's squashed action space: probes, shifts and amplitudes are
-    in [-1, 1] units, and the action scale is the policy's local standard deviation
-    there, ``min((1 - tanh(mu)^2) std, 1)``.
-
-    ESA waits until the critic has learned something about actions (``EsaConfig.gate``):
-    every ``gate_every`` steps after ``learning_starts`` it computes, on the transitions
-    collected since the last check, the rank correlation between the critic's
-    ``Q(s, a) - Q(s, mu)`` and the one-step advantage ``r + gamma V(s') - V(s)`` with
-    ``V(s) = Q(s, mu)``. With ``gate=None`` ESA starts at ``learning_starts``. With
-    ``EsaConfig(fade=...)`` ESA's shift fades to 0 over that fraction of the budget of
-    ``learn()``. The controls (``esa_control``) are :class:`OffPolicyEsaMixin`'s.
-
-    With ``EsaConfig(learning_rate=0)`` the shift stays 0 and training equals plain SAC
-    step for step (the gate and the probes draw no random numbers). ``predict`` is
-    unchanged: evaluation uses the plain policy. The off-policy default is
-    ``EsaConfig.off_policy()``, used when ``esa`` is not given.
+    ESA works in SAC's squashed action space [-1, 1], where the action scale is the
+    policy's local standard deviation ``min((1 - tanh(mu)^2) std, 1)``. The gate
+    (``EsaConfig.gate``), checked every ``gate_every`` steps after ``learning_starts``, is
+    the rank correlation of the critic's ``Q(s, a) - Q(s, mu)`` with the one-step advantage
+    ``r + gamma V(s') - V(s)``, ``V(s) = Q(s, mu)``, on the transitions since the last
+    check; with ``gate=None`` ESA starts at ``learning_starts``. ``predict`` is SAC's.
 
     Example::
 
@@ -44,9 +31,8 @@ class ESASAC(OffPolicyEsaMixin, SAC):
         policy: As for SAC.
         env: As for SAC.
         *args: Further positional arguments of SAC.
-        **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin` (``esa``,
-            default ``EsaConfig.off_policy()``; ``esa_client``, ``esa_on_unavailable``,
-            ``esa_control``, ...), and any other SAC argument.
+        **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin` (``esa``
+            default ``EsaConfig.off_policy()``), and any other SAC argument.
 
     Raises:
         ValueError: If the action space is not a Box, ``esa_control`` is unknown, or an
@@ -68,13 +54,10 @@ class ESASAC(OffPolicyEsaMixin, SAC):
         return (actions, *self._squashed(mean))
 
     def _squashed(self, mean: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """The squashed policy's mean action and its standard deviation in [-1, 1] units.
+        """The squashed mean and std, ``(1 - tanh(mu)^2) std`` capped at 1, in [-1, 1] units.
 
-        The std is tanh's linearization at the mean, ``(1 - tanh(mu)^2) std``, capped at 1:
-        no distribution on [-1, 1] spreads wider than that. ``std`` is the Gaussian's that
-        the actor's distribution was last given: read there, not from ``log_std``, because
-        under gSDE ``log_std`` holds the noise weights' scales and the std depends on the
-        state.
+        ``std`` is read from the actor's distribution, not ``log_std``: under gSDE that holds
+        the noise weights' scales.
         """
         std = self.actor.action_dist.distribution.stddev
         squashed = th.tanh(mean)

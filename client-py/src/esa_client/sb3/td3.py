@@ -15,15 +15,9 @@ from .off_policy import OffPolicyEsaMixin
 class ESATD3(OffPolicyEsaMixin, TD3):
     """TD3 with Extremum-Seeking Action selection; a drop-in for ``stable_baselines3.TD3``.
 
-    Each step TD3's deterministic action plus its exploration noise is ``a_t``; ESA probes
-    TD3's critic around it (by default the mean of the target twins) and the env executes
-    ``a_t + v(t)``, which the replay buffer stores. ESA works in the squashed space
-    [-1, 1]. TD3 has no policy distribution, so the action scale sigma is the exploration
-    noise's standard deviation (a ``NormalActionNoise``'s sigma), or ``esa_action_scale``.
-
-    The gate, the fade (``EsaConfig.fade``) and the controls (``esa_control``) are
-    ESASAC's (:class:`OffPolicyEsaMixin`). With ``EsaConfig(learning_rate=0)`` training
-    equals plain TD3 step for step.
+    ``a_t`` is TD3's action plus its exploration noise, in the squashed space [-1, 1]; TD3
+    has no policy distribution, so the action scale sigma is the noise's (a
+    ``NormalActionNoise``'s sigma), or ``esa_action_scale``. The rest is ESASAC's.
 
     Example::
 
@@ -33,7 +27,6 @@ class ESATD3(OffPolicyEsaMixin, TD3):
     Args:
         policy: As for TD3.
         env: As for TD3.
-        esa: The ESA hyperparameters (default ``EsaConfig.off_policy()``).
         esa_action_scale: sigma in [-1, 1] units (> 0, at most 1); None reads it from a
             ``NormalActionNoise`` and is 0.1 (RL Zoo's TD3 noise) without one.
         **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin`, and
