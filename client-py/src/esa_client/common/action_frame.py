@@ -12,18 +12,14 @@ from gymnasium import spaces
 class ActionFrame:
     """A Box action space as ESA sees it: ``units = (action - center) / half_width``.
 
-    A drop-in builds one per action space (:meth:`scaled` or :meth:`squashed`) and reads
-    every piece of action geometry from it.
-
     Attributes:
         box: The action space.
         center: Per dimension, the action at 0 units.
         half_width: Per dimension, the action change of one unit.
         low: The bounds the env clips its actions to, in units.
         high: See ``low``.
-        bounded: Whether the sessions clip the shifted action to ``[low, high]`` (a sample
-            that is bounded itself), or leave it unbounded (a Gaussian sample, which the
-            env clips).
+        bounded: Whether the sessions clip to ``[low, high]`` (a bounded sample) or not (a
+            Gaussian sample, which the env clips).
     """
 
     box: spaces.Box
@@ -35,10 +31,7 @@ class ActionFrame:
 
     @classmethod
     def scaled(cls, box: spaces.Box) -> ActionFrame:
-        """The Box mapped to [-1, 1] per bounded dimension (an open side: the raw action).
-
-        For an unbounded Gaussian sample (PPO): its sessions are unbounded.
-        """
+        """The Box mapped to [-1, 1] per bounded dimension (an open side: the raw action)."""
         low, high = box.low.reshape(-1), box.high.reshape(-1)
         finite = np.isfinite(low) & np.isfinite(high)
         center = np.where(finite, (high + low) / 2, 0.0)
@@ -61,12 +54,8 @@ class ActionFrame:
     def unit(cls, box: spaces.Box, *, bounded: bool) -> ActionFrame:
         """Actions already in [-1, 1] per dimension (SB3's squashed ones, RLlib's normalized).
 
-        Args:
-            box: The action space the actions are normalized from.
-            bounded: Whether the sessions clip to [-1, 1] (a squashed sample) or not (a
-                Gaussian sample, which the env clips).
+        In the Box's dtype, as :meth:`scaled` gives them for a [-1, 1] Box: the same bits.
         """
-        # In the Box's dtype, as ``scaled`` gives them for a [-1, 1] Box: the same bits.
         ones = np.ones(int(np.prod(box.shape or ())), dtype=box.dtype)
         return cls(box, np.zeros_like(ones), ones, -ones, ones, bounded)
 

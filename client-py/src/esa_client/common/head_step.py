@@ -1,8 +1,4 @@
-"""ESA's step on a quadratic head: the shift ``v(t)`` of a Gaussian policy's samples.
-
-One function for every trainer that ships PPO with ESA (``ESAPPO``, RLlib's PPO), so that
-the same inputs give the same shifts, bit for bit, whichever trainer asks.
-"""
+"""ESA's step on a quadratic head, shared by ESAPPO and RLlib's PPO: the same bits."""
 
 from __future__ import annotations
 
@@ -49,13 +45,10 @@ def head_shift(
 ) -> np.ndarray:
     """ESA's shift ``v(t)`` of the samples at strength ``f``, in action units, float64 ``(N, D)``.
 
-    One session step per env (Algorithm 1 with the bounded law of CONTRACT.md section 1b).
-
     Args:
         runtime: The sessions, one per env.
-        critic: What the sessions evaluate at the probes: the closed form of
-            :func:`head_critic`'s critic (``critic.closed_form()``, which the in-process
-            engine evaluates itself), or any critic over actions in ESA units.
+        critic: What the sessions evaluate at the probes: :func:`head_critic`'s critic's
+            ``closed_form()``, or any critic over actions in ESA units.
         units: Sigma in ESA units (the ``std`` of :func:`head_critic`'s critic).
         frame: The action space as ESA sees it.
         sample: The policy's samples ``a_t`` in action units, ``(N, D)``.

@@ -1,22 +1,10 @@
 """ESAPPO's critic for ESA: a head quadratic in the policy-normalized action, and its gate.
 
-PPO has no action-value network to probe, so ESAPPO fits one of its own:
-``A(s, a) = w(s) . z + sum_j u_j(s) (z_j^2 - 1)`` with ``z = (a - mu(s)) / sigma(s)`` and
-``u = -softplus(.) <= 0``, one small tanh MLP of the observation giving ``(w, u)``. It is
-concave in each dimension, so ESA's filtered response follows its slope ``w_j + 2 u_j z_j``
-and the shift converges to the head's maximum ``z* = -w / (2 u)``: extremum seeking, which
-a head linear in the action cannot give (its response depends on neither the sample nor
-the shift). ``A(s, mu) = -sum_j u_j`` keeps the head's mean over the policy 0, as an
-advantage's is. It is regressed onto the normalized GAE advantages of the last few rollouts
-(each stored with the ``z`` of the policy that collected it), on a generator of its own.
-
-The gate: the rank correlation, on a rollout the head was not trained on, between its
-``A(s, a) - A(s, mu)`` and the GAE advantage of the action taken (:func:`critic_quality`).
-
-At a step the head is evaluated at the action the env executes, the action clipped to the
-Box (:class:`CriticAtStep`), in closed form (:meth:`CriticAtStep.closed_form`): a
-:class:`~esa_client.transports.base.QuadraticCritic`, which the in-process engine evaluates
-itself.
+PPO has no Q-network to probe, so ESAPPO fits :class:`QuadraticHead` (the SB3 guide). Being
+concave in each dimension, ESA's shift converges to its maximum ``z* = -w / (2 u)``, which a
+head linear in the action cannot give. ``A(s, mu) = -sum_j u_j`` keeps its mean over the
+policy 0, as an advantage's is. The gate is :func:`critic_quality` on a rollout the head was
+not trained on.
 """
 
 from __future__ import annotations
@@ -57,16 +45,14 @@ class QuadraticHead(nn.Module):
         super().__init__()
         self.action_dim = action_dim
         self.net = mlp(features_dim, hidden, 2 * action_dim)
-        # The three layers, for coefficients(); a tuple is not registered as a submodule,
-        # so the state_dict keeps its keys.
+        # For coefficients(); a tuple is no submodule, so the state_dict keeps its keys.
         self._linears = tuple(cast(nn.Linear, self.net[i]) for i in (0, 2, 4))
 
     def coefficients(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """``(w, u)`` at the features, each ``(batch, D)``; ``u <= 0``.
 
-        ``self.net``'s forward pass without its five module calls: the same kernels on the
-        same tensors (``nn.Linear`` is ``F.linear``, ``nn.Tanh`` is ``th.tanh``), so the same
-        bits and autograd graph, at a fraction of the Python cost of a rollout step.
+        ``self.net``'s forward pass without its module calls: the same kernels, so the same
+        bits and autograd graph, at a fraction of the Python cost.
         """
         first, second, third = self._linears
         hidden = th.tanh(F.linear(features, first.weight, first.bias))
@@ -108,8 +94,7 @@ def fit_critic(
 ) -> float:
     """Regresses ``critic(features, z)`` onto the rollouts' targets; returns the mean loss.
 
-    Minibatches are drawn from ``rng``, not numpy's global generator, so that fitting the
-    critic leaves the learner's own minibatch order untouched.
+    Minibatches come from ``rng``, so the learner's own minibatch order is untouched.
     """
     features = th.cat([r.features for r in rollouts])
     z = th.cat([r.z for r in rollouts])
@@ -138,10 +123,7 @@ def rank_correlation(x: np.ndarray, y: np.ndarray) -> float:
 
 
 def critic_quality(critic: nn.Module, rollout: Rollout, advantages: th.Tensor) -> float:
-    """Rank correlation of ``A(s, a) - A(s, mu)`` with the GAE advantages of ``a``.
-
-    ``critic`` is any critic of ``(features, z)``.
-    """
+    """Rank correlation of ``critic``'s ``A(s, a) - A(s, mu)`` with the GAE advantages of ``a``."""
     with th.no_grad():
         z = rollout.z
         predicted = critic(rollout.features, z) - critic(rollout.features, th.zeros_like(z))
@@ -152,11 +134,9 @@ def critic_quality(critic: nn.Module, rollout: Rollout, advantages: th.Tensor) -
 class CriticAtStep:
     """A critic of ``(features, z)`` at one step's N states, over actions in ESA units.
 
-    ESA units are the Box scaled to [-1, 1]; ``mean`` and ``std`` are the policy's in those
-    units. The critic is evaluated at the action the env executes, the action clipped to
-    ``[low, high]``: beyond the box the env's Q is flat in the action, so a dimension whose
-    sample lies past the bound by more than the probe's reach gives no response and its
-    shift is not pushed by a slope the head extrapolated from unclipped samples.
+    It is evaluated at the action the env executes, clipped to ``[low, high]``: past the box
+    the env's Q is flat, so the shift is not pushed by a slope extrapolated from unclipped
+    samples.
 
     Attributes:
         critic: The quadratic head (or another critic of ``(features, z)``).
@@ -194,11 +174,9 @@ class CriticAtStep:
     def closed_form(self) -> QuadraticCritic:
         """The quadratic head at the N states as a critic over actions in ESA units.
 
-        With ``(w, u)`` the head's coefficients (one forward pass) and ``x = clip(a)``,
-        ``A = sum_j w_j z_j + u_j (z_j^2 - 1)``, ``z = (x - mu) / sigma``, is
-        ``sum_j c_j x_j^2 + g_j x_j`` plus an offset, with ``c = u / sigma^2 <= 0`` and
-        ``g = w / sigma - 2 c mu``: :meth:`__call__`'s values to float32 rounding (the head
-        runs in float32, this in float64).
+        With ``x = clip(a)``, ``A`` is ``sum_j c_j x_j^2 + g_j x_j`` plus an offset,
+        ``c = u / sigma^2 <= 0``, ``g = w / sigma - 2 c mu``: :meth:`__call__`'s values to
+        float32 rounding.
 
         Raises:
             TypeError: If the critic is not a :class:`QuadraticHead`.
@@ -209,8 +187,7 @@ class CriticAtStep:
             w_t, u_t = self.critic.coefficients(self.features)
         w = w_t.cpu().numpy().astype(np.float64)
         u = u_t.cpu().numpy().astype(np.float64)
-        # An op of a float32 and a float64 array widens the float32 one first, at a few times
-        # the cost of an op of one dtype: widened once here, the same values. sigma^2 is
+        # Widened once here rather than in each mixed-dtype op (the same values); sigma^2 is
         # taken in sigma's own dtype, then widened.
         square = (self.std * self.std).astype(np.float64)
         mean, std = self.mean.astype(np.float64), self.std.astype(np.float64)
@@ -220,14 +197,9 @@ class CriticAtStep:
         return QuadraticCritic(gain, curvature, offset, self.low, self.high)
 
     def gradient(self, actions: np.ndarray) -> np.ndarray:
-        """``dA/dz`` at ``(N, D)`` actions in ESA units, ``(N, D)``.
-
-        The gradient control's direction in units of sigma; 0 in a dimension past the Box,
-        where the executed action does not move with the sample.
-        """
-        # Rollouts run under no_grad or inference_mode; autograd.grad, not backward, so that
-        # the critic's own .grad does not collect this. Features made in inference mode
-        # cannot be saved for the backward pass: a copy outside it can.
+        """``dA/dz`` at ``(N, D)`` actions in ESA units; 0 in a dimension past the Box."""
+        # autograd.grad, not backward: the critic's own .grad must not collect this.
+        # Features made in inference mode cannot be saved for backward: a copy can.
         with th.inference_mode(False), th.enable_grad():
             features = self.features.clone() if self.features.is_inference() else self.features
             z = th.as_tensor(self.z(actions), dtype=features.dtype).requires_grad_(True)

@@ -31,7 +31,6 @@ def check_on_unavailable(on_unavailable: str) -> OnUnavailable:
 
 
 _Ran = TypeVar("_Ran")
-"""What one attempt of a step returns (:meth:`EsaRuntime._attempt`)."""
 
 QFunction = Callable[[np.ndarray], np.ndarray]
 """Maps ``(k N, D)`` actions to ``(k N,)`` values at the N current observations tiled k times."""
@@ -47,17 +46,11 @@ class LoggerLike(Protocol):
 class EsaRuntime:
     """The sessions and statistics of one learner, on a client it does not own.
 
-    Each step is one :meth:`SessionBatch.step` of the envs' batch on a StepStream, with
-    the section 1b law (CONTRACT.md) and the config's ``paired_response``.
-
-    Sessions the server loses (a restart, a TTL expiry during a long pause) are recreated
-    and restarted at the next step, and counted (``esa/sessions_restored``). A server that
-    is down, restarting or stalled is waited for as the batch does (:class:`SessionBatch`)
-    for up to the client's ``reconnect_timeout`` seconds; then ``on_unavailable`` decides:
-    ``"raise"`` ends training with ``ServerUnavailable``, ``"skip"`` applies the sampled
-    actions unchanged (no ESA) until the next episode start of any env, where it tries the
-    server once again (steps without ESA are counted as ``esa/unavailable_steps``, one per
-    env).
+    Each step is one :meth:`SessionBatch.step` of the envs' batch on a StepStream. Lost
+    sessions are recreated (``esa/sessions_restored``); a lost server is ridden out as the
+    batch does, then ``on_unavailable`` decides: ``"raise"`` raises ``ServerUnavailable``,
+    ``"skip"`` applies the samples unchanged until the next episode start of any env, where
+    it tries the server again (``esa/unavailable_steps``, one per env).
 
     Args:
         esa: The ESA hyperparameters.
@@ -68,8 +61,8 @@ class EsaRuntime:
         clip_low: Bounds the environment clips to, for the clipped-action statistic.
         clip_high: See ``clip_low``.
         improvement_every: Measure ``esa/improvement`` (the critic's Q at the applied
-            minus at the sampled actions) on one step in this many. It costs a critic
-            evaluation that training does not need, so it is sampled, not paid per step.
+            minus at the sampled actions), a critic call training does not need, on one step
+            in this many.
         on_unavailable: ``"raise"`` (default) or ``"skip"``, see above.
 
     Raises:
@@ -98,12 +91,10 @@ class EsaRuntime:
         self._stats = StepStats(
             [float(v) for v in clip_low.reshape(-1)], [float(v) for v in clip_high.reshape(-1)]
         )
-        # An unbounded side is stored empty: vector() spells it as +-inf per dimension.
         self._bounds = (config.vector("action_low"), config.vector("action_high"))
         self._improvement_every = improvement_every
         self._calls = 0
-        # True while ESA is off after the server stayed unreachable (on_unavailable="skip").
-        self._skipping = False
+        self._skipping = False  # ESA off after the server stayed unreachable ("skip")
 
     def step(
         self,
@@ -119,14 +110,11 @@ class EsaRuntime:
         Args:
             sampled: The policy's samples a_t, shape ``(N, D)`` (any float dtype).
             episode_starts: True where an env starts a new episode, shape ``(N,)``.
-            q_fn: The critic at the current observations, as :meth:`SessionBatch.step`
-                takes it.
+            q_fn: The critic at the current observations, as :meth:`SessionBatch.step` takes it.
             policy_std: The policy's standard deviation, shape ``(N, D)``; sent as the
                 action scale when ``use_policy_std`` (else 1).
-            strength: ESA's strength ``f`` in [0, 1] under a fade (:meth:`EsaConfig.strength`):
-                the action scale sent is ``f`` times the usual one, which scales the step and
-                the trust region; at 0 the samples are applied without a session step
-                (counted as ``esa/faded_steps``).
+            strength: ESA's strength ``f`` in [0, 1] (:meth:`EsaConfig.strength`): scales the
+                action scale sent; at 0 no session steps (``esa/faded_steps``).
 
         Returns:
             ``a_t + v(t)`` (clipped to the session's bounds, if it has any), float64,
@@ -134,10 +122,9 @@ class EsaRuntime:
         """
         a = np.asarray(sampled, dtype=np.float64)
         if policy_std is not None:
-            # A saturated squashed policy (tanh(mu) = +-1 in float32) or an underflowed std
-            # has sigma = 0, which the contract rejects (INVALID_ARGUMENT mid-training). The
-            # smallest positive float32 keeps sigma > 0 and changes no non-zero std; the
-            # trust region and the scaled step then keep v at 0 there, as sigma = 0 means.
+            # A saturated squashed policy or an underflowed std has sigma = 0, which the
+            # contract rejects; the smallest positive float32 changes no non-zero std and
+            # still keeps v at 0 there.
             policy_std = np.maximum(policy_std, SMALLEST_SCALE)
         scale = policy_std if self.esa.use_policy_std else None
         if strength < 1.0:
@@ -147,11 +134,7 @@ class EsaRuntime:
         applied = self._attempt(
             episode_starts,
             lambda starts: self.batch.step(
-                a,
-                q_fn,
-                starts,
-                action_scales=scale,
-                paired=self.esa.paired_response,
+                a, q_fn, starts, action_scales=scale, paired=self.esa.paired_response
             )[1],
         )
         if applied is None:
@@ -169,9 +152,7 @@ class EsaRuntime:
     ) -> _Ran | None:
         """``run(episode_starts)`` under ``on_unavailable``, counting recreated sessions.
 
-        The batch's recovery rides out a lost server and lost sessions; once it gives up,
-        ``"skip"`` returns None (the caller applies the sampled actions) until an episode
-        starts, where every session restarts on the server tried once more.
+        Once the batch's recovery gives up, ``"skip"`` returns None until an episode starts.
         """
         batch = self.batch
         restored = batch.sessions_restored
@@ -179,7 +160,6 @@ class EsaRuntime:
             if self._skipping:
                 if not np.any(episode_starts):
                     return None
-                # An episode starts: try the server once more; every session restarts.
                 batch.restore()
                 self._skipping = False
                 _log.warning("esa server at %s reachable again: ESA resumes", self.client.address)
@@ -197,10 +177,7 @@ class EsaRuntime:
                 self._stats.add_count("sessions_restored", batch.sessions_restored - restored)
 
     def _without_esa(self, sampled: np.ndarray, why: str) -> np.ndarray:
-        """The sampled actions, clipped to the sessions' bounds: a step without ESA.
-
-        ``why`` names the count it adds to (``unavailable_steps``, ``faded_steps``).
-        """
+        """The samples clipped to the sessions' bounds, counted under ``why``: no ESA."""
         self._stats.add_count(why, len(sampled))
         applied: np.ndarray = np.asarray(np.clip(sampled, *self._bounds), dtype=np.float64)
         return applied
@@ -212,7 +189,6 @@ class EsaRuntime:
         self._stats.reset()
 
     def close(self) -> None:
-        """Closes the sessions (the client stays open)."""
-        # The sessions expire on their own if the server is already gone.
+        """Closes the sessions (the client stays open); a gone server lets them expire."""
         with contextlib.suppress(EsaError):
             self.batch.close()
