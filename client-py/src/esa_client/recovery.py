@@ -1,11 +1,9 @@
 """Riding out a lost server or lost sessions, in one place, for every batch and stepper.
 
-A :class:`~esa_client.SessionBatch` keeps a :class:`StepLedger`: where its sessions stand as
-far as the client knows. Every call that may fail on the wire goes through the batch's
-:class:`Recovery`, which repeats it under the client's :class:`~esa_client.reconnect.Reconnect`
-policy, asks the server where the sessions are after a broken exchange and sends only what
-it has not applied (CONTRACT.md section 2, "Retries are safe"), and recreates sessions the
-server lost, which then start a new episode. No update is ever applied twice.
+Every call of a :class:`~esa_client.SessionBatch` that may fail on the wire goes through its
+:class:`Recovery`: repeated under the client's :class:`~esa_client.reconnect.Reconnect`
+policy, it sends only what the server has not applied (CONTRACT.md section 2, "Retries are
+safe") and recreates lost sessions, which start a new episode.
 """
 
 from __future__ import annotations
@@ -36,11 +34,7 @@ _Answer = TypeVar("_Answer")
 
 
 class StepLedger:
-    """Where the N sessions of a batch stand, as far as the client knows.
-
-    Args:
-        n: How many sessions.
-        action_dim: Their action dimension D.
+    """Where the ``n`` sessions of a batch (action dimension D) stand, as far as the client knows.
 
     Attributes:
         steps: The step each session's next probe (or pending report) carries, ``(N,)``.
@@ -52,7 +46,7 @@ class StepLedger:
     """
 
     def __init__(self, n: int, action_dim: int) -> None:
-        """A ledger of ``n`` sessions at step 0."""
+        """A ledger of sessions at step 0."""
         self.n, self.action_dim = n, action_dim
         self.steps: I64Array = np.zeros(n, dtype=np.int64)
         self.starts_due: BoolArray = np.zeros(n, dtype=bool)
@@ -149,11 +143,8 @@ class Recovery:
     def probe(self, request: BatchProbe) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
         """Sends the ledger's deferred report, if any, then ``request``; returns what was sent.
 
-        After a failure of the wire the server may have applied the report, the report and
-        the probe, or nothing, and it may have lost the sessions (a restart). The sessions'
-        steps tell which (:meth:`_reconcile`): reports still missing are sent on their own,
-        an applied episode-start probe is not repeated (that would count one more empty
-        episode), and lost sessions are recreated and start a new episode with this probe.
+        After a broken exchange the sessions' steps tell what the server applied
+        (:meth:`_reconcile`); lost sessions are recreated and start a new episode here.
         """
         deferred = self._ledger.deferred
         if self.reconnect is None:
@@ -163,9 +154,8 @@ class Recovery:
     def report(self, request: BatchReport) -> tuple[BatchReport, F64Array]:
         """Sends a lone report; returns what was sent and the improved actions.
 
-        Repeating an applied report returns its answer again and updates nothing
-        (CONTRACT.md section 2). Sessions lost meanwhile are recreated; the last probe is
-        replayed into them as an episode start, and the report answers it.
+        Repeating an applied report updates nothing. Lost sessions are recreated and the
+        last probe is replayed into them as an episode start, which the report answers.
         """
         if self.reconnect is None:
             return request, self._batch.report(request)
@@ -220,11 +210,9 @@ class Recovery:
     ) -> F64Array:
         """The shifts ``v(t + 1)`` of the step ``sent`` ahead whose answer the wire lost.
 
-        The sessions' states tell whether the server applied the step (:func:`step_applied`):
-        if it did, the shifts are theirs; if not, ``resend()`` sends it again and returns
-        its answer's. When the server lost the sessions, or their states fit neither case,
-        every session restarts its episode and the shifts are 0. Errors of the wire
-        propagate, for the reconnect policy to retry.
+        Applied (:func:`step_applied`): the sessions' shifts; not applied: ``resend()``'s.
+        Lost sessions, or states that fit neither: every episode restarts, shifts 0. Errors
+        of the wire propagate, for the reconnect policy to retry.
         """
         try:
             states = [self._transport.get_session(i) for i in self._ids]
@@ -246,11 +234,7 @@ class Recovery:
     def rerun_lost(
         self, run: Callable[[BoolArray | None], _Answer], episode_starts: BoolArray
     ) -> _Answer:
-        """``run(episode_starts)``, recreating sessions the server lost.
-
-        After a TTL expiry, or a crash the wire did not see, the lost sessions are recreated
-        and ``run(None)`` starts every episode anew.
-        """
+        """``run(episode_starts)``; after a lost session, recreates them and ``run(None)``."""
         try:
             return run(episode_starts)
         except SessionNotFound:
@@ -260,10 +244,7 @@ class Recovery:
     def restart(
         self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
     ) -> tuple[BatchProbe, _Answer]:
-        """Recreates lost sessions and sends ``request`` as every session's episode start.
-
-        ``send`` sends it (a probe, or a step sent ahead); returns what it sent and the answer.
-        """
+        """Recreates lost sessions and ``send``s ``request`` as every session's episode start."""
         self._restore()
         restart = request._replace(
             steps=np.zeros(self._ledger.n, dtype=np.int64),
@@ -304,11 +285,9 @@ class Recovery:
         starts = request.episode_starts.copy()
         for i, state in enumerate(states):
             if starts[i] and state.step == 0 and state.probe_pending:
-                # This episode-start probe was applied (with the report before it, if
-                # any): replacing its pending probe ends no further episode. (With a
-                # report of step 0, the state cannot tell whether anything was applied;
-                # the probe then replaces the pending one and the report is dropped,
-                # which at most skips one update of the response's mean square.)
+                # This episode-start probe was applied (with the report before it): replacing
+                # it ends no further episode. (After a report of step 0 the state cannot tell;
+                # the report is then dropped: at most one update of the mean square skipped.)
                 starts[i] = False
                 continue
             if deferred is None:
@@ -353,11 +332,9 @@ def step_applied(
 ) -> bool | None:
     """Whether the server applied the step ``sent`` ahead, from its sessions' states now.
 
-    Applied, each session is at the step after the one sent with no probe pending; not
-    applied, at its step before (``steps_before``). The two coincide only for an episode
-    start right after a one-step episode: then the episode count tells them apart, against
-    the count ``seen`` in the answer before. None when the states fit neither, or do not
-    agree (a step is applied to all its sessions or to none).
+    Applied: each session is at the step after the one sent, no probe pending; not applied:
+    at ``steps_before``. After a one-step episode the two coincide and the episode count
+    against ``seen`` decides. None when the states fit neither, or do not agree.
     """
     verdicts: set[bool] = set()
     for i, state in enumerate(states):

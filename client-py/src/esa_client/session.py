@@ -1,10 +1,8 @@
 """Sessions on an esa server: one :class:`Session`, or a :class:`SessionBatch` for N envs.
 
-Both track their sessions' step counters, so callers only pass actions and Q-values. A
-failed call changes no counter, so repeating it is safe (the server treats a repeated probe
-or report of the same step as a retry). One exception follows from the contract: if an
-episode-start probe reached the server but its answer was lost, repeating it ends one more
-(empty) episode, which counts toward ``lr_decay`` and ``max_episodes``.
+Both track their sessions' step counters; a failed call changes none, so repeating it is
+safe, except that an episode-start probe whose answer was lost ends one more (empty)
+episode when repeated (it counts toward ``lr_decay`` and ``max_episodes``).
 """
 
 from __future__ import annotations
@@ -40,8 +38,6 @@ def restore_sessions(
     progress: Sequence[SessionProgress | None] | None = None,
 ) -> int:
     """Recreates, under the same ids and configs, those sessions ``transport`` no longer has.
-
-    See :meth:`esa_client.EsaClient.restore_sessions`.
 
     Args:
         transport: Where the sessions live.
@@ -79,9 +75,8 @@ def restore_sessions(
 class Session:
     """One ESA session; created by :meth:`EsaClient.create_session`.
 
-    The unary calls, each raising the wire's error at once: a loop that should ride out
-    a server restart or stall steps a :class:`SessionBatch` instead (one env:
-    ``create_batch(config, 1)``), as the gymnasium wrapper and the drop-ins do.
+    Its calls raise the wire's error at once; to ride out a lost server step a
+    :class:`SessionBatch` (``create_batch(config, 1)``).
 
     Attributes:
         id: The session id.
@@ -200,15 +195,10 @@ class Session:
 class SessionBatch:
     """N sessions (one per environment) stepped together: one round trip per probe/report.
 
-    Created by :meth:`EsaClient.create_batch`. Arrays in and out are numpy with the
-    batch as the first axis.
-
-    The batch rides out a lost server (down, restarting, stalled, or the connection broke)
-    for up to the client's ``reconnect_timeout``, then raises ``ServerUnavailable``: it
-    repeats the failed call with capped exponential backoff and jitter, asks the server
-    where the sessions are (their step numbers) and sends only what it has not applied, so
-    no update is applied twice and training goes on bit for bit. Sessions the server lost
-    (a crash) are recreated and start a new episode (:meth:`restore` says what is lost).
+    Created by :meth:`EsaClient.create_batch`; arrays have the batch as the first axis. It
+    rides out a lost server for up to the client's ``reconnect_timeout``, then raises
+    ``ServerUnavailable`` (:mod:`esa_client.recovery`; the client guide's "Errors, deadlines
+    and restarts").
 
     Attributes:
         ids: The N session ids, in batch order.
@@ -235,8 +225,7 @@ class SessionBatch:
             configs: Their configs (one action dimension).
             use_stream: Ask the transport for one persistent stream for the round trips.
             on_restore: Told how many sessions each :meth:`restore` recreated.
-            reconnect: How to ride out a lost server (as above); None raises the wire's
-                first error.
+            reconnect: How to ride out a lost server; None raises the wire's first error.
         """
         self._transport = transport
         self.ids = tuple(ids)
@@ -322,17 +311,11 @@ class SessionBatch:
         """A whole step of Algorithm 1 (section 1b), in as few waits as the transport allows.
 
         :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the probes
-        (and at the applied actions as ``q_references`` when ``paired``). The transport's
-        :class:`~esa_client.transports.stepping.Stepper` decides how it runs, with the same
-        bits everywhere: in-process a linear or quadratic critic is evaluated by the engine in
-        one call; on a gRPC StepStream the step is sent ahead of its answer, which is read at
-        the next call; elsewhere the probe waits for its answer and the report rides with the
-        next one.
-
-        An error of a step sent ahead surfaces one call late: the next call (or :meth:`flush`)
-        raises it, and nothing of that step was applied on the server, although its actions
-        were returned. A broken exchange is ridden out as for every call (:class:`SessionBatch`);
-        without a reconnect policy, every session starts a new episode at the next step.
+        (and at the applied actions as ``q_references`` when ``paired``); the transport's
+        :class:`~esa_client.transports.stepping.Stepper` decides how, with the same bits
+        everywhere (the client guide). An error of a step sent ahead surfaces at the next
+        call (or :meth:`flush`), nothing of that step applied; without a reconnect policy a
+        broken exchange starts a new episode in every session at the next step.
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
@@ -373,12 +356,10 @@ class SessionBatch:
                 shape ``(N,)``: the law then uses ``q_values - q_references``.
             steps: Explicit steps (advanced; default: the pending probes' steps).
             defer: Send the report with the next :meth:`probe` / :meth:`probe_applied`
-                (one round trip for both on a StepStream) and return None. For trainers
-                that apply :meth:`probe_applied`'s actions and do not need this answer.
-                :meth:`flush` sends it on its own; :meth:`end_episode`, :meth:`states`
-                and :meth:`close` flush first. If sending it fails, it stays pending:
-                calling the probe again retries both (after a lost connection), and a
-                new ``report`` replaces it (after a bad value).
+                (one round trip on a StepStream) and return None; :meth:`flush`,
+                :meth:`end_episode`, :meth:`states` and :meth:`close` send it first. If
+                sending fails it stays pending: the next probe retries it, a new ``report``
+                replaces it.
 
         Returns:
             The improved actions ``clip(a_t + v(t + 1))``, shape ``(N, D)``; None if deferred.
@@ -407,9 +388,7 @@ class SessionBatch:
         return improved
 
     def flush(self) -> None:
-        """Reads the answer of a step :meth:`step` sent ahead, and sends a deferred report.
-
-        Nothing if neither is pending.
+        """Reads the answer of a step :meth:`step` sent ahead, and sends a deferred report, if any.
 
         Raises:
             EsaError: The step's error (see :meth:`step`), or the report's (it then
@@ -424,12 +403,9 @@ class SessionBatch:
     def restore(self) -> int:
         """Recreates the sessions the server lost, and starts a new episode in every session.
 
-        For a :class:`SessionNotFound` after a server crash, a restart without its state
-        file, or a TTL expiry (see :meth:`EsaClient.restore_sessions`). A recreated session
-        resumes the episode count (and with it the ``lr_decay`` and ``max_episodes``
-        progress) and the response's mean square that this batch last saw in an answer; the
-        shift of the running episode is gone. A deferred report is dropped; the next probe
-        starts step 0 everywhere.
+        A recreated session resumes the progress this batch last saw in an answer
+        (:class:`SessionProgress`); the running episode's shift and a deferred report are
+        gone.
 
         Returns:
             How many sessions were recreated.
@@ -459,10 +435,7 @@ class SessionBatch:
         return np.array(counts, dtype=np.int64)
 
     def reset(self, indices: npt.ArrayLike | None = None) -> None:
-        """Marks the given sessions (default: all) so their next probe starts a new episode.
-
-        This costs no round trip: the flag rides on the next :meth:`probe`.
-        """
+        """Marks the given sessions (default: all) so their next probe starts a new episode."""
         self.ledger.starts_due[check_indices(indices, self.n)] = True
 
     def states(self) -> list[SessionState]:
@@ -471,10 +444,7 @@ class SessionBatch:
         return [self._transport.get_session(i) for i in self.ids]
 
     def close(self) -> None:
-        """Closes the stream (if any) and every session on the server.
-
-        A deferred report is dropped: it cannot change anything the caller still sees.
-        """
+        """Closes the stream (if any) and every session; a deferred report is dropped."""
         self.ledger.deferred = None
         self._stepper.reset()
         self._batch.close()

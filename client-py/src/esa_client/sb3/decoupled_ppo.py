@@ -52,12 +52,11 @@ class DecoupledPPO(PPO):
             )
 
     def _prepare_update(self) -> None:
-        """Stores ``log pi_old(x)`` of each executed action, for the decoupled objective."""
+        """Stores ``log pi_old(x)`` of each executed action (train() has not updated pi yet)."""
         buffer = cast(EsaRolloutBuffer, self.rollout_buffer)
         obs = buffer.to_torch(buffer.observations.reshape(-1, *buffer.obs_shape))
         actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
         with th.no_grad():
-            # The policy that collected the rollout: train() has not updated it yet.
             proximal = self.policy.get_distribution(obs).log_prob(actions)
         buffer.extras["proximal_log_prob"] = (
             proximal.cpu().numpy().reshape(buffer.buffer_size, buffer.n_envs)
@@ -94,7 +93,6 @@ class DecoupledPPO(PPO):
                 )
                 values = values.flatten()
                 advantages = samples.advantages
-                # Normalization does not make sense if mini batchsize == 1.
                 if self.normalize_advantage and len(advantages) > 1:
                     advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
                 reference, weight = self._policy_ratio(samples, log_prob)

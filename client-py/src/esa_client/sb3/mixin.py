@@ -69,19 +69,17 @@ class EsaMixin(_Algorithm):
             policy: As for the SB3 algorithm.
             env: As for the SB3 algorithm.
             *args: Further positional arguments of the SB3 algorithm.
-            esa: The ESA hyperparameters: an ``EsaConfig``, or a dict of ``EsaConfig`` fields
-                (an RL Zoo yaml file's ``esa: {amplitude: 0.2}``) applied over the family's
-                default, checked like ``EsaConfig`` (``ValueError``); ``"preset": "paper"``
-                starts from ``EsaConfig.paper()`` instead. None: the family's default.
+            esa: An ``EsaConfig``, or a dict of its fields (RL Zoo's ``esa: {amplitude: 0.2}``)
+                over the family's default (``"preset": "paper"``: over ``EsaConfig.paper()``).
+                None: the family's default.
             esa_client: Where the sessions live. None: esa-core in this process. An
                 :class:`~esa_client.EsaClient`, which stays yours to close. Or a string that
                 :meth:`EsaClient.open <esa_client.EsaClient.open>` parses (``"host:port"``,
                 ``"unix:/path"``, ``"zenoh:<endpoint>"``, ``"spawn"``; the SB3 guide's
                 "Engines").
-            esa_on_unavailable: ``"raise"`` (end training with ``ServerUnavailable``) or
-                ``"skip"`` (no ESA until the next episode start; counted in the logger
-                as ``esa/unavailable_steps``), once the server stayed unreachable for the
-                client's ``reconnect_timeout``.
+            esa_on_unavailable: Once the server stayed unreachable for the client's
+                ``reconnect_timeout``: ``"raise"`` (``ServerUnavailable``) or ``"skip"`` (no
+                ESA until the next episode start; ``esa/unavailable_steps``).
             esa_control: None (ESA), or a control to judge ESA on your task
                 (:mod:`esa_client.common.controls`): ``"placebo"`` (ESA's shift sizes in a
                 random direction per env and episode, seeded from ``seed``) or
@@ -89,10 +87,9 @@ class EsaMixin(_Algorithm):
             **kwargs: Any other argument of the SB3 algorithm.
 
         Raises:
-            ValueError: If the action space is not a Box, ``esa_client`` or
-                ``esa_control`` is unknown, or an ESA setting does not fit the env
-                (checked here, before any training: a frequency past the Nyquist limit of
-                the env's ``dt``, per-dimension vectors of the wrong length).
+            ValueError: If the action space is not a Box, ``esa_client`` or ``esa_control`` is
+                unknown, or an ESA setting does not fit the env (Nyquist for its ``dt``,
+                per-dimension lengths).
             ServerUnavailable: If no server answers at ``esa_client``'s address.
             Unauthenticated: If the server there refuses the client.
         """

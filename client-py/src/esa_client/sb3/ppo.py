@@ -46,11 +46,6 @@ class ESAPPO(EsaMixin, DecoupledPPO):
     SB3 guide says what each step does). ``squash_output`` policies and Dict observations
     are refused; ``predict`` is PPO's.
 
-    Example::
-
-        model = ESAPPO("MlpPolicy", "InvertedPendulum-v5")  # EsaConfig.ppo() by default
-        model.learn(50_000)
-
     Args:
         policy: As for PPO.
         env: As for PPO.
@@ -284,13 +279,12 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         )
 
     def _check_gate(self) -> None:
-        """Scores the critic on the new rollout (which it has not seen), then keeps the rollout."""
+        """Scores the critic on the new rollout (unseen; pi not yet updated), then keeps it."""
         buffer = self.rollout_buffer
         obs = buffer.to_torch(buffer.observations.reshape(-1, *buffer.obs_shape))
         actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
         advantages = buffer.to_torch(buffer.advantages.reshape(-1))
         with th.no_grad():
-            # The policy that collected this rollout: train() has not updated it yet.
             distribution = _gaussian(self.policy.get_distribution(obs))
             mean = distribution.mean.reshape(len(obs), -1)
             std = distribution.stddev.reshape(len(obs), -1)

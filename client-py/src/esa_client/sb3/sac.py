@@ -22,11 +22,6 @@ class ESASAC(OffPolicyEsaMixin, SAC):
     ``r + gamma V(s') - V(s)``, ``V(s) = Q(s, mu)``, on the transitions since the last
     check; with ``gate=None`` ESA starts at ``learning_starts``. ``predict`` is SAC's.
 
-    Example::
-
-        model = ESASAC("MlpPolicy", "Pendulum-v1")
-        model.learn(10_000)
-
     Args:
         policy: As for SAC.
         env: As for SAC.

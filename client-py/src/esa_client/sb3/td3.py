@@ -19,11 +19,6 @@ class ESATD3(OffPolicyEsaMixin, TD3):
     has no policy distribution, so the action scale sigma is the noise's (a
     ``NormalActionNoise``'s sigma), or ``esa_action_scale``. The rest is ESASAC's.
 
-    Example::
-
-        model = ESATD3("MlpPolicy", "Pendulum-v1", action_noise=NormalActionNoise(0, 0.1))
-        model.learn(10_000)
-
     Args:
         policy: As for TD3.
         env: As for TD3.
