@@ -301,8 +301,13 @@ def start_ray(cpus: int, attempts: int = 3) -> None:
     os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
     for attempt in range(attempts):
         try:
+            # "local": a Ray of its own, never another process's instance on this host.
             ray.init(
-                num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False
+                address="local",
+                num_cpus=cpus,
+                include_dashboard=False,
+                log_to_driver=False,
+                configure_logging=False,
             )
             return
         except Exception as err:

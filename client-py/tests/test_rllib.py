@@ -72,8 +72,13 @@ def start_ray(attempts=3):
     os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
     for attempt in range(attempts):
         try:
+            # "local": a Ray of its own, never another process's instance on this host.
             ray.init(
-                num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False
+                address="local",
+                num_cpus=2,
+                include_dashboard=False,
+                log_to_driver=False,
+                configure_logging=False,
             )
             return
         except Exception as err:

@@ -348,7 +348,8 @@ def execute_on_ray(
     import ray
 
     console = console or Console()
-    ray.init(address=None if address == "local" else address, log_to_driver=False)
+    # Ray reads "local" as a new instance of this machine's own, never an existing one.
+    ray.init(address=address, log_to_driver=False)
     remote = ray.remote(num_cpus=1, max_retries=3)(_ray_run)
     console.print(f"Ray: {ray.cluster_resources().get('CPU', 0):.0f} CPUs at {address}")
     started = time.perf_counter()

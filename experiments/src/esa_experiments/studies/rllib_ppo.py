@@ -216,7 +216,9 @@ def start_ray(attempts: int = 3) -> None:
     os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
     for attempt in range(attempts):
         try:
+            # "local": a Ray of this worker's own, never another run's instance on this host.
             ray.init(
+                address="local",
                 num_cpus=1,
                 include_dashboard=False,
                 log_to_driver=False,
