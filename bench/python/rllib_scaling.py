@@ -57,6 +57,7 @@ import ray
 import torch as th
 import tyro
 from esa_client import EsaClient, EsaConfig
+from esa_client.compare.execution import start_local_ray
 from esa_client.rllib import EsaService, with_esa
 from ray.rllib.algorithms.ppo import PPOConfig
 from ray.rllib.algorithms.sac import SACConfig
@@ -296,27 +297,6 @@ def measure(algo: str, runners: int, setup: str, esa: str | None, args: Args) ->
     return row
 
 
-def start_ray(cpus: int, attempts: int = 3) -> None:
-    """``ray.init`` with ``cpus`` logical CPUs, tried again if Ray's own start-up times out."""
-    os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
-    for attempt in range(attempts):
-        try:
-            # "local": a Ray of its own, never another process's instance on this host.
-            ray.init(
-                address="local",
-                num_cpus=cpus,
-                include_dashboard=False,
-                log_to_driver=False,
-                configure_logging=False,
-            )
-            return
-        except Exception as err:
-            startup = ("timed out during startup", "Timed out waiting for file")
-            if not any(text in str(err) for text in startup) or attempt == attempts - 1:
-                raise
-            ray.shutdown()
-
-
 def host() -> dict:
     """The host's cores, memory and load."""
     mem_kib = next(
@@ -341,7 +321,7 @@ def main() -> None:
     rows = []
     host_start = host()
     started = time.time()
-    start_ray(max(runner_counts))
+    start_local_ray(num_cpus=max(runner_counts))
     try:
         for algo in args.algos.split(","):
             for runners in runner_counts:

@@ -36,6 +36,7 @@ from ray.rllib.core.distribution.torch.torch_distribution import (  # noqa: E402
 from ray.tune.registry import register_env  # noqa: E402
 
 from esa_client import EsaConfig, ServerUnavailable  # noqa: E402
+from esa_client.compare.execution import start_local_ray  # noqa: E402
 from esa_client.rllib import ESA_SHIFT, EsaModuleToEnv, EsaService, with_esa  # noqa: E402
 
 # The env creator below travels to the Ray workers by value (this module is not importable
@@ -58,42 +59,13 @@ def make_env(_config=None):
     return ExecutedAction(gym.make("Pendulum-v1"))
 
 
-def start_ray(attempts=3):
-    """``ray.init`` for the tests, tried again if Ray's own node fails to start.
-
-    Ray waits a fixed 30 s for its raylet to register and, by default, 30 s for its GCS
-    server to publish its port. On a loaded 2-core CI machine each has once run out (no
-    raylet log; no GCS port file) and the module's tests errored at setup. That is Ray's
-    start-up, not what these tests check, so the GCS gets Ray's own longer wait (the one
-    it uses for its RocksDB backend) and fresh attempts are made after either timeout: a
-    clean-clone CI beside two training runs once lost two in a row (no raylet log either
-    time), and the same clone's tests passed at the next try.
-    """
-    os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
-    for attempt in range(attempts):
-        try:
-            # "local": a Ray of its own, never another process's instance on this host.
-            ray.init(
-                address="local",
-                num_cpus=2,
-                include_dashboard=False,
-                log_to_driver=False,
-                configure_logging=False,
-            )
-            return
-        except Exception as err:
-            startup = ("timed out during startup", "Timed out waiting for file")
-            if not any(text in str(err) for text in startup) or attempt == attempts - 1:
-                raise
-            ray.shutdown()
-
-
 @pytest.fixture(scope="module")
 def ray_session(server_bin, tmp_path_factory):
     """One local Ray instance; its workers find the server binary."""
     saved = {k: os.environ.get(k) for k in ("ESA_SERVER_BIN", "RAY_gcs_server_port_wait_time_s")}
     os.environ.update(ESA_SERVER_BIN=server_bin)
-    start_ray()
+    # A Ray of the tests' own, tried again if Ray's start-up times out on a loaded machine.
+    start_local_ray(num_cpus=2)
     register_env(ENV, make_env)
     try:
         yield

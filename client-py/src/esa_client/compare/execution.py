@@ -317,6 +317,37 @@ def _drain(
         progress.update(bars[job], completed=done)
 
 
+def start_local_ray(num_cpus: int | None = None, attempts: int = 3) -> None:
+    """Starts a Ray instance of this process's own (``address="local"``), never another's.
+
+    Ray waits a fixed 30 s for its raylet to register and, by default, 30 s for its GCS to
+    publish its port; on a loaded 2-core machine each has run out. So the GCS gets Ray's
+    longer wait (the one of its RocksDB backend) and a start that timed out is tried again.
+
+    Args:
+        num_cpus: the CPUs Ray may hand out (default: the host's).
+        attempts: starts to try.
+    """
+    import ray
+
+    os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
+    for attempt in range(attempts):
+        try:
+            ray.init(
+                address="local",
+                num_cpus=num_cpus,
+                include_dashboard=False,
+                log_to_driver=False,
+                configure_logging=False,
+            )
+            return
+        except Exception as err:
+            startup = ("timed out during startup", "Timed out waiting for file")
+            if not any(text in str(err) for text in startup) or attempt == attempts - 1:
+                raise
+            ray.shutdown()
+
+
 def _ray_run(spec: RunSpec, job: Job) -> RunResult:
     """One run as a Ray task: trained on whichever node Ray chose, written by the driver."""
     import torch
@@ -348,8 +379,10 @@ def execute_on_ray(
     import ray
 
     console = console or Console()
-    # Ray reads "local" as a new instance of this machine's own, never an existing one.
-    ray.init(address=address, log_to_driver=False)
+    if address == "local":
+        start_local_ray()
+    else:
+        ray.init(address=address, log_to_driver=False)
     remote = ray.remote(num_cpus=1, max_retries=3)(_ray_run)
     console.print(f"Ray: {ray.cluster_resources().get('CPU', 0):.0f} CPUs at {address}")
     started = time.perf_counter()

@@ -78,7 +78,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, cast
@@ -87,6 +86,7 @@ import gymnasium as gym
 import numpy as np
 import pandas as pd
 from esa_client.compare.evaluation import EVAL_SEED_OFFSET, ProgressFn, run_episodes
+from esa_client.compare.execution import start_local_ray
 from esa_client.compare.plotting import Panel
 from esa_client.compare.verdicts import Comparison, compact_table, verdict_table
 
@@ -203,33 +203,12 @@ def specs(
     return out
 
 
-def start_ray(attempts: int = 3) -> None:
-    """A local Ray instance with one CPU for this worker process (RLlib needs one).
-
-    On a loaded 2-core machine Ray's start-up has timed out (client-py/tests/test_rllib.py):
-    its GCS gets Ray's longer wait and a failed start is tried again.
-    """
+def start_ray() -> None:
+    """A local Ray instance with one CPU for this worker process (RLlib needs one)."""
     import ray
 
-    if ray.is_initialized():
-        return
-    os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
-    for attempt in range(attempts):
-        try:
-            # "local": a Ray of this worker's own, never another run's instance on this host.
-            ray.init(
-                address="local",
-                num_cpus=1,
-                include_dashboard=False,
-                log_to_driver=False,
-                configure_logging=False,
-            )
-            return
-        except Exception as err:
-            startup = ("timed out during startup", "Timed out waiting for file")
-            if not any(text in str(err) for text in startup) or attempt == attempts - 1:
-                raise
-            ray.shutdown()
+    if not ray.is_initialized():
+        start_local_ray(num_cpus=1)
 
 
 TALLY = ("train_episodes", "train_crashes", "train_return_sum", "train_length_sum")
