@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import platform
 import sys
 from datetime import datetime, timezone
@@ -135,7 +136,7 @@ def write_provenance(folder: RunFolder, rules: Rules, command: str, digest: str)
             "platform": platform.platform(),
             "machine": platform.machine(),
             "processor": platform.processor(),
-            "cpus": __import__("os").cpu_count(),
+            "cpus": os.cpu_count(),
         },
         "rules_sha256": hashlib.sha256(rules.to_json().encode()).hexdigest()[:16],
         "runs_sha256": digest,
