@@ -189,3 +189,7 @@ def test_ray_runs_each_run_as_a_task(tmp_path, settings, capsys):
     assert len(list((out / "runs").glob("*__s?.csv"))) == 4
     assert (out / "learning_curves.png").is_file()
     assert "Ray:" in capsys.readouterr().out
+    # The Ray it started is stopped again, so a later ray.init in this process works.
+    import ray
+
+    assert not ray.is_initialized()

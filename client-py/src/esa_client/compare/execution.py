@@ -379,10 +379,23 @@ def execute_on_ray(
     import ray
 
     console = console or Console()
-    if address == "local":
+    # A Ray this call starts is this call's to stop (a caller's own stays up for the caller).
+    owned = not ray.is_initialized()
+    if owned and address == "local":
         start_local_ray()
-    else:
+    elif owned:
         ray.init(address=address, log_to_driver=False)
+    try:
+        return _gather(specs, address, job, console)
+    finally:
+        if owned:
+            ray.shutdown()
+
+
+def _gather(specs: list[RunSpec], address: str, job: Job, console: Console) -> list[Outcome]:
+    """Submits ``specs`` as Ray tasks and writes each result as it lands."""
+    import ray
+
     remote = ray.remote(num_cpus=1, max_retries=3)(_ray_run)
     console.print(f"Ray: {ray.cluster_resources().get('CPU', 0):.0f} CPUs at {address}")
     started = time.perf_counter()
