@@ -29,7 +29,8 @@ SOURCES = ("auto", "zoo", "default")
 """``--hyperparams`` words; anything else is a path to a zoo-format YAML file."""
 
 _REFUSED = ("env_wrapper", "frame_stack", "callback", "vec_env_wrapper", "env_kwargs")
-_ALGO_KEYS_OF_ZOO = ("normalize", "n_envs", "n_timesteps", "policy", "noise_type", "noise_std")
+# The zoo's own keys (how it builds the env and the noise), not the algorithm's arguments.
+_ZOO_KEYS = ("normalize", "n_envs", "n_timesteps", "policy", "noise_type", "noise_std")
 
 
 @dataclass(frozen=True)
@@ -155,7 +156,7 @@ def parse_entry(entry: dict[str, Any], source: str) -> Hyperparams:
             f"expected no env-changing keys in {source}, got {refused}: wrap the env in a "
             "module:factory passed as --env instead"
         )
-    kwargs = {k: v for k, v in entry.items() if k not in _ALGO_KEYS_OF_ZOO and k != "esa"}
+    kwargs = {k: v for k, v in entry.items() if k not in _ZOO_KEYS and k != "esa"}
     normalize = entry.get("normalize", False)
     if isinstance(normalize, str):
         normalize = _evaluate(normalize, source)

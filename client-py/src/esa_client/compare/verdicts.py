@@ -247,3 +247,31 @@ def compact_table(primary: pd.DataFrame, whole: pd.DataFrame) -> pd.DataFrame:
             "AUC over the whole curve": merged.apply(_brief, axis=1, args=(" whole",)),
         }
     )
+
+
+def better_and_worse(
+    primary: pd.DataFrame, whole: pd.DataFrame, arm: str
+) -> tuple[set[str], set[str]]:
+    """The envs where ``arm`` helped, and those where it harmed (a study's success rule).
+
+    Args:
+        primary: verdicts on the primary metric (first-third AUC).
+        whole: verdicts on the whole curve.
+        arm: the ESA arm's label.
+
+    Returns:
+        ``(helped, harmed)``: the envs where ``arm`` is **better** than both its baseline
+        and its placebo on ``primary``, and those where it is **worse** than its baseline on
+        ``whole``.
+    """
+    mine = primary[primary.method == arm]
+    better = [
+        set(mine[mine.against.str.endswith(f"({kind})") & (mine.verdict == "**better**")].env)
+        for kind in ("baseline", "placebo")
+    ]
+    harmed = whole[
+        (whole.method == arm)
+        & whole.against.str.endswith("(baseline)")
+        & (whole.verdict == "**worse**")
+    ]
+    return better[0] & better[1], set(harmed.env)

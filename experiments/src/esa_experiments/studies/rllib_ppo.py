@@ -88,7 +88,12 @@ import pandas as pd
 from esa_client.compare.evaluation import EVAL_SEED_OFFSET, ProgressFn, run_episodes
 from esa_client.compare.execution import start_local_ray
 from esa_client.compare.plotting import Panel
-from esa_client.compare.verdicts import Comparison, compact_table, verdict_table
+from esa_client.compare.verdicts import (
+    Comparison,
+    better_and_worse,
+    compact_table,
+    verdict_table,
+)
 
 from esa_experiments.reporting import budget_table, rl_section, verdicts_markdown, write_verdicts
 from esa_experiments.runs import RunResult, RunSpec, RunStore
@@ -442,20 +447,7 @@ def outcome(primary: pd.DataFrame, whole: pd.DataFrame) -> str:
     """The study's outcome under its success rule."""
     if primary.empty or whole.empty:
         return "Outcome: no verdict yet (no comparison has two seeds).\n"
-    arm = LABELS["rllib_ppo_esa"]
-    mine = primary[primary.method == arm]
-    better = {
-        kind: set(mine[mine.against.str.endswith(f"({kind})") & (mine.verdict == "**better**")].env)
-        for kind in ("baseline", "placebo")
-    }
-    both = better["baseline"] & better["placebo"]
-    worse = set(
-        whole[
-            (whole.method == arm)
-            & whole.against.str.endswith("(baseline)")
-            & (whole.verdict == "**worse**")
-        ].env
-    )
+    both, worse = better_and_worse(primary, whole, LABELS["rllib_ppo_esa"])
     success = len(both) >= MIN_BETTER and not worse
     seeds = int(primary.seeds.min())
     return (

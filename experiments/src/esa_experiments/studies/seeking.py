@@ -61,7 +61,12 @@ from typing import Any
 
 import pandas as pd
 from esa_client.compare.plotting import Panel
-from esa_client.compare.verdicts import Comparison, compact_table, verdict_table
+from esa_client.compare.verdicts import (
+    Comparison,
+    better_and_worse,
+    compact_table,
+    verdict_table,
+)
 
 from esa_experiments.algorithms import LABELS, seeking_methods
 from esa_experiments.reporting import budget_table, rl_section, verdicts_markdown, write_verdicts
@@ -295,21 +300,7 @@ def outcomes(
         if primary.empty or arm not in set(primary.method):
             lines.append(f"- **{family}**: no verdict yet (its ESA arm has no two seeds).")
             continue
-        mine = primary[primary.method == arm]
-        better = {
-            kind: set(
-                mine[mine.against.str.endswith(f"({kind})") & (mine.verdict == "**better**")].env
-            )
-            for kind in ("baseline", "placebo")
-        }
-        both = better["baseline"] & better["placebo"]
-        worse = set(
-            whole[
-                (whole.method == arm)
-                & whole.against.str.endswith("(baseline)")
-                & (whole.verdict == "**worse**")
-            ].env
-        )
+        both, worse = better_and_worse(primary, whole, arm)
         success = len(both) >= MIN_BETTER and QUADROTOR in both and not worse
         lines.append(
             f"- **{family}**: {'success' if success else 'no success'}: better than baseline "
