@@ -14,7 +14,6 @@ from typing import TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from .config import SessionConfig
 from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch
 from .reconnect import Reconnect, RetriableErrors
 from .state import (
@@ -112,7 +111,6 @@ class Recovery:
     Args:
         transport: Where the sessions live.
         ids: The batch's session ids.
-        configs: Their configs.
         batch: The batch's round trips.
         ledger: The batch's ledger, which the calls here keep up to date.
         reconnect: How long and how often to repeat a call the wire failed; None raises
@@ -125,7 +123,6 @@ class Recovery:
         self,
         transport: Transport,
         ids: Sequence[str],
-        configs: Sequence[SessionConfig],
         batch: BatchTransport,
         ledger: StepLedger,
         reconnect: Reconnect | None,
@@ -134,7 +131,6 @@ class Recovery:
         """Holds what the calls need."""
         self._transport = transport
         self._ids = tuple(ids)
-        self._configs = tuple(configs)
         self._batch = batch
         self._ledger = ledger
         self.reconnect = reconnect

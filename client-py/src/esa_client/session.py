@@ -236,7 +236,7 @@ class SessionBatch:
         self.ledger = StepLedger(self.n, self.action_dim)
         """Where the sessions stand, as far as this client knows."""
         self.recovery = Recovery(
-            transport, self.ids, self.configs, self._batch, self.ledger, reconnect, self.restore
+            transport, self.ids, self._batch, self.ledger, reconnect, self.restore
         )
         """How the batch's calls ride out a lost server and lost sessions."""
         self._stepper = self._batch.stepper()
