@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 import torch as th
@@ -172,9 +172,8 @@ class ESAPPO(EsaMixin, DecoupledPPO):
     ) -> np.ndarray:
         """ESA's shift ``v(t)`` in the Box's units, float64 ``(N, D)``: the sessions step."""
         critic = self._critic_at_step(obs, mean, std)
-        evaluated = self._closed_form(critic)
         return head_shift(
-            self._esa_runtime(), evaluated, critic.std, self.esa_frame, sample, starts, f
+            self._esa_runtime(), critic.closed_form(), critic.std, self.esa_frame, sample, starts, f
         )
 
     def _gradient_shift(
@@ -188,10 +187,6 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         self.logger.record_mean("esa/shift_over_std", gradient_shift_size(size, unit))
         shift: np.ndarray = size * unit * std
         return shift
-
-    def _closed_form(self, critic: CriticAtStep) -> Any:
-        """The critic the engine evaluates at the probes: the quadratic head's closed form."""
-        return critic.closed_form()
 
     def collect_rollouts(
         self,
@@ -267,13 +262,11 @@ class ESAPPO(EsaMixin, DecoupledPPO):
 
     def _fit_critic(self) -> float:
         """Fits the critic on the kept rollouts; returns the mean loss."""
-        return fit_critic(self.esa_head, self.esa_head_optimizer, **self._fit_arguments())
-
-    def _fit_arguments(self) -> dict[str, Any]:
-        """The fit's data and schedule, on the critic's own generator."""
-        return dict(
+        return fit_critic(
+            self.esa_head,
+            self.esa_head_optimizer,
             rollouts=self._esa_head_data,
-            rng=self._esa_rng,
+            rng=self._esa_rng,  # the critic's own generator: PPO's stream stays as it is
             epochs=self.head_epochs,
             batch_size=self.head_batch_size,
         )

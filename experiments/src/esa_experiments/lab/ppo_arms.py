@@ -17,7 +17,8 @@ import numpy as np
 import torch as th
 import torch.nn.functional as F
 from esa_client.common.controls import gradient_size, unit_gradient
-from esa_client.common.quadratic_head import CriticAtStep, mlp
+from esa_client.common.head_step import head_shift
+from esa_client.common.quadratic_head import mlp
 from esa_client.sb3 import ESAPPO
 from esa_client.sb3.esa_buffer import EsaRolloutBuffer, EsaRolloutBufferSamples
 from esa_client.transports.base import LinearCritic
@@ -67,8 +68,19 @@ class QNetworkCritic(_Base):
     def _make_critic(self, features_dim: int, action_dim: int) -> nn.Module:
         return QNetwork(features_dim, action_dim, self.head_hidden)
 
-    def _closed_form(self, critic: CriticAtStep) -> Any:
-        return critic
+    def _session_shift(
+        self,
+        obs: th.Tensor,
+        sample: np.ndarray,
+        mean: np.ndarray,
+        std: np.ndarray,
+        starts: np.ndarray,
+        f: float,
+    ) -> np.ndarray:
+        """The sessions step on the network itself, evaluated by torch at the probes."""
+        critic = self._critic_at_step(obs, mean, std)
+        runtime = self._esa_runtime()
+        return head_shift(runtime, critic, critic.std, self.esa_frame, sample, starts, f)
 
 
 class LinearHead(_Base):
@@ -89,7 +101,14 @@ class LinearHead(_Base):
     def _fit_critic(self) -> float:
         head = self.esa_head
         assert isinstance(head, AdvantageHead)
-        return fit(head, self.esa_head_optimizer, **self._fit_arguments())
+        return fit(
+            head,
+            self.esa_head_optimizer,
+            rollouts=self._esa_head_data,
+            rng=self._esa_rng,
+            epochs=self.head_epochs,
+            batch_size=self.head_batch_size,
+        )
 
     def _esa_mlp(self) -> Any:
         """The head's snapshot, taken again whenever its parameters changed."""
