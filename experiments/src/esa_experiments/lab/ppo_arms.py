@@ -17,8 +17,7 @@ import numpy as np
 import torch as th
 import torch.nn.functional as F
 from esa_client.common.controls import gradient_size, unit_gradient
-from esa_client.common.head_step import head_shift
-from esa_client.common.quadratic_head import mlp
+from esa_client.common.quadratic_head import CriticAtStep, mlp
 from esa_client.sb3 import ESAPPO
 from esa_client.sb3.esa_buffer import EsaRolloutBuffer, EsaRolloutBufferSamples
 from esa_client.transports.base import LinearCritic
@@ -62,25 +61,22 @@ class QNetwork(nn.Module):
         return value
 
 
+class NetworkAtStep(CriticAtStep):
+    """A Q-network at one step's states: the sessions evaluate it by torch at the probes."""
+
+    def closed_form(self) -> Any:
+        """The network itself (it has no closed form)."""
+        return self
+
+
 class QNetworkCritic(_Base):
     """ESA probes a Q-network of ``(s, z)``, evaluated by torch at the probes."""
 
     def _make_critic(self, features_dim: int, action_dim: int) -> nn.Module:
         return QNetwork(features_dim, action_dim, self.head_hidden)
 
-    def _session_shift(
-        self,
-        obs: th.Tensor,
-        sample: np.ndarray,
-        mean: np.ndarray,
-        std: np.ndarray,
-        starts: np.ndarray,
-        f: float,
-    ) -> np.ndarray:
-        """The sessions step on the network itself, evaluated by torch at the probes."""
-        critic = self._critic_at_step(obs, mean, std)
-        runtime = self._esa_runtime()
-        return head_shift(runtime, critic, critic.std, self.esa_frame, sample, starts, f)
+    def _critic_at_step(self, obs: th.Tensor, mean: np.ndarray, std: np.ndarray) -> CriticAtStep:
+        return NetworkAtStep(**vars(super()._critic_at_step(obs, mean, std)))
 
 
 class LinearHead(_Base):
