@@ -330,15 +330,6 @@ def test_share_features_extractor_false_trains(client):
     model.esa_close()
 
 
-@pytest.mark.parametrize("every", [0, -3])
-def test_runtime_rejects_a_non_positive_improvement_stride(every):
-    # Checked before anything connects: no server, env or sessions are needed.
-    with pytest.raises(ValueError, match=f"expected improvement_every >= 1, got {every}"):
-        config = EsaConfig().session_config(1, 0.05)
-        runtime_args = (config, 1, np.zeros(1), np.ones(1))
-        EsaRuntime(EsaConfig(), EsaClient.in_process(), *runtime_args, improvement_every=every)
-
-
 def test_a_zero_policy_std_keeps_the_action_instead_of_failing():
     """A squashed policy saturates (sigma = 0 in float32); ESA must not stop training then."""
     config = EsaConfig(gate=None)

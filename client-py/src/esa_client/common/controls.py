@@ -17,12 +17,13 @@ Control = Literal["placebo", "gradient"]
 """A control of ESA (``esa_control``); None is ESA itself."""
 CONTROLS: tuple[Control, ...] = get_args(Control)
 
-SHIFT_REPORT_EVERY = 8
-"""Shifted steps per :func:`shift_report`: on every step its numpy would cost a few %."""
+REPORT_EVERY = 8
+"""Steps per sampled statistic (:func:`shift_report`, ``esa/improvement``): on every step
+their numpy and critic calls would cost a few %."""
 
 
 def check_control(control: str | None) -> Control | None:
-    """Returns ``control`` if it is None, ``"placebo"`` or ``"gradient"``, else ValueError."""
+    """Returns ``control`` if it is None or a known control, else raises ValueError."""
     if control is not None and control not in CONTROLS:
         raise ValueError(f"expected esa_control None or one of {CONTROLS}, got {control!r}")
     return control
@@ -48,18 +49,12 @@ def unit_gradient(gradient: np.ndarray) -> np.ndarray:
 class RandomDirections:
     """The placebo's shift: ESA's ``|v|`` per dimension times a random sign vector.
 
-    Each env draws its signs (+-1, probability 1/2 each) at every episode start and keeps
-    them through the episode.
-
-    Args:
-        n_envs: The number of envs N.
-        action_dim: The action dimension D.
-        seed: Seed of the placebo's own generator (None: fresh entropy); it draws from no
-            other generator, so the learner's random stream is untouched.
+    Each env draws its signs (+-1) at every episode start, from a generator of its own
+    (``seed``; None: fresh entropy): the learner's random stream is untouched.
     """
 
     def __init__(self, n_envs: int, action_dim: int, seed: int | None) -> None:
-        """Draws the first episode's signs."""
+        """Draws the first episode's signs for ``n_envs`` envs of ``action_dim`` dimensions."""
         if n_envs < 1 or action_dim < 1:
             raise ValueError(
                 f"expected n_envs >= 1 and action_dim >= 1, got {n_envs} and {action_dim}"
@@ -101,19 +96,18 @@ Arrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.nd
 
 
 class EsaShift:
-    """ESA itself: the env executes the sessions' shift. The controls override :meth:`act`."""
+    """ESA itself: the env executes the sessions' shift. The controls override :meth:`act`.
+
+    :meth:`act` gets the step's sources and calls only those it needs: ``session`` steps the
+    sessions (the env's actions under ESA's shift, and the shift), ``gradient`` gives the
+    gradient control's shift, ``execute`` the env's actions for a shift; ``starts`` is True
+    where an env starts an episode at this step, ``(N,)``.
+    """
 
     def act(
         self, session: Session, gradient: Source, execute: Execute, starts: np.ndarray
     ) -> Acted:
-        """This step's actions and shift; only the sources it needs are called.
-
-        Args:
-            session: Steps the sessions: the env's actions under ESA's shift, and the shift.
-            gradient: The gradient control's shift.
-            execute: The env's actions for a shift.
-            starts: True where an env starts an episode at this step, ``(N,)``.
-        """
+        """This step's actions and shift."""
         return session()
 
     def bound(self, trust_region: float | None) -> float | None:

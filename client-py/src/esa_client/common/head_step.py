@@ -16,18 +16,10 @@ from .runtime import EsaRuntime, QFunction
 def head_critic(
     head: nn.Module, features: th.Tensor, frame: ActionFrame, mean: np.ndarray, std: np.ndarray
 ) -> CriticAtStep:
-    """The head at one step's N states as a critic over actions in ESA units.
+    """The head at one step's N states (``features``, ``(N, F)``) over actions in ESA units.
 
-    Args:
-        head: The quadratic head, a module of ``(features, z)``.
-        features: Its input at the N states, ``(N, F)``.
-        frame: The action space as ESA sees it.
-        mean: The policy's means in action units, ``(N, D)``.
-        std: The policy's standard deviations in action units, ``(N, D)``.
-
-    Returns:
-        The critic; its ``std`` is sigma in ESA units, floored at the smallest float32
-        (the contract needs sigma > 0).
+    ``mean`` and ``std`` are the policy's, in action units, ``(N, D)``. The critic's ``std``
+    is sigma in ESA units, floored at the smallest float32 (the contract needs sigma > 0).
     """
     units = np.maximum(std / frame.half_width, SMALLEST_SCALE)
     mean_units = (mean - frame.center) / frame.half_width

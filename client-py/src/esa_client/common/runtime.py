@@ -14,6 +14,7 @@ from ..client import EsaClient
 from ..config import EsaConfig, SessionConfig
 from ..errors import EsaError, ServerUnavailable
 from ..transports.base import SMALLEST_SCALE, LinearCritic, QuadraticCritic
+from .controls import REPORT_EVERY
 
 _log = logging.getLogger("esa_client")
 
@@ -60,13 +61,10 @@ class EsaRuntime:
         n_envs: How many sessions (one per env).
         clip_low: Bounds the environment clips to, for the clipped-action statistic.
         clip_high: See ``clip_low``.
-        improvement_every: Measure ``esa/improvement`` (the critic's Q at the applied
-            minus at the sampled actions), a critic call training does not need, on one step
-            in this many.
         on_unavailable: ``"raise"`` (default) or ``"skip"``, see above.
 
     Raises:
-        ValueError: If ``improvement_every`` < 1 or ``on_unavailable`` is unknown.
+        ValueError: If ``on_unavailable`` is unknown.
     """
 
     def __init__(
@@ -78,12 +76,9 @@ class EsaRuntime:
         clip_low: np.ndarray,
         clip_high: np.ndarray,
         *,
-        improvement_every: int = 8,
         on_unavailable: OnUnavailable = "raise",
     ) -> None:
         """Creates the ``n_envs`` sessions on ``client``."""
-        if improvement_every < 1:
-            raise ValueError(f"expected improvement_every >= 1, got {improvement_every}")
         self.on_unavailable = check_on_unavailable(on_unavailable)
         self.esa = esa
         self.client = client
@@ -92,7 +87,6 @@ class EsaRuntime:
             [float(v) for v in clip_low.reshape(-1)], [float(v) for v in clip_high.reshape(-1)]
         )
         self._bounds = (config.vector("action_low"), config.vector("action_high"))
-        self._improvement_every = improvement_every
         self._calls = 0
         self._skipping = False  # ESA off after the server stayed unreachable ("skip")
 
@@ -141,7 +135,9 @@ class EsaRuntime:
             return self._without_esa(a, "unavailable_steps")
         n = len(a)
         self._stats.add_step(a, applied, policy_std)
-        if self._calls % self._improvement_every == 0:
+        # esa/improvement (Q at the applied minus at the sampled actions): a critic call
+        # that training does not need, so on one step in REPORT_EVERY.
+        if self._calls % REPORT_EVERY == 0:
             both = np.asarray(q_fn(np.concatenate([a, applied])), dtype=np.float64)
             self._stats.add_improvement(float((both[n:] - both[:n]).mean()))
         self._calls += 1

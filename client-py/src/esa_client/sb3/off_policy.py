@@ -11,7 +11,7 @@ from stable_baselines3.common.noise import ActionNoise
 
 from ..common.action_frame import ActionFrame
 from ..common.controls import (
-    SHIFT_REPORT_EVERY,
+    REPORT_EVERY,
     Acted,
     gradient_shift_size,
     gradient_size,
@@ -92,7 +92,7 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         obs, _ = self.policy.obs_to_tensor(self._last_obs)
         buffer_action, mean, std = self._sampled(obs, action_noise)
         strength = self._esa_strength()
-        report = strength > 0 and self._esa_shifted_steps % SHIFT_REPORT_EVERY == 0
+        report = strength > 0 and self._esa_shifted_steps % REPORT_EVERY == 0
         mu = mean.reshape(n_envs, -1).cpu().numpy().astype(np.float64)
         sigma = np.maximum(std.reshape(n_envs, -1).cpu().numpy(), SMALLEST_SCALE)
         sampled = buffer_action.reshape(n_envs, -1)

@@ -17,7 +17,7 @@ from torch import nn
 
 from ..common.action_frame import ActionFrame
 from ..common.controls import (
-    SHIFT_REPORT_EVERY,
+    REPORT_EVERY,
     Acted,
     gradient_shift_size,
     gradient_size,
@@ -146,7 +146,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
             lambda shift: self._execute(sample, shift, std),
             starts,
         )
-        if self._esa_steps % SHIFT_REPORT_EVERY == 0:
+        if self._esa_steps % REPORT_EVERY == 0:
             box = self.esa_frame.box
             low, high = box.low.reshape(-1), box.high.reshape(-1)
             self._report_shift(f, (sample, shift, mean, std, low, high))
