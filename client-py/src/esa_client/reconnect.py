@@ -1,7 +1,6 @@
 """Riding out a lost server: retries with capped exponential backoff and jitter.
 
-Repeating a call is safe by the contract's step numbers (CONTRACT.md section 2, "Retries are
-safe"); what a batch does between two attempts is :class:`~esa_client.recovery.Recovery`'s.
+What a batch does between two attempts is :class:`~esa_client.recovery.Recovery`'s.
 """
 
 from __future__ import annotations
@@ -56,10 +55,7 @@ class Reconnect:
     closed: Callable[[], bool] = lambda: False
 
     def run(
-        self,
-        attempt: Callable[[bool], _T],
-        *,
-        sleep: Callable[[float], None] = time.sleep,
+        self, attempt: Callable[[bool], _T], *, sleep: Callable[[float], None] = time.sleep
     ) -> _T:
         """Returns ``attempt(retrying)``, repeated while the wire fails, up to the deadline.
 
@@ -73,9 +69,7 @@ class Reconnect:
                 its cause).
             EsaError: Any other error of ``attempt``, at once.
         """
-        start = time.monotonic()
-        pause = self.initial_backoff
-        retrying = False
+        start, pause, retrying = time.monotonic(), self.initial_backoff, False
         while True:
             try:
                 return attempt(retrying)

@@ -16,14 +16,7 @@ import numpy.typing as npt
 
 from .errors import EsaError, SessionNotFound, StatusCode, StepMismatch
 from .reconnect import Reconnect, RetriableErrors
-from .state import (
-    BoolArray,
-    F64Array,
-    I64Array,
-    SessionProgress,
-    SessionState,
-    check_array,
-)
+from .state import BoolArray, F64Array, I64Array, SessionProgress, SessionState, check_array
 from .transports.base import BatchTransport, Transport
 from .transports.messages import BatchProbe, BatchReport
 
@@ -61,12 +54,9 @@ class StepLedger:
         """The checked actions, episode starts (with those due) and action scales of a probe."""
         shape = (self.n, self.action_dim)
         a = check_array(actions, shape, "actions")
-        if episode_starts is None:
-            starts = self.starts_due.copy()
-        else:
-            starts = self.starts_due | check_array(
-                episode_starts, (self.n,), "episode_starts", dtype=bool
-            )
+        starts = self.starts_due.copy()
+        if episode_starts is not None:
+            starts |= check_array(episode_starts, (self.n,), "episode_starts", dtype=bool)
         scales = None
         if action_scales is not None:
             scales = np.asarray(action_scales, np.float64)
@@ -94,9 +84,8 @@ class StepLedger:
 
     def stepped(self, request: BatchProbe) -> None:
         """Counts a whole step (probe and report) of ``request`` as sent."""
+        self.probed(request)
         self.steps = request.steps + 1
-        self.last_probe = request
-        self.starts_due[:] = False
 
     def restarted(self) -> None:
         """Every session starts a new episode at its next probe; a deferred report is gone."""
@@ -108,15 +97,10 @@ class StepLedger:
 class Recovery:
     """The one layer that rides out a lost server and recreates lost sessions.
 
-    Args:
-        transport: Where the sessions live.
-        ids: The batch's session ids.
-        batch: The batch's round trips.
-        ledger: The batch's ledger, which the calls here keep up to date.
-        reconnect: How long and how often to repeat a call the wire failed; None raises
-            the wire's first error (and recreates nothing).
-        restore: Recreates the lost sessions and restarts every episode (the batch's
-            :meth:`~esa_client.SessionBatch.restore`, which also resets its stepper).
+    The calls here keep the batch's ``ledger`` up to date. ``reconnect`` says how long and how
+    often to repeat a call the wire failed (None raises the wire's first error and recreates
+    nothing); ``restore`` recreates the lost sessions and restarts every episode (the batch's
+    :meth:`~esa_client.SessionBatch.restore`, which also resets its stepper).
     """
 
     def __init__(
@@ -129,12 +113,12 @@ class Recovery:
         restore: Callable[[], int],
     ) -> None:
         """Holds what the calls need."""
-        self._transport = transport
-        self._ids = tuple(ids)
-        self._batch = batch
-        self._ledger = ledger
-        self.reconnect = reconnect
-        self._restore = restore
+        self._transport, self._ids, self._batch = transport, tuple(ids), batch
+        self._ledger, self.reconnect, self._restore = ledger, reconnect, restore
+
+    def _run(self, attempt: Callable[[bool], _Answer]) -> _Answer:
+        """``attempt(retrying)`` under the reconnect policy, or once (not retrying) without."""
+        return attempt(False) if self.reconnect is None else self.reconnect.run(attempt)
 
     def probe(self, request: BatchProbe) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
         """Sends the ledger's deferred report, if any, then ``request``; returns what was sent.
@@ -143,9 +127,21 @@ class Recovery:
         (:meth:`_reconcile`); lost sessions are recreated and start a new episode here.
         """
         deferred = self._ledger.deferred
-        if self.reconnect is None:
-            return request, self._probe(deferred, request)
-        return self.reconnect.run(lambda retrying: self._probe_attempt(deferred, request, retrying))
+
+        def attempt(retrying: bool) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
+            report, sent = deferred, request
+            try:
+                if retrying:
+                    report, sent = self._reconcile(deferred, request)
+                if report is None:
+                    return sent, self._batch.probe(sent)
+                return sent, self._batch.report_then_probe(report, sent)
+            except SessionNotFound:
+                if not retrying:
+                    raise
+                return self.restart(sent, self._batch.probe)
+
+        return self._run(attempt)
 
     def report(self, request: BatchReport) -> tuple[BatchReport, F64Array]:
         """Sends a lone report; returns what was sent and the improved actions.
@@ -153,9 +149,18 @@ class Recovery:
         Repeating an applied report updates nothing. Lost sessions are recreated and the
         last probe is replayed into them as an episode start, which the report answers.
         """
-        if self.reconnect is None:
-            return request, self._batch.report(request)
-        return self.reconnect.run(lambda retrying: self._report_attempt(request, retrying))
+
+        def attempt(retrying: bool) -> tuple[BatchReport, F64Array]:
+            try:
+                return request, self._batch.report(request)
+            except SessionNotFound:
+                if not retrying or self._ledger.last_probe is None:
+                    raise
+            probe, _ = self.restart(self._ledger.last_probe, self._batch.probe)
+            sent = request._replace(steps=probe.steps)
+            return sent, self._batch.report(sent)
+
+        return self._run(attempt)
 
     def send_ahead(
         self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
@@ -251,28 +256,6 @@ class Recovery:
         self._ledger.last_probe = restart
         return restart, answer
 
-    def _probe(
-        self, deferred: BatchReport | None, request: BatchProbe
-    ) -> tuple[F64Array, F64Array]:
-        if deferred is None:
-            return self._batch.probe(request)
-        return self._batch.report_then_probe(deferred, request)
-
-    def _probe_attempt(
-        self, deferred: BatchReport | None, request: BatchProbe, retrying: bool
-    ) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
-        if retrying:
-            try:
-                deferred, request = self._reconcile(deferred, request)
-            except SessionNotFound:
-                return self.restart(request, self._batch.probe)
-        try:
-            return request, self._probe(deferred, request)
-        except SessionNotFound:
-            if not retrying:
-                raise
-            return self.restart(request, self._batch.probe)
-
     def _reconcile(
         self, deferred: BatchReport | None, request: BatchProbe
     ) -> tuple[BatchReport | None, BatchProbe]:
@@ -292,13 +275,9 @@ class Recovery:
             if state.step == step + 1:
                 continue  # the report was applied (and maybe the probe after it)
             if state.step == step and state.probe_pending:
-                reference = None if deferred.q_references is None else deferred.q_references[i]
-                self._transport.report(
-                    self._ids[i],
-                    step,
-                    float(deferred.q_values[i]),
-                    None if reference is None else float(reference),
-                )
+                references = deferred.q_references
+                reference = None if references is None else float(references[i])
+                self._transport.report(self._ids[i], step, float(deferred.q_values[i]), reference)
                 continue
             raise StepMismatch(
                 f"session {self._ids[i]!r} is at step {state.step} (probe pending: "
@@ -308,16 +287,6 @@ class Recovery:
                 index=i,
             )
         return None, request._replace(episode_starts=starts)
-
-    def _report_attempt(self, request: BatchReport, retrying: bool) -> tuple[BatchReport, F64Array]:
-        try:
-            return request, self._batch.report(request)
-        except SessionNotFound:
-            if not retrying or self._ledger.last_probe is None:
-                raise
-        probe, _ = self.restart(self._ledger.last_probe, self._batch.probe)
-        request = request._replace(steps=probe.steps)
-        return request, self._batch.report(request)
 
 
 def step_applied(

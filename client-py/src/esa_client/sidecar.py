@@ -106,8 +106,7 @@ def find_server_binary(
         if not _executable(path):
             raise EsaError(f"expected an executable esa-server at {path}, got none")
         return path
-    from_wheel = server_wheel_binary()
-    if from_wheel is not None:
+    if (from_wheel := server_wheel_binary()) is not None:
         return from_wheel
     roots = [Path(checkout)] if checkout is not None else []
     repo = next((root for root in [*roots, _REPO_ROOT] if _is_checkout(root)), None)
@@ -118,8 +117,7 @@ def find_server_binary(
         built = repo / target_dir / "release" / BINARY_NAME  # an absolute target_dir wins
         if _executable(built):
             return built
-    on_path = shutil.which(BINARY_NAME)
-    if on_path:
+    if on_path := shutil.which(BINARY_NAME):
         return Path(on_path)
     build_hint = (
         f"build it in {repo} with `cargo build --release -p {BINARY_NAME}` (or `make build`)"
@@ -213,16 +211,9 @@ class ServerProcess:
         self.socket_path = self._workdir / "esa.sock"
         self.address = f"unix:{self.socket_path}"
         self._log_path = self._workdir / "server.log"
-        args = [
-            str(self.binary),
-            "--uds",
-            str(self.socket_path),
-            # Whatever ends this process, the server follows and cleans up after itself.
-            "--parent-pid",
-            str(os.getpid()),
-            "--remove-dir-on-exit",
-            str(self._workdir),
-        ]
+        args = [str(self.binary), "--uds", str(self.socket_path)]
+        # Whatever ends this process, the server follows and cleans up after itself.
+        args += ["--parent-pid", str(os.getpid()), "--remove-dir-on-exit", str(self._workdir)]
         if token is not None:
             token_path = self._workdir / "token"
             token_path.touch(mode=0o600)
@@ -230,14 +221,11 @@ class ServerProcess:
             args += ["--auth-token-file", str(token_path)]
         args += list(extra_args)
         with open(self._log_path, "wb") as log:
+            # Plain log lines: their tail ends up in Python error messages.
+            env = {**os.environ, "NO_COLOR": "1"}
             try:
                 self._process = subprocess.Popen(
-                    args,
-                    stdin=subprocess.DEVNULL,
-                    stdout=log,
-                    stderr=subprocess.STDOUT,
-                    # Plain log lines: their tail ends up in Python error messages.
-                    env={**os.environ, "NO_COLOR": "1"},
+                    args, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env
                 )
             except OSError as err:
                 shutil.rmtree(self._workdir, ignore_errors=True)
@@ -256,13 +244,15 @@ class ServerProcess:
         """True while the process has not exited."""
         return self._process.poll() is None
 
+    def _output(self) -> str:
+        try:
+            return self._log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
     def output_tail(self) -> str:
         """The last lines the server wrote to stdout/stderr."""
-        try:
-            text = self._log_path.read_text(errors="replace")
-        except OSError:
-            return "(no server output)"
-        return text[-_STDERR_TAIL:].strip() or "(no server output)"
+        return self._output()[-_STDERR_TAIL:].strip() or "(no server output)"
 
     def announced(self, prefix: str, timeout: float) -> list[str]:
         """Waits for the ``listening on`` line; returns what follows ``prefix`` in earlier lines.
@@ -275,10 +265,7 @@ class ServerProcess:
         deadline = time.monotonic() + timeout
         while True:
             self.check_running()
-            try:
-                lines = self._log_path.read_text(errors="replace").splitlines()
-            except OSError:
-                lines = []
+            lines = self._output().splitlines()
             if any(line.startswith("listening on ") for line in lines):
                 return [line[len(prefix) :] for line in lines if line.startswith(prefix)]
             if time.monotonic() > deadline:

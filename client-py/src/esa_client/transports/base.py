@@ -1,10 +1,8 @@
 """The transport interface: what :class:`~esa_client.Session` and ``SessionBatch`` call.
 
-As httpx splits its ``Client`` from its transports, sessions and batches are written once
-against :class:`Transport` and :class:`BatchTransport`, implemented in-process, over gRPC and
-over Zenoh. The batch half takes arrays, not messages, so that the in-process engine builds
-none. Every failure is an :class:`~esa_client.errors.EsaError`, with ``index`` set when one
-batch item caused it.
+Each transport (in-process, gRPC, Zenoh) implements both halves; the batch half takes arrays,
+not messages, so that the in-process engine builds none. Every failure is an
+:class:`~esa_client.errors.EsaError`, with ``index`` set when one batch item caused it.
 """
 
 from __future__ import annotations
@@ -37,11 +35,7 @@ SMALLEST_SCALE = float(np.finfo(np.float32).tiny)
 
 
 class BatchTransport(ABC):
-    """The round trips of one batch of N sessions (all of one action dimension D).
-
-    Every call is all-or-nothing. Subclasses implement :meth:`probe` and :meth:`report`;
-    :meth:`report_then_probe` sends them in turn here, so a failed report stops the probe.
-    """
+    """The all-or-nothing round trips of one batch of N sessions of action dimension D."""
 
     @abstractmethod
     def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
@@ -54,7 +48,7 @@ class BatchTransport(ABC):
     def report_then_probe(
         self, report: BatchReport, probe: BatchProbe
     ) -> tuple[F64Array, F64Array]:
-        """The report of step t, then the probe of the next step; returns the probe's answer."""
+        """The report of step t, then (if it succeeded) the next probe; returns its answer."""
         self.report(report)
         return self.probe(probe)
 
@@ -126,10 +120,7 @@ class Transport(Protocol):
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool
     ) -> BatchTransport:
-        """The round trips of a batch of these (existing) sessions, ``action_dim`` each.
-
-        ``use_stream`` asks for one persistent stream where the transport has one.
-        """
+        """The round trips of these existing sessions (``use_stream``: on one stream if any)."""
 
     def healthy(self, timeout: float, *, wait_for_ready: bool = False) -> bool:
         """True if every server behind this transport answers within ``timeout`` seconds."""

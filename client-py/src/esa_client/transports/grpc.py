@@ -1,11 +1,9 @@
-"""The transport over gRPC, through the Rust client of ``esa_client._native``.
+"""The transport over gRPC, through the Rust (tonic) client of ``esa_client._native``.
 
-``GrpcClient`` is esa-client's tonic client on a private runtime that the calling thread
-drives itself, GIL released while a call waits: a round trip costs no thread hand-off and
-builds no Python messages. It speaks TLS (rustls, :class:`TlsConfig`) and sends the token. A
-batch opened with ``use_stream`` has a ``StepStream`` of its own, on which the pipelined pair
-(a deferred report and the next probe) takes one round trip, about a third of two unary
-calls' time on a Unix socket (BENCHMARKS.md, section 1b rows).
+The calling thread drives the client's runtime itself, GIL released while a call waits: a
+round trip costs no thread hand-off and builds no Python messages. A batch opened with
+``use_stream`` has a ``StepStream`` of its own, on which a deferred report and the next probe
+take one round trip.
 """
 
 from __future__ import annotations
@@ -14,7 +12,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,7 +22,10 @@ from ..errors import TypedErrors
 from ..state import BoolArray, F64Array, I64Array, SessionProgress, check_array
 from .base import BatchProbe, BatchReport, BatchTransport, LinearCritic, PipelinedBatch
 from .native_calls import NativeSessionCalls
-from .stepping import Critic, SessionBatch, StepCall, Stepper, check_critic
+from .stepping import Critic, StepCall, Stepper, check_critic
+
+if TYPE_CHECKING:
+    from ..session import SessionBatch
 
 _typed_errors = TypedErrors(StatusError)
 _engine_errors = TypedErrors(EngineError)
@@ -66,11 +67,9 @@ class TlsConfig:
         Raises:
             OSError: If a file cannot be read.
         """
-
-        def read(path: str | os.PathLike[str] | None) -> bytes | None:
-            return None if path is None else Path(path).read_bytes()
-
-        return read(self.ca), read(self.cert), read(self.key)
+        paths = (self.ca, self.cert, self.key)
+        ca, cert, key = (None if path is None else Path(path).read_bytes() for path in paths)
+        return ca, cert, key
 
 
 class GrpcBatch(BatchTransport):
@@ -101,10 +100,7 @@ class GrpcBatch(BatchTransport):
 
 
 class GrpcStepBatch(GrpcBatch, PipelinedBatch):
-    """A :class:`GrpcBatch` on a ``StepStream``, whose pair takes one round trip.
-
-    It also sends whole steps ahead of their answers (CONTRACT.md section 1b, note 8).
-    """
+    """A :class:`GrpcBatch` on a ``StepStream``: the pair in one round trip, steps sent ahead."""
 
     def _pipelined(self, report: BatchReport, probe: BatchProbe) -> tuple[F64Array, F64Array]:
         with _typed_errors:
@@ -140,14 +136,6 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
             self._batch.resend_step()
 
 
-class _InFlight(NamedTuple):
-    """A step sent ahead: what it replaced, restored if it fails, and what it sent."""
-
-    steps_before: I64Array
-    starts_before: BoolArray
-    request: BatchProbe
-
-
 class AheadStepper(Stepper):
     """A step sent ahead of its answer, which the next call reads.
 
@@ -159,7 +147,8 @@ class AheadStepper(Stepper):
     def __init__(self, ahead: GrpcStepBatch) -> None:
         """Sends steps through ``ahead``."""
         self._ahead = ahead
-        self._in_flight: _InFlight | None = None
+        # The step sent ahead: the steps and starts it replaced (restored if it fails), and it.
+        self._in_flight: tuple[I64Array, BoolArray, BatchProbe] | None = None
         self._shifts: F64Array | None = None  # v(t) of the next step, from the last answer
         self._engine: StepAhead | None = None
 
@@ -174,14 +163,33 @@ class AheadStepper(Stepper):
         request, (probes, applied) = batch.recovery.send_ahead(
             request, lambda sent: self._send(batch, sent, critic, paired)
         )
-        self._in_flight = _InFlight(steps_before, starts_before, request)
+        self._in_flight = (steps_before, starts_before, request)
         ledger.stepped(request)
         return probes, applied
 
     def flush(self, batch: SessionBatch) -> None:
-        """Reads the answer of the step in flight (raising its error), if there is one."""
-        if self._in_flight is not None:
-            self._shifts = self._receive(batch)
+        """Reads the shifts ``v(t + 1)`` of the step in flight, if any, or raises its error.
+
+        A refused step is undone (its steps and starts are due again); the batch's recovery
+        rides out a broken exchange.
+        """
+        if self._in_flight is None:
+            return
+        (steps_before, starts_before, sent), self._in_flight = self._in_flight, None
+        ledger = batch.ledger
+
+        def undo() -> None:
+            ledger.steps, ledger.starts_due = steps_before, starts_before
+
+        def resend() -> F64Array:
+            self._ahead.resend_step()
+            return self._ahead.receive_step()[2]
+
+        self._shifts = batch.recovery.receive_ahead(
+            lambda: self._ahead.receive_step()[2],
+            lambda: batch.recovery.resume_ahead(sent, steps_before, self._ahead.progress(), resend),
+            undo,
+        )
 
     def reset(self) -> None:
         """Forgets the step in flight (its answer would be read as the next step's)."""
@@ -193,15 +201,10 @@ class AheadStepper(Stepper):
     def _send(
         self, batch: SessionBatch, request: BatchProbe, critic: Critic, paired: bool
     ) -> tuple[F64Array | None, F64Array]:
-        """Sends ``request``'s step; returns the probes (None: LinearCritic) and the applied.
-
-        Everything is checked before anything is sent: an error there is this call's.
-        """
+        """Sends ``request``'s step, all checked first; returns the probes and the applied."""
         if self._engine is None:
             self._engine = StepAhead([c.to_proto().SerializeToString() for c in batch.configs])
-        shifts = self._shifts
-        if shifts is None:
-            shifts = np.zeros((batch.n, batch.action_dim))
+        shifts = np.zeros((batch.n, batch.action_dim)) if self._shifts is None else self._shifts
         if request.episode_starts.any():
             shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
         if isinstance(critic, LinearCritic):  # the server evaluates it
@@ -218,31 +221,6 @@ class AheadStepper(Stepper):
         self._ahead.send_step(request, q[: batch.n], q[batch.n :] if paired else None)
         return probes, applied
 
-    def _receive(self, batch: SessionBatch) -> F64Array:
-        """The shifts ``v(t + 1)`` of the step in flight, or its error.
-
-        A refused step is undone (its steps and starts are due again); the batch's recovery
-        rides out a broken exchange.
-        """
-        assert self._in_flight is not None
-        sent, self._in_flight = self._in_flight, None
-        ledger = batch.ledger
-
-        def undo() -> None:
-            ledger.steps, ledger.starts_due = sent.steps_before, sent.starts_before
-
-        def resend() -> F64Array:
-            self._ahead.resend_step()
-            return self._ahead.receive_step()[2]
-
-        return batch.recovery.receive_ahead(
-            lambda: self._ahead.receive_step()[2],
-            lambda: batch.recovery.resume_ahead(
-                sent.request, sent.steps_before, self._ahead.progress(), resend
-            ),
-            undo,
-        )
-
 
 class GrpcTransport(NativeSessionCalls):
     """The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.GrpcClient``.
@@ -252,10 +230,6 @@ class GrpcTransport(NativeSessionCalls):
         timeout: Deadline in seconds of every call.
         token: Sent as ``authorization: Bearer <token>`` with every call; None sends none.
         tls: Connect over TLS; None connects in plaintext.
-
-    Attributes:
-        client: The Rust client (connecting on the first call).
-        tls: The TLS settings, or None.
 
     Raises:
         ValueError: A malformed timeout, token or TLS setting.
@@ -267,13 +241,11 @@ class GrpcTransport(NativeSessionCalls):
     ) -> None:
         """Opens the client (connecting on the first call)."""
         self.tls = tls
-        if tls is None:
-            self.client = GrpcClient(address, timeout, token)
-        else:
-            ca, cert, key = tls.pems()
-            self.client = GrpcClient(
-                address, timeout, token, tls=True, ca=ca, cert=cert, key=key, domain=tls.server_name
-            )
+        ca, cert, key = (None, None, None) if tls is None else tls.pems()
+        domain = None if tls is None else tls.server_name
+        self.client = GrpcClient(
+            address, timeout, token, tls=tls is not None, ca=ca, cert=cert, key=key, domain=domain
+        )
         super().__init__(self.client, _typed_errors)
 
     def open_batch(self, ids: Sequence[str], action_dim: int, *, use_stream: bool) -> GrpcBatch:

@@ -1,12 +1,12 @@
 """The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.Engine``.
 
-The engine is esa-core in this process: it takes numpy arrays as they come, and a step of a
-closed-form critic is one engine call (:class:`FusedStepper`).
+The engine is esa-core in this process: it takes numpy arrays as they come.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from .._native import BatchHandle, Engine, EngineError
 from ..errors import TypedErrors
@@ -14,7 +14,10 @@ from ..state import BoolArray, F64Array, I64Array
 from .base import BatchTransport
 from .messages import BatchProbe, BatchReport, LinearCritic, QuadraticCritic
 from .native_calls import NativeSessionCalls
-from .stepping import CLOSED_FORM, SessionBatch, StepCall, Stepper, check_critic
+from .stepping import CLOSED_FORM, StepCall, Stepper, check_critic
+
+if TYPE_CHECKING:
+    from ..session import SessionBatch
 
 _typed_errors = TypedErrors(EngineError)
 
@@ -103,12 +106,7 @@ class FusedStepper(Stepper):
 class InProcessTransport(NativeSessionCalls):
     """The :class:`~esa_client.transports.base.Transport` over an ``esa_client._native.Engine``.
 
-    Args:
-        engine: The engine; None creates one with the server's default session limit.
-        max_sessions: The limit of a created engine (``--max-sessions``); None = 100,000.
-
-    Attributes:
-        engine: The engine holding the sessions.
+    ``engine`` None creates one with ``max_sessions`` (``--max-sessions``; None = 100,000).
     """
 
     def __init__(self, engine: Engine | None = None, *, max_sessions: int | None = None) -> None:
@@ -118,7 +116,7 @@ class InProcessTransport(NativeSessionCalls):
         if engine is None:
             engine = Engine() if max_sessions is None else Engine(max_sessions=max_sessions)
         self.engine = engine
-        super().__init__(self.engine, _typed_errors)
+        super().__init__(engine, _typed_errors)
 
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool

@@ -10,15 +10,7 @@ from ..state import BoolArray, F64Array, I64Array
 
 
 class SessionProbe(NamedTuple):
-    """The probe of one step of one session (``Probe``).
-
-    Attributes:
-        session_id: The session.
-        step: Its step.
-        action: The sampled action, shape ``(D,)``.
-        episode_start: Whether this probe starts a new episode.
-        action_scale: sigma per dimension, shape ``(D,)``; None for all 1.
-    """
+    """The probe of one step of one session (``Probe``); ``action_scale`` None for all 1."""
 
     session_id: str
     step: int
@@ -30,11 +22,8 @@ class SessionProbe(NamedTuple):
 class BatchProbe(NamedTuple):
     """The probes of one step for the N sessions of a batch (``ProbeBatch``).
 
-    Attributes:
-        steps: Each session's step, shape ``(N,)``.
-        actions: The sampled actions, shape ``(N, D)``.
-        episode_starts: Episode-start flags, shape ``(N,)``.
-        action_scales: sigma per session and dimension, shape ``(N, D)``; None for all 1.
+    ``steps`` and ``episode_starts`` are ``(N,)``, ``actions`` and ``action_scales`` (sigma,
+    None for all 1) ``(N, D)``.
     """
 
     steps: I64Array
@@ -44,12 +33,9 @@ class BatchProbe(NamedTuple):
 
 
 class BatchReport(NamedTuple):
-    """The reports of one step for the N sessions of a batch (``ReportBatch``).
+    """The reports of one step for the N sessions of a batch (``ReportBatch``), each ``(N,)``.
 
-    Attributes:
-        steps: Each session's step (the probed one), shape ``(N,)``.
-        q_values: Q at each probe, shape ``(N,)``.
-        q_references: Q at each applied action, shape ``(N,)``; None for no reference.
+    ``q_values`` is Q at each probe, ``q_references`` Q at each applied action or None.
     """
 
     steps: I64Array

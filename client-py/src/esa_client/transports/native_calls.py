@@ -15,11 +15,9 @@ from .messages import SessionProbe
 
 
 class NativeSessionCalls:
-    """The per-session Transport methods over an ``Engine`` or a ``GrpcClient``.
+    """The per-session Transport methods over ``sessions``, an ``Engine`` or a ``GrpcClient``.
 
-    Args:
-        sessions: The native object that holds or reaches the sessions.
-        typed_errors: Translates that object's exception into the typed errors.
+    ``typed_errors`` translates that object's exception into the typed errors.
     """
 
     def __init__(self, sessions: Engine | GrpcClient, typed_errors: TypedErrors) -> None:

@@ -1,56 +1,27 @@
 """How :meth:`~esa_client.SessionBatch.step` runs on each transport, with the same bits.
 
-Each :class:`~esa_client.transports.base.BatchTransport` chooses its :class:`Stepper`, so a
-batch never asks which transport it holds.
+Each :class:`~esa_client.transports.base.BatchTransport` chooses its :class:`Stepper`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, NamedTuple, Protocol
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from ..config import SessionConfig
 from ..state import F64Array
 from .messages import LinearCritic, QuadraticCritic
 
 if TYPE_CHECKING:
-    from ..recovery import Recovery, StepLedger
+    from ..session import SessionBatch
 
 Critic = Callable[[F64Array], npt.ArrayLike] | LinearCritic | QuadraticCritic
 """What :meth:`~esa_client.SessionBatch.step` scores the probes with."""
 
 CLOSED_FORM = (LinearCritic, QuadraticCritic)
 """The critics an in-process engine evaluates itself."""
-
-
-class SessionBatch(Protocol):
-    """What a stepper uses of the :class:`~esa_client.SessionBatch` it steps."""
-
-    n: int
-    action_dim: int
-    configs: tuple[SessionConfig, ...]
-    ledger: StepLedger
-    recovery: Recovery
-
-    def probe_applied(
-        self,
-        actions: npt.ArrayLike,
-        episode_starts: npt.ArrayLike | None,
-        *,
-        action_scales: npt.ArrayLike | None,
-    ) -> tuple[F64Array, F64Array]:
-        """The probes and the actions to apply."""
-
-    def report(
-        self, q_values: npt.ArrayLike, *, q_references: npt.ArrayLike | None, defer: bool
-    ) -> F64Array | None:
-        """Reports the critic's values."""
-
-    def flush(self) -> None:
-        """Reads a step in flight and sends a deferred report."""
 
 
 class StepCall(NamedTuple):

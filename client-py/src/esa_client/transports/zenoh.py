@@ -1,12 +1,8 @@
 """The transport over Zenoh queries (CONTRACT.md section 3), to one server or N shards.
 
-Each RPC is a queryable at ``<prefix>/<RpcName>`` whose payloads are the protobuf request
-and response; a reply error carries a ``StreamError``, and the auth token goes as each
-query's attachment. Shard i of N serves ``<prefix>/shard/<i>/<RpcName>``: a batch is split
-per shard, the parts sent concurrently and merged back in batch order, each part
-all-or-nothing on its shard (repeating the whole call after an error is safe: the server
-takes a repeated step as a retry). A query answered twice means another process serves the
-key too, so neither answer is trusted (:class:`TwoServersAnswered`).
+The auth token goes as each query's attachment. Shard i of N serves
+``<prefix>/shard/<i>/<RpcName>``: a batch is split per shard, the parts sent concurrently
+and merged back in batch order, each part all-or-nothing on its shard.
 """
 
 from __future__ import annotations
@@ -74,8 +70,7 @@ def check_endpoints(connect: str | Sequence[str]) -> tuple[str, ...]:
 def peer_config(connect: Sequence[str], timeout: float) -> zenoh.Config:
     """A Zenoh peer that only talks to ``connect``: no listener, no scouting, no gossip.
 
-    Opening a session with it fails (instead of retrying forever) when an endpoint
-    is not reachable within ``timeout`` seconds.
+    Opening a session with it fails when an endpoint is not reachable within ``timeout`` s.
     """
     config: zenoh.Config = zenoh.Config()
     for key, value in (
@@ -92,14 +87,10 @@ def peer_config(connect: Sequence[str], timeout: float) -> zenoh.Config:
 
 
 class ZenohRpc(Generic[Response]):
-    """One RPC of the contract as a Zenoh querier: ``rpc(request) -> response``.
+    """One RPC of the contract (its ``key``, e.g. ``esa/v1/Probe``) as a Zenoh querier.
 
-    Args:
-        session: The Zenoh session.
-        key: The RPC's key, e.g. ``esa/v1/Probe``.
-        response: The response message type.
-        timeout: Deadline of every query in seconds.
-        token: The server's auth token, sent as each query's attachment.
+    ``rpc(request)`` returns the decoded ``response``; every query has the deadline
+    ``timeout`` and carries ``token`` as its attachment.
     """
 
     def __init__(
@@ -111,10 +102,7 @@ class ZenohRpc(Generic[Response]):
         token: str | None = None,
     ) -> None:
         """Declares the querier for ``key``."""
-        self.key = key
-        self._response = response
-        self._timeout = timeout
-        self._token = token
+        self.key, self._response, self._timeout, self._token = key, response, timeout, token
         # ALL: every queryable of the key gets the query, so a second answerer shows.
         # NONE: no consolidation, which would merge (and so hide) a second reply.
         self._querier = session.declare_querier(
@@ -170,7 +158,16 @@ class ZenohRpc(Generic[Response]):
         reply = answers[0]
         if reply.ok is not None:
             return self._decode(self._response, reply.ok.payload.to_bytes())
-        error = self._error(reply.err)
+        error: EsaError
+        if reply.err.encoding == zenoh.Encoding.APPLICATION_PROTOBUF:
+            error = esa_error(self._decode(esa_pb2.StreamError, reply.err.payload.to_bytes()))
+        elif (text := reply.err.payload.to_string()) == "Timeout":
+            # Not the server's error but Zenoh's own, which to a querier is its deadline.
+            error = DeadlineExceeded(
+                f"no answer from {self.key} within {self._timeout} s", StatusCode.DEADLINE_EXCEEDED
+            )
+        else:
+            error = EsaError(f"{self.key}: zenoh error {text!r}")
         if isinstance(error, DeadlineExceeded) and not self.matched:
             # The server went away while the query waited (each querier learns of it on its
             # own, so a query can leave on a dead route): say so.
@@ -192,19 +189,6 @@ class ZenohRpc(Generic[Response]):
                 f"{self.key} answered with bytes that are not a {message_type.__name__}: {err}"
             ) from None
 
-    def _error(self, error: zenoh.ReplyError) -> EsaError:
-        if error.encoding == zenoh.Encoding.APPLICATION_PROTOBUF:
-            return esa_error(self._decode(esa_pb2.StreamError, error.payload.to_bytes()))
-        # Errors the server did not write come from Zenoh itself; the one it sends
-        # to a querier is its deadline ("Timeout").
-        text = error.payload.to_string()
-        if text == "Timeout":
-            return DeadlineExceeded(
-                f"no answer from {self.key} within {self._timeout} s",
-                StatusCode.DEADLINE_EXCEEDED,
-            )
-        return EsaError(f"{self.key}: zenoh error {text!r}")
-
     def close(self) -> None:
         """Undeclares the querier."""
         self._querier.undeclare()
@@ -216,8 +200,6 @@ class _Server:
     def __init__(
         self, session: zenoh.Session, prefix: str, timeout: float, token: str | None
     ) -> None:
-        self.prefix = prefix
-
         def rpc(name: str, response: type[Response]) -> ZenohRpc[Response]:
             return ZenohRpc(session, f"{prefix}/{name}", response, timeout, token)
 
@@ -243,7 +225,6 @@ class _Server:
         return True
 
     def close(self) -> None:
-        """Undeclares every querier."""
         for rpc in list(vars(self).values()):
             if isinstance(rpc, ZenohRpc):
                 rpc.close()
@@ -260,10 +241,6 @@ class ZenohTransport:
         timeout: Deadline in seconds of every query.
         token: The servers' auth token, sent as every query's attachment.
         shards: N servers started with ``--shard i/N``; None for one server (no shard).
-
-    Attributes:
-        prefix: The key prefix.
-        shards: N, or None for one server.
     """
 
     def __init__(
@@ -296,13 +273,10 @@ class ZenohTransport:
     ) -> ZenohTransport:
         """Opens a Zenoh session to ``connect`` (or with ``config``) and the transport on it.
 
-        Args:
-            connect: The endpoint(s) of the servers or of a router, e.g. ``tcp/127.0.0.1:7447``.
-            prefix: As for the class.
-            timeout: As for the class; also the deadline of connecting.
-            token: As for the class.
-            shards: As for the class.
-            config: A complete Zenoh config instead of :func:`peer_config` of ``connect``.
+        ``connect`` names the endpoint(s) of the servers or of a router, e.g.
+        ``tcp/127.0.0.1:7447``; ``config`` is a complete Zenoh config to use instead of
+        :func:`peer_config` of ``connect``; ``timeout`` is also the deadline of connecting.
+        The other arguments are the class's.
 
         Raises:
             ValueError: A malformed endpoint, prefix or shard count.
@@ -333,8 +307,7 @@ class ZenohTransport:
 
     def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
         """``CreateSession`` on the session's shard (an empty id: a UUID, made here if sharded)."""
-        if self.shards is not None:
-            # The shard must be known before the session exists.
+        if self.shards is not None:  # the shard must be known before the session exists
             session_id = session_id or str(uuid.uuid4())
         request = esa_pb2.CreateSessionRequest(session_id=session_id, config=config)
         return self._owner(session_id).create_session(request).session_id
@@ -387,10 +360,7 @@ class ZenohTransport:
     def open_batch(
         self, ids: Sequence[str], action_dim: int, *, use_stream: bool
     ) -> BatchTransport:
-        """The batch's queries: to its one server, or split over the shards that own ``ids``.
-
-        ``use_stream`` changes nothing: a query is already one message.
-        """
+        """The batch's queries (each already one message: no stream), split over its shards."""
         owner = np.array([self.shard_of(i) for i in ids], dtype=np.int64)
         parts = {s: np.flatnonzero(owner == s) for s in np.unique(owner).tolist()}
         if len(parts) <= 1:
@@ -426,11 +396,9 @@ class _ServerBatch(BatchTransport):
         self._server = server
         self._ids = tuple(ids)
         self._shape = (len(self._ids), action_dim)
-        # The last probe's answer: what the client last saw of the sessions' progress.
-        self._seen: esa_pb2.ProbeBatchResponse | None = None
+        self._seen: esa_pb2.ProbeBatchResponse | None = None  # the last probe's answer
 
     def progress(self) -> list[SessionProgress] | None:
-        """Each session's progress in the last probe's answer; None before one."""
         seen = self._seen
         if seen is None or len(seen.episodes_completed) != len(self._ids):
             return None
@@ -442,7 +410,6 @@ class _ServerBatch(BatchTransport):
         return _f64(values).reshape(self._shape)
 
     def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
-        """Sends one ProbeBatch."""
         scales = request.action_scales
         message = esa_pb2.ProbeBatchRequest(
             session_ids=self._ids,
@@ -456,7 +423,6 @@ class _ServerBatch(BatchTransport):
         return self._values(response.probes), self._values(response.actions)
 
     def report(self, request: BatchReport) -> F64Array:
-        """Sends one ReportBatch."""
         references = request.q_references
         message = esa_pb2.ReportBatchRequest(
             session_ids=self._ids,
@@ -470,10 +436,7 @@ class _ServerBatch(BatchTransport):
 class _ShardedBatch(BatchTransport):
     """Splits each batch call per shard, sends the parts concurrently, merges answers in order.
 
-    Args:
-        parts: Per shard, the batch items it owns and its batch of their sessions.
-        shape: ``(N, D)`` of the whole batch.
-        executor: Runs the per-shard round trips concurrently.
+    ``parts`` holds per shard the batch items it owns and the batch of their sessions.
     """
 
     def __init__(
@@ -482,9 +445,7 @@ class _ShardedBatch(BatchTransport):
         shape: tuple[int, int],
         executor: ThreadPoolExecutor,
     ) -> None:
-        self._parts = parts
-        self._shape = shape
-        self._executor = executor
+        self._parts, self._shape, self._executor = parts, shape, executor
 
     def _scatter(self, send: Callable[[_ServerBatch, I64Array], Answer]) -> dict[int, Answer]:
         """Runs ``send(shard's batch, its items)`` for every shard concurrently."""
@@ -501,25 +462,21 @@ class _ShardedBatch(BatchTransport):
         return answers
 
     def _merged(self, parts: dict[int, F64Array]) -> F64Array:
-        """The per-shard ``(k, D)`` values put back in batch order, ``(N, D)``."""
+        """The per-shard ``(k, D)`` values in batch order, ``(N, D)``."""
         merged = np.empty(self._shape, dtype=np.float64)
         for shard, values in parts.items():
             merged[self._parts[shard][0]] = values
         return merged
 
     def probe(self, request: BatchProbe) -> tuple[F64Array, F64Array]:
-        """Sends the per-shard probes concurrently; answers come back in batch order."""
         answers = self._scatter(lambda batch, items: batch.probe(_part(request, items)))
         probes = self._merged({s: a[0] for s, a in answers.items()})
         return probes, self._merged({s: a[1] for s, a in answers.items()})
 
     def report(self, request: BatchReport) -> F64Array:
-        """Sends the per-shard reports concurrently; actions come back in batch order."""
-        answers = self._scatter(lambda batch, items: batch.report(_part(request, items)))
-        return self._merged(answers)
+        return self._merged(self._scatter(lambda batch, items: batch.report(_part(request, items))))
 
     def progress(self) -> list[SessionProgress] | None:
-        """Each session's progress in its shard's last probe answer; None before every shard's."""
         merged: list[SessionProgress | None] = [None] * self._shape[0]
         for items, batch in self._parts.values():
             part = batch.progress()
@@ -541,10 +498,7 @@ def _part(request: _Request, items: I64Array) -> _Request:
 
 
 def _renumbered(err: EsaError, items: I64Array, shard: int) -> EsaError:
-    """The shard's error about its item k (``err.index``), as the error about ``items[k]``.
-
-    The message's ``item k: `` prefix gets the batch's number, and the shard is named at the end.
-    """
+    """The shard's error about its item k (``err.index``), as the error about ``items[k]``."""
     message, index = err.message, None
     if err.index is not None and 0 <= err.index < len(items):
         index = int(items[err.index])
