@@ -51,17 +51,6 @@ class DecoupledPPO(PPO):
                 f"{type(self.rollout_buffer).__name__}"
             )
 
-    def _prepare_update(self) -> None:
-        """Stores ``log pi_old(x)`` of each executed action (train() has not updated pi yet)."""
-        buffer = cast(EsaRolloutBuffer, self.rollout_buffer)
-        obs = buffer.to_torch(buffer.observations.reshape(-1, *buffer.obs_shape))
-        actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
-        with th.no_grad():
-            proximal = self.policy.get_distribution(obs).log_prob(actions)
-        buffer.extras["proximal_log_prob"] = (
-            proximal.cpu().numpy().reshape(buffer.buffer_size, buffer.n_envs)
-        )
-
     def _policy_ratio(
         self, samples: EsaRolloutBufferSamples, log_prob: th.Tensor
     ) -> tuple[th.Tensor, th.Tensor | float]:
@@ -76,7 +65,15 @@ class DecoupledPPO(PPO):
 
     def train(self) -> None:
         """SB3's ``PPO.train`` with the objective of :meth:`_policy_ratio`."""
-        self._prepare_update()
+        # log pi_old(x) of each executed action, before pi is updated.
+        buffer = cast(EsaRolloutBuffer, self.rollout_buffer)
+        obs = buffer.to_torch(buffer.observations.reshape(-1, *buffer.obs_shape))
+        actions = buffer.to_torch(buffer.actions.reshape(-1, buffer.action_dim))
+        with th.no_grad():
+            proximal = self.policy.get_distribution(obs).log_prob(actions)
+        buffer.extras["proximal_log_prob"] = (
+            proximal.cpu().numpy().reshape(buffer.buffer_size, buffer.n_envs)
+        )
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]

@@ -125,29 +125,22 @@ class OffPolicyEsaMixin(EsaMixin, _Algorithm):
         self, obs: Any, sampled: np.ndarray, mu: np.ndarray, sigma: np.ndarray, strength: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """The env's actions and the shift on ``sampled`` (``a_t``, with TD3's noise), (N, D)."""
-        anchor = self._anchor(sampled, mu)
 
         def execute(shift: np.ndarray) -> np.ndarray:
             executed: np.ndarray = np.clip(sampled + shift, -1.0, 1.0)
             return executed
 
         def session() -> Acted:
-            applied = self._esa_step(obs, anchor, sigma, strength)
-            if anchor is sampled:
-                # The session's own action, not a_t + (applied - a_t): the same bits.
-                return applied, applied - sampled
-            return execute(applied - anchor), applied - anchor
+            # The session's own action, not a_t + (applied - a_t): the same bits.
+            applied = self._esa_step(obs, sampled, sigma, strength)
+            return applied, applied - sampled
 
         return self._control_shift().act(
             session,
-            lambda: self._gradient_shift(obs, anchor, sigma, strength),
+            lambda: self._gradient_shift(obs, sampled, sigma, strength),
             execute,
             self._episode_starts(),
         )
-
-    def _anchor(self, sampled: np.ndarray, mu: np.ndarray) -> np.ndarray:
-        """Where the shift is found: at the policy's sample ``a_t``."""
-        return sampled
 
     def _episode_starts(self) -> np.ndarray:
         """True where an env starts an episode at this step."""

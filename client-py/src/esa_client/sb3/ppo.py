@@ -138,12 +138,12 @@ class ESAPPO(EsaMixin, DecoupledPPO):
 
         def session() -> Acted:
             shift = self._session_shift(obs, sample, mean, std, starts, f)
-            return self._execute(sample, shift, std), shift
+            return shifted(sample, shift), shift
 
         executed, shift = self._control_shift().act(
             session,
             lambda: self._gradient_shift(obs, sample, mean, std, f),
-            lambda shift: self._execute(sample, shift, std),
+            lambda shift: shifted(sample, shift),
             starts,
         )
         if self._esa_steps % REPORT_EVERY == 0:
@@ -152,10 +152,6 @@ class ESAPPO(EsaMixin, DecoupledPPO):
             self._report_shift(f, (sample, shift, mean, std, low, high))
         self._esa_steps += 1
         return executed
-
-    def _execute(self, sample: np.ndarray, shift: np.ndarray, std: np.ndarray) -> np.ndarray:
-        """What the env executes and the buffer stores: ``a_t + v(t)``, summed in float64."""
-        return shifted(sample, shift)
 
     def _critic_at_step(self, obs: th.Tensor, mean: np.ndarray, std: np.ndarray) -> CriticAtStep:
         """The critic at this step's states over actions in ESA units."""

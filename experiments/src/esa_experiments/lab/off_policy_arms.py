@@ -37,8 +37,27 @@ class MeanAnchor(_Base):
     and the policy's noise is kept on top, as Optimistic Actor-Critic shifts its mean.
     """
 
-    def _anchor(self, sampled: np.ndarray, mu: np.ndarray) -> np.ndarray:
-        return mu
+    def _shifted(
+        self,
+        obs: Any,
+        sampled: np.ndarray,
+        mu: np.ndarray,
+        sigma: np.ndarray,
+        strength: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        def execute(shift: np.ndarray) -> np.ndarray:
+            return np.clip(sampled + shift, -1.0, 1.0)
+
+        def session() -> tuple[np.ndarray, np.ndarray]:
+            shift = self._esa_step(obs, mu, sigma, strength) - mu
+            return execute(shift), shift
+
+        return self._control_shift().act(
+            session,
+            lambda: self._gradient_shift(obs, mu, sigma, strength),
+            execute,
+            self._episode_starts(),
+        )
 
 
 class ExecutedProbe(_Base):

@@ -156,9 +156,6 @@ class LinearHead(_Base):
 class ClipObjective(_Base):
     """PPO's clipped objective, its ratio taken against the behaviour density ``b``."""
 
-    def _prepare_update(self) -> None:
-        """Nothing: the clip objective needs no proximal log-probability."""
-
     def _policy_ratio(
         self, samples: EsaRolloutBufferSamples, log_prob: th.Tensor
     ) -> tuple[th.Tensor, th.Tensor | float]:
@@ -203,12 +200,35 @@ class TargetMode(_Base):
         rollout_buffer.extras["esa_target"] = self._esa_targets
         return done
 
-    def _execute(self, sample: np.ndarray, shift: np.ndarray, std: np.ndarray) -> np.ndarray:
-        self._esa_targets[self.rollout_buffer.pos] = shift / std
-        return sample
+    def _session_shift(
+        self,
+        obs: th.Tensor,
+        sample: np.ndarray,
+        mean: np.ndarray,
+        std: np.ndarray,
+        starts: np.ndarray,
+        f: float,
+    ) -> np.ndarray:
+        return self._targeted(super()._session_shift(obs, sample, mean, std, starts, f), std)
 
-    def _prepare_update(self) -> None:
-        super()._prepare_update()
+    def _gradient_shift(
+        self, obs: th.Tensor, sample: np.ndarray, mean: np.ndarray, std: np.ndarray, f: float
+    ) -> np.ndarray:
+        return self._targeted(super()._gradient_shift(obs, sample, mean, std, f), std)
+
+    def _targeted(self, shift: np.ndarray, std: np.ndarray) -> np.ndarray:
+        """Keeps ``shift`` in units of sigma as this step's target; the env executes ``a_t``."""
+        self._esa_targets[self.rollout_buffer.pos] = shift / std
+        return np.zeros_like(shift)
+
+    def train(self) -> None:
+        """The old policy's mean and std kept for the target loss, ESAPPO's update, its log."""
+        self._keep_old_policy()
+        super().train()
+        if self._esa_target_losses:
+            self.logger.record("esa/target_loss", float(np.mean(self._esa_target_losses)))
+
+    def _keep_old_policy(self) -> None:
         buffer = self.rollout_buffer
         assert isinstance(buffer, EsaRolloutBuffer)
         targets = buffer.extras["esa_target"]
@@ -229,12 +249,6 @@ class TargetMode(_Base):
         if self._esa_targeted:
             self._esa_target_losses.extend(self._target_loss(samples))
         super()._optimizer_step(samples)
-
-    def train(self) -> None:
-        """ESAPPO's update, then the target loss's mean in the log."""
-        super().train()
-        if self._esa_target_losses:
-            self.logger.record("esa/target_loss", float(np.mean(self._esa_target_losses)))
 
     def _target_loss(self, samples: EsaRolloutBufferSamples) -> list[float]:
         """Back-propagates the loss on a minibatch's shifted samples; returns it (or nothing)."""
