@@ -46,7 +46,8 @@ class MeanAnchor(_Base):
         strength: float,
     ) -> tuple[np.ndarray, np.ndarray]:
         def execute(shift: np.ndarray) -> np.ndarray:
-            return np.clip(sampled + shift, -1.0, 1.0)
+            executed: np.ndarray = np.clip(sampled + shift, -1.0, 1.0)
+            return executed
 
         def session() -> tuple[np.ndarray, np.ndarray]:
             shift = self._esa_step(obs, mu, sigma, strength) - mu
