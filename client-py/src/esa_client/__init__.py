@@ -1,19 +1,10 @@
 """esa_client: Python client for the esa Extremum-Seeking Action selection service.
 
-Quick start::
-
-    from esa_client import EsaClient, SessionConfig
-
-    with EsaClient.spawn() as client:  # starts a private esa-server
-        batch = client.create_batch(SessionConfig(action_dim=1, dt=0.05, amplitude=0.2,
-                                                  frequency=10.0, learning_rate=0.1), n=4)
-        probes = batch.probe(actions, episode_starts)       # (4, 1)
-        improved = batch.report(critic(observations, probes))  # (4, 1)
-
 ``EsaClient.connect(address)`` reaches a running server, ``EsaClient.spawn()`` a private one
-and ``EsaClient.in_process()`` esa-core in this process. Stable-baselines3 drop-ins live in
-:mod:`esa_client.sb3`, RLlib's in :mod:`esa_client.rllib`, gymnasium wrappers in
-:mod:`esa_client.wrappers` and :mod:`esa_client.vector_wrapper`.
+and ``EsaClient.in_process()`` esa-core in this process, each with the same session API
+(``docs/guides/client.md``). Stable-baselines3 drop-ins live in :mod:`esa_client.sb3`,
+RLlib's in :mod:`esa_client.rllib`, gymnasium wrappers in :mod:`esa_client.wrappers` and
+:mod:`esa_client.vector_wrapper`.
 """
 
 from importlib import metadata as _metadata

@@ -31,13 +31,8 @@ _TRANSPORTS: tuple[str, ...] = get_args(TransportName)
 
 TOKEN_ENV = "ESA_AUTH_TOKEN"
 
-_ACCESS_PROBE_ID = "esa-client-access-check"
-"""A session id no trainer uses: looking it up proves that the server takes our token."""
-
 Where = Union["EsaClient", str, None]
 """Where sessions live: a client, a string :meth:`EsaClient.open` parses, or None (in-process)."""
-
-_LOCATOR_LINE = "zenoh listening on "
 
 _Client = TypeVar("_Client", bound="EsaClient")
 
@@ -100,31 +95,41 @@ def _grpc_transport(
     return GrpcTransport(address, timeout, token, tls)
 
 
-def _start_zenoh(
+def _spawn_zenoh(
     binary: str | os.PathLike[str] | None,
     args: Sequence[str],
     shards: int | None,
+    prefix: str | None,
     servers: list[ServerProcess],
+    timeout: float,
     startup_timeout: float,
-) -> list[str]:
-    """Starts ``esa-server --zenoh`` (``--shard i/N`` each) into ``servers``; returns locators.
+) -> tuple[Transport, str]:
+    """Starts ``esa-server --zenoh`` (``--shard i/N``) into ``servers``: transport, address.
 
     A loopback port is open to every local user, so the servers require a fresh random token.
     """
+    from .transports.zenoh import DEFAULT_PREFIX, ZenohTransport, check_prefix, check_shards
+
+    check_shards(shards)
+    zenoh_prefix = check_prefix(DEFAULT_PREFIX if prefix is None else prefix)
     token = secrets.token_urlsafe(32)
     locators: list[str] = []
     for i in range(shards or 1):
         shard = [] if shards is None else ["--shard", f"{i}/{shards}"]
-        server = ServerProcess(binary, token=token, extra_args=["--zenoh", *shard, *args])
+        extra = ["--zenoh", *shard, "--zenoh-prefix", zenoh_prefix, *args]
+        server = ServerProcess(binary, token=token, extra_args=extra)
         servers.append(server)
-        announced = server.announced(_LOCATOR_LINE, startup_timeout)
+        announced = server.announced("zenoh listening on ", startup_timeout)
         if not announced:
             raise ServerUnavailable(
                 f"{server.binary} announced no Zenoh locator; its output:\n{server.output_tail()}",
                 StatusCode.UNAVAILABLE,
             )
         locators += announced
-    return locators
+    transport = ZenohTransport.open(
+        locators, prefix=zenoh_prefix, timeout=timeout, token=token, shards=shards, config=None
+    )
+    return transport, ",".join(locators)
 
 
 class EsaClient:
@@ -192,14 +197,6 @@ class EsaClient:
     ) -> EsaClient:
         """A client of the running server(s) at ``address``, over ``transport``.
 
-        Example::
-
-            EsaClient.connect("127.0.0.1:50051")                     # gRPC
-            EsaClient.connect("esa-host:50051", tls=TlsConfig(ca="ca.pem"), token_file="token")
-            EsaClient.connect("unix:/run/esa.sock")                  # gRPC on a Unix socket
-            EsaClient.connect("tcp/10.0.0.5:7447", transport="zenoh")
-            EsaClient.connect(routers, transport="zenoh", shards=4)  # 4 servers, --shard i/4
-
         Args:
             address: gRPC: ``host:port`` or ``unix:/path/to/socket``. Zenoh: the
                 endpoint(s) of the server or router, e.g. ``tcp/127.0.0.1:7447``.
@@ -242,14 +239,11 @@ class EsaClient:
                 shards=shards,
                 config=zenoh_config,
             )
-            where = address if isinstance(address, str) else ",".join(address)
-        else:
-            if not isinstance(address, str):
-                raise ValueError(
-                    f"expected one 'host:port' or 'unix:/path' address, got {address!r}"
-                )
+        elif isinstance(address, str):
             opened = _grpc_transport(address, timeout, resolved, tls)
-            where = address
+        else:
+            raise ValueError(f"expected one 'host:port' or 'unix:/path' address, got {address!r}")
+        where = address if isinstance(address, str) else ",".join(address)
         client = cls(opened, address=where, timeout=timeout)
         client.reconnect_timeout = reconnect_timeout
         if check:
@@ -266,16 +260,9 @@ class EsaClient:
 
         The one parser of the strings that the drop-ins' ``esa_client`` takes.
 
-        Example::
-
-            EsaClient.open("127.0.0.1:50051")     # a running server, over gRPC
-            EsaClient.open("unix:/run/esa.sock")  # the same on a Unix socket
-            EsaClient.open("zenoh:tcp/10.0.0.5:7447")  # a server started with --zenoh
-            EsaClient.open("spawn")               # a private server of this process
-            EsaClient.open("in-process")          # esa-core in this process
-
         Args:
-            where: ``"in-process"``, ``"spawn"``, ``"zenoh:<endpoint>"`` or a gRPC address.
+            where: ``"in-process"`` (esa-core in this process), ``"spawn"`` (a private
+                server), ``"zenoh:<endpoint>"``, or a gRPC ``host:port`` or ``unix:/path``.
 
         Raises:
             ValueError: If ``where`` is none of these.
@@ -319,7 +306,7 @@ class EsaClient:
                 StatusCode.UNAVAILABLE,
             )
         try:
-            self.transport.get_session(_ACCESS_PROBE_ID)
+            self.transport.get_session("esa-client-access-check")
         except SessionNotFound:
             return
         except Unauthenticated as err:
@@ -377,26 +364,13 @@ class EsaClient:
         reconnect_timeout = check_reconnect_timeout(reconnect_timeout)
         timeout = check_timeout(timeout)
         args = [*limit_args(session_ttl, max_sessions, max_session_memory), *extra_args]
-        if transport == "zenoh":
-            from .transports.zenoh import DEFAULT_PREFIX, ZenohTransport, check_prefix, check_shards
-
-            check_shards(shards)
-            zenoh_prefix = check_prefix(DEFAULT_PREFIX if prefix is None else prefix)
-            args = ["--zenoh-prefix", zenoh_prefix, *args]
         servers: list[ServerProcess] = []
         client: EsaClient | None = None
         # Whatever fails, no server started here outlives the error.
         try:
             if transport == "zenoh":
-                locators = _start_zenoh(binary, args, shards, servers, startup_timeout)
-                address = ",".join(locators)
-                opened: Transport = ZenohTransport.open(
-                    locators,
-                    prefix=zenoh_prefix,
-                    timeout=timeout,
-                    token=servers[0].token,
-                    shards=shards,
-                    config=None,
+                opened, address = _spawn_zenoh(
+                    binary, args, shards, prefix, servers, timeout, startup_timeout
                 )
             else:
                 servers.append(ServerProcess(binary, extra_args=args))
@@ -504,6 +478,8 @@ class EsaClient:
     ) -> SessionBatch:
         """Creates N sessions stepped together, e.g. one per env of a VecEnv.
 
+        If creating a session fails, those created are closed first.
+
         Args:
             configs: One config for all N sessions, or a sequence of N configs
                 (all with the same ``action_dim``).
@@ -511,9 +487,6 @@ class EsaClient:
             ids: Session ids; None = a random UUID per session.
             use_stream: Carry probes and reports over one persistent gRPC ``StepStream``
                 (in-process and Zenoh batches have no stream to keep).
-
-        Returns:
-            The batch. If creating a session fails, those created are closed first.
         """
         per_session = as_batch_configs(configs, n)
         if ids is None:

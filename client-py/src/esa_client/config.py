@@ -38,17 +38,13 @@ def _check(ok: bool, expected: str, got: object) -> None:
         raise ValueError(f"expected {expected}, got {got!r}")
 
 
-def _is_int(value: object, bits: int) -> bool:
-    """Whether ``value`` fits the contract's unsigned integer of ``bits`` bits."""
-    return (
-        isinstance(value, (int, np.integer))
-        and not isinstance(value, bool)
-        and 0 <= value < 2**bits
-    )
-
-
 def _is_real(value: object) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def _is_int(value: object, bits: int) -> bool:
+    """Whether ``value`` fits the contract's unsigned integer of ``bits`` bits."""
+    return _is_real(value) and isinstance(value, (int, np.integer)) and 0 <= value < 2**bits
 
 
 def _finite_bound(bound: Vector | None, unbounded: float) -> Vector | None:
@@ -129,11 +125,7 @@ class SessionConfig:
     trust_region: float | None = None
 
     def __post_init__(self) -> None:
-        """Checks each field's type and stores vectors as tuples; esa-core checks the values.
-
-        Raises:
-            ValueError: Naming the first bad field ("expected ..., got ...").
-        """
+        """Checks each field's type and stores vectors as tuples; esa-core checks the values."""
         _check(_is_int(self.action_dim, 32), "action_dim an integer", self.action_dim)
         _check(_is_int(self.max_episodes, 64), "max_episodes an integer >= 0", self.max_episodes)
         for name in ("action_dim", "max_episodes"):
@@ -264,11 +256,7 @@ class EsaConfig:
     fade: float | None = None
 
     def __post_init__(self) -> None:
-        """Checks every field that does not depend on the environment.
-
-        Raises:
-            ValueError: Naming the first bad field ("expected ..., got ...").
-        """
+        """Checks every field that does not depend on the environment."""
         for name in ("paired_response", "use_policy_std", "normalize_response"):
             _check(isinstance(getattr(self, name), bool), f"{name} a bool", getattr(self, name))
         nyquist = self.nyquist_fraction
@@ -305,7 +293,7 @@ class EsaConfig:
         Args:
             **overrides: Fields to change, e.g. ``amplitude=0.1``.
         """
-        values: dict[str, Any] = dict(
+        settings: dict[str, Any] = dict(
             amplitude=0.2,
             frequency=10 * math.pi,
             learning_rate=0.05,
@@ -316,8 +304,7 @@ class EsaConfig:
             use_policy_std=False,
             gate=None,
         )
-        values.update(overrides)
-        return cls(**values)
+        return cls(**{**settings, **overrides})
 
     @classmethod
     def ppo(cls, **overrides: Any) -> EsaConfig:
@@ -329,8 +316,7 @@ class EsaConfig:
         Args:
             **overrides: Fields to change, e.g. ``fade=None`` for ESA through the whole budget.
         """
-        values: dict[str, Any] = {"trust_region": PPO_TRUST_REGION, "fade": PPO_FADE, **overrides}
-        return cls(**values)
+        return cls(**{"trust_region": PPO_TRUST_REGION, "fade": PPO_FADE, **overrides})
 
     @classmethod
     def off_policy(cls, **overrides: Any) -> EsaConfig:
@@ -343,8 +329,7 @@ class EsaConfig:
         Args:
             **overrides: Fields to change, e.g. ``trust_region=0.25``.
         """
-        values: dict[str, Any] = {"trust_region": OFF_POLICY_TRUST_REGION, **overrides}
-        return cls(**values)
+        return cls(**{"trust_region": OFF_POLICY_TRUST_REGION, **overrides})
 
     def strength(self, elapsed: float) -> float:
         """ESA's strength, ``1 - elapsed / fade`` clipped to [0, 1] (1 without a fade).
@@ -358,14 +343,13 @@ class EsaConfig:
 
     def frequencies(self, action_dim: int, dt: float) -> tuple[float, ...]:
         """Returns the per-dimension frequencies for ``action_dim`` dimensions and step ``dt``."""
-        if self.frequency is None or np.ndim(self.frequency) == 0:
-            w = (
-                self.nyquist_fraction * math.pi / dt
-                if self.frequency is None
-                else float(np.asarray(self.frequency, dtype=np.float64))
-            )
-            return tuple(float(x) for x in np.linspace(w, w / 2, action_dim))
-        return tuple(float(x) for x in np.asarray(self.frequency, dtype=np.float64))
+        if self.frequency is None:
+            w = self.nyquist_fraction * math.pi / dt
+        elif np.ndim(self.frequency) == 0:
+            w = float(np.asarray(self.frequency, dtype=np.float64))
+        else:
+            return tuple(float(x) for x in np.asarray(self.frequency, dtype=np.float64))
+        return tuple(float(x) for x in np.linspace(w, w / 2, action_dim))
 
     def session_config(
         self,

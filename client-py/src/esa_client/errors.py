@@ -133,13 +133,8 @@ _BY_CODE: dict[StatusCode, type[EsaError]] = {
 def error_for(code: StatusCode | int, message: str, index: int | None = None) -> EsaError:
     """The typed exception for a failure, whichever transport reported it.
 
-    Args:
-        code: The status code, or its number.
-        message: What went wrong; empty gives the code's name.
-        index: The failing batch item, or None.
-
-    Returns:
-        The matching :class:`EsaError` subclass; unknown codes give a plain :class:`EsaError`.
+    The :class:`EsaError` subclass of ``code`` (plain ``EsaError`` for an unknown one), with
+    ``message`` (empty: the code's name) and the failing batch item ``index``.
     """
     status = code if isinstance(code, StatusCode) else StatusCode.of(code)
     return _BY_CODE.get(status, EsaError)(message or status.name.lower(), status, index=index)

@@ -62,15 +62,11 @@ def main(argv: list[str] | None = None) -> None:
         conf = default_conf(algo) if algo is not None else None
         if conf is not None and _option(rest, "-conf", "--conf-file") is None:
             rest = [*rest, "--conf-file", conf]
-        from rl_zoo3.train import train
-
-        sys.argv = ["rl_zoo3.train", *rest]
-        train()
+        from rl_zoo3.train import train as run
     else:
-        from rl_zoo3.enjoy import enjoy
-
-        sys.argv = ["rl_zoo3.enjoy", *rest]
-        enjoy()
+        from rl_zoo3.enjoy import enjoy as run
+    sys.argv = [f"rl_zoo3.{command}", *rest]
+    run()
 
 
 if __name__ == "__main__":

@@ -37,28 +37,11 @@ def restore_sessions(
     configs: SessionConfig | Sequence[SessionConfig],
     progress: Sequence[SessionProgress | None] | None = None,
 ) -> int:
-    """Recreates, under the same ids and configs, those sessions ``transport`` no longer has.
-
-    Args:
-        transport: Where the sessions live.
-        ids: The session ids.
-        configs: One config for all, or one per id.
-        progress: Per id, the progress a recreated session resumes (None: a new session's).
-
-    Returns:
-        How many sessions were recreated.
-
-    Raises:
-        ValueError: ``progress`` does not have one item per id.
-    """
+    """Recreates the sessions ``transport`` lost; see :meth:`EsaClient.restore_sessions`."""
     per_session = as_batch_configs(configs, len(ids))
-    resumed: Sequence[SessionProgress | None] = [None] * len(ids)
-    if progress is not None:
-        if len(progress) != len(ids):
-            raise ValueError(
-                f"expected one progress per session id ({len(ids)}), got {len(progress)}"
-            )
-        resumed = progress
+    if progress is not None and len(progress) != len(ids):
+        raise ValueError(f"expected one progress per session id ({len(ids)}), got {len(progress)}")
+    resumed = [None] * len(ids) if progress is None else progress
     restored = 0
     for session_id, config, seen in zip(ids, per_session, resumed, strict=True):
         try:
@@ -137,15 +120,9 @@ class Session:
         """
         if step is None:
             step = 0 if episode_start else self._step
-        answer = self._transport.probe(
-            SessionProbe(
-                self.id,
-                step,
-                np.asarray(action, dtype=np.float64).reshape(-1),
-                episode_start,
-                None if action_scale is None else np.ravel(np.asarray(action_scale, np.float64)),
-            )
-        )
+        action = np.asarray(action, dtype=np.float64).reshape(-1)
+        scale = None if action_scale is None else np.ravel(np.asarray(action_scale, np.float64))
+        answer = self._transport.probe(SessionProbe(self.id, step, action, episode_start, scale))
         self._step = step
         return answer
 
@@ -311,20 +288,19 @@ class SessionBatch:
         """A whole step of Algorithm 1 (section 1b), in as few waits as the transport allows.
 
         :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the probes
-        (and at the applied actions as ``q_references`` when ``paired``); the transport's
-        :class:`~esa_client.transports.stepping.Stepper` decides how, with the same bits
-        everywhere (the client guide). An error of a step sent ahead surfaces at the next
-        call (or :meth:`flush`), nothing of that step applied; without a reconnect policy a
-        broken exchange starts a new episode in every session at the next step.
+        (and at the applied actions as ``q_references`` when ``paired``), as the transport
+        decides, with the same bits everywhere (the client guide). An error of a step sent
+        ahead surfaces at the next call (or :meth:`flush`), nothing of that step applied;
+        without a reconnect policy a broken exchange starts a new episode in every session
+        at the next step.
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
-            critic: The critic at the N current states: maps ``(k N, D)`` actions (the
-                states tiled k times) to ``(k N,)`` values, or
-                ``Q_i(a) = gain_i . a + offset_i`` as a
-                :class:`~esa_client.LinearCritic`, or a :class:`~esa_client.QuadraticCritic`.
-            episode_starts: As for :meth:`probe_applied`.
-            action_scales: As for :meth:`probe_applied`.
+            critic: The critic at the N current states, mapping ``(k N, D)`` actions (the
+                states tiled k times) to ``(k N,)`` values; or a
+                :class:`~esa_client.LinearCritic` or :class:`~esa_client.QuadraticCritic`.
+            episode_starts: As for :meth:`probe`.
+            action_scales: As for :meth:`probe`.
             paired: Report the critic at the applied actions as the references.
 
         Returns:
@@ -370,13 +346,11 @@ class SessionBatch:
         references = None
         if q_references is not None:
             references = np.array(check_array(q_references, (self.n,), "q_references"))
+        # A report replaces a deferred one (e.g. after it failed), by default at its steps.
+        deferred = self.ledger.deferred
+        step = self.ledger.steps if deferred is None else deferred.steps
         if steps is not None:
             step = np.asarray(steps, np.int64)
-        elif self.ledger.deferred is not None:
-            # A report of the same steps replaces the deferred one (e.g. after it failed).
-            step = self.ledger.deferred.steps
-        else:
-            step = self.ledger.steps
         self.ledger.deferred = None
         request = BatchReport(step, q, references)
         if defer:
@@ -405,10 +379,7 @@ class SessionBatch:
 
         A recreated session resumes the progress this batch last saw in an answer
         (:class:`SessionProgress`); the running episode's shift and a deferred report are
-        gone.
-
-        Returns:
-            How many sessions were recreated.
+        gone. Returns how many sessions were recreated.
         """
         self._stepper.reset()
         progress = self._batch.progress()
@@ -420,10 +391,9 @@ class SessionBatch:
         return restored
 
     def end_episode(self, indices: npt.ArrayLike | None = None) -> I64Array:
-        """Ends the episodes of the given sessions now (one call each; default: all).
+        """Ends the given sessions' episodes now, one call each (default: all).
 
-        Returns:
-            The completed-episode counts of those sessions.
+        Returns the completed-episode counts of those sessions.
         """
         idx = check_indices(indices, self.n)
         self.flush()

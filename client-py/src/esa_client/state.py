@@ -69,9 +69,7 @@ class SessionProgress:
             mean_squares: ``response_mean_squares``: one per session (-1: unset), or none.
         """
         counts = np.asarray(episodes, dtype=np.uint64).tolist()
-        values = np.asarray(mean_squares, dtype=np.float64).tolist()
-        if not values:
-            values = [-1.0] * len(counts)
+        values = np.asarray(mean_squares, dtype=np.float64).tolist() or [-1.0] * len(counts)
         if len(values) != len(counts):
             raise ValueError(
                 f"expected one mean square per session ({len(counts)}), got {len(values)}"
