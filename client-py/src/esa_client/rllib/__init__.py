@@ -1,15 +1,15 @@
 """ESA for Ray RLlib (new API stack, torch): SAC and PPO, env runners on many nodes.
 
-One call adds ESA to a config: ``with_esa(PPOConfig()..., budget=1_000_000)``; the RLlib
-guide (``docs/guides/rllib.md``) has the example. Every env copy of every EnvRunner gets its
-own session, in the runner's process by default (:class:`EsaService`). Needs the ``rllib``
-extra.
+``with_esa(config, budget=...)`` adds ESA to a config (``docs/guides/rllib.md``); needs the
+``rllib`` extra.
 """
 
 from __future__ import annotations
 
 import importlib
 from typing import Any
+
+from ..config import EsaConfig
 
 # Ray is imported on first use of an RLlib piece: esa_client.rllib.service works without it.
 _EXPORTS = {
@@ -27,10 +27,6 @@ _EXPORTS = {
 
 def __getattr__(name: str) -> Any:
     """Imports the pieces lazily (RLlib ones need ``pip install 'esa-client[rllib]'``)."""
-    if name == "EsaConfig":
-        from ..config import EsaConfig
-
-        return EsaConfig
     if name not in _EXPORTS:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     if _EXPORTS[name] != "service":

@@ -22,11 +22,7 @@ from .service import EsaService
 
 
 def _ours(current: Any, default: type[Any], ours: type[Any], what: str) -> type[Any]:
-    """``ours`` in place of RLlib's ``default``, or ``current`` if it subclasses ``ours``.
-
-    Raises:
-        ValueError: If ``current`` is neither.
-    """
+    """``ours`` in place of RLlib's ``default``, or ``current`` if it subclasses ``ours``."""
     if current is default:
         return ours
     if isinstance(current, type) and issubclass(current, ours):
@@ -46,22 +42,18 @@ def with_esa(
 ) -> Any:
     """Adds ESA to an RLlib ``SACConfig`` or ``PPOConfig`` (new API stack, torch); returns it.
 
-    RLlib then runs what the SB3 drop-ins ``ESAPPO`` and ``ESASAC`` ship (the RLlib guide
-    says what): it sets the RLModule and the learner to ours and appends
-    :class:`~esa_client.rllib.connector.EsaModuleToEnv` to the module-to-env connectors.
-    Call it after setting the environment, model and ``normalize_actions``; change none of
-    them afterwards.
+    RLlib then runs what the SB3 drop-ins ``ESAPPO`` and ``ESASAC`` ship: the RLModule and
+    learner become ours and :class:`~esa_client.rllib.connector.EsaModuleToEnv` joins the
+    module-to-env connectors. Call it after setting the environment, model and
+    ``normalize_actions``; change none of them afterwards.
 
     Args:
-        config: A ``SACConfig`` or ``PPOConfig`` (changed in place, like RLlib's own
-            setters).
+        config: A ``SACConfig`` or ``PPOConfig`` (changed in place, like RLlib's own setters).
         esa: The ESA hyperparameters, in the module's action units (ESAPPO's and ESASAC's).
             Default: ``EsaConfig.ppo()`` for PPO, ``EsaConfig.off_policy()`` for SAC.
         service: Where the sessions live (default: in each runner's process); checked here.
-        budget: The env steps you will train for, over which ``EsaConfig.fade`` is a
-            fraction: needed with a fade.
-        control: None (ESA), ``"placebo"`` or ``"gradient"``: the drop-ins' ``esa_control``,
-            to judge ESA on your task.
+        budget: The env steps you will train for; needed with a fade, a fraction of them.
+        control: None (ESA), ``"placebo"`` or ``"gradient"``: the drop-ins' ``esa_control``.
 
     Returns:
         ``config``.
@@ -117,25 +109,18 @@ def with_esa(
         learner = _ours(config.learner_class, PPOTorchLearner, EsaPPOTorchLearner, "learner")
     # A spec's model_config may be a dict or a DefaultModelConfig dataclass: keep either.
     given = spec.model_config
-    model_config: dict[str, Any] = {}
-    if isinstance(given, dict):
-        model_config = dict(given)
-    elif dataclasses.is_dataclass(given) and not isinstance(given, type):
-        model_config = dataclasses.asdict(given)
+    if dataclasses.is_dataclass(given) and not isinstance(given, type):
+        given = dataclasses.asdict(given)
+    model_config = {**(given if isinstance(given, dict) else {}), "esa": settings}
     config.rl_module(
         rl_module_spec=RLModuleSpec(
-            module_class=module,
-            catalog_class=spec.catalog_class,
-            model_config={**model_config, "esa": settings},
+            module_class=module, catalog_class=spec.catalog_class, model_config=model_config
         )
     )
     config.learners(learner_class=learner)
     previous = getattr(config, "_module_to_env_connector", None)
     if isinstance(previous, ConnectorFactory):
         previous = previous.previous  # calling with_esa twice replaces the first
-    config.env_runners(
-        module_to_env_connector=ConnectorFactory(
-            previous, esa=esa, service=service, control=control
-        )
-    )
+    factory = ConnectorFactory(previous, esa=esa, service=service, control=control)
+    config.env_runners(module_to_env_connector=factory)
     return config

@@ -28,13 +28,7 @@ from ray.rllib.connectors.connector_v2 import ConnectorV2
 from ray.rllib.core.columns import Columns
 
 from ..client import EsaClient
-from ..common.controls import (
-    Control,
-    check_control,
-    control_shift,
-    gradient_size,
-    unit_gradient,
-)
+from ..common.controls import Control, check_control, control_shift, gradient_size, unit_gradient
 from ..common.head_step import head_critic, head_shift, shifted
 from ..common.runtime import EsaRuntime
 from ..config import EsaConfig
@@ -48,13 +42,15 @@ ESA_SHIFT = "esa_shift"
 
 
 class _Metrics:
-    """EsaRuntime.record's logger interface over RLlib's MetricsLogger."""
+    """EsaRuntime.record's logger interface over RLlib's MetricsLogger (None: no logging)."""
 
     def __init__(self, metrics: Any, window: int) -> None:
         self.metrics, self.window = metrics, window
 
     def record(self, key: str, value: Any) -> None:
-        if key.endswith("sessions_restored"):
+        if self.metrics is None:
+            return
+        if key.endswith(("sessions_restored", "reconnects")):
             self.metrics.log_value(key, value, reduce="sum")
         else:
             self.metrics.log_value(key, value, reduce="mean", window=self.window)
@@ -62,23 +58,15 @@ class _Metrics:
 
 def vector_env_dt(env: Any) -> float | None:
     """Seconds per step of a gymnasium vector env's copies (None without env or dt)."""
-    if env is None:
-        return None
     with contextlib.suppress(ValueError):
-        return env_dt(env)
+        return None if env is None else env_dt(env)
     return None
 
 
-def _stack(items: list[Any]) -> Any:
+def _obs_tensor(items: list[Any], device: torch.device) -> Any:
     if isinstance(items[0], dict):
-        return {k: _stack([item[k] for item in items]) for k in items[0]}
-    return np.stack([np.asarray(item) for item in items])
-
-
-def _to_tensor(value: Any, device: torch.device) -> Any:
-    if isinstance(value, dict):
-        return {k: _to_tensor(v, device) for k, v in value.items()}
-    return torch.as_tensor(value, device=device)
+        return {k: _obs_tensor([item[k] for item in items], device) for k in items[0]}
+    return torch.as_tensor(np.stack([np.asarray(item) for item in items]), device=device)
 
 
 def _tile(value: Any, reps: int) -> Any:
@@ -101,19 +89,12 @@ class _Rows:
         self.batch = batch
         column = batch[Columns.ACTIONS]
         structure = (shared_data or {}).get("memorized_map_structure")
-        keys = list(column) if isinstance(column, dict) else []
-        if isinstance(structure, list):
-            keys = [(eps_id,) for eps_id in structure]
-        in_order = all(
-            key == (episode.id_,)
-            for key, episode in zip(keys, episodes, strict=False)
-            if episode.is_reset
-        )
+        keys = [(eps_id,) for eps_id in structure] if isinstance(structure, list) else list(column)
         if not (
             isinstance(column, dict)
             and len(keys) == len(episodes) == len(column)
             and set(keys) == set(column)
-            and in_order
+            and all(k == (ep.id_,) for k, ep in zip(keys, episodes, strict=False) if ep.is_reset)
         ):
             raise ValueError(
                 "expected one action per env copy, keyed by episode id in env order (a "
@@ -130,7 +111,6 @@ class _Rows:
 
 
 def _close(runtime: EsaRuntime, client: EsaClient) -> None:
-    """Closes a runner's sessions, then its client (the runner opened it)."""
     runtime.close()
     client.close()
 
@@ -151,8 +131,7 @@ class EsaModuleToEnv(ConnectorV2):
         esa: The ESA hyperparameters.
         service: Where the sessions live (default: in this runner's process).
         dt: Seconds per env step when ``EsaConfig.dt`` is None.
-        control: None (ESA), ``"placebo"`` or ``"gradient"``, as the drop-ins'
-            ``esa_control``.
+        control: None (ESA), ``"placebo"`` or ``"gradient"``: the drop-ins' ``esa_control``.
         record_shift: Also output column ``esa_shift``, the shift applied, for diagnostics.
         metrics_window: Window of the mean ESA statistics.
         **kwargs: Passed to ``ConnectorV2``.
@@ -180,16 +159,14 @@ class EsaModuleToEnv(ConnectorV2):
             raise ValueError(f"expected esa to be an EsaConfig, got {esa!r}")
         self.esa = esa
         self.control = check_control(control)
-        # The placebo's directions belong to this runner's sessions: a new rule with them.
-        # Their seed comes from numpy's global generator, which the EnvRunner seeded with
-        # config.seed plus its worker index before building this piece: with
-        # debugging(seed=...) the directions repeat run to run and differ between runners.
+        # The placebo's directions are this runner's (copies and reopened sessions keep them):
+        # their seed comes from numpy's global generator, which the EnvRunner seeded with
+        # config.seed plus its worker index before building this piece, so with
+        # debugging(seed=...) they repeat run to run and differ between runners.
         self._seed = int(np.random.randint(2**31 - 1)) if self.control == "placebo" else None
         self._rule = control_shift(self.control, self._seed)
         self.service = service if service is not None else EsaService()
-        self.dt = dt
-        self.record_shift = record_shift
-        self.metrics_window = metrics_window
+        self.dt, self.record_shift, self.metrics_window = dt, record_shift, metrics_window
         self._runtime: EsaRuntime | None = None
         self._finalizer: weakref.finalize[Any, Any] | None = None
         # Whether the last step went through ESA: if not, the sessions missed episode ends.
@@ -200,10 +177,8 @@ class EsaModuleToEnv(ConnectorV2):
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickles (and deep-copies) the settings only: a copy opens its own sessions."""
-        state = self.__dict__.copy()
-        state.update(_runtime=None, _finalizer=None, _active=False)
-        state["_rule"] = control_shift(self.control, self._seed)
-        return state
+        rule = control_shift(self.control, self._seed)
+        return dict(self.__dict__, _runtime=None, _finalizer=None, _active=False, _rule=rule)
 
     @property
     def runtime(self) -> EsaRuntime | None:
@@ -225,18 +200,12 @@ class EsaModuleToEnv(ConnectorV2):
                 "expected the env to define dt or metadata['render_fps'], got neither; "
                 "set EsaConfig(dt=...) to the seconds per environment step"
             )
-        frame = module.esa_frame
+        frame, unavailable = module.esa_frame, self.service.on_unavailable
         config = self.esa.session_config(frame.dim, dt, *frame.session_bounds())
         client = self.service.connect()
         try:
             runtime = EsaRuntime(
-                self.esa,
-                client,
-                config,
-                n_envs,
-                frame.low,
-                frame.high,
-                on_unavailable=self.service.on_unavailable,
+                self.esa, client, config, n_envs, frame.low, frame.high, on_unavailable=unavailable
             )
         except BaseException:
             client.close()
@@ -269,12 +238,9 @@ class EsaModuleToEnv(ConnectorV2):
                 "expected an ESA RLModule (EsaSACTorchRLModule or EsaPPOTorchRLModule, "
                 f"set by with_esa) on the EnvRunner, got {type(rl_module).__name__}"
             )
-        module = rl_module
-        active = module.esa_is_active()
-        if metrics is not None:
-            metrics.log_value(
-                "esa/active", float(active), reduce="mean", window=self.metrics_window
-            )
+        log = _Metrics(metrics, self.metrics_window)
+        active = rl_module.esa_is_active()
+        log.record("esa/active", float(active))
         rows = _Rows(batch, episodes, shared_data)
         n = len(episodes)
         sampled_rows = [np.asarray(a) for a in rows.get(Columns.ACTIONS)]
@@ -284,9 +250,8 @@ class EsaModuleToEnv(ConnectorV2):
             self._active = False
             self._record_shift(rows, np.zeros(sample.shape), like)
             return batch
-        runtime = self._runtime if self._runtime is not None else self._open(module, n)
+        runtime = self._runtime if self._runtime is not None else self._open(rl_module, n)
         if not self._active:
-            # First step, or ESA was off: the sessions missed episode ends.
             runtime.batch.reset()
             self._autoreset[:] = False
         self._active = True
@@ -295,30 +260,27 @@ class EsaModuleToEnv(ConnectorV2):
         fresh = np.array([episode.is_reset and episode.t == 0 for episode in episodes])
         starts = autoreset | (fresh & ~self._autoreset)
         self._autoreset = autoreset
-        device = next(iter(module.parameters())).device
-        strength = float(module.esa_strength.item())
-        if metrics is not None:
-            metrics.log_value("esa/strength", strength, reduce="mean", window=self.metrics_window)
+        device = next(iter(rl_module.parameters())).device
+        strength = float(rl_module.esa_strength.item())
+        log.record("esa/strength", strength)
         with torch.no_grad():
-            obs = _to_tensor(_stack([obs_column[key][0] for key in rows.keys]), device)
-            dist_inputs = torch.as_tensor(
-                np.stack(rows.get(Columns.ACTION_DIST_INPUTS)), device=device
-            )
+            obs = _obs_tensor([obs_column[key][0] for key in rows.keys], device)
+            dist_rows = np.stack(rows.get(Columns.ACTION_DIST_INPUTS))
+            dist_inputs = torch.as_tensor(dist_rows, device=device)
         try:
-            executed = self._step(module, runtime, obs, dist_inputs, sample, starts, strength)
+            executed = self._step(rl_module, runtime, obs, dist_inputs, sample, starts, strength)
         except ServerUnavailable:
             # The server stayed away (on_unavailable="raise"): reconnect once more, e.g. to
-            # a server restarted since.
+            # a server restarted since; every session starts an episode.
             self.close()
             self.reconnects += 1
-            if metrics is not None:
-                metrics.log_value("esa/reconnects", 1, reduce="sum")
-            runtime = self._open(module, n)
+            log.record("esa/reconnects", 1)
+            runtime = self._open(rl_module, n)
             every = np.ones(n, dtype=bool)
-            executed = self._step(module, runtime, obs, dist_inputs, sample, every, strength)
+            executed = self._step(rl_module, runtime, obs, dist_inputs, sample, every, strength)
             self._active = True
         if metrics is not None:
-            runtime.record(_Metrics(metrics, self.metrics_window))
+            runtime.record(log)
         rows.put(Columns.ACTIONS, [row.astype(like.dtype).reshape(like.shape) for row in executed])
         self._record_shift(rows, executed.astype(np.float64) - sample, like)
         return batch
@@ -339,8 +301,7 @@ class EsaModuleToEnv(ConnectorV2):
             frame = module.esa_frame
             mean_t, log_std_t = dist_inputs.chunk(2, dim=-1)
             mean, std = mean_t.cpu().numpy(), log_std_t.exp().cpu().numpy()
-            features = module.esa_features(obs)
-            critic = head_critic(module.esa_head, features, frame, mean, std)
+            critic = head_critic(module.esa_head, module.esa_features(obs), frame, mean, std)
 
             def head_session() -> tuple[np.ndarray, np.ndarray]:
                 closed = critic.closed_form()
@@ -388,7 +349,6 @@ class EsaModuleToEnv(ConnectorV2):
         return self._rule.act(critic_session, critic_gradient, clipped, starts)[0]
 
     def _record_shift(self, rows: _Rows, shift: np.ndarray, like: np.ndarray) -> None:
-        """Writes column ``esa_shift`` (with ``record_shift``; zeros while ESA is off)."""
         if self.record_shift:
             rows.put(ESA_SHIFT, [row.astype(np.float32).reshape(like.shape) for row in shift])
 
@@ -403,13 +363,11 @@ class ConnectorFactory:
 
     def __init__(self, previous: Callable[..., Any] | None, **kwargs: Any) -> None:
         """Keeps the previous factory and the connector's arguments."""
-        self.previous = previous
-        self.kwargs = kwargs
+        self.previous, self.kwargs = previous, kwargs
 
     def __call__(self, env: Any = None, spaces: Any = None) -> list[ConnectorV2]:
         """The pieces for one EnvRunner (``env`` is its vector env, or None)."""
-        pieces: list[ConnectorV2] = []
-        if self.previous is not None:
-            value = self.previous(env, spaces)
-            pieces = list(value) if isinstance(value, (list, tuple)) else [value]
+        pieces = self.previous(env, spaces) if self.previous is not None else []
+        if not isinstance(pieces, (list, tuple)):
+            pieces = [pieces]
         return [*pieces, EsaModuleToEnv(dt=vector_env_dt(env), **self.kwargs)]

@@ -1,7 +1,4 @@
-"""Learners that keep the ESA critic fitted and set the gate and the fade.
-
-What they set reaches the env runners with the next weight sync.
-"""
+"""Learners that keep the ESA critic fitted and set the gate and fade (sent with the weights)."""
 
 from __future__ import annotations
 
@@ -33,16 +30,12 @@ def _unwrapped(module: Any) -> Any:
 
 
 def _gate(module: EsaPPOTorchRLModule | EsaSACTorchRLModule) -> float | None:
-    """``EsaConfig.gate`` of the module's settings (None: no gate)."""
     gate = module.esa_settings["config"].get("gate")
     return None if gate is None else float(gate)
 
 
 def _set_strength(module: EsaModuleMixin, timesteps: dict[str, Any]) -> None:
-    """ESA's strength under the fade at the env steps sampled so far, for the next samples.
-
-    The drop-ins fade over ``learn()``'s budget; here it is ``with_esa``'s ``budget``.
-    """
+    """Sets ``esa_strength``: the fade at the env steps sampled so far, of ``with_esa``'s budget."""
     settings = module.esa_settings
     budget = settings.get("budget")
     sampled = float(timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0) or 0)
@@ -55,9 +48,8 @@ class EsaSACTorchLearner(SACTorchLearner):
     """SAC's learner, setting the ``esa_active`` of an ``EsaSACTorchRLModule``: ESASAC's gate.
 
     Every :attr:`gate_every` sampled env steps it computes :func:`sac_critic_quality` on the
-    update's replay sample (RLlib's replay buffer lives elsewhere). With
-    ``EsaConfig(gate=None)`` ESA turns on at the first update. Logged per module:
-    ``esa/gate_correlation``, ``esa/active``.
+    update's replay sample (RLlib's replay buffer lives elsewhere). With ``EsaConfig(gate=None)``
+    ESA turns on at the first update. Logged per module: ``esa/gate_correlation``, ``esa/active``.
     """
 
     gate_every = 1000
@@ -69,18 +61,14 @@ class EsaSACTorchLearner(SACTorchLearner):
         self._esa_checked_at: dict[Any, float] = {}
         self._esa_due: set[Any] = set()
 
-    def _esa_modules(self) -> list[tuple[Any, EsaSACTorchRLModule]]:
-        return [
-            (mid, _unwrapped(m))
-            for mid, m in self.module._rl_modules.items()
-            if isinstance(_unwrapped(m), EsaSACTorchRLModule)
-        ]
-
     def before_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
         """Decides which modules check their gate on this update's batch."""
         super().before_gradient_based_update(timesteps=timesteps)
         now = float(timesteps.get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0) or 0)
-        for mid, module in self._esa_modules():
+        for mid, rl_module in self.module._rl_modules.items():
+            module = _unwrapped(rl_module)
+            if not isinstance(module, EsaSACTorchRLModule):
+                continue
             _set_strength(module, timesteps)
             if _gate(module) is None:
                 module.esa_active.fill_(1.0)
@@ -96,14 +84,15 @@ class EsaSACTorchLearner(SACTorchLearner):
             module_id=module_id, config=config, batch=batch, fwd_out=fwd_out
         )
         module = _unwrapped(self.module[module_id])
-        gate = _gate(module) if isinstance(module, EsaSACTorchRLModule) else None
+        if not isinstance(module, EsaSACTorchRLModule):
+            return loss
+        gate = _gate(module)
         if module_id in self._esa_due and gate is not None:
             self._esa_due.discard(module_id)
             quality = sac_critic_quality(module, batch, config.gamma)
             module.esa_active.fill_(float(quality >= gate))
             self.metrics.log_value((module_id, "esa/gate_correlation"), quality, window=1)
-        if isinstance(module, EsaSACTorchRLModule):
-            self.metrics.log_value((module_id, "esa/active"), module.esa_active.item(), window=1)
+        self.metrics.log_value((module_id, "esa/active"), module.esa_active.item(), window=1)
         return loss
 
 
@@ -126,11 +115,7 @@ def sac_critic_quality(module: EsaSACTorchRLModule, batch: dict[str, Any], gamma
 
 
 class EsaRolloutRecorder(ConnectorV2):
-    """Learner connector piece (after GAE): keeps what the quadratic head learns from.
-
-    For every ESA PPO module in the batch, puts ``(Rollout(features, z, normalized
-    advantages), advantages)`` of the loss-masked rows into ``pending[module_id]``.
-    """
+    """Learner connector piece (after GAE): ESA PPO modules' loss-masked rollouts to ``pending``."""
 
     def __init__(self, pending: dict[Any, Any], **kwargs: Any) -> None:
         """Writes into ``pending`` (the learner's)."""
@@ -140,12 +125,10 @@ class EsaRolloutRecorder(ConnectorV2):
     def __call__(self, *, rl_module: Any, batch: dict[str, Any], **kwargs: Any) -> Any:
         """Records the rollouts; returns ``batch`` unchanged."""
         for module_id, data in batch.items():
-            if module_id not in rl_module:
-                continue
-            module = _unwrapped(rl_module[module_id])
-            if not isinstance(module, EsaPPOTorchRLModule):
-                continue
-            if Postprocessing.ADVANTAGES not in data or Columns.ACTION_DIST_INPUTS not in data:
+            module = _unwrapped(rl_module[module_id]) if module_id in rl_module else None
+            if not isinstance(module, EsaPPOTorchRLModule) or not (
+                Postprocessing.ADVANTAGES in data and Columns.ACTION_DIST_INPUTS in data
+            ):
                 continue
 
             def tensor(name: str, data: dict[str, Any] = data) -> torch.Tensor:
@@ -155,13 +138,10 @@ class EsaRolloutRecorder(ConnectorV2):
 
             with torch.no_grad():
                 advantages = tensor(Postprocessing.ADVANTAGES).float()
-                rollout = Rollout(
-                    module.esa_features(tensor(Columns.OBS)),
-                    module.esa_z(
-                        tensor(Columns.ACTION_DIST_INPUTS).float(), tensor(Columns.ACTIONS).float()
-                    ),
-                    normalized(advantages),
-                )
+                features = module.esa_features(tensor(Columns.OBS))
+                dist_inputs = tensor(Columns.ACTION_DIST_INPUTS).float()
+                z = module.esa_z(dist_inputs, tensor(Columns.ACTIONS).float())
+                rollout = Rollout(features, z, normalized(advantages))
             self.pending[module_id] = (rollout, advantages)
         return batch
 
@@ -181,11 +161,10 @@ class EsaPPOTorchLearner(PPOTorchLearner):
     """PPO's learner with ``ESAPPO``'s objective, fitting its quadratic head.
 
     The loss is PPO's with the decoupled objective (``DecoupledPPO``): the ratio against the
-    proximal policy ``pi_old`` at the executed action, weighted by
-    ``min(pi_old / b, weight_cap)``, ``b`` the density RLlib stored; without a shift it is
-    RLlib's PPO loss. After each update: the gate (``esa/gate_correlation``, on the new
-    rollout before the head learns it), the head's fit on the last :attr:`head_rollouts`
-    (``esa/head_loss``), then ``esa_active`` and ``esa_strength``.
+    proximal policy ``pi_old`` at the executed action, weighted by ``min(pi_old / b, weight_cap)``,
+    ``b`` the density RLlib stored; without a shift it is RLlib's PPO loss. After each update: the
+    gate (``esa/gate_correlation``, on the new rollout before the head learns it), the head's fit on
+    the last :attr:`head_rollouts` (``esa/head_loss``), then ``esa_active`` and ``esa_strength``.
 
     One learner only (``num_learners`` 0 or 1): with more, each would fit its own head on
     its shard, outside DDP.
@@ -216,8 +195,7 @@ class EsaPPOTorchLearner(PPOTorchLearner):
 
     def configure_optimizers_for_module(self, module_id: Any, config: Any = None) -> None:
         """RLlib's default Adam over the module's parameters, less the quadratic head's."""
-        assert self._module is not None  # built before the optimizers
-        module = self._module[module_id]
+        module = self.module[module_id]
         head = getattr(_unwrapped(module), "esa_head", None)
         if head is None:
             super().configure_optimizers_for_module(module_id, config)
@@ -229,21 +207,18 @@ class EsaPPOTorchLearner(PPOTorchLearner):
             module_id=module_id, optimizer=optimizer, params=params, lr_or_lr_schedule=config.lr
         )
 
-    def _head(self, module_id: Any, module: EsaPPOTorchRLModule) -> _Head:
-        if module_id not in self._esa_heads:
-            self._esa_heads[module_id] = _Head(
-                torch.optim.Adam(module.esa_head.parameters(), lr=self.head_learning_rate),
-                np.random.default_rng(self.config.seed),
-            )
-        return self._esa_heads[module_id]
-
     def after_gradient_based_update(self, *, timesteps: dict[str, Any]) -> None:
         """PPO's bookkeeping, then the gate and the head's fit on the new rollout."""
         super().after_gradient_based_update(timesteps=timesteps)
         for module_id in list(self._esa_pending):
             rollout, advantages = self._esa_pending.pop(module_id)
             module = _unwrapped(self.module[module_id])
-            head = self._head(module_id, module)
+            if module_id not in self._esa_heads:
+                self._esa_heads[module_id] = _Head(
+                    torch.optim.Adam(module.esa_head.parameters(), lr=self.head_learning_rate),
+                    np.random.default_rng(self.config.seed),
+                )
+            head = self._esa_heads[module_id]
             gate = _gate(module)
             if head.fitted:
                 quality = critic_quality(module.esa_head, rollout, advantages)
@@ -278,19 +253,13 @@ class EsaPPOTorchLearner(PPOTorchLearner):
         module = _unwrapped(self.module[module_id])
         if isinstance(module, EsaPPOTorchRLModule):
             with torch.no_grad():
-                proximal = module.get_exploration_action_dist_cls().from_logits(
-                    batch[Columns.ACTION_DIST_INPUTS]
-                )
+                dist_cls = module.get_exploration_action_dist_cls()
+                proximal = dist_cls.from_logits(batch[Columns.ACTION_DIST_INPUTS])
                 reference = proximal.logp(batch[Columns.ACTIONS])
-                weight = torch.exp(reference - batch[Columns.ACTION_LOGP]).clamp(
-                    max=self.weight_cap
-                )
+                ratio = torch.exp(reference - batch[Columns.ACTION_LOGP])
+                weight = ratio.clamp(max=self.weight_cap)
             advantages = batch[Postprocessing.ADVANTAGES] * weight
-            batch = {
-                **batch,
-                Columns.ACTION_LOGP: reference,
-                Postprocessing.ADVANTAGES: advantages,
-            }
+            batch = {**batch, Columns.ACTION_LOGP: reference, Postprocessing.ADVANTAGES: advantages}
         return super().compute_loss_for_module(
             module_id=module_id, config=config, batch=batch, fwd_out=fwd_out
         )

@@ -71,7 +71,6 @@ class EsaModuleMixin:
             """``nn.Module.parameters``."""
 
     def _setup_esa(self, distribution: type[Any], name: str) -> None:
-        """Reads the settings, adds ``esa_active`` and checks the exploration distribution."""
         self.esa_settings = settings_of(self)
         self.esa_action_dim = int(np.prod(_box(self.action_space).shape))
         # Off until the learner says otherwise (with gate=None: at its first update).
@@ -106,10 +105,7 @@ class EsaModuleMixin:
 
 
 class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
-    """RLlib's default SAC module, keeping the probed Q networks in its env-runner copy.
-
-    ESA probes the mean of the Polyak target twins, as ``ESASAC`` does.
-    """
+    """RLlib's default SAC module, keeping the probed target Q networks in its env-runner copy."""
 
     def setup(self) -> None:
         """Builds RLlib's SAC module, plus the probed Q networks when inference-only."""
@@ -117,19 +113,15 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
         self._setup_esa(TorchSquashedGaussian, "SAC's squashed Gaussian")
         if self.inference_only:
             # RLlib's setup skipped them; the learner's weights overwrite them at the first sync.
-            catalog = self.catalog
+            catalog, framework = self.catalog, self.framework
             assert catalog is not None  # RLlib's default SAC module always has one
+            names = ["qf", "qf_twin"] if self.twin_q else ["qf"]
             with torch.random.fork_rng(devices=[]):
-                self.qf_encoder = catalog.build_qf_encoder(framework=self.framework)
-                self.qf = catalog.build_qf_head(framework=self.framework)
-                if self.twin_q:
-                    self.qf_twin_encoder = catalog.build_qf_encoder(framework=self.framework)
-                    self.qf_twin = catalog.build_qf_head(framework=self.framework)
-                self.target_qf_encoder = make_target_network(self.qf_encoder)
-                self.target_qf = make_target_network(self.qf)
-                if self.twin_q:
-                    self.target_qf_twin_encoder = make_target_network(self.qf_twin_encoder)
-                    self.target_qf_twin = make_target_network(self.qf_twin)
+                for name in names:
+                    setattr(self, f"{name}_encoder", catalog.build_qf_encoder(framework=framework))
+                    setattr(self, name, catalog.build_qf_head(framework=framework))
+                for part in [part for name in names for part in (f"{name}_encoder", name)]:
+                    setattr(self, f"target_{part}", make_target_network(getattr(self, part)))
 
     def get_non_inference_attributes(self) -> list[str]:
         """RLlib's list less the probed target networks: those are kept and shipped."""
@@ -144,8 +136,7 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
         """``min((1 - tanh(mu)^2) std, 1)``: tanh's linearization at the mean, as ESASAC."""
         mean, log_std = dist_inputs.chunk(2, dim=-1)
         std = log_std.clamp(MIN_LOG_NN_OUTPUT, MAX_LOG_NN_OUTPUT).exp()
-        squashed = torch.tanh(mean)
-        return ((1.0 - squashed**2) * std).clamp(max=1.0)
+        return ((1.0 - torch.tanh(mean) ** 2) * std).clamp(max=1.0)
 
     def esa_q(self, obs: Any, dist_inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """The mean of the target twins (or the one target) at ``(obs, actions)``, ``(B,)``."""
@@ -153,18 +144,9 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
         names = ["qf", "qf_twin"] if self.twin_q else ["qf"]
         # RLlib's public Q methods (compute_q_values, forward_target) give the twins'
         # minimum only; its helper gives each. It returns a tensor (typed as a dict).
-        q = [
-            cast(
-                torch.Tensor,
-                self._qf_forward_train_helper(
-                    batch,
-                    getattr(self, f"target_{name}_encoder"),
-                    getattr(self, f"target_{name}"),
-                ),
-            )
-            for name in names
-        ]
-        return torch.stack(q, dim=1).mean(dim=1)
+        nets = [(getattr(self, f"target_{n}_encoder"), getattr(self, f"target_{n}")) for n in names]
+        q = [self._qf_forward_train_helper(batch, encoder, head) for encoder, head in nets]
+        return torch.stack(cast(list[torch.Tensor], q), dim=1).mean(dim=1)
 
     def esa_mean_action(self, obs: Any) -> torch.Tensor:
         """The squashed policy's mean action ``tanh(mu(s))``."""
@@ -175,9 +157,7 @@ class EsaSACTorchRLModule(EsaModuleMixin, DefaultSACTorchRLModule):
 class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
     """RLlib's default PPO module plus ``ESAPPO``'s quadratic head of ``z = (a - mu) / sigma``.
 
-    The head (:class:`~esa_client.common.quadratic_head.QuadraticHead` on the flattened
-    observation) is not in PPO's optimizer: :class:`~esa_client.rllib.learners.EsaPPOTorchLearner`
-    fits it.
+    :class:`~esa_client.rllib.learners.EsaPPOTorchLearner` fits the head, outside PPO's optimizer.
     """
 
     head_hidden = 64
@@ -192,7 +172,6 @@ class EsaPPOTorchRLModule(EsaModuleMixin, DefaultPPOTorchRLModule):
         if self.observation_space is None:
             raise ValueError("expected an observation space for ESA's quadratic head, got None")
         features = int(gym.spaces.flatdim(self.observation_space))
-        # A forked generator: the head must not move PPO's random stream.
         with torch.random.fork_rng(devices=[]):
             self.esa_head = QuadraticHead(features, self.esa_action_dim, self.head_hidden)
 

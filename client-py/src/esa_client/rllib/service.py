@@ -15,9 +15,8 @@ from ..reconnect import DEFAULT_RECONNECT_TIMEOUT, check_reconnect_timeout
 class EsaService:
     """Where the EnvRunners' sessions live (the ``service`` of :func:`~esa_client.rllib.with_esa`).
 
-    With no address and no Zenoh locator, each EnvRunner keeps its sessions in its own
-    process (``EsaClient.in_process()``); servers given by ``address`` or ``zenoh`` are yours
-    to start (``esa-server``, or the manifests of ``deploy/``).
+    With neither ``address`` nor ``zenoh``, each EnvRunner keeps its sessions in its own
+    process (``EsaClient.in_process()``); servers given by either are yours to start.
 
     Args:
         address: A running server over gRPC, ``host:port`` or ``unix:/path``, reachable
