@@ -1,8 +1,4 @@
-"""``EsaVectorWrapper``: ESA for a gymnasium vector env, one batched critic call per step.
-
-It wraps the ``VectorEnv`` itself, so the critic and the sessions stay in the trainer's
-process, safe with ``AsyncVectorEnv`` as with ``SyncVectorEnv``.
-"""
+"""``EsaVectorWrapper``: ESA for a gymnasium vector env, one batched critic call per step."""
 
 from __future__ import annotations
 
@@ -41,16 +37,10 @@ def _stack_obs(obs: Any) -> Any:
 class EsaVectorWrapper(gym.vector.VectorWrapper):
     """Improves the actions of all N envs of a vector env with ESA, one critic call per step.
 
-    Each ``step(actions)`` evaluates ``q_fn`` once (at the N probes, and with
-    ``paired_response`` at the N applied actions too), and steps the envs with Algorithm 1's
-    actions ``a_t + v(t)``, also ``info["esa_action"]`` for the learner to store. An env
-    that ends starts a new ESA episode with its next real action (under ``NEXT_STEP``
-    autoreset, the step after the reset step, whose action the env ignores).
-
-    Example::
-
-        envs = gym.make_vec("Pendulum-v1", num_envs=8, vectorization_mode="async")
-        envs = EsaVectorWrapper(envs, q_fn=lambda obs, act: critic(obs, act))
+    ``q_fn`` scores the N probes (and, with ``paired_response``, the N applied actions too); the
+    envs execute Algorithm 1's actions ``a_t + v(t)``, also ``info["esa_action"]`` for the learner
+    to store. An env that ends starts a new ESA episode with its next real action (under
+    ``NEXT_STEP`` autoreset, the step after the reset step, whose action the env ignores).
 
     Args:
         env: A vector env with a ``Box`` single action space.
@@ -77,16 +67,12 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         space = env.single_action_space
         override = dt if dt is not None else None if esa is None else esa.dt
         self._sessions = WrapperSessions(space, env.num_envs, env_dt(env, override), esa, client)
-        self._batch = self._sessions.batch
-        self._paired = self._sessions.paired
         self._space = self._sessions.space
         self._q_fn = q_fn
         self.action_scale = action_scale
         """sigma for the next steps; trainers whose policy std changes set it before ``step``."""
-        self._next_step = env.metadata.get("autoreset_mode") in (
-            None,
-            gym.vector.AutoresetMode.NEXT_STEP,
-        )
+        mode = env.metadata.get("autoreset_mode")
+        self._next_step = mode in (None, gym.vector.AutoresetMode.NEXT_STEP)
         self._obs: Any = None
         self._starts = np.ones(env.num_envs, dtype=bool)
         self._resetting = np.zeros(env.num_envs, dtype=bool)
@@ -109,19 +95,15 @@ class EsaVectorWrapper(gym.vector.VectorWrapper):
         sampled = np.asarray(actions, dtype=np.float64).reshape(n, -1)
         scale = self.action_scale
         scales = scale(self._obs) if callable(scale) else scale
-        # The paired critic scores the probes and the applied actions: 2N rows, obs twice.
-        obs = _stack_obs(self._obs) if self._paired else self._obs
+        scales = None if scales is None else np.asarray(scales)
+        obs = _stack_obs(self._obs) if self._sessions.paired else self._obs
 
         def critic(points: np.ndarray) -> np.ndarray:
             q = self._q_fn(obs, points.reshape(-1, *shape).astype(self._space.dtype))
             return np.asarray(q, dtype=np.float64).reshape(-1)
 
-        _, applied = self._batch.step(
-            sampled,
-            critic,
-            self._starts,
-            action_scales=None if scales is None else np.asarray(scales),
-            paired=self._paired,
+        _, applied = self._sessions.batch.step(
+            sampled, critic, self._starts, action_scales=scales, paired=self._sessions.paired
         )
         return applied.reshape(n, *shape).astype(self._space.dtype)
 

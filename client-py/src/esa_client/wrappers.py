@@ -38,12 +38,7 @@ class WrapperSessions:
     """
 
     def __init__(
-        self,
-        space: gym.Space[Any],
-        n_envs: int,
-        dt: float,
-        esa: EsaConfig | None,
-        client: Where,
+        self, space: gym.Space[Any], n_envs: int, dt: float, esa: EsaConfig | None, client: Where
     ) -> None:
         """Creates the sessions (closing the client it made if that fails)."""
         if not isinstance(space, gym.spaces.Box):
@@ -58,31 +53,24 @@ class WrapperSessions:
         try:
             self.batch = self.client.create_batch(config, n_envs)
         except BaseException:
-            self._close_client()
+            if self._owns_client:
+                self.client.close()
             raise
-
-    def _close_client(self) -> None:
-        if self._owns_client:
-            self.client.close()
 
     def close(self) -> None:
         """Closes the sessions, and the client if it made it."""
         with contextlib.suppress(EsaError):
             self.batch.close()
-        self._close_client()
+        if self._owns_client:
+            self.client.close()
 
 
 class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     """Improves every action the agent takes with ESA before the env sees it.
 
-    For each ``step(action)``, ``q_fn(obs, probe)`` scores the probe (and, with
-    ``paired_response``, the applied action), and the env executes Algorithm 1's action
-    ``a_t + v(t)``, also ``info["esa_action"]`` for the learner to store. Each ``reset``
-    starts a new ESA episode.
-
-    Example::
-
-        env = EsaActionWrapper(gym.make("Pendulum-v1"), q_fn=lambda o, a: critic(o, a))
+    For each ``step(action)``, ``q_fn(obs, probe)`` scores the probe (and, with ``paired_response``,
+    the applied action), and the env executes Algorithm 1's action ``a_t + v(t)``, also
+    ``info["esa_action"]`` for the learner to store. Each ``reset`` starts a new ESA episode.
 
     Args:
         env: A gymnasium env with a ``Box`` action space.
@@ -111,8 +99,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         self._sessions = WrapperSessions(env.action_space, 1, dt, esa, client)
         self._batch = self._sessions.batch
         self._paired = self._sessions.paired
-        self._q_fn = q_fn
-        self._action_scale = action_scale
+        self._q_fn, self._action_scale = q_fn, action_scale
         self._obs: Any = None
         self._episode_start = True
 
@@ -127,8 +114,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         space = self.action_space
         sampled = np.asarray(action, dtype=np.float64).reshape(-1)
         scale = self._action_scale
-        if callable(scale):
-            scale = scale(self._obs)
+        scale = scale(self._obs) if callable(scale) else scale
 
         def critic(points: np.ndarray) -> list[float]:
             # One row (the probe), or two with paired_response (the probe, then the applied).
@@ -138,11 +124,7 @@ class EsaActionWrapper(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
             ]
 
         _, applied = self._batch.step(
-            sampled[None],
-            critic,
-            [self._episode_start],
-            action_scales=scale,
-            paired=self._paired,
+            sampled[None], critic, [self._episode_start], action_scales=scale, paired=self._paired
         )
         self._episode_start = False
         executed: np.ndarray = applied[0].reshape(space.shape).astype(space.dtype)
