@@ -32,16 +32,10 @@ def mlp(inputs: int, hidden: int, outputs: int) -> nn.Sequential:
 
 
 class QuadraticHead(nn.Module):
-    """``A(s, a) = w(s) . z + sum_j u_j(s) (z_j^2 - 1)``, ``u = -softplus(.) <= 0``.
-
-    Args:
-        features_dim: Size of the (flattened) observation features.
-        action_dim: Action dimension D.
-        hidden: Hidden units of each of the two layers.
-    """
+    """``A(s, a) = w(s) . z + sum_j u_j(s) (z_j^2 - 1)``, ``u = -softplus(.) <= 0``."""
 
     def __init__(self, features_dim: int, action_dim: int, hidden: int = 64) -> None:
-        """Builds the network."""
+        """Builds the network: two tanh layers of ``hidden`` units, then ``(w, u)``."""
         super().__init__()
         self.action_dim = action_dim
         self.net = mlp(features_dim, hidden, 2 * action_dim)
@@ -134,17 +128,10 @@ def critic_quality(critic: nn.Module, rollout: Rollout, advantages: th.Tensor) -
 class CriticAtStep:
     """A critic of ``(features, z)`` at one step's N states, over actions in ESA units.
 
-    It is evaluated at the action the env executes, clipped to ``[low, high]``: past the box
-    the env's Q is flat, so the shift is not pushed by a slope extrapolated from unclipped
-    samples.
-
-    Attributes:
-        critic: The quadratic head (or another critic of ``(features, z)``).
-        features: Its input at the N states, ``(N, F)``.
-        mean: The policy's mean in ESA units, ``(N, D)``.
-        std: The policy's std in ESA units, ``(N, D)``.
-        low: The Box's lower bounds in ESA units, ``(D,)`` (-inf where open).
-        high: Its upper bounds, ``(D,)``.
+    ``features`` is ``(N, F)``; the policy's ``mean`` and ``std`` are ``(N, D)`` and the Box's
+    ``low`` and ``high`` ``(D,)`` (+-inf where open), all in ESA units. It is evaluated at the
+    action the env executes, clipped to ``[low, high]``: past the box the env's Q is flat,
+    so no slope extrapolated from unclipped samples pushes the shift.
     """
 
     critic: nn.Module

@@ -47,9 +47,7 @@ class ESAPPO(EsaMixin, DecoupledPPO):
     are refused; ``predict`` is PPO's.
 
     Args:
-        policy: As for PPO.
-        env: As for PPO.
-        *args: Further positional arguments of PPO.
+        *args: PPO's positional arguments (``policy``, ``env``, ...).
         **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin`, and
             any other PPO argument.
 

@@ -23,9 +23,7 @@ class ESASAC(OffPolicyEsaMixin, SAC):
     check; with ``gate=None`` ESA starts at ``learning_starts``. ``predict`` is SAC's.
 
     Args:
-        policy: As for SAC.
-        env: As for SAC.
-        *args: Further positional arguments of SAC.
+        *args: SAC's positional arguments (``policy``, ``env``, ...).
         **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin` (``esa``
             default ``EsaConfig.off_policy()``), and any other SAC argument.
 

@@ -20,8 +20,6 @@ class ESATD3(OffPolicyEsaMixin, TD3):
     ``NormalActionNoise``'s sigma), or ``esa_action_scale``. The rest is ESASAC's.
 
     Args:
-        policy: As for TD3.
-        env: As for TD3.
         esa_action_scale: sigma in [-1, 1] units (> 0, at most 1); None reads it from a
             ``NormalActionNoise`` and is 0.1 (RL Zoo's TD3 noise) without one.
         **kwargs: The ``esa_*`` arguments of :class:`~esa_client.sb3.mixin.EsaMixin`, and
