@@ -19,8 +19,7 @@ DEFAULT_RECONNECT_TIMEOUT = 60.0
 """How long a client keeps trying to reach a lost server before it gives up, in seconds."""
 
 RetriableErrors = (ServerUnavailable, DeadlineExceeded)
-"""The failures of the wire, not of the request (the server is down, restarting or stalled,
-or the connection or stream broke): repeating the request may succeed."""
+"""The failures of the wire, not of the request: repeating the request may succeed."""
 
 _T = TypeVar("_T")
 

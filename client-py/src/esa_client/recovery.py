@@ -1,9 +1,7 @@
-"""Riding out a lost server or lost sessions, in one place, for every batch and stepper.
+"""Riding out a lost server or lost sessions, for every batch and stepper.
 
-Every call of a :class:`~esa_client.SessionBatch` that may fail on the wire goes through its
-:class:`Recovery`: repeated under the client's :class:`~esa_client.reconnect.Reconnect`
-policy, it sends only what the server has not applied (CONTRACT.md section 2, "Retries are
-safe") and recreates lost sessions, which start a new episode.
+A retried call sends only what the server has not applied (CONTRACT.md section 2, "Retries
+are safe") and recreates lost sessions, which start a new episode.
 """
 
 from __future__ import annotations
@@ -29,12 +27,11 @@ class StepLedger:
     """Where the ``n`` sessions of a batch (action dimension D) stand, as far as the client knows.
 
     Attributes:
-        steps: The step each session's next probe (or pending report) carries, ``(N,)``.
-            An in-process engine advances this array itself.
+        steps: The step each session's next probe (or pending report) carries, ``(N,)``;
+            an in-process engine advances it in place.
         starts_due: Sessions whose next probe starts a new episode, ``(N,)``.
         deferred: A report held back to ride with the next probe, or None.
-        last_probe: The last probe sent, replayed into recreated sessions before a lone
-            report; None before the first.
+        last_probe: The last probe sent, replayed into recreated sessions before a lone report.
     """
 
     def __init__(self, n: int, action_dim: int) -> None:
@@ -97,10 +94,8 @@ class StepLedger:
 class Recovery:
     """The one layer that rides out a lost server and recreates lost sessions.
 
-    The calls here keep the batch's ``ledger`` up to date. ``reconnect`` says how long and how
-    often to repeat a call the wire failed (None raises the wire's first error and recreates
-    nothing); ``restore`` recreates the lost sessions and restarts every episode (the batch's
-    :meth:`~esa_client.SessionBatch.restore`, which also resets its stepper).
+    The calls keep ``ledger`` up to date. ``reconnect`` None raises the wire's first error and
+    recreates nothing; ``restore`` is the batch's ``restore`` (every episode restarts).
     """
 
     def __init__(
@@ -121,11 +116,7 @@ class Recovery:
         return attempt(False) if self.reconnect is None else self.reconnect.run(attempt)
 
     def probe(self, request: BatchProbe) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
-        """Sends the ledger's deferred report, if any, then ``request``; returns what was sent.
-
-        After a broken exchange the sessions' steps tell what the server applied
-        (:meth:`_reconcile`); lost sessions are recreated and start a new episode here.
-        """
+        """Sends the ledger's deferred report, if any, then ``request``; returns what was sent."""
         deferred = self._ledger.deferred
 
         def attempt(retrying: bool) -> tuple[BatchProbe, tuple[F64Array, F64Array]]:
@@ -146,8 +137,7 @@ class Recovery:
     def report(self, request: BatchReport) -> tuple[BatchReport, F64Array]:
         """Sends a lone report; returns what was sent and the improved actions.
 
-        Repeating an applied report updates nothing. Lost sessions are recreated and the
-        last probe is replayed into them as an episode start, which the report answers.
+        The last probe is replayed into recreated sessions as an episode start.
         """
 
         def attempt(retrying: bool) -> tuple[BatchReport, F64Array]:
@@ -165,10 +155,7 @@ class Recovery:
     def send_ahead(
         self, request: BatchProbe, send: Callable[[BatchProbe], _Answer]
     ) -> tuple[BatchProbe, _Answer]:
-        """``send(request)``, a step sent ahead of its answer; returns what was sent.
-
-        A step that could not be sent restarts every episode on the server as it is now.
-        """
+        """``send(request)``, a step sent ahead; a failed send restarts every episode."""
         try:
             return request, send(request)
         except RetriableErrors:
@@ -182,13 +169,9 @@ class Recovery:
         resume: Callable[[], F64Array],
         undo: Callable[[], None],
     ) -> F64Array:
-        """The answer of a step sent ahead (``receive()``), riding out a broken exchange.
+        """``receive()``, the answer of a step sent ahead; ``resume()`` after a broken exchange.
 
-        Args:
-            receive: Reads the answer.
-            resume: Reads it after a broken exchange, once the server answers again
-                (:meth:`resume_ahead`); repeated under the reconnect policy.
-            undo: Puts the ledger back before the step, which the server refused.
+        ``undo`` puts the ledger back before a step the server refused.
         """
         try:
             return receive()
@@ -211,9 +194,8 @@ class Recovery:
     ) -> F64Array:
         """The shifts ``v(t + 1)`` of the step ``sent`` ahead whose answer the wire lost.
 
-        Applied (:func:`step_applied`): the sessions' shifts; not applied: ``resend()``'s.
-        Lost sessions, or states that fit neither: every episode restarts, shifts 0. Errors
-        of the wire propagate, for the reconnect policy to retry.
+        Applied (:func:`step_applied`): the sessions' shifts; not applied: ``resend()``'s;
+        otherwise every episode restarts, shifts 0.
         """
         try:
             states = [self._transport.get_session(i) for i in self._ids]

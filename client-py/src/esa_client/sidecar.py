@@ -50,9 +50,7 @@ def _executable(path: Path) -> bool:
 
 
 def server_wheel_binary() -> Path | None:
-    """The ``esa-server`` of the installed esa-server wheel (``esa-client[server]``), or None.
-
-    None also for an esa_client imported from a source checkout, which uses its own build.
+    """The ``esa-server`` of the installed esa-server wheel, or None (also in a source checkout).
 
     Raises:
         EsaError: If the wheel's executable is missing or not executable, saying how to repair it.
@@ -81,24 +79,15 @@ def find_server_binary(
     checkout: str | os.PathLike[str] | None = None,
     build: bool = True,
 ) -> Path:
-    """Locates the ``esa-server`` executable: the one lookup of the client, tests and tools.
-
-    First match wins (docs/install.md says why this order): ``binary``; ``$ESA_SERVER_BIN``;
-    the installed esa-server wheel (:func:`server_wheel_binary`); a source checkout's
-    release build (built first with ``build`` and cargo on ``PATH``; under
-    ``CARGO_TARGET_DIR`` if set); ``esa-server`` on ``PATH``. An explicit ``binary`` or
-    ``ESA_SERVER_BIN`` that is not executable is an error, never skipped.
+    """Locates the ``esa-server`` executable, in the order docs/install.md gives.
 
     Args:
-        binary: Path of the executable; None searches as above.
-        checkout: A source checkout to look in before the one esa_client is imported from
-            (the tests, benchmarks and experiments pass their own repository).
-        build: Whether step 4 may run ``cargo build``; False only takes an existing build.
+        binary: Path of the executable; None searches.
+        checkout: A source checkout to look in before the one esa_client is imported from.
+        build: Whether a checkout's server may be built; False only takes an existing build.
 
     Raises:
-        EsaError: If none of these yields an executable (saying how to get one), if the one
-            named by ``binary`` or ``ESA_SERVER_BIN`` is not executable, or if the cargo build
-            fails.
+        EsaError: If none is found, the explicit one is not executable, or the build fails.
     """
     explicit = binary if binary is not None else os.environ.get(BINARY_ENV)
     if explicit:
@@ -171,16 +160,8 @@ def _terminate(process: subprocess.Popen[bytes], workdir: Path, grace: float) ->
 class ServerProcess:
     """A running ``esa-server`` child process listening on a private Unix socket.
 
-    The socket (mode 0600) is in a fresh temporary directory that :meth:`stop` (SIGTERM,
-    then SIGKILL) removes, as a ``weakref.finalize`` hook does at exit. If this process dies
-    without running either (e.g. on SIGKILL), the server notices (``--parent-pid``), shuts
-    down and removes the directory itself (``--remove-dir-on-exit``).
-
-    Attributes:
-        binary: The executable that was started.
-        address: The gRPC target, ``unix:/tmp/esa-.../esa.sock``.
-        socket_path: The Unix socket path.
-        token: The auth token the server requires, or None.
+    :meth:`stop` or exit removes the socket's temporary directory; if this process is killed,
+    the server follows it (``--parent-pid``) and removes it itself.
     """
 
     def __init__(
@@ -195,9 +176,8 @@ class ServerProcess:
 
         Args:
             binary: Path of the executable; None searches for it (:func:`find_server_binary`).
-            token: An auth token the server will require (``--auth-token-file``, written
-                to a file only this user can read); None = no token.
-            extra_args: More command-line arguments (e.g. :func:`limit_args`), as given.
+            token: An auth token the server will require; None = no token.
+            extra_args: More command-line arguments (e.g. :func:`limit_args`).
             stop_grace: Seconds to wait after SIGTERM before SIGKILL.
 
         Raises:
@@ -256,8 +236,6 @@ class ServerProcess:
 
     def announced(self, prefix: str, timeout: float) -> list[str]:
         """Waits for the ``listening on`` line; returns what follows ``prefix`` in earlier lines.
-
-        The server prints its other announcements (``zenoh listening on``) before that one.
 
         Raises:
             ServerUnavailable: If the server exits or does not get there within ``timeout`` s.

@@ -42,10 +42,8 @@ def with_esa(
 ) -> Any:
     """Adds ESA to an RLlib ``SACConfig`` or ``PPOConfig`` (new API stack, torch); returns it.
 
-    RLlib then runs what the SB3 drop-ins ``ESAPPO`` and ``ESASAC`` ship: the RLModule and
-    learner become ours and :class:`~esa_client.rllib.connector.EsaModuleToEnv` joins the
-    module-to-env connectors. Call it after setting the environment, model and
-    ``normalize_actions``; change none of them afterwards.
+    RLlib then runs what ``ESAPPO`` and ``ESASAC`` ship (docs/guides/rllib.md). Call it after
+    setting the environment, model and ``normalize_actions``; change none of them afterwards.
 
     Args:
         config: A ``SACConfig`` or ``PPOConfig`` (changed in place, like RLlib's own setters).
@@ -54,9 +52,6 @@ def with_esa(
         service: Where the sessions live (default: in each runner's process); checked here.
         budget: The env steps you will train for; needed with a fade, a fraction of them.
         control: None (ESA), ``"placebo"`` or ``"gradient"``: the drop-ins' ``esa_control``.
-
-    Returns:
-        ``config``.
 
     Raises:
         ValueError: For another algorithm, the old API stack, a framework other than

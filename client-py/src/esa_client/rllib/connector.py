@@ -1,14 +1,12 @@
 """``EsaModuleToEnv``: the module-to-env ConnectorV2 piece that applies ESA on an EnvRunner.
 
-It sits in the user slot of RLlib's module-to-env pipeline, after ``GetActions`` and before
-``NormalizeAndClipActions``, so the action it writes is both what the env executes and what
-the episode stores. PPO stores ``a_t + v(t)`` unclipped with ``action_logp`` left at
-``log pi_old(a_t)``, the exact behaviour log-probability of the shifted action (``v(t)``
-does not depend on ``a_t``); SAC stores it clipped to its squashed [-1, 1].
+Placed before ``NormalizeAndClipActions``, the action it writes is what the env executes and
+the episode stores: for SAC clipped to [-1, 1], for PPO unclipped, with ``action_logp`` left
+at ``log pi_old(a_t)``, the shifted action's exact behaviour log-probability (``v(t)`` does not
+depend on ``a_t``).
 
-RLlib's vector envs reset a finished env on the next ``step`` and discard that step's
-action; that step starts the new session episode (its probe, at phase 0, moves nothing),
-which keeps the session's episode count equal to the env's.
+The autoreset step, whose action RLlib discards, starts the new session episode (its probe
+moves nothing), so the session's episode count stays the env's.
 """
 
 from __future__ import annotations
@@ -78,9 +76,7 @@ def _tile(value: Any, reps: int) -> Any:
 class _Rows:
     """The per-env-copy items of the unbatched columns, row r being env copy r.
 
-    A single-agent column maps ``(eps_id,)`` to a one-item list, in the env copies' order
-    (``shared_data["memorized_map_structure"]``); a copy autoreset on this step appears
-    under its finished episode's id.
+    A copy autoreset on this step appears under its finished episode's id.
     """
 
     def __init__(
@@ -126,15 +122,11 @@ class EsaModuleToEnv(ConnectorV2):
     ``env_runners/esa/``: ``active``, ``strength``, the runtime's statistics, ``reconnects``.
 
     Args:
-        input_observation_space: As for every ConnectorV2.
-        input_action_space: As for every ConnectorV2.
-        esa: The ESA hyperparameters.
         service: Where the sessions live (default: in this runner's process).
         dt: Seconds per env step when ``EsaConfig.dt`` is None.
         control: None (ESA), ``"placebo"`` or ``"gradient"``: the drop-ins' ``esa_control``.
         record_shift: Also output column ``esa_shift``, the shift applied, for diagnostics.
         metrics_window: Window of the mean ESA statistics.
-        **kwargs: Passed to ``ConnectorV2``.
 
     Raises:
         ValueError: If ``esa`` is not an EsaConfig or ``control`` is unknown.
@@ -354,12 +346,7 @@ class EsaModuleToEnv(ConnectorV2):
 
 
 class ConnectorFactory:
-    """``config.env_runners(module_to_env_connector=...)``: yours, then :class:`EsaModuleToEnv`.
-
-    Args:
-        previous: The factory that was configured before (None if none).
-        **kwargs: The :class:`EsaModuleToEnv` arguments (``esa``, ``service``, ...).
-    """
+    """``config.env_runners(module_to_env_connector=...)``: ``previous``, then EsaModuleToEnv."""
 
     def __init__(self, previous: Callable[..., Any] | None, **kwargs: Any) -> None:
         """Keeps the previous factory and the connector's arguments."""

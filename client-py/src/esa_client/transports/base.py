@@ -1,8 +1,6 @@
-"""The transport interface: what :class:`~esa_client.Session` and ``SessionBatch`` call.
+"""The transport interface that ``Session`` and ``SessionBatch`` call.
 
-Each transport (in-process, gRPC, Zenoh) implements both halves; the batch half takes arrays,
-not messages, so that the in-process engine builds none. Every failure is an
-:class:`~esa_client.errors.EsaError`, with ``index`` set when one batch item caused it.
+The batch half takes arrays, not messages, so that the in-process engine builds none.
 """
 
 from __future__ import annotations
@@ -67,9 +65,8 @@ class BatchTransport(ABC):
 class PipelinedBatch(BatchTransport):
     """A :class:`BatchTransport` whose wire carries the report and the next probe at once.
 
-    The pair goes in one round trip, except when the probe starts a new episode for every
-    session: that probe would succeed even after its report failed, leaving the report
-    unrecoverable, so that pair goes in turn. Subclasses implement :meth:`_pipelined`.
+    Except when every session starts an episode: that probe would succeed after its report
+    failed, leaving the report unrecoverable, so that pair goes in turn.
     """
 
     @abstractmethod
@@ -86,11 +83,7 @@ class PipelinedBatch(BatchTransport):
 
 
 class Transport(Protocol):
-    """One way of reaching esa sessions: the calls of ``esa.v1.EsaService``.
-
-    Session ids are 1 to 128 bytes of UTF-8. Every call has the transport's deadline and
-    raises :class:`~esa_client.errors.EsaError` subclasses only.
-    """
+    """The calls of ``esa.v1.EsaService``, each with the transport's deadline, raising EsaError."""
 
     def create_session(self, session_id: str, config: esa_pb2.SessionConfig) -> str:
         """Creates a session (an empty id: one is generated) and returns its id."""

@@ -1,9 +1,7 @@
 """The transport over gRPC, through the Rust (tonic) client of ``esa_client._native``.
 
-The calling thread drives the client's runtime itself, GIL released while a call waits: a
-round trip costs no thread hand-off and builds no Python messages. A batch opened with
-``use_stream`` has a ``StepStream`` of its own, on which a deferred report and the next probe
-take one round trip.
+The calling thread drives the client's runtime, GIL released while a call waits: a round
+trip costs no thread hand-off and builds no Python messages.
 """
 
 from __future__ import annotations
@@ -123,10 +121,7 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
             self._batch.send_step(*request, q_values, q_references)
 
     def receive_step(self) -> tuple[F64Array, F64Array, F64Array]:
-        """The oldest unanswered step's ``(probes, applied, shifts)``, each ``(N, D)``.
-
-        Raises the step's error (nothing of it applied) or the wire's (applied or not).
-        """
+        """The oldest unanswered step's ``(probes, applied, shifts)``; raises its error."""
         with _typed_errors:
             return self._batch.receive_step()
 
@@ -139,9 +134,8 @@ class GrpcStepBatch(GrpcBatch, PipelinedBatch):
 class AheadStepper(Stepper):
     """A step sent ahead of its answer, which the next call reads.
 
-    The applied actions (and the probes, unless the server evaluates a ``LinearCritic``)
-    come from esa-core's own function of the shifts ``v(t)`` of the previous answer (0 at
-    an episode start), so the env's and learner's work overlaps the round trip.
+    esa-core computes the applied actions (and probes) here from the last answer's shifts
+    ``v(t)``, so the env's and learner's work overlaps the round trip.
     """
 
     def __init__(self, ahead: GrpcStepBatch) -> None:
@@ -168,11 +162,7 @@ class AheadStepper(Stepper):
         return probes, applied
 
     def flush(self, batch: SessionBatch) -> None:
-        """Reads the shifts ``v(t + 1)`` of the step in flight, if any, or raises its error.
-
-        A refused step is undone (its steps and starts are due again); the batch's recovery
-        rides out a broken exchange.
-        """
+        """Reads the shifts ``v(t + 1)`` of the step in flight, if any; a refused step is undone."""
         if self._in_flight is None:
             return
         (steps_before, starts_before, sent), self._in_flight = self._in_flight, None
@@ -225,11 +215,7 @@ class AheadStepper(Stepper):
 class GrpcTransport(NativeSessionCalls):
     """The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.GrpcClient``.
 
-    Args:
-        address: ``host:port`` or ``unix:/path/to/socket`` (checked by the caller).
-        timeout: Deadline in seconds of every call.
-        token: Sent as ``authorization: Bearer <token>`` with every call; None sends none.
-        tls: Connect over TLS; None connects in plaintext.
+    ``timeout`` is every call's deadline in seconds; ``token`` goes as a Bearer token.
 
     Raises:
         ValueError: A malformed timeout, token or TLS setting.

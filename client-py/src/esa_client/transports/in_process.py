@@ -1,7 +1,4 @@
-"""The :class:`~esa_client.transports.base.Transport` over ``esa_client._native.Engine``.
-
-The engine is esa-core in this process: it takes numpy arrays as they come.
-"""
+"""The Transport over ``esa_client._native.Engine``: esa-core in this process."""
 
 from __future__ import annotations
 
@@ -25,9 +22,7 @@ _typed_errors = TypedErrors(EngineError)
 class InProcessBatch(BatchTransport):
     """A batch's round trips as ``Engine.probe`` / ``Engine.report`` calls.
 
-    The ids are resolved on the first call (not when the batch opens, so that a session
-    missing then fails the call that needs it, as on a server), then kept: the handle
-    names sessions by id, so sessions recreated under the same ids are found again.
+    Ids resolve at the first call, which a missing session fails as on a server.
     """
 
     def __init__(self, engine: Engine, ids: Sequence[str]) -> None:
@@ -57,11 +52,7 @@ class InProcessBatch(BatchTransport):
         critic: LinearCritic | QuadraticCritic,
         paired: bool,
     ) -> tuple[F64Array, F64Array]:
-        """ProbeBatch, then ReportBatch of ``critic`` at the (clipped) probes, in one engine call.
-
-        ``steps`` advance in place when the step is applied; ``inputs`` are the probe's
-        actions, episode starts and scales. Returns the probes and the applied actions.
-        """
+        """ProbeBatch, then ReportBatch of ``critic``, in one call; ``steps`` advance in place."""
         curved: tuple[F64Array | None, F64Array | None, F64Array | None] = (None, None, None)
         if isinstance(critic, QuadraticCritic):
             curved = (critic.curvature, critic.low, critic.high)
@@ -104,10 +95,7 @@ class FusedStepper(Stepper):
 
 
 class InProcessTransport(NativeSessionCalls):
-    """The :class:`~esa_client.transports.base.Transport` over an ``esa_client._native.Engine``.
-
-    ``engine`` None creates one with ``max_sessions`` (``--max-sessions``; None = 100,000).
-    """
+    """The Transport over ``engine``, or a new one with ``max_sessions`` (None = 100,000)."""
 
     def __init__(self, engine: Engine | None = None, *, max_sessions: int | None = None) -> None:
         """Uses ``engine``, or a new one."""

@@ -1,9 +1,4 @@
-"""The session calls of the two transports over ``esa_client._native``.
-
-``Engine`` (esa-core in this process) and ``GrpcClient`` answer the same per-session calls
-with the same arguments, so one class forwards the
-:class:`~esa_client.transports.base.Transport` methods to either.
-"""
+"""The per-session calls, which ``Engine`` and ``GrpcClient`` of ``_native`` take alike."""
 
 from __future__ import annotations
 
@@ -15,10 +10,7 @@ from .messages import SessionProbe
 
 
 class NativeSessionCalls:
-    """The per-session Transport methods over ``sessions``, an ``Engine`` or a ``GrpcClient``.
-
-    ``typed_errors`` translates that object's exception into the typed errors.
-    """
+    """The per-session Transport methods over ``sessions``, an ``Engine`` or a ``GrpcClient``."""
 
     def __init__(self, sessions: Engine | GrpcClient, typed_errors: TypedErrors) -> None:
         """Forwards to ``sessions``."""

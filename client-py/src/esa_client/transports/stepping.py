@@ -1,7 +1,4 @@
-"""How :meth:`~esa_client.SessionBatch.step` runs on each transport, with the same bits.
-
-Each :class:`~esa_client.transports.base.BatchTransport` chooses its :class:`Stepper`.
-"""
+"""How ``SessionBatch.step`` runs on each transport (its BatchTransport picks the Stepper)."""
 
 from __future__ import annotations
 
@@ -59,8 +56,7 @@ def check_critic(critic: Critic, n: int, dim: int) -> None:
     """Checks a linear or quadratic critic for ``n`` sessions of dimension ``dim``.
 
     Raises:
-        ValueError: A shape is wrong, or a quadratic critic's coefficient not finite, a
-            curvature positive, or a bound NaN or a low above its high.
+        ValueError: A wrong shape, non-finite coefficient, positive curvature or bad bound.
     """
     if not isinstance(critic, CLOSED_FORM):
         return

@@ -1,8 +1,6 @@
 """The transport over Zenoh queries (CONTRACT.md section 3), to one server or N shards.
 
-The auth token goes as each query's attachment. Shard i of N serves
-``<prefix>/shard/<i>/<RpcName>``: a batch is split per shard, the parts sent concurrently
-and merged back in batch order, each part all-or-nothing on its shard.
+A batch is split per shard (docs/guides/server.md), each part all-or-nothing on its shard.
 """
 
 from __future__ import annotations
@@ -68,10 +66,7 @@ def check_endpoints(connect: str | Sequence[str]) -> tuple[str, ...]:
 
 
 def peer_config(connect: Sequence[str], timeout: float) -> zenoh.Config:
-    """A Zenoh peer that only talks to ``connect``: no listener, no scouting, no gossip.
-
-    Opening a session with it fails when an endpoint is not reachable within ``timeout`` s.
-    """
+    """A Zenoh peer that only talks to ``connect`` and fails if it is not there in ``timeout``."""
     config: zenoh.Config = zenoh.Config()
     for key, value in (
         ("mode", '"peer"'),
@@ -87,11 +82,7 @@ def peer_config(connect: Sequence[str], timeout: float) -> zenoh.Config:
 
 
 class ZenohRpc(Generic[Response]):
-    """One RPC of the contract (its ``key``, e.g. ``esa/v1/Probe``) as a Zenoh querier.
-
-    ``rpc(request)`` returns the decoded ``response``; every query has the deadline
-    ``timeout`` and carries ``token`` as its attachment.
-    """
+    """One RPC of the contract (its ``key``, e.g. ``esa/v1/Probe``) as a Zenoh querier."""
 
     def __init__(
         self,
@@ -134,9 +125,8 @@ class ZenohRpc(Generic[Response]):
         """Sends ``request`` and returns the decoded response.
 
         Raises:
-            EsaError: The server's error as its typed exception; ``ServerUnavailable`` when
-                no server serves the key; ``DeadlineExceeded`` when one serves it but did not
-                answer in time; :class:`TwoServersAnswered` when more than one peer answered.
+            EsaError: The server's typed error; ``ServerUnavailable`` if no server serves the
+                key, ``DeadlineExceeded`` if none answered in time, or TwoServersAnswered.
         """
         if not self.matched:
             raise self._unavailable()
@@ -169,8 +159,8 @@ class ZenohRpc(Generic[Response]):
         else:
             error = EsaError(f"{self.key}: zenoh error {text!r}")
         if isinstance(error, DeadlineExceeded) and not self.matched:
-            # The server went away while the query waited (each querier learns of it on its
-            # own, so a query can leave on a dead route): say so.
+            # Each querier learns on its own that the server went, so a query can leave on a
+            # dead route.
             raise self._unavailable() from None
         raise error
 
@@ -231,16 +221,10 @@ class _Server:
 
 
 class ZenohTransport:
-    """The :class:`~esa_client.transports.base.Transport` over Zenoh: one server or N shards.
+    """The Transport over Zenoh to one server or N shards; :meth:`open` builds it.
 
-    :meth:`open` builds it (as ``EsaClient.connect(..., transport="zenoh")`` does).
-
-    Args:
-        session: The Zenoh session; closed by :meth:`close`.
-        prefix: The servers' ``--zenoh-prefix``.
-        timeout: Deadline in seconds of every query.
-        token: The servers' auth token, sent as every query's attachment.
-        shards: N servers started with ``--shard i/N``; None for one server (no shard).
+    ``session`` is closed by :meth:`close`; ``timeout`` is each query's deadline in seconds;
+    ``shards``: N servers started with ``--shard i/N``, None for one server.
     """
 
     def __init__(
@@ -273,10 +257,7 @@ class ZenohTransport:
     ) -> ZenohTransport:
         """Opens a Zenoh session to ``connect`` (or with ``config``) and the transport on it.
 
-        ``connect`` names the endpoint(s) of the servers or of a router, e.g.
-        ``tcp/127.0.0.1:7447``; ``config`` is a complete Zenoh config to use instead of
-        :func:`peer_config` of ``connect``; ``timeout`` is also the deadline of connecting.
-        The other arguments are the class's.
+        ``timeout`` is also the deadline of connecting.
 
         Raises:
             ValueError: A malformed endpoint, prefix or shard count.
@@ -434,10 +415,7 @@ class _ServerBatch(BatchTransport):
 
 
 class _ShardedBatch(BatchTransport):
-    """Splits each batch call per shard, sends the parts concurrently, merges answers in order.
-
-    ``parts`` holds per shard the batch items it owns and the batch of their sessions.
-    """
+    """Splits each batch call per shard, sends the parts concurrently, merges answers in order."""
 
     def __init__(
         self,
