@@ -59,10 +59,6 @@ class DecoupledPPO(PPO):
         weight = th.exp(reference - samples.old_log_prob).clamp(max=self.weight_cap)
         return reference, weight
 
-    def _optimizer_step(self, samples: EsaRolloutBufferSamples) -> None:
-        """The policy's optimizer step, after PPO's gradient clipping."""
-        self.policy.optimizer.step()
-
     def train(self) -> None:
         """SB3's ``PPO.train`` with the objective of :meth:`_policy_ratio`."""
         # log pi_old(x) of each executed action, before pi is updated.
@@ -130,7 +126,7 @@ class DecoupledPPO(PPO):
                 self.policy.optimizer.zero_grad()
                 loss.backward()
                 th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                self._optimizer_step(samples)
+                self.policy.optimizer.step()
             self._n_updates += 1
             if not continue_training:
                 break

@@ -177,10 +177,11 @@ class TargetMode(_Base):
     _esa_targets: np.ndarray
     _esa_targeted = False
     _esa_target_losses: list[float]
+    _esa_minibatch: EsaRolloutBufferSamples
 
     def _excluded_save_params(self) -> list[str]:
         # One rollout's bookkeeping, made again by the next.
-        excluded = ["_esa_targets", "_esa_targeted", "_esa_target_losses"]
+        excluded = ["_esa_targets", "_esa_targeted", "_esa_target_losses", "_esa_minibatch"]
         return [*super()._excluded_save_params(), *excluded]
 
     def collect_rollouts(
@@ -245,10 +246,21 @@ class TargetMode(_Base):
         shifted = np.abs(targets[np.any(targets != 0, axis=2)])
         self.logger.record("esa/target_shift_over_std", float(shifted.mean()))
 
-    def _optimizer_step(self, samples: EsaRolloutBufferSamples) -> None:
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        # The target loss's gradient joins PPO's after its gradient clipping, just before
+        # the policy's optimizer steps on the minibatch _policy_ratio last saw.
+        self.policy.optimizer.register_step_pre_hook(lambda *_: self._add_target_gradient())
+
+    def _policy_ratio(
+        self, samples: EsaRolloutBufferSamples, log_prob: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor | float]:
+        self._esa_minibatch = samples
+        return super()._policy_ratio(samples, log_prob)
+
+    def _add_target_gradient(self) -> None:
         if self._esa_targeted:
-            self._esa_target_losses.extend(self._target_loss(samples))
-        super()._optimizer_step(samples)
+            self._esa_target_losses.extend(self._target_loss(self._esa_minibatch))
 
     def _target_loss(self, samples: EsaRolloutBufferSamples) -> list[float]:
         """Back-propagates the loss on a minibatch's shifted samples; returns it (or nothing)."""
