@@ -135,9 +135,8 @@ def _spawn_zenoh(
 class EsaClient:
     """A client of esa sessions, built by :meth:`connect`, :meth:`spawn` or :meth:`in_process`.
 
-    Every call has a deadline of ``timeout`` seconds; a lost connection raises
-    :class:`~esa_client.errors.ServerUnavailable` at once, except in a batch, which rides it
-    out (:class:`~esa_client.SessionBatch`).
+    Every call has a deadline of ``timeout`` seconds; only a batch rides out a lost connection
+    (the client guide's "Errors, deadlines and restarts").
 
     Example::
 
@@ -154,10 +153,9 @@ class EsaClient:
     Attributes:
         servers: The server processes :meth:`spawn` started (``servers[i]`` serves shard
             i), stopped by :meth:`close`; empty otherwise.
-        sessions_restored: How many sessions :meth:`restore_sessions` (or a batch's
-            :meth:`~esa_client.SessionBatch.restore`) recreated.
-        reconnect_timeout: Seconds a batch keeps retrying an unreachable server before it
-            raises ``ServerUnavailable``; 0 raises the first failure (default 60).
+        sessions_restored: How many sessions :meth:`restore_sessions` (or a batch) recreated.
+        reconnect_timeout: Seconds a batch retries a lost server before it raises; 0 = at once
+            (default 60).
     """
 
     def __init__(self, transport: Transport, *, address: str, timeout: float) -> None:
@@ -200,12 +198,10 @@ class EsaClient:
         Args:
             address: gRPC: ``host:port`` or ``unix:/path/to/socket``. Zenoh: the
                 endpoint(s) of the server or router, e.g. ``tcp/127.0.0.1:7447``.
-            transport: ``"grpc"`` or ``"zenoh"`` (extra ``esa-client[zenoh]``): the same
-                sessions and calls either way.
+            transport: ``"grpc"`` or ``"zenoh"`` (extra ``esa-client[zenoh]``), the same API.
             timeout: Deadline in seconds for every call (and, over Zenoh, connecting).
             token: The servers' auth token (``--auth-token-file``), sent with every call.
-            token_file: A file holding the token instead; with neither,
-                ``$ESA_AUTH_TOKEN`` if set.
+            token_file: A file holding the token instead; with neither, ``$ESA_AUTH_TOKEN``.
             tls: gRPC over TLS (``"grpc"`` only), see :class:`~esa_client.TlsConfig`.
             shards: Zenoh only: N servers started with ``--shard i/N``.
             prefix: Zenoh only: the servers' ``--zenoh-prefix`` (default ``esa/v1``).
@@ -334,18 +330,15 @@ class EsaClient:
     ) -> EsaClient:
         """Starts a private esa-server and returns a client connected to it.
 
-        gRPC: on a Unix socket in a private directory. Zenoh: on loopback, N processes with
-        ``shards=N``, requiring a fresh random token (``client.servers[i].token``). The
-        servers stop with :meth:`close`, at interpreter exit, or when this process dies.
+        gRPC: a private Unix socket; Zenoh: loopback (``shards=N``: N processes) and a fresh
+        random token (``client.servers[i].token``). They stop with :meth:`close` or the process.
 
         Args:
             binary: Path of the esa-server executable; None searches for it.
             transport: ``"grpc"`` or ``"zenoh"``, as in :meth:`connect`.
             shards: Zenoh only: N server processes, sessions routed between them.
-            session_ttl: Idle-session expiry in seconds (0 = never); None = the server's
-                default (600).
-            max_sessions: Live-session limit (per shard); None = the server's default
-                (100,000).
+            session_ttl: Idle-session expiry in seconds, 0 = never; None = server default (600).
+            max_sessions: Live-session limit (per shard); None = the server's default (100,000).
             max_session_memory: Session memory budget in bytes (per shard); None = the
                 server's default (half of the memory it may use).
             extra_args: Further arguments for every server.
@@ -481,8 +474,7 @@ class EsaClient:
         If creating a session fails, those created are closed first.
 
         Args:
-            configs: One config for all N sessions, or a sequence of N configs
-                (all with the same ``action_dim``).
+            configs: One config for all N sessions, or N configs (one ``action_dim``).
             n: Number of sessions (required with a single config).
             ids: Session ids; None = a random UUID per session.
             use_stream: Carry probes and reports over one persistent gRPC ``StepStream``
@@ -519,9 +511,8 @@ class EsaClient:
     ) -> int:
         """Recreates, under the same ids and configs, those sessions the server no longer has.
 
-        Call it when calls raise ``SessionNotFound`` (a crashed or restarted server, an
-        expired session), then start a new episode; :meth:`SessionBatch.restore` says what a
-        recreated session keeps.
+        Call it when calls raise ``SessionNotFound``, then start a new episode; a batch does it
+        itself (:meth:`SessionBatch.restore`; the client guide's "Errors, deadlines and restarts").
 
         Args:
             ids: The session ids, e.g. ``batch.ids``.

@@ -18,11 +18,7 @@ Vector = float | Sequence[float] | np.ndarray
 
 
 def _as_tuple(name: str, value: Vector | None) -> tuple[float, ...]:
-    """Returns ``value`` as a tuple of floats (its length is esa-core's to check).
-
-    None and an empty sequence (the stored form of an unset field) both mean unset, so a
-    validated config can be rebuilt from its own fields (``dataclasses.replace``).
-    """
+    """``value`` as a tuple of floats; None and ``()`` (a stored unset field) mean unset."""
     if value is None:
         return ()
     array = np.asarray(value, dtype=np.float64)
@@ -48,10 +44,7 @@ def _is_int(value: object, bits: int) -> bool:
 
 
 def _finite_bound(bound: Vector | None, unbounded: float) -> Vector | None:
-    """Maps a gymnasium-style bound to the contract's finite form.
-
-    ``unbounded`` (+-inf) marks an open side: all open = no bound, some open = float max there.
-    """
+    """A gymnasium bound in contract form: all ``unbounded`` (+-inf) = None, some = float max."""
     if bound is None:
         return None
     values = np.asarray(bound, dtype=np.float64)
@@ -79,31 +72,10 @@ _VECTORS = ("amplitude", "frequency", "learning_rate", "action_low", "action_hig
 class SessionConfig:
     """The configuration of one ESA session, mirroring ``esa.v1.SessionConfig`` field for field.
 
-    esa-core checks it when it is built (CONTRACT.md sections 1 and 1b): a bad value raises
-    ``ValueError`` naming the field. Vector fields take a scalar (broadcast to all
-    ``action_dim`` dimensions) or one value per dimension, stored as tuples of floats.
-
-    Attributes:
-        action_dim: Action dimension D, 1 <= D <= 4096.
-        dt: Seconds per environment step (finite, > 0); the perturbation phase at step t
-            is ``frequency * t * dt``.
-        amplitude: Perturbation amplitude K (finite, >= 0).
-        frequency: Perturbation frequency w in rad/s (finite, > 0, ``w * dt < pi``).
-        learning_rate: Learning rate alpha (finite, >= 0); the server maximizes Q.
-        highpass_cutoff: Washout cutoff w_h in rad/s (finite, > 0); None = ``min(w) / 10``.
-        disable_highpass: True makes the high-pass filter the identity.
-        action_low: Lower action bounds; None = unbounded.
-        action_high: Upper action bounds; None = unbounded.
-        shift_limit: Bound L on every element of the shift v; None = no clamp.
-        lr_decay: Per-episode learning-rate decay in (0, 1]; None = 1.
-        max_episodes: Episodes after which the session passes actions through; 0 = never.
-        normalize_response: Scale-free law (CONTRACT.md section 1b): the filtered response
-            divided by its running RMS and clipped, the step scaled by the action scale.
-        response_rms_rate: EMA rate of the response's mean square, in (0, 1]; None = 0.05.
-        response_clip: Clip of the normalized response (finite, > 0); None = 3.
-        shift_leak: Leak lambda in [0, 1): ``v <- (1 - lambda) v + step``; None = 0.
-        trust_region: kappa (finite, > 0): ``|v| <= kappa * action_scale`` per dimension;
-            None = no bound from it.
+    CONTRACT.md's tables (sections 1 and 1b) give each field's meaning and range; esa-core
+    checks them when the config is built (``ValueError`` naming the field). A vector field
+    takes a scalar (broadcast to ``action_dim`` dimensions) or one value per dimension, stored
+    as a tuple of floats (an unset bound: ``()``); None leaves an optional field unset.
     """
 
     action_dim: int
@@ -186,37 +158,24 @@ PPO_FADE = 0.5
 class EsaConfig:
     """ESA hyperparameters for a trainer, turned into a :class:`SessionConfig` per environment.
 
-    ``EsaConfig()`` is the bounded, scale-free law of CONTRACT.md section 1b, one setting for
-    every environment (the wrappers' default); the drop-ins start from :meth:`ppo` and
-    :meth:`off_policy`, and :meth:`paper` is the paper's law (section 1).
-    ``experiments/RESULTS.md`` says how each fares.
-
-    Fields are checked when the config is built (``ValueError`` naming the field), the
-    rules that need the environment (Nyquist for its ``dt``) when a trainer or wrapper is.
-    The service implements the paper's Eq. 5, ``v += alpha sin(w t) H[Q]`` (``alpha`` here
-    is Algorithm 1's ``alpha K``), and the trainers apply and store ``a_t + v(t)``.
+    ``EsaConfig()`` is CONTRACT.md section 1b's bounded, scale-free law, one setting for every
+    environment (the wrappers' default); the drop-ins start from :meth:`ppo` and
+    :meth:`off_policy`, and :meth:`paper` is section 1's law (``experiments/RESULTS.md`` says
+    how each fares). Fields are checked when the config is built (``ValueError`` naming the field),
+    those that need the environment (Nyquist for its ``dt``) when a trainer or wrapper is.
+    Fields named as in :class:`SessionConfig` and not listed below go to it as they are.
 
     Attributes:
-        amplitude: Perturbation amplitude K of the probe, in the units of the action space
-            ESA works in (SAC: the squashed [-1, 1] space; PPO: the policy's action space).
-            The probe only queries the critic; the environment gets ``a_t + v(t)``.
-        frequency: Perturbation frequency w in rad/s. A scalar is spread over
-            ``[w / 2, w]`` across action dimensions, so that demodulation tells them apart;
-            a sequence gives them exactly. None takes ``nyquist_fraction`` of ``pi / dt``:
-            the same period in steps on every env.
+        amplitude: K, in the units of the action space ESA works in (SAC: squashed [-1, 1];
+            PPO: the policy's); the probe only queries the critic, the env gets ``a_t + v(t)``.
+        frequency: w in rad/s. A scalar is spread over ``[w / 2, w]`` across dimensions, so
+            that demodulation tells them apart; a sequence gives each. None takes
+            ``nyquist_fraction`` of ``pi / dt``: the same period in steps on every env.
         nyquist_fraction: With ``frequency=None``, w as a fraction of ``pi / dt``, in (0, 1).
-        learning_rate: ESA learning rate alpha (Eq. 5). With ``normalize_response`` it is
-            in units of the action scale per step; without, it multiplies Q itself.
-        highpass_cutoff: Washout cutoff in rad/s; None = ``min(frequency) / 10``.
-        disable_highpass: Feed the raw response to the update (ablation).
-        lr_decay: Per-episode decay of the learning rate in (0, 1]; None = no decay.
-        max_episodes: Episodes per environment after which ESA stops intervening; 0 = never.
-        shift_limit: Bound on every element of the shift v; None = no clamp.
+        learning_rate: Eq. 5's alpha (Algorithm 1's ``alpha K``). With ``normalize_response``
+            it is in units of the action scale per step; without, it multiplies Q itself.
         normalize_response: Divide the filtered response by its running RMS (section 1b),
             so one learning rate fits every reward scale.
-        response_rms_rate: EMA rate of that running mean square; None = 0.05.
-        response_clip: Clip of the normalized response; None = 3.
-        shift_leak: Leak lambda in [0, 1) of the shift per step; None = 0.
         trust_region: kappa: ``|v| <= kappa * sigma`` per dimension, sigma the action
             scale the trainer sends; None = no bound.
         paired_response: Report ``Q(s, probe) - Q(s, a_t + v(t))`` instead of
@@ -225,16 +184,13 @@ class EsaConfig:
             shrinks as the policy converges.
         gate: Minimum rank correlation of the critic's ``Q(s, a) - Q(s, mu)`` with the
             algorithm's own advantage estimate before ESA intervenes; None = from the start.
-        dt: Seconds per environment step; None reads the env's ``dt``, else
-            ``1 / metadata["render_fps"]``.
+        dt: Seconds per environment step; None: the env's ``dt``, else ``1 / render_fps``.
         fade: The fraction of the training budget, in (0, 1], over which ESA's strength f
-            falls linearly to 0 (the paper's fading): the trainer sends ``f * sigma`` as the
-            action scale, which scales the normalized step and the trust region alike
-            (CONTRACT.md section 1b). Needs ``normalize_response``. None = no fade.
+            falls linearly to 0: the trainer sends ``f * sigma`` as the action scale
+            (CONTRACT.md section 1b's fading). Needs ``normalize_response``; None = no fade.
     """
 
-    # The best setting `default_search` found on InvertedPendulum-v5 (tuning seeds 100-107),
-    # to two significant digits.
+    # default_search's best on InvertedPendulum-v5 (tuning seeds 100-107), to 2 significant digits.
     amplitude: float | Sequence[float] = 0.29
     frequency: float | Sequence[float] | None = None
     nyquist_fraction: float = 0.48
@@ -288,10 +244,7 @@ class EsaConfig:
         """The paper's law and settings: Eq. 5 on the raw Q, K = 0.2, w = 10 pi, no bounds.
 
         CONTRACT.md section 1 without any section 1b field; alpha = 0.05 is ours (the paper
-        gives none).
-
-        Args:
-            **overrides: Fields to change, e.g. ``amplitude=0.1``.
+        gives none). ``overrides`` change fields, e.g. ``amplitude=0.1``.
         """
         settings: dict[str, Any] = dict(
             amplitude=0.2,
@@ -311,10 +264,8 @@ class EsaConfig:
         """The shipped default of ``ESAPPO``: ``EsaConfig()`` bounded at 1 sigma, faded by half.
 
         The setting the ``seeking`` study (E2) tested as ``ppo_esa``: E1's trust region for
-        the quadratic head, and ESA gone by half of ``learn()``'s budget.
-
-        Args:
-            **overrides: Fields to change, e.g. ``fade=None`` for ESA through the whole budget.
+        the quadratic head, and ESA gone by half of ``learn()``'s budget (``fade=None``: ESA
+        through the whole budget).
         """
         return cls(**{"trust_region": PPO_TRUST_REGION, "fade": PPO_FADE, **overrides})
 
@@ -325,17 +276,14 @@ class EsaConfig:
         ``EsaConfig()`` with a wider trust region (an off-policy learner pays no importance
         ratio for shifted data): the ``ground_truth`` study's pick on SAC, the largest bound
         whose Monte-Carlo return gain is above 0 with 95 % confidence on both its envs.
-
-        Args:
-            **overrides: Fields to change, e.g. ``trust_region=0.25``.
+        ``overrides`` change fields, e.g. ``trust_region=0.25``.
         """
         return cls(**{"trust_region": OFF_POLICY_TRUST_REGION, **overrides})
 
     def strength(self, elapsed: float) -> float:
         """ESA's strength, ``1 - elapsed / fade`` clipped to [0, 1] (1 without a fade).
 
-        Args:
-            elapsed: The fraction of the budget done, e.g. ``num_timesteps / total``.
+        ``elapsed`` is the fraction of the budget done, e.g. ``num_timesteps / total``.
         """
         if self.fade is None:
             return 1.0
@@ -370,7 +318,6 @@ class EsaConfig:
             ValueError: If a hyperparameter is invalid for this action space and time step.
         """
         dt = self.dt if self.dt is not None else dt
-        # The session's fields that we have under the same name take our values.
         ours = {f.name for f in fields(self)} - {"dt", "frequency"}
         return SessionConfig(
             **{f.name: getattr(self, f.name) for f in fields(SessionConfig) if f.name in ours},

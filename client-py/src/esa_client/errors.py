@@ -14,10 +14,7 @@ from ._proto.esa.v1 import esa_pb2
 
 
 class StatusCode(enum.IntEnum):
-    """The status codes of the esa contract: gRPC's canonical codes, names and numbers.
-
-    The client's own, so that no transport needs grpcio; ``int(code)`` is the wire's number.
-    """
+    """The esa contract's status codes: gRPC's canonical names and numbers, without grpcio."""
 
     OK = 0
     CANCELLED = 1
@@ -52,8 +49,7 @@ class EsaError(Exception):
     Attributes:
         code: The :class:`StatusCode` the server (or the transport) reported.
         message: The human-readable message, naming what to fix.
-        index: The failing item of a batch (its position in the batch), when the error is
-            about one item; None otherwise.
+        index: The failing item's position in a batch, if the error is about one; else None.
     """
 
     def __init__(
@@ -100,10 +96,7 @@ class ResourceExhausted(EsaError):
 
 
 class Unauthenticated(EsaError, PermissionError):
-    """The server requires an auth token and none, or another one, was sent (``UNAUTHENTICATED``).
-
-    Give it as ``EsaClient.connect(..., token=...)``, ``token_file=...`` or ``$ESA_AUTH_TOKEN``.
-    """
+    """The server wants an auth token and got none or another one (``UNAUTHENTICATED``)."""
 
 
 class SessionAlreadyExists(EsaError):
@@ -159,9 +152,6 @@ class TypedErrors:
 
     A class, not ``contextlib.contextmanager``: it runs on every round trip, and a generator
     context costs about as much as the in-process engine's own call.
-
-    Args:
-        native: The extension's exception class whose instances to translate.
     """
 
     def __init__(self, native: type[Exception]) -> None:

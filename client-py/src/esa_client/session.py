@@ -60,10 +60,6 @@ class Session:
 
     Its calls raise the wire's error at once; to ride out a lost server step a
     :class:`SessionBatch` (``create_batch(config, 1)``).
-
-    Attributes:
-        id: The session id.
-        config: The session config.
     """
 
     def __init__(
@@ -136,9 +132,6 @@ class Session:
             q_reference: The critic's value at the applied action ``a_t + v(t)`` in the
                 same state: the law then uses ``q_value - q_reference`` (CONTRACT.md 1b).
             step: Explicit step (advanced; default: the pending probe's step).
-
-        Returns:
-            The improved action, shape ``(action_dim,)``.
         """
         step = self._step if step is None else step
         reference = None if q_reference is None else float(q_reference)
@@ -172,16 +165,10 @@ class Session:
 class SessionBatch:
     """N sessions (one per environment) stepped together: one round trip per probe/report.
 
-    Created by :meth:`EsaClient.create_batch`; arrays have the batch as the first axis. It
-    rides out a lost server for up to the client's ``reconnect_timeout``, then raises
-    ``ServerUnavailable`` (:mod:`esa_client.recovery`; the client guide's "Errors, deadlines
-    and restarts").
-
-    Attributes:
-        ids: The N session ids, in batch order.
-        configs: The N session configs.
-        n: Number of sessions.
-        action_dim: Shared action dimension D.
+    Created by :meth:`EsaClient.create_batch`; arrays have the batch as the first axis, in the
+    order of ``ids`` (and ``configs``); ``n`` is N and ``action_dim`` D. It rides out a lost
+    server for up to the client's ``reconnect_timeout``, then raises ``ServerUnavailable``
+    (the client guide's "Errors, deadlines and restarts").
     """
 
     def __init__(
@@ -240,12 +227,8 @@ class SessionBatch:
             episode_starts: Episode-start flags, shape ``(N,)`` (e.g. a VecEnv's ``dones``
                 from the previous step); sessions flagged by :meth:`reset` count too.
             steps: Explicit steps (advanced; default: the tracked ones, 0 on episode start).
-            action_scales: sigma per session and dimension for this step's reports (e.g. the
-                policy's standard deviation), shape ``(N, D)`` or a scalar, finite and > 0;
-                None = 1.
-
-        Returns:
-            The probes, shape ``(N, D)``.
+            action_scales: sigma for this step's reports (e.g. the policy's standard deviation),
+                shape ``(N, D)`` or a scalar, finite and > 0; None = 1.
         """
         return self.probe_applied(
             actions, episode_starts, steps=steps, action_scales=action_scales
@@ -288,11 +271,11 @@ class SessionBatch:
         """A whole step of Algorithm 1 (section 1b), in as few waits as the transport allows.
 
         :meth:`probe_applied`, then the deferred :meth:`report` of ``critic`` at the probes
-        (and at the applied actions as ``q_references`` when ``paired``), as the transport
-        decides, with the same bits everywhere (the client guide). An error of a step sent
-        ahead surfaces at the next call (or :meth:`flush`), nothing of that step applied;
-        without a reconnect policy a broken exchange starts a new episode in every session
-        at the next step.
+        (and at the applied actions as ``q_references`` when ``paired``), run as the transport
+        decides (the client guide's "Algorithm 1 in one round trip per step"). An error of a
+        step sent ahead surfaces at the next call (or :meth:`flush`), nothing of it applied;
+        without a reconnect policy a broken exchange starts a new episode in every session at
+        the next step.
 
         Args:
             actions: Sampled actions, shape ``(N, D)``.
@@ -333,8 +316,8 @@ class SessionBatch:
             steps: Explicit steps (advanced; default: the pending probes' steps).
             defer: Send the report with the next :meth:`probe` / :meth:`probe_applied`
                 (one round trip on a StepStream) and return None; :meth:`flush`,
-                :meth:`end_episode`, :meth:`states` and :meth:`close` send it first. If
-                sending fails it stays pending: the next probe retries it, a new ``report``
+                :meth:`end_episode` and :meth:`states` send it first, :meth:`close` drops it.
+                If sending fails it stays pending: the next probe retries it, a new ``report``
                 replaces it.
 
         Returns:
@@ -365,8 +348,7 @@ class SessionBatch:
         """Reads the answer of a step :meth:`step` sent ahead, and sends a deferred report, if any.
 
         Raises:
-            EsaError: The step's error (see :meth:`step`), or the report's (it then
-                stays pending).
+            EsaError: The step's error (see :meth:`step`), or the report's (then still pending).
         """
         self._stepper.flush(self)
         if self.ledger.deferred is not None:
@@ -391,10 +373,7 @@ class SessionBatch:
         return restored
 
     def end_episode(self, indices: npt.ArrayLike | None = None) -> I64Array:
-        """Ends the given sessions' episodes now, one call each (default: all).
-
-        Returns the completed-episode counts of those sessions.
-        """
+        """Ends the episodes of the given sessions (default: all); returns their episode counts."""
         idx = check_indices(indices, self.n)
         self.flush()
         counts: list[int] = []

@@ -1,7 +1,4 @@
-"""What every session implementation shares: the state snapshot and the argument checks.
-
-The checks turn caller arguments into a transport's arrays with the same messages everywhere.
-"""
+"""What all session implementations share: the state snapshot and one set of argument checks."""
 
 from __future__ import annotations
 
@@ -29,13 +26,10 @@ BoolArray = npt.NDArray[np.bool_]
 class SessionProgress:
     """What a session keeps across episodes besides its config (``esa.v1.SessionProgress``).
 
-    Batch answers carry it for every session; a session the server lost is recreated with
-    the progress the client last saw (:meth:`esa_client.EsaClient.restore_sessions`).
+    Batch answers carry it; a session the server lost is recreated with the last one seen.
 
     Attributes:
-        episodes_completed: Number of completed episodes e.
-        response_mean_square: The running mean square m (``normalize_response``); None while
-            unset.
+        response_mean_square: The running mean square m (``normalize_response``); None = unset.
     """
 
     episodes_completed: int
@@ -64,9 +58,8 @@ class SessionProgress:
     ) -> list[SessionProgress]:
         """Each session's progress from a batch answer's two fields.
 
-        Args:
-            episodes: ``episodes_completed``, one per session.
-            mean_squares: ``response_mean_squares``: one per session (-1: unset), or none.
+        ``episodes`` holds ``episodes_completed``, one per session; ``mean_squares`` holds
+        ``response_mean_squares``: one per session (-1: unset), or none.
         """
         counts = np.asarray(episodes, dtype=np.uint64).tolist()
         values = np.asarray(mean_squares, dtype=np.float64).tolist() or [-1.0] * len(counts)
@@ -82,13 +75,11 @@ class SessionState:
     """A snapshot of one session (``GetSession``).
 
     Attributes:
-        config: The config as given at creation.
         step: Current step t inside the episode.
-        episodes_completed: Number of completed episodes e.
         shift: Current shift v, shape ``(action_dim,)``.
         probe_pending: True between a probe and its report.
-        response_mean_square: The running mean square m of the filtered response
-            (``normalize_response``); None until the first non-zero response seeds it.
+        response_mean_square: The running mean square m (``normalize_response``); None until a
+            non-zero response seeds it.
     """
 
     config: SessionConfig
@@ -152,8 +143,7 @@ def check_array(
     """Returns ``values`` as a ``dtype`` array named ``name``, checking its shape (and finiteness).
 
     Raises:
-        Exception: Built by ``error`` from the message, if the shape is wrong or a value is
-            not finite.
+        Exception: ``error``'s, if the shape is wrong or (``finite``) a value is not finite.
     """
     out = np.asarray(values, dtype=dtype)
     if out.shape != shape:
