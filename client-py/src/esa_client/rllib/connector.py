@@ -12,6 +12,7 @@ moves nothing), so the session's episode count stays the env's.
 from __future__ import annotations
 
 import contextlib
+import functools
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -295,19 +296,19 @@ class EsaModuleToEnv(ConnectorV2):
             mean, std = mean_t.cpu().numpy(), log_std_t.exp().cpu().numpy()
             critic = head_critic(module.esa_head, module.esa_features(obs), frame, mean, std)
 
+            execute = functools.partial(shifted, sample)
+
             def head_session() -> tuple[np.ndarray, np.ndarray]:
                 closed = critic.closed_form()
                 shift = head_shift(runtime, closed, critic.std, frame, sample, starts, strength)
-                return shifted(sample, shift), shift
+                return execute(shift), shift
 
             def head_gradient() -> np.ndarray:
                 scaled = (sample - frame.center) / frame.half_width
                 shift: np.ndarray = size * unit_gradient(critic.gradient(scaled)) * std
                 return shift
 
-            return self._rule.act(
-                head_session, head_gradient, lambda shift: shifted(sample, shift), starts
-            )[0]
+            return self._rule.act(head_session, head_gradient, execute, starts)[0]
         n = len(sample)
         sampled = sample.astype(np.float64)
         with torch.no_grad():

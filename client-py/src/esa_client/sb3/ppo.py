@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import cast
 
 import numpy as np
@@ -134,15 +135,14 @@ class ESAPPO(EsaMixin, DecoupledPPO):
         starts = self._last_episode_starts
         assert starts is not None  # set by SB3 before its rollouts
 
+        execute = functools.partial(shifted, sample)
+
         def session() -> Acted:
             shift = self._session_shift(obs, sample, mean, std, starts, f)
-            return shifted(sample, shift), shift
+            return execute(shift), shift
 
         executed, shift = self._control_shift().act(
-            session,
-            lambda: self._gradient_shift(obs, sample, mean, std, f),
-            lambda shift: shifted(sample, shift),
-            starts,
+            session, lambda: self._gradient_shift(obs, sample, mean, std, f), execute, starts
         )
         if self._esa_steps % REPORT_EVERY == 0:
             box = self.esa_frame.box
