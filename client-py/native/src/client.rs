@@ -31,16 +31,6 @@ fn failed(py: Python<'_>, code: Code, message: &str) -> PyErr {
     status_error::<StatusError>(py, code as i32, message.into(), None)
 }
 
-/// Runs one call of `remote` without the GIL.
-fn call<R: Send>(
-    py: Python<'_>,
-    remote: &Remote,
-    rpc: impl Send + FnOnce(&Remote) -> esa_client::Result<R>,
-) -> PyResult<R> {
-    py.detach(|| rpc(remote))
-        .map_err(|error| error_of(py, error))
-}
-
 /// TLS trusting `ca` (else the Mozilla roots), presenting `cert` and `key` (mutual TLS) and
 /// checking the server's certificate against `domain` (else the address's host).
 fn tls_settings(
@@ -80,6 +70,17 @@ impl GrpcClient {
             .read()
             .clone()
             .ok_or_else(|| failed(py, Code::Unavailable, "the client is closed"))
+    }
+
+    /// Runs one call of the connection without the GIL.
+    fn call<R: Send>(
+        &self,
+        py: Python<'_>,
+        rpc: impl Send + FnOnce(&Remote) -> esa_client::Result<R>,
+    ) -> PyResult<R> {
+        let remote = self.remote(py)?;
+        py.detach(|| rpc(&remote))
+            .map_err(|error| error_of(py, error))
     }
 }
 
@@ -137,8 +138,7 @@ impl GrpcClient {
             .map(pb::SessionProgress::decode)
             .transpose()
             .map_err(|err| PyValueError::new_err(format!("progress: {err}")))?;
-        let remote = self.remote(py)?;
-        call(py, &remote, |r| match progress {
+        self.call(py, |r| match progress {
             Some(progress) => r.resume_session(session_id, config, progress),
             None => r.create_session(session_id, config),
         })
@@ -150,21 +150,18 @@ impl GrpcClient {
         py: Python<'py>,
         session_id: String,
     ) -> PyResult<Bound<'py, PyBytes>> {
-        let remote = self.remote(py)?;
-        let response = call(py, &remote, |r| r.get_session(session_id))?;
+        let response = self.call(py, |r| r.get_session(session_id))?;
         Ok(PyBytes::new(py, &response.encode_to_vec()))
     }
 
     /// CloseSession.
     fn close_session(&self, py: Python<'_>, session_id: String) -> PyResult<()> {
-        let remote = self.remote(py)?;
-        call(py, &remote, |r| r.close_session(session_id))
+        self.call(py, |r| r.close_session(session_id))
     }
 
     /// EndEpisode; returns the completed episodes.
     fn end_episode(&self, py: Python<'_>, session_id: String) -> PyResult<u64> {
-        let remote = self.remote(py)?;
-        call(py, &remote, |r| r.end_episode(session_id))
+        self.call(py, |r| r.end_episode(session_id))
     }
 
     /// Probe of one session: returns (probe, applied).
@@ -185,8 +182,7 @@ impl GrpcClient {
             episode_start,
             action_scale: Values::<f64>::floats_or_empty(action_scale)?.owned(),
         };
-        let remote = self.remote(py)?;
-        let response = call(py, &remote, |r| r.probe(request))?;
+        let response = self.call(py, |r| r.probe(request))?;
         PyTuple::new(
             py,
             [
@@ -212,8 +208,7 @@ impl GrpcClient {
             q_value,
             q_reference,
         };
-        let remote = self.remote(py)?;
-        let response = call(py, &remote, |r| r.report(request))?;
+        let response = self.call(py, |r| r.report(request))?;
         Ok(response.action.into_pyarray(py).into_any())
     }
 
@@ -336,13 +331,11 @@ impl GrpcBatch {
         q_values: &Bound<'_, PyAny>,
         q_references: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<pb::ReportBatchRequest> {
-        let steps = Values::<u64>::steps(steps)?.owned();
-        let (q_values, q_references) = critic_values(q_values, q_references)?;
         Ok(pb::ReportBatchRequest {
             session_ids: self.session_ids.clone(),
-            steps,
-            q_values,
-            q_references,
+            steps: Values::<u64>::steps(steps)?.owned(),
+            q_values: Values::<f64>::floats(q_values)?.owned(),
+            q_references: Values::<f64>::floats_or_empty(q_references)?.owned(),
         })
     }
 
@@ -354,8 +347,7 @@ impl GrpcBatch {
                 remote.block_on(async { exchange.over(opened(remote, slot).await?).await })
             });
         }
-        let remote = self.client.get().remote(py)?;
-        call(py, &remote, |remote| match exchange {
+        self.client.get().call(py, |remote| match exchange {
             Exchange::Probe(probe) => remote.probe_batch(probe).map(Answer::Probe),
             Exchange::Report(report) => remote.report_batch(report).map(Answer::Report),
             Exchange::ReportThenProbe(report, probe) => {
@@ -382,8 +374,7 @@ impl GrpcBatch {
         f: impl Send + FnOnce(&Remote, &mut Option<StepStream>) -> esa_client::Result<R>,
     ) -> PyResult<R> {
         let slot = self.stream_slot()?;
-        let remote = self.client.get().remote(py)?;
-        call(py, &remote, |remote| {
+        self.client.get().call(py, |remote| {
             let mut slot = slot.lock();
             let result = f(remote, &mut slot);
             if result.as_ref().is_err_and(esa_client::Error::is_retryable) {
@@ -413,16 +404,6 @@ impl GrpcBatch {
             Some(self.dim),
         )
     }
-}
-
-/// The critic's values of a report, `q_values` and `q_references` (None: no references).
-fn critic_values(
-    q_values: &Bound<'_, PyAny>,
-    q_references: Option<&Bound<'_, PyAny>>,
-) -> PyResult<(Vec<f64>, Vec<f64>)> {
-    let q_values = Values::<f64>::floats(q_values)?;
-    let q_references = Values::<f64>::floats_or_empty(q_references)?;
-    Ok((q_values.owned(), q_references.owned()))
 }
 
 /// The stream in `slot`, opened first when there is none.
@@ -540,12 +521,10 @@ impl GrpcBatch {
         q_references: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<()> {
         self.stream_slot()?;
-        let probe = Some(self.probe_request(steps, actions, episode_starts, action_scales)?);
-        let (q_values, q_references) = critic_values(q_values, q_references)?;
         let request = pb::StepBatchRequest {
-            probe,
-            q_values,
-            q_references,
+            probe: Some(self.probe_request(steps, actions, episode_starts, action_scales)?),
+            q_values: Values::<f64>::floats(q_values)?.owned(),
+            q_references: Values::<f64>::floats_or_empty(q_references)?.owned(),
         };
         self.send_ahead(py, Step::Fused(request))
     }

@@ -34,14 +34,6 @@ struct Entry {
 }
 
 impl Entry {
-    fn new(id: &str, key: Key) -> Self {
-        Self {
-            id: id.to_owned(),
-            slot: AtomicUsize::new(key.slot),
-            serial: AtomicU64::new(key.serial),
-        }
-    }
-
     fn key(&self) -> Key {
         Key {
             slot: self.slot.load(Ordering::Relaxed),
@@ -185,7 +177,11 @@ impl Engine {
         let entries = ids
             .iter()
             .zip(keys)
-            .map(|(id, key)| Entry::new(id.as_ref(), key))
+            .map(|(id, key)| Entry {
+                id: id.as_ref().to_owned(),
+                slot: AtomicUsize::new(key.slot),
+                serial: AtomicU64::new(key.serial),
+            })
             .collect();
         Ok(Handle { entries, values })
     }
@@ -289,25 +285,14 @@ impl Engine {
     ) -> Result<R, Error> {
         // The sessions are moved out of their slots for the call (a pointer each) and put back
         // after it, so `f` gets disjoint `&mut` without unsafe code.
-        let mut taken: Vec<Taken> = Vec::with_capacity(handle.len());
-        let mut missing = None;
-        for (index, entry) in handle.entries.iter().enumerate() {
-            match self.take(entry) {
-                Ok(session) => taken.push(session),
-                Err(err) => {
-                    missing = Some(Error::item(index, err));
-                    break;
-                }
-            }
-        }
-        let result = match missing {
-            Some(err) => Err(err),
-            None => {
-                let mut sessions: Vec<&mut Session> =
-                    taken.iter_mut().map(Taken::session).collect();
-                f(&mut sessions)
-            }
-        };
+        let mut taken = Vec::with_capacity(handle.len());
+        let mut entries = handle.entries.iter().enumerate();
+        let result = entries
+            .try_for_each(|(index, entry)| {
+                taken.push(self.take(entry).map_err(|err| Error::item(index, err))?);
+                Ok(())
+            })
+            .and_then(|()| f(&mut taken.iter_mut().map(Taken::session).collect::<Vec<_>>()));
         for session in taken {
             self.sessions.put(session);
         }

@@ -11,7 +11,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyTuple};
 
-use esa_core::fused_step::{LinearCritic, QuadraticCritic, StepCritic};
+use esa_core::fused_step::{LinearCritic, QuadraticCritic};
 use esa_core::{CoreError, SessionConfig};
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
@@ -51,33 +51,30 @@ impl Engine {
         }
     }
 
-    /// `run` on the engine's state for a batch of `handle`, with the GIL released for batches
-    /// of more than `detach_values` action values (their inputs are owned copies, so Python
-    /// threads may write to the arrays they came from meanwhile).
+    /// `run` on the engine's state, its error raised as `EngineError`.
+    fn call<R>(
+        &self,
+        py: Python<'_>,
+        run: impl FnOnce(&mut engine::Engine) -> Result<R, Error>,
+    ) -> PyResult<R> {
+        run(&mut self.lock(py)).map_err(|err| engine_error(py, err))
+    }
+
+    /// [`Self::call`] for a batch of `handle`, with the GIL released for batches of more than
+    /// `detach_values` action values (their inputs are owned copies, so Python threads may write
+    /// to the arrays they came from meanwhile).
     fn batch<R: Send>(
         &self,
         py: Python<'_>,
         handle: &engine::Handle,
-        run: impl FnOnce(&mut engine::Engine) -> R + Send,
-    ) -> R {
+        run: impl FnOnce(&mut engine::Engine) -> Result<R, Error> + Send,
+    ) -> PyResult<R> {
         if handle.values() > self.detach_values {
             py.detach(|| run(&mut self.inner.lock()))
+                .map_err(|err| engine_error(py, err))
         } else {
-            run(&mut self.lock(py))
+            self.call(py, run)
         }
-    }
-
-    /// `engine::Engine::step_critic` for a critic over values the caller owns ([`Self::batch`]).
-    fn step_critic(
-        &self,
-        py: Python<'_>,
-        handle: &engine::Handle,
-        input: &engine::ProbeInput<'_>,
-        critic: &(impl StepCritic + Sync),
-    ) -> Result<engine::ProbeOutput, Error> {
-        self.batch(py, handle, |engine| {
-            engine.step_critic(handle, input, critic)
-        })
     }
 }
 
@@ -98,15 +95,6 @@ fn step_of_each(tracked: &[i64], starts: &[bool]) -> PyResult<Vec<u64>> {
         *step = 0;
     }
     Ok(steps)
-}
-
-/// `(probes, applied)` of a probe's output, each (n, dim) where the items share a dimension.
-fn probe_tuple(
-    py: Python<'_>,
-    output: engine::ProbeOutput,
-    n: usize,
-) -> PyResult<Bound<'_, PyTuple>> {
-    shaped_tuple(py, [output.probes, output.applied], n, output.dim)
 }
 
 #[pymethods]
@@ -150,37 +138,27 @@ impl Engine {
         config: &[u8],
         progress: Option<&[u8]>,
     ) -> PyResult<String> {
-        let config = decode_config(config).map_err(|err| engine_error(py, err))?;
-        let progress = progress
-            .map(decode_progress)
-            .transpose()
-            .map_err(|err| engine_error(py, err))?;
-        self.lock(py)
-            .create_session(session_id, config, progress)
-            .map_err(|err| engine_error(py, err))
+        self.call(py, |engine| {
+            let config = decode_config(config)?;
+            let progress = progress.map(decode_progress).transpose()?;
+            engine.create_session(session_id, config, progress)
+        })
     }
 
     /// An encoded `esa.v1.GetSessionResponse` for the session.
     fn get_session<'py>(&self, py: Python<'py>, session_id: &str) -> PyResult<Bound<'py, PyBytes>> {
-        let response = self
-            .lock(py)
-            .get_session(session_id)
-            .map_err(|err| engine_error(py, err))?;
+        let response = self.call(py, |engine| engine.get_session(session_id))?;
         Ok(PyBytes::new(py, &response.encode_to_vec()))
     }
 
     /// Closes the session.
     fn close_session(&self, py: Python<'_>, session_id: &str) -> PyResult<()> {
-        self.lock(py)
-            .close_session(session_id)
-            .map_err(|err| engine_error(py, err))
+        self.call(py, |engine| engine.close_session(session_id))
     }
 
     /// Ends the session's episode; returns its completed episodes.
     fn end_episode(&self, py: Python<'_>, session_id: &str) -> PyResult<u64> {
-        self.lock(py)
-            .end_episode(session_id)
-            .map_err(|err| engine_error(py, err))
+        self.call(py, |engine| engine.end_episode(session_id))
     }
 
     /// Probe of one session: returns (probe, applied), each of the session's dimension.
@@ -194,18 +172,11 @@ impl Engine {
         episode_start: bool,
         action_scale: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyTuple>> {
-        let action = Values::<f64>::floats(action)?;
-        let scale = Values::<f64>::floats_or_empty(action_scale)?;
-        let (probe, applied) = self
-            .lock(py)
-            .probe_one(
-                session_id,
-                step,
-                action.as_slice(),
-                scale.as_slice(),
-                episode_start,
-            )
-            .map_err(|err| engine_error(py, err))?;
+        let action = Values::<f64>::floats(action)?.owned();
+        let scale = Values::<f64>::floats_or_empty(action_scale)?.owned();
+        let (probe, applied) = self.call(py, |engine| {
+            engine.probe_one(session_id, step, &action, &scale, episode_start)
+        })?;
         PyTuple::new(py, [probe.into_pyarray(py), applied.into_pyarray(py)])
     }
 
@@ -219,19 +190,15 @@ impl Engine {
         q_value: f64,
         q_reference: Option<f64>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let action = self
-            .lock(py)
-            .report_one(session_id, step, q_value, q_reference)
-            .map_err(|err| engine_error(py, err))?;
+        let action = self.call(py, |engine| {
+            engine.report_one(session_id, step, q_value, q_reference)
+        })?;
         Ok(action.into_pyarray(py).into_any())
     }
 
     /// Resolves session ids into a handle for `probe` and `report`.
     fn resolve(&self, py: Python<'_>, session_ids: Vec<String>) -> PyResult<BatchHandle> {
-        let inner = self
-            .lock(py)
-            .resolve(&session_ids)
-            .map_err(|err| engine_error(py, err))?;
+        let inner = self.call(py, |engine| engine.resolve(&session_ids))?;
         Ok(BatchHandle { inner })
     }
 
@@ -247,12 +214,10 @@ impl Engine {
         action_scales: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyTuple>> {
         let handle = &handle.get().inner;
+        let n = handle.len();
         let steps = Values::<u64>::steps(steps)?;
         let actions = Values::<f64>::floats(actions)?;
-        let starts = match episode_starts {
-            Some(starts) => Values::<bool>::bools(starts)?,
-            None => Values::empty(),
-        };
+        let starts = episode_starts.map_or_else(|| Ok(Values::empty()), Values::<bool>::bools)?;
         let scales = Values::<f64>::floats_or_empty(action_scales)?;
         let input = engine::ProbeInput {
             steps: steps.as_slice(),
@@ -260,10 +225,8 @@ impl Engine {
             starts: starts.as_slice(),
             scales: scales.as_slice(),
         };
-        let output = self
-            .batch(py, handle, |engine| engine.probe(handle, &input))
-            .map_err(|err| engine_error(py, err))?;
-        probe_tuple(py, output, handle.len())
+        let output = self.batch(py, handle, |engine| engine.probe(handle, &input))?;
+        shaped_tuple(py, [output.probes, output.applied], n, output.dim)
     }
 
     /// ProbeBatch, then ReportBatch of a closed-form critic's values, in one call: returns
@@ -325,7 +288,9 @@ impl Engine {
                     offsets: &offsets,
                     paired,
                 };
-                self.step_critic(py, handle, &input, &critic)
+                self.batch(py, handle, |engine| {
+                    engine.step_critic(handle, &input, &critic)
+                })?
             }
             Some(curvature) => {
                 let curvatures = Values::<f64>::floats(curvature)?.owned();
@@ -339,14 +304,15 @@ impl Engine {
                     highs: &highs,
                     paired,
                 };
-                self.step_critic(py, handle, &input, &critic)
+                self.batch(py, handle, |engine| {
+                    engine.step_critic(handle, &input, &critic)
+                })?
             }
-        }
-        .map_err(|err| engine_error(py, err))?;
+        };
         for (count, step) in tracked.iter_mut().zip(&carried) {
             *count = i64::try_from(step + 1).unwrap_or(i64::MAX);
         }
-        probe_tuple(py, output, n)
+        shaped_tuple(py, [output.probes, output.applied], n, output.dim)
     }
 
     /// ReportBatch: returns the improved actions.
@@ -360,19 +326,12 @@ impl Engine {
         q_references: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let handle = &handle.get().inner;
-        let steps = Values::<u64>::steps(steps)?;
-        let q_values = Values::<f64>::floats(q_values)?;
-        let references = Values::<f64>::floats_or_empty(q_references)?;
-        let output = self
-            .batch(py, handle, |engine| {
-                engine.report(
-                    handle,
-                    steps.as_slice(),
-                    q_values.as_slice(),
-                    references.as_slice(),
-                )
-            })
-            .map_err(|err| engine_error(py, err))?;
+        let steps = Values::<u64>::steps(steps)?.owned();
+        let q_values = Values::<f64>::floats(q_values)?.owned();
+        let references = Values::<f64>::floats_or_empty(q_references)?.owned();
+        let output = self.batch(py, handle, |engine| {
+            engine.report(handle, &steps, &q_values, &references)
+        })?;
         shaped(py, output.actions, handle.len(), output.dim)
     }
 

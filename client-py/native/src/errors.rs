@@ -38,14 +38,9 @@ pub(crate) fn status_error<E: PyTypeInfo>(
 ) -> PyErr {
     let exc = PyErr::new::<E, _>(message.clone());
     let value = exc.value(py);
-    let attributes = (|| -> PyResult<()> {
-        value.setattr("code", code)?;
-        value.setattr("message", message)?;
-        value.setattr("index", index)?;
-        Ok(())
-    })();
-    match attributes {
-        Ok(()) => exc,
-        Err(failed) => failed,
-    }
+    let attributes = value
+        .setattr("code", code)
+        .and_then(|()| value.setattr("message", message))
+        .and_then(|()| value.setattr("index", index));
+    attributes.err().unwrap_or(exc)
 }

@@ -110,11 +110,6 @@ impl StepStats {
             sums.add(KL, kl / values);
         }
     }
-
-    /// Adds one step's `esa/improvement`: the critic at the applied minus at the sampled actions.
-    fn add_improvement_value(&self, value: f64) {
-        self.sums.lock().add(IMPROVEMENT, value);
-    }
 }
 
 /// Checks that `array` is a numpy array of shape `(N, dim)`.
@@ -181,7 +176,7 @@ impl StepStats {
 
     /// Adds one step's `esa/improvement`.
     fn add_improvement(&self, value: f64) {
-        self.add_improvement_value(value);
+        self.sums.lock().add(IMPROVEMENT, value);
     }
 
     /// Adds `count` to the count `key` (reported as a total, not a mean).
