@@ -3,8 +3,9 @@
 ``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)``, ``x = clip(a, low, high)``:
 the in-process engine evaluates it in the step's one call (``Engine.step_quadratic``), every
 other transport here at the probes; both give the same bits (at this D). Bad critics are
-refused before anything changes. ESAPPO's quadratic head hands the engine its closed form, equal to
-the torch head at the clipped action to float32 rounding.
+refused before anything changes. ESAPPO's quadratic head hands the engine its closed form
+(esa-core's forward pass on a copy of its weights), equal to the torch head at the clipped action
+to float32 rounding.
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
-from esa_client import EsaClient, EsaConfig, QuadraticCritic
-from esa_client.common.quadratic_head import CriticAtStep, QuadraticHead
+from esa_client import EsaClient, EsaConfig, QuadraticCritic, _native
+from esa_client.common.quadratic_head import CriticAtStep, QuadraticHead, Rollout, fit_critic
 from esa_client.sb3 import ESAPPO
 
 N, D = 3, 2
@@ -198,15 +199,56 @@ def test_esappo_hands_the_engine_the_quadratic_heads_closed_form(monkeypatch):
     assert worst[0] < 1e-6, worst
 
 
-@pytest.mark.parametrize(("features", "dim", "rows"), [(4, 1, 1), (11, 3, 8), (376, 17, 256)])
-def test_the_heads_coefficients_are_its_networks_bit_for_bit(features, dim, rows):
-    # coefficients() skips the module calls; the same kernels must give the same bits.
-    head = QuadraticHead(features, dim)
-    x, z = th.randn(rows, features), th.randn(rows, dim)
-    raw = head.net(x)
-    w, u = head.coefficients(x)
-    assert th.equal(w, raw[:, :dim]) and th.equal(u, -th.nn.functional.softplus(raw[:, dim:]))
-    ours = th.autograd.grad(head(x, z).sum(), list(head.parameters()))
-    plain = (raw[:, :dim] * z + (-th.nn.functional.softplus(raw[:, dim:])) * (z * z - 1)).sum()
-    theirs = th.autograd.grad(plain, list(head.parameters()))
-    assert all(th.equal(a, b) for a, b in zip(ours, theirs, strict=True))
+def head_values(head: QuadraticHead, features: th.Tensor, mean, std, points) -> np.ndarray:
+    """The closed form at ``points`` next to the torch head there."""
+    gain, curvature, offset = head.closed_form(features, mean, std)
+    closed = (gain * points + curvature * points * points).sum(axis=1) + offset
+    z = th.as_tensor((points - mean) / std, dtype=th.float32)
+    with th.no_grad():
+        torch_values = head(features, z).numpy().astype(np.float64)
+    return np.abs(closed - torch_values).max() / (np.abs(torch_values).max() + 1.0)
+
+
+def test_head_closed_form_follows_every_change_of_the_weights():
+    """esa-core's copy of the weights follows a fused Adam fit (which bumps no tensor version),
+    a state dict loaded in place, and stays with the module's own weights."""
+    th.manual_seed(0)
+    head, other = QuadraticHead(5, D, hidden=16), QuadraticHead(5, D, hidden=16)
+    features = th.randn(N, 5)
+    rng = np.random.default_rng(0)
+    mean, std = rng.normal(size=(N, D)), rng.uniform(0.2, 1.0, size=(N, D))
+    points = mean + rng.normal(size=(N, D)) * std
+    assert head_values(head, features, mean, std, points) < 1e-6
+    before = head.closed_form(features, mean, std)[0].copy()
+    optimizer = th.optim.Adam(head.parameters(), lr=0.1, fused=True)
+    rollout = Rollout(features, th.randn(N, D), th.randn(N))
+    fit_critic(head, optimizer, [rollout], epochs=3, batch_size=N, rng=rng)
+    assert not np.array_equal(head.closed_form(features, mean, std)[0], before)
+    assert head_values(head, features, mean, std, points) < 1e-6
+    head.load_state_dict(other.state_dict())
+    np.testing.assert_array_equal(
+        head.closed_form(features, mean, std)[0], other.closed_form(features, mean, std)[0]
+    )
+
+
+def test_native_head_refuses_bad_layers_and_inputs():
+    """Layers that do not chain, and inputs of the wrong size, non-finite or with std <= 0."""
+    w = np.zeros
+    good = [(w((4, 3)), w(4)), (w((4, 4)), w(4)), (w((2 * D, 4)), w(2 * D))]
+    with pytest.raises(ValueError, match="expected 3 layers, got 2"):
+        _native.QuadraticHead(good[:2])
+    with pytest.raises(ValueError, match="layer 1: expected a weight of 4 x 4 values, got 12"):
+        _native.QuadraticHead([good[0], (w((4, 3)), w(4)), good[2]])
+    with pytest.raises(ValueError, match="expected 2 D outputs"):
+        _native.QuadraticHead([good[0], good[1], (w((3, 4)), w(3))])
+    head = _native.QuadraticHead(good)
+    features, mean, std = np.zeros((N, 3)), np.zeros((N, D)), np.ones((N, D))
+    with pytest.raises(ValueError, match=r"expected features of N x 3 values"):
+        head.closed_form(np.zeros((N, 4)), mean, std)
+    for bad in (np.nan, np.inf):
+        with pytest.raises(ValueError, match="expected finite features and mean"):
+            head.closed_form(np.full((N, 3), bad), mean, std)
+    with pytest.raises(ValueError, match="a finite std > 0"):
+        head.closed_form(features, mean, np.zeros((N, D)))
+    gain, curvature, offset = head.closed_form(features, mean, std)
+    assert gain.shape == curvature.shape == (N, D) and offset.shape == (N,)

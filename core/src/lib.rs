@@ -46,6 +46,7 @@ pub mod footprint;
 pub mod fused_step;
 mod highpass;
 mod lanes;
+pub mod quadratic_head;
 mod session;
 mod sine;
 

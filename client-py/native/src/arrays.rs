@@ -57,9 +57,13 @@ impl<T: Element + Copy> Values<T> {
 
 impl Values<f64> {
     /// Float values (`actions`, `action_scales`, `q_values`, `q_references`), any shape, C order.
+    /// float32 is widened here: numpy's conversion costs more than the copy of a batch.
     pub(crate) fn floats(object: &Bound<'_, PyAny>) -> PyResult<Self> {
-        match Self::copied(object) {
-            Some(values) => Ok(values),
+        if let Some(values) = Self::copied(object) {
+            return Ok(values);
+        }
+        match Values::<f32>::copied(object) {
+            Some(narrow) => Ok(Values(narrow.0.into_iter().map(f64::from).collect())),
             None => Self::convert(object, "float64"),
         }
     }

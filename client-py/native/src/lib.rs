@@ -11,6 +11,7 @@
 //! - [`errors`]: the exceptions a refused call raises, `EngineError` and `StatusError`, each with
 //!   the gRPC status `code`, `message` and failing batch item `index`.
 //! - [`arrays`]: numpy arguments in, numpy arrays out.
+//! - [`quadratic_head`]: `QuadraticHead`, ESAPPO's head at a step's states (esa-core's).
 //! - [`step_ahead`]: `StepAhead`, the applied actions and probes of a pipelined step from the
 //!   shifts the previous step's answer carried.
 //! - [`step_stats`]: `StepStats`, the sums behind a learner's per-step ESA statistics.
@@ -24,6 +25,7 @@ mod client;
 mod engine;
 mod engine_class;
 mod errors;
+mod quadratic_head;
 mod step_ahead;
 mod step_stats;
 
@@ -37,6 +39,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<engine_class::Engine>()?;
     m.add_class::<engine_class::BatchHandle>()?;
     m.add_function(wrap_pyfunction!(engine_class::check_config, m)?)?;
+    m.add_class::<quadratic_head::QuadraticHead>()?;
     m.add_class::<step_ahead::StepAhead>()?;
     m.add_class::<step_stats::StepStats>()?;
     m.add("EngineError", py.get_type::<errors::EngineError>())?;

@@ -278,6 +278,42 @@ class Engine:
             TypeError: ``steps`` is not a one-dimensional int64 array.
         """
 
+class QuadraticHead:
+    """ESAPPO's quadratic head at a step's states: forward pass and closed form in one call.
+
+    :class:`esa_client.common.quadratic_head.QuadraticHead`'s forward pass in float32, its
+    closed form in float64.
+
+    Args:
+        layers: The ``(weight, bias)`` of its three linear layers, input first, each weight
+            ``(outputs, inputs)``.
+
+    Raises:
+        ValueError: If there are not 3 layers, their shapes do not chain, or the last one's
+            outputs are not ``2 D``.
+    """
+
+    def __init__(
+        self, layers: Sequence[tuple[npt.NDArray[np.floating], npt.NDArray[np.floating]]]
+    ) -> None: ...
+    def closed_form(
+        self,
+        features: npt.NDArray[np.floating],
+        mean: npt.NDArray[np.floating],
+        std: npt.NDArray[np.floating],
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """``(gain, curvature, offset)`` (``(N, D)``, ``(N, D)``, ``(N,)``) at N states.
+
+        Args:
+            features: The states' features, ``(N, F)``.
+            mean: The policy's mean, ``(N, D)``, in any units.
+            std: The policy's std, ``(N, D)``, in ``mean``'s units.
+
+        Raises:
+            ValueError: If a shape disagrees with the head, a value is not finite, or a std
+                is not positive.
+        """
+
 class StepStats:
     """The sums behind a learner's per-step ESA statistics (``esa/...`` in its log).
 

@@ -9,6 +9,7 @@ not trained on.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import cast
 
@@ -17,6 +18,7 @@ import torch as th
 from torch import nn
 from torch.nn import functional as F
 
+from .. import _native
 from ..transports.base import QuadraticCritic
 
 
@@ -39,28 +41,47 @@ class QuadraticHead(nn.Module):
         super().__init__()
         self.action_dim = action_dim
         self.net = mlp(features_dim, hidden, 2 * action_dim)
-        # For coefficients(); a tuple is no submodule, so the state_dict keeps its keys.
+        # For closed_form(); a tuple is no submodule, so the state_dict keeps its keys.
         self._linears = tuple(cast(nn.Linear, self.net[i]) for i in (0, 2, 4))
 
-    def coefficients(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        """``(w, u)`` at the features, each ``(batch, D)``; ``u <= 0``.
+    def closed_form(
+        self, features: th.Tensor, mean: np.ndarray, std: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(gain, curvature, offset)`` of :meth:`forward` over ``a = mu + sigma z``.
 
-        ``self.net``'s forward pass without its module calls: the same kernels, so the same
-        bits and autograd graph, at a fraction of the Python cost.
+        ``A = sum_j c_j a_j^2 + g_j a_j`` plus the offset, ``c = u / sigma^2``,
+        ``g = w / sigma - 2 c mu``, at ``(N, F)`` features for the policy's ``(N, D)`` mean and
+        std. esa-core's forward pass, on a copy of the weights taken when they last changed:
+        torch's per-op cost on one step's states is many times the arithmetic.
         """
-        first, second, third = self._linears
-        hidden = th.tanh(F.linear(features, first.weight, first.bias))
-        hidden = th.tanh(F.linear(hidden, second.weight, second.bias))
-        raw = F.linear(hidden, third.weight, third.bias)
-        # narrow is the slice that indexing makes, without indexing's parsing of its key.
-        dim = self.action_dim
-        return raw.narrow(1, 0, dim), -F.softplus(raw.narrow(1, dim, dim))
+        # _parameters, not .weight: a module's attribute lookup costs more than the forward.
+        layers = [cast(_Layer, tuple(layer._parameters.values())) for layer in self._linears]
+        versions = tuple((t.data_ptr(), t._version) for layer in layers for t in layer)
+        cached = _COPIES.get(self)
+        if cached is None or cached[0] != versions:
+            arrays = [
+                (weight.detach().cpu().numpy(), bias.detach().cpu().numpy())
+                for weight, bias in layers
+            ]
+            cached = _COPIES[self] = (versions, _native.QuadraticHead(arrays))
+        return cached[1].closed_form(features.detach().cpu().numpy(), mean, std)
 
     def forward(self, features: th.Tensor, z: th.Tensor) -> th.Tensor:
         """A for policy-normalized actions ``z``, shape ``(batch,)``."""
-        w, u = self.coefficients(features)
+        raw = self.net(features)
+        dim = self.action_dim
+        w, u = raw.narrow(1, 0, dim), -F.softplus(raw.narrow(1, dim, dim))
         value: th.Tensor = (w * z + u * (z * z - 1.0)).sum(dim=1)
         return value
+
+
+_Layer = tuple[th.Tensor, th.Tensor]
+_Versions = tuple[tuple[int, int], ...]
+_COPIES: weakref.WeakKeyDictionary[QuadraticHead, tuple[_Versions, _native.QuadraticHead]] = (
+    weakref.WeakKeyDictionary()
+)
+"""Each head's weights in esa-core, with the storage and version of each tensor they copy: not
+on the module, which pickles (RLlib ships it to its env runners) and esa-core's copy does not."""
 
 
 @dataclass
@@ -102,6 +123,8 @@ def fit_critic(
             loss.backward()
             optimizer.step()
             losses.append(loss.detach())
+    if isinstance(critic, QuadraticHead):  # a fused optimizer's step bumps no tensor version
+        _COPIES.pop(critic, None)
     return float(th.stack(losses).mean())
 
 
@@ -161,8 +184,7 @@ class CriticAtStep:
     def closed_form(self) -> QuadraticCritic:
         """The quadratic head at the N states as a critic over actions in ESA units.
 
-        With ``x = clip(a)``, ``A`` is ``sum_j c_j x_j^2 + g_j x_j`` plus an offset,
-        ``c = u / sigma^2 <= 0``, ``g = w / sigma - 2 c mu``: :meth:`__call__`'s values to
+        With ``x = clip(a)``, :meth:`QuadraticHead.closed_form`: :meth:`__call__`'s values to
         float32 rounding.
 
         Raises:
@@ -170,17 +192,7 @@ class CriticAtStep:
         """
         if not isinstance(self.critic, QuadraticHead):
             raise TypeError(f"expected a QuadraticHead, got {type(self.critic).__name__}")
-        with th.no_grad():
-            w_t, u_t = self.critic.coefficients(self.features)
-        w = w_t.cpu().numpy().astype(np.float64)
-        u = u_t.cpu().numpy().astype(np.float64)
-        # Widened once here rather than in each mixed-dtype op (the same values); sigma^2 is
-        # taken in sigma's own dtype, then widened.
-        square = (self.std * self.std).astype(np.float64)
-        mean, std = self.mean.astype(np.float64), self.std.astype(np.float64)
-        curvature = u / square
-        gain = w / std - 2.0 * curvature * mean
-        offset = (curvature * mean * mean - w * mean / std - u).sum(axis=1)
+        gain, curvature, offset = self.critic.closed_form(self.features, self.mean, self.std)
         return QuadraticCritic(gain, curvature, offset, self.low, self.high)
 
     def gradient(self, actions: np.ndarray) -> np.ndarray:
