@@ -45,6 +45,14 @@ impl<T: Element + Copy> Values<T> {
             .map_err(|err| PyValueError::new_err(err.to_string()))
     }
 
+    /// [`Self::copied`], else [`Self::convert`] to `dtype`.
+    pub(crate) fn read(object: &Bound<'_, PyAny>, dtype: &str) -> PyResult<Self> {
+        match Self::copied(object) {
+            Some(values) => Ok(values),
+            None => Self::convert(object, dtype),
+        }
+    }
+
     pub(crate) fn as_slice(&self) -> &[T] {
         &self.0
     }
@@ -77,10 +85,7 @@ impl Values<f64> {
 impl Values<bool> {
     /// Episode-start flags.
     pub(crate) fn bools(object: &Bound<'_, PyAny>) -> PyResult<Self> {
-        match Self::copied(object) {
-            Some(values) => Ok(values),
-            None => Self::convert(object, "bool"),
-        }
+        Self::read(object, "bool")
     }
 }
 

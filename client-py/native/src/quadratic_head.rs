@@ -13,10 +13,7 @@ use crate::arrays::{shaped, Values};
 pub(crate) struct QuadraticHead(head::QuadraticHead);
 
 fn floats32(object: &Bound<'_, PyAny>) -> PyResult<Vec<f32>> {
-    match Values::<f32>::copied(object) {
-        Some(values) => Ok(values.owned()),
-        None => Values::convert(object, "float32").map(Values::owned),
-    }
+    Values::read(object, "float32").map(Values::owned)
 }
 
 fn refused(err: esa_core::CoreError) -> PyErr {
