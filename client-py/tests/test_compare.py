@@ -166,7 +166,15 @@ def test_too_few_seeds_is_when_no_outcome_could_be_significant(seeds, tests, dec
 def test_ctrl_c_leaves_no_half_written_run(tmp_path, settings):
     out = tmp_path / "out"
     command = [sys.executable, "-m", "esa_client.compare", *args(out, settings)]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    process = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        # As at a terminal: a test run in the background inherits SIGINT ignored, and Python
+        # then raises no KeyboardInterrupt.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     deadline = time.monotonic() + 120
     while not (out / "rules.json").is_file() and time.monotonic() < deadline:
         time.sleep(0.2)

@@ -15,6 +15,7 @@ from esa_client import (
     EsaClient,
     InvalidArgument,
     LinearCritic,
+    QuadraticCritic,
     ServerUnavailable,
     SessionConfig,
     StatusCode,
@@ -71,7 +72,13 @@ def curved(critic: LinearCritic):
     return q
 
 
-CRITICS = {"linear": lambda critic: critic, "curved": curved}
+def quadratic(critic: LinearCritic) -> QuadraticCritic:
+    """A concave quadratic critic in a box (evaluated by esa-core), from a linear one's numbers."""
+    box = np.array([0.5, 1.0])
+    return QuadraticCritic(critic.gain, -np.abs(critic.gain[:, ::-1]), critic.offset, -box, box)
+
+
+CRITICS = {"linear": lambda critic: critic, "curved": curved, "quadratic": quadratic}
 
 
 def comparable(states):
@@ -182,6 +189,28 @@ def test_bad_critic_values_are_refused_at_once_and_nothing_is_sent(native, paire
     batch.close()
 
 
+def test_a_bad_quadratic_critic_is_refused_at_once_in_every_transports_words(native):
+    batch = native.create_batch(CONFIG, N, use_stream=True)
+    actions, scales, critic, starts = next(script(1, seed=5))
+    good = quadratic(critic)
+    batch.step(actions, good, starts, action_scales=scales)
+    before, tracked = comparable(batch.states()), batch.steps
+    for bad, match in [
+        (good._replace(curvature=-good.curvature), "critic: expected curvature <= 0"),
+        (good._replace(gain=good.gain[:2]), r"critic: expected gain of shape \(3, 2\)"),
+        (good._replace(offset=np.full(N, np.nan)), "critic: expected a finite offset"),
+        (good._replace(low=good.high, high=good.low), "critic: expected low <= high"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            batch.step(actions, bad, action_scales=scales)
+        np.testing.assert_array_equal(batch.steps, tracked)
+    assert comparable(batch.states()) == before
+    batch.step(actions, good, action_scales=scales)
+    batch.flush()
+    np.testing.assert_array_equal(batch.steps, tracked + 1)
+    batch.close()
+
+
 def test_bad_actions_are_refused_at_once_and_nothing_is_sent(native):
     batch = native.create_batch(CONFIG, N, use_stream=True)
     actions, scales, critic, starts = next(script(1, seed=4))
@@ -274,15 +303,32 @@ def test_step_ahead_refuses_bad_configs_and_arrays():
         (zeros, zeros, np.array([[1.0, 1.0], [0.0, 1.0]]), r"item 1: .*action_scale\[0\]"),
     ]:
         with pytest.raises(EngineError, match=match) as refused:
-            applier(shifts, actions, scales)
-        assert refused.value.code == StatusCode.INVALID_ARGUMENT
-        with pytest.raises(EngineError, match=match) as refused:
             applier.probes(shifts, np.zeros(2, np.uint64), actions, scales)
         assert refused.value.code == StatusCode.INVALID_ARGUMENT
     with pytest.raises(EngineError, match="steps: expected 2 values, got 3"):
         applier.probes(zeros, np.zeros(3, np.uint64), zeros)
     with pytest.raises((ValueError, OverflowError), match="step"):
         applier.probes(zeros, np.array([0, -1]), zeros)
+
+
+@pytest.mark.parametrize("paired", [False, True])
+def test_the_quadratic_critics_values_come_with_the_probes(paired):
+    applier = StepAhead([CONFIG.to_proto().SerializeToString()] * N)
+    for t, (actions, scales, linear, _) in enumerate(script(20, seed=6)):
+        critic, shifts, steps = quadratic(linear), 0.1 * actions[::-1], np.full(N, t)
+        probes, applied, q, refs = applier.probes_quadratic(
+            shifts, steps, actions, scales, critic, paired
+        )
+        np.testing.assert_array_equal(
+            (probes, applied), applier.probes(shifts, steps, actions, scales)
+        )
+        np.testing.assert_array_equal(q, critic(probes))
+        assert refs is None if not paired else np.array_equal(refs, critic(applied))
+    with pytest.raises(EngineError, match="critic_curvatures: expected values <= 0") as refused:
+        applier.probes_quadratic(
+            shifts, steps, actions, scales, critic._replace(curvature=-critic.curvature), paired
+        )
+    assert refused.value.code == StatusCode.INVALID_ARGUMENT
 
 
 def test_probes_ahead_are_the_servers_probes(native):

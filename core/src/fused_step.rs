@@ -13,14 +13,15 @@ use crate::{CoreError, ReportOutcome, Session};
 
 /// What [`step`] reports: the critic's values at a step's probes (and at its applied actions).
 pub trait StepCritic {
-    /// Checks the critic against the sessions before anything is probed.
-    fn check(&self, sessions: &[&mut Session]) -> Result<(), BatchError>;
+    /// Checks the critic against the items' action dimensions before anything is probed.
+    fn check(&self, dims: &[usize]) -> Result<(), BatchError>;
 
     /// `(q_values, q_references)` at the probes and the applied actions (both concatenated like
-    /// the actions): one value per item each, the references empty for none.
+    /// the actions, of the items' action dimensions `dims`): one value per item each, the
+    /// references empty for none.
     fn values(
         &self,
-        sessions: &[&mut Session],
+        dims: &[usize],
         probes: &[f64],
         applied: &[f64],
     ) -> (Cow<'_, [f64]>, Cow<'_, [f64]>);
@@ -41,13 +42,12 @@ pub struct LinearCritic<'a> {
 
 impl LinearCritic<'_> {
     /// `Q_i` at `actions` (concatenated like the gains), one value per item.
-    fn at(&self, sessions: &[&mut Session], actions: &[f64]) -> Vec<f64> {
+    fn at(&self, dims: &[usize], actions: &[f64]) -> Vec<f64> {
         let mut start = 0;
-        sessions
-            .iter()
+        dims.iter()
             .zip(self.offsets)
-            .map(|(session, &offset)| {
-                let end = start + session.action_dim();
+            .map(|(&dim, &offset)| {
+                let end = start + dim;
                 let dot: f64 = self.gains[start..end]
                     .iter()
                     .zip(&actions[start..end])
@@ -62,22 +62,22 @@ impl LinearCritic<'_> {
 
 impl StepCritic for LinearCritic<'_> {
     /// The lengths against the sessions' dimensions, and that every value is finite.
-    fn check(&self, sessions: &[&mut Session]) -> Result<(), BatchError> {
-        let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
+    fn check(&self, dims: &[usize]) -> Result<(), BatchError> {
+        let total: usize = dims.iter().sum();
         check_coefficients(&[
             ("critic_gains", self.gains, total),
-            ("critic_offsets", self.offsets, sessions.len()),
+            ("critic_offsets", self.offsets, dims.len()),
         ])
     }
 
     fn values(
         &self,
-        sessions: &[&mut Session],
+        dims: &[usize],
         probes: &[f64],
         applied: &[f64],
     ) -> (Cow<'_, [f64]>, Cow<'_, [f64]>) {
         closed_form_values(
-            |actions| self.at(sessions, actions),
+            |actions| self.at(dims, actions),
             self.paired,
             probes,
             applied,
@@ -136,16 +136,14 @@ pub struct QuadraticCritic<'a> {
 
 impl QuadraticCritic<'_> {
     /// `Q_i` at `actions` (concatenated like the gains), one value per item.
-    fn at(&self, sessions: &[&mut Session], actions: &[f64]) -> Vec<f64> {
+    fn at(&self, dims: &[usize], actions: &[f64]) -> Vec<f64> {
         let (mut gains, mut curvatures) = (self.gains.iter(), self.curvatures.iter());
         let mut points = actions.iter();
         // Empty for an unbounded box: the action itself.
         let mut bounds = self.lows.iter().zip(self.highs);
-        sessions
-            .iter()
+        dims.iter()
             .zip(self.offsets)
-            .map(|(session, &offset)| {
-                let dim = session.action_dim();
+            .map(|(&dim, &offset)| {
                 let sum: f64 = gains
                     .by_ref()
                     .take(dim)
@@ -169,12 +167,12 @@ impl QuadraticCritic<'_> {
 impl StepCritic for QuadraticCritic<'_> {
     /// The lengths against the sessions' dimensions, finite coefficients, curvatures `<= 0`, and
     /// bounds (none or one pair per value) with `low <= high`.
-    fn check(&self, sessions: &[&mut Session]) -> Result<(), BatchError> {
-        let total: usize = sessions.iter().map(|s| s.action_dim()).sum();
+    fn check(&self, dims: &[usize]) -> Result<(), BatchError> {
+        let total: usize = dims.iter().sum();
         check_coefficients(&[
             ("critic_gains", self.gains, total),
             ("critic_curvatures", self.curvatures, total),
-            ("critic_offsets", self.offsets, sessions.len()),
+            ("critic_offsets", self.offsets, dims.len()),
         ])?;
         if let Some(bad) = self.curvatures.iter().find(|&&c| c > 0.0) {
             return Err(BatchError::Request(format!(
@@ -203,12 +201,12 @@ impl StepCritic for QuadraticCritic<'_> {
 
     fn values(
         &self,
-        sessions: &[&mut Session],
+        dims: &[usize],
         probes: &[f64],
         applied: &[f64],
     ) -> (Cow<'_, [f64]>, Cow<'_, [f64]>) {
         closed_form_values(
-            |actions| self.at(sessions, actions),
+            |actions| self.at(dims, actions),
             self.paired,
             probes,
             applied,
@@ -229,10 +227,10 @@ pub struct CriticValues<'a> {
 
 impl StepCritic for CriticValues<'_> {
     /// The lengths only: the report checks each value (and names the item of a bad one).
-    fn check(&self, sessions: &[&mut Session]) -> Result<(), BatchError> {
+    fn check(&self, dims: &[usize]) -> Result<(), BatchError> {
         batch::check_report_lengths(
-            sessions.len(),
-            sessions.len(),
+            dims.len(),
+            dims.len(),
             self.q_values.len(),
             self.q_references.len(),
         )
@@ -240,7 +238,7 @@ impl StepCritic for CriticValues<'_> {
 
     fn values(
         &self,
-        _sessions: &[&mut Session],
+        _dims: &[usize],
         _probes: &[f64],
         _applied: &[f64],
     ) -> (Cow<'_, [f64]>, Cow<'_, [f64]>) {
@@ -269,7 +267,11 @@ pub fn step(
     on_outcome: impl FnMut(usize, ReportOutcome),
 ) -> Result<(), BatchError> {
     batch::check_probe_lengths(sessions.len(), steps.len(), episode_starts.len())?;
-    critic.check(sessions)?;
+    let dims: Vec<usize> = sessions
+        .iter()
+        .map(|session| session.action_dim())
+        .collect();
+    critic.check(&dims)?;
     let before: Vec<Session> = sessions.iter().map(|session| (**session).clone()).collect();
     let marks = (probes.len(), applied.len());
     batch::probe(
@@ -281,7 +283,7 @@ pub fn step(
         probes,
         applied,
     )?;
-    let (q_values, references) = critic.values(sessions, &probes[marks.0..], &applied[marks.1..]);
+    let (q_values, references) = critic.values(&dims, &probes[marks.0..], &applied[marks.1..]);
     let mut improved = Vec::new();
     let reported = batch::report(
         sessions,

@@ -159,3 +159,19 @@ pub(crate) fn shaped_tuple<'py, const K: usize>(
         .collect::<PyResult<Vec<_>>>()?;
     PyTuple::new(py, arrays)
 }
+
+/// A box's `[low, high]` bounds (D values each, or None: empty) repeated for the `n` items of a
+/// batch of `values` action values: as many as the actions, or as given (esa-core then names a
+/// bad length).
+pub(crate) fn tiled(
+    bounds: [Option<&Bound<'_, PyAny>>; 2],
+    n: usize,
+    values: usize,
+) -> PyResult<[Vec<f64>; 2]> {
+    let tile = |bound| -> PyResult<Vec<f64>> {
+        let bound = Values::<f64>::floats_or_empty(bound)?.owned();
+        let short = !bound.is_empty() && bound.len() != values && bound.len() * n == values;
+        Ok(if short { bound.repeat(n) } else { bound })
+    };
+    Ok([tile(bounds[0])?, tile(bounds[1])?])
+}

@@ -16,7 +16,7 @@ use esa_core::{CoreError, SessionConfig};
 use esa_proto::v1 as pb;
 use esa_store::{Error, DEFAULT_MAX_SESSIONS};
 
-use crate::arrays::{shaped, shaped_tuple, Values};
+use crate::arrays::{shaped, shaped_tuple, tiled, Values};
 use crate::engine;
 use crate::errors::engine_error;
 
@@ -75,16 +75,6 @@ impl Engine {
         } else {
             self.call(py, run)
         }
-    }
-}
-
-/// `bounds` (the box's D bounds, or none) repeated for the `n` items of a batch of `values`
-/// action values: as many as the actions, or empty (esa-core then names a bad length).
-fn tiled(bounds: &[f64], n: usize, values: usize) -> Vec<f64> {
-    if !bounds.is_empty() && bounds.len() != values && bounds.len() * n == values {
-        bounds.repeat(n)
-    } else {
-        bounds.to_vec()
     }
 }
 
@@ -294,8 +284,7 @@ impl Engine {
             }
             Some(curvature) => {
                 let curvatures = Values::<f64>::floats(curvature)?.owned();
-                let lows = tiled(Values::<f64>::floats_or_empty(low)?.as_slice(), n, values);
-                let highs = tiled(Values::<f64>::floats_or_empty(high)?.as_slice(), n, values);
+                let [lows, highs] = tiled([low, high], n, values)?;
                 let critic = QuadraticCritic {
                     gains: &gains,
                     curvatures: &curvatures,

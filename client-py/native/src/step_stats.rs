@@ -53,27 +53,8 @@ impl Sums {
 }
 
 impl StepStats {
-    /// Checks that `sampled` and `applied` hold N D values each and `scales` as many or none.
-    fn check(&self, sampled: &[f64], applied: &[f64], scales: &[f64]) -> PyResult<()> {
-        let dim = self.clip_low.len();
-        if sampled.len() != applied.len()
-            || !sampled.len().is_multiple_of(dim)
-            || !(scales.is_empty() || scales.len() == sampled.len())
-        {
-            return Err(PyValueError::new_err(format!(
-                "expected sampled, applied (and scales) of N x {dim} values each, got {}, {} \
-                 and {}",
-                sampled.len(),
-                applied.len(),
-                scales.len()
-            )));
-        }
-        Ok(())
-    }
-
     /// Adds one step of N envs: `sampled` and `applied` (N D values), `scales` the policy's
-    /// std in the same units (N D values) or empty, as `check` requires. Cannot fail: callers
-    /// check first.
+    /// std in the same units (N D values) or empty. Cannot fail: `add_step` checks first.
     fn add(&self, sampled: &[f64], applied: &[f64], scales: &[f64]) {
         let dim = self.clip_low.len();
         if sampled.is_empty() {
@@ -112,18 +93,25 @@ impl StepStats {
     }
 }
 
-/// Checks that `array` is a numpy array of shape `(N, dim)`.
-fn check_width(array: &Bound<'_, PyAny>, dim: usize, name: &str) -> PyResult<()> {
+/// The N rows of `array`, a numpy array of shape `(N, dim)`, N = `rows` when given.
+fn rows_of(
+    array: &Bound<'_, PyAny>,
+    rows: Option<usize>,
+    dim: usize,
+    name: &str,
+) -> PyResult<usize> {
     let array = array.cast::<PyUntypedArray>().map_err(|_| {
         PyTypeError::new_err(format!(
             "{name}: expected a numpy array of shape (N, {dim})"
         ))
     })?;
     match array.shape() {
-        [_, width] if *width == dim => Ok(()),
-        shape => Err(PyValueError::new_err(format!(
-            "expected {name} of shape (N, {dim}), got {shape:?}"
-        ))),
+        [n, width] if *width == dim && rows.is_none_or(|rows| rows == *n) => Ok(*n),
+        shape => {
+            let rows = rows.map_or("N".to_owned(), |rows| rows.to_string());
+            let message = format!("expected {name} of shape ({rows}, {dim}), got {shape:?}");
+            Err(PyValueError::new_err(message))
+        }
     }
 }
 
@@ -156,21 +144,14 @@ impl StepStats {
         scales: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<()> {
         let dim = self.clip_low.len();
-        for (array, name) in [
-            (Some(sampled), "sampled"),
-            (Some(applied), "applied"),
-            (scales, "scales"),
-        ] {
-            if let Some(array) = array {
-                check_width(array, dim, name)?;
-            }
+        let rows = Some(rows_of(sampled, None, dim, "sampled")?);
+        rows_of(applied, rows, dim, "applied")?;
+        if let Some(scales) = scales {
+            rows_of(scales, rows, dim, "scales")?;
         }
         let (sampled, applied) = (Values::floats(sampled)?, Values::floats(applied)?);
         let scales = Values::floats_or_empty(scales)?;
-        let (sampled, applied, scales) =
-            (sampled.as_slice(), applied.as_slice(), scales.as_slice());
-        self.check(sampled, applied, scales)?;
-        self.add(sampled, applied, scales);
+        self.add(sampled.as_slice(), applied.as_slice(), scales.as_slice());
         Ok(())
     }
 

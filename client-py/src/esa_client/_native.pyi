@@ -521,19 +521,6 @@ class StepAhead:
     """
 
     def __init__(self, configs: list[bytes]) -> None: ...
-    def __call__(
-        self,
-        shifts: npt.ArrayLike,
-        actions: npt.ArrayLike,
-        action_scales: npt.ArrayLike | None = None,
-    ) -> npt.NDArray[np.float64]:
-        """The applied actions, float64[N, D], for shifts, actions and scales of shape (N, D).
-
-        Raises:
-            EngineError: A length does not match, an action is not finite or a scale not
-                finite and > 0 (INVALID_ARGUMENT, ``index`` names the session).
-        """
-
     def probes(
         self,
         shifts: npt.ArrayLike,
@@ -543,8 +530,39 @@ class StepAhead:
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """``(probes, applied)``, each float64[N, D], of step ``steps[i]`` (shape (N,)).
 
+        ``shifts``, ``actions`` and ``action_scales`` (None: 1) are of shape (N, D).
+
         Raises:
-            EngineError: As :meth:`__call__`, or ``steps`` not of length N.
+            EngineError: A length does not match, an action is not finite or a scale not
+                finite and > 0 (INVALID_ARGUMENT, ``index`` names the session).
+            ValueError: ``steps`` not non-negative integers.
+        """
+
+    def probes_quadratic(
+        self,
+        shifts: npt.ArrayLike,
+        steps: npt.ArrayLike,
+        actions: npt.ArrayLike,
+        action_scales: npt.ArrayLike | None,
+        critic: tuple[
+            npt.ArrayLike, npt.ArrayLike, npt.ArrayLike, npt.ArrayLike | None, npt.ArrayLike | None
+        ],
+        paired: bool,
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64] | None,
+    ]:
+        """:meth:`probes`, and a quadratic critic's values there: ``(probes, applied, q, refs)``.
+
+        ``critic`` is a ``QuadraticCritic`` (``(gain, curvature, offset, low, high)``), checked
+        and evaluated as the in-process engine does (esa-core's code, the same bits); ``q`` is
+        its values at the probes, float64[N], ``refs`` at the applied actions when ``paired``,
+        else None.
+
+        Raises:
+            EngineError: As :meth:`probes`, or a bad critic (INVALID_ARGUMENT).
             ValueError: ``steps`` not non-negative integers.
         """
 

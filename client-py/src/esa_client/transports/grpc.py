@@ -19,6 +19,7 @@ from .._native import GrpcBatch as NativeBatch
 from ..errors import TypedErrors
 from ..state import BoolArray, F64Array, I64Array, SessionProgress, check_array
 from .base import BatchProbe, BatchReport, BatchTransport, LinearCritic, PipelinedBatch
+from .messages import QuadraticCritic
 from .native_calls import NativeSessionCalls
 from .stepping import Critic, StepCall, Stepper, check_critic
 
@@ -149,7 +150,8 @@ class AheadStepper(Stepper):
     def step(self, batch: SessionBatch, call: StepCall) -> tuple[F64Array | None, F64Array]:
         """The step sent ahead (see :meth:`~esa_client.SessionBatch.step`)."""
         critic, paired = call.critic, call.paired
-        check_critic(critic, batch.n, batch.action_dim)
+        if not isinstance(critic, QuadraticCritic):  # esa-core checks it (see _send)
+            check_critic(critic, batch.n, batch.action_dim)
         batch.flush()
         ledger = batch.ledger
         request = ledger.probe_request(call.actions, call.episode_starts, None, call.action_scales)
@@ -197,15 +199,21 @@ class AheadStepper(Stepper):
         shifts = np.zeros((batch.n, batch.action_dim)) if self._shifts is None else self._shifts
         if request.episode_starts.any():
             shifts = np.where(request.episode_starts[:, None], 0.0, shifts)
+        ahead = (shifts, request.steps, request.actions, request.action_scales)
+        if isinstance(critic, QuadraticCritic):  # checked and evaluated as in-process
+            try:
+                with _engine_errors:
+                    probes, applied, q, refs = self._engine.probes_quadratic(*ahead, critic, paired)
+            except ValueError:
+                check_critic(critic, batch.n, batch.action_dim)  # in every transport's words
+                raise
+            self._ahead.send_step(request, q, refs)
+            return probes, applied
+        with _engine_errors:
+            probes, applied = self._engine.probes(*ahead)
         if isinstance(critic, LinearCritic):  # the server evaluates it
-            with _engine_errors:
-                applied: F64Array = self._engine(shifts, request.actions, request.action_scales)
             self._ahead.send_step_linear(request, critic, paired)
             return None, applied
-        with _engine_errors:
-            probes, applied = self._engine.probes(
-                shifts, request.steps, request.actions, request.action_scales
-            )
         points = np.concatenate([probes, applied]) if paired else probes
         q = check_array(critic(points), (len(points),), "critic values", finite=True)
         self._ahead.send_step(request, q[: batch.n], q[batch.n :] if paired else None)

@@ -69,7 +69,7 @@ class QuadraticCritic(NamedTuple):
     ``Q_i(a) = offset_i + sum_j (gain_ij x_j + curvature_ij x_j^2)`` with
     ``x = clip(a, low, high)``, the action the environment executes, and every
     ``curvature_ij <= 0`` (ESAPPO's quadratic head). An in-process engine evaluates it
-    itself; other transports evaluate it here at the probes.
+    itself, as does the gRPC StepStream's step sent ahead; other transports evaluate it here.
 
     Attributes:
         gain: ``gain_i`` per session and dimension, shape ``(N, D)``.
