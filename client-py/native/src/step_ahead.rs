@@ -31,8 +31,7 @@ type Any<'py> = Bound<'py, PyAny>;
 pub(crate) struct StepAhead {
     /// Fresh sessions of the configs: only their configs are read.
     sessions: Vec<Session>,
-    dim: Option<usize>,
-    /// Each session's action dimension (all `dim`), as esa-core's critics take them.
+    /// Each session's action dimension (all one), as esa-core's critics take them.
     dims: Vec<usize>,
 }
 
@@ -55,12 +54,7 @@ impl StepAhead {
             )));
         }
         let dims = vec![dim; sessions.len()];
-        let dim = Some(dim);
-        Ok(Self {
-            sessions,
-            dim,
-            dims,
-        })
+        Ok(Self { sessions, dims })
     }
 
     /// `(probes, applied)` of the step `steps` (one per session), each `(N, D)`.
@@ -74,7 +68,7 @@ impl StepAhead {
         action_scales: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyTuple>> {
         let (probes, applied) = self.ahead(py, shifts, steps, actions, action_scales)?;
-        shaped_tuple(py, [probes, applied], self.sessions.len(), self.dim)
+        shaped_tuple(py, [probes, applied], self.sessions.len(), self.dim())
     }
 
     /// `(probes, applied, q_values, q_references)` of the step `steps`, with the values of the
@@ -111,7 +105,7 @@ impl StepAhead {
         let (probes, applied) = self.ahead(py, shifts, steps, actions, action_scales)?;
         let (q_values, q_references) = critic.values(&self.dims, &probes, &applied);
         let references = paired.then(|| q_references.into_owned().into_pyarray(py));
-        let [probes, applied] = [probes, applied].map(|values| shaped(py, values, n, self.dim));
+        let [probes, applied] = [probes, applied].map(|values| shaped(py, values, n, self.dim()));
         let q_values = q_values.into_owned().into_pyarray(py);
         (probes?, applied?, q_values, references).into_pyobject(py)
     }
@@ -122,6 +116,11 @@ impl StepAhead {
 }
 
 impl StepAhead {
+    /// The action dimension D of every session.
+    fn dim(&self) -> Option<usize> {
+        self.dims.first().copied()
+    }
+
     /// esa-core's `probes_ahead` of the arrays as Python gives them.
     fn ahead(
         &self,
